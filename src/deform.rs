@@ -1,0 +1,575 @@
+//! The whole method: scale-driven deformation (Sec. 2.4: Eq. 3 then Eq. 7,
+//! iterated) followed by the fine-tune with hard constraints (Eq. 8, solved by
+//! sequential linearly constrained Newton steps through the Schur complement of
+//! Eqs. 15-18 on a Hessian factored once).
+
+use crate::job::{Job, MetricKind, SolverSpec};
+use crate::metrics::{Constraint, Selection, VolumeShare};
+use crate::scale_factors::{Regulariser, ScaleConstraint, ScaleFactorSystem};
+use crate::schur::{constrained_step, Linearized, Multipliers};
+use crate::selection::{build_curve, build_handle_vertices, build_region};
+use crate::shape::{HandleTarget, ShapeModel, ShapeWeights};
+use crate::topology::Topology;
+use crate::validate::{require_closed, validate, MeshCheck};
+use crate::{Error, Mesh, Result};
+use glam::DVec3;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// How the E_m target of each vertex is scaled (Eq. 21).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum CurvatureTarget {
+    /// `c_i` = area-weighted mean scale factor around vertex i (pitfall (b); default).
+    #[default]
+    Scaled,
+    /// `c_i` = 1 (Eq. 5 as printed), except in curvature regions.
+    Literal,
+}
+
+/// Solver settings (`[solver]` of the job file, with defaults).
+#[derive(Debug, Clone)]
+pub struct Options {
+    pub tolerance: f64,
+    /// Cap on scale-driven (outer) iterations.
+    pub max_iterations: usize,
+    pub fine_tune_iterations: usize,
+    /// Stop the scale-driven phase when max |s - 1| falls below this.
+    pub scale_threshold: f64,
+    pub shape: ShapeWeights,
+    /// Weights of the fine-tune (Eq. 8; the paper uses k_f, k_m, k_l = 1, 100, 100).
+    pub fine_tune: ShapeWeights,
+    pub k_d: f64,
+    pub k_r: f64,
+    pub multipliers: Multipliers,
+    pub regulariser: Regulariser,
+    pub curvature_target: CurvatureTarget,
+    pub volume_share: VolumeShare,
+    /// `--preview N`: stop the scale-driven phase after N iterations, skip the fine-tune.
+    pub preview: Option<usize>,
+}
+
+impl Default for Options {
+    fn default() -> Self {
+        Options {
+            tolerance: 1e-5,
+            max_iterations: 100,
+            fine_tune_iterations: 50,
+            scale_threshold: 0.01,
+            shape: ShapeWeights {
+                k_f: 1000.0,
+                k_m: 1.0,
+                k_l: 1.0,
+                k_p: 1000.0,
+            },
+            fine_tune: ShapeWeights {
+                k_f: 1.0,
+                k_m: 100.0,
+                k_l: 100.0,
+                k_p: 1000.0,
+            },
+            k_d: 1.0,
+            k_r: 0.01,
+            multipliers: Multipliers::PerConstraint,
+            regulariser: Regulariser::Area,
+            curvature_target: CurvatureTarget::Scaled,
+            volume_share: VolumeShare::Area,
+            preview: None,
+        }
+    }
+}
+
+impl Options {
+    /// Defaults overridden by the job's `[solver]` table.
+    pub fn from_spec(spec: &SolverSpec) -> Options {
+        let mut o = Options::default();
+        if let Some(t) = spec.tolerance {
+            o.tolerance = t;
+        }
+        if let Some(m) = spec.max_iterations {
+            o.max_iterations = m;
+        }
+        if let Some(m) = spec.fine_tune_iterations {
+            o.fine_tune_iterations = m;
+        }
+        if let Some(t) = spec.scale_threshold {
+            o.scale_threshold = t;
+        }
+        if let Some(w) = &spec.weights {
+            if let Some(v) = w.k_f {
+                o.shape.k_f = v;
+            }
+            if let Some(v) = w.k_m {
+                o.shape.k_m = v;
+            }
+            if let Some(v) = w.k_l {
+                o.shape.k_l = v;
+            }
+            if let Some(v) = w.k_p {
+                o.shape.k_p = v;
+                o.fine_tune.k_p = v;
+            }
+            if let Some(v) = w.k_d {
+                o.k_d = v;
+            }
+            if let Some(v) = w.k_r {
+                o.k_r = v;
+            }
+        }
+        match spec.multipliers.as_deref() {
+            Some("per_kind") => o.multipliers = Multipliers::PerKind,
+            _ => o.multipliers = Multipliers::PerConstraint,
+        }
+        if spec.regulariser.as_deref() == Some("uniform") {
+            o.regulariser = Regulariser::Uniform;
+        }
+        if spec.curvature_target.as_deref() == Some("literal") {
+            o.curvature_target = CurvatureTarget::Literal;
+        }
+        if spec.volume_share.as_deref() == Some("tetrahedra") {
+            o.volume_share = VolumeShare::Tetrahedra;
+        }
+        o
+    }
+}
+
+/// A curvature region of Eq. 21: its vertices and factor.
+#[derive(Debug, Clone)]
+pub struct CurvatureRegion {
+    pub vertices: Vec<u32>,
+    pub scale: f64,
+}
+
+/// A job resolved on its mesh: everything the solver needs.
+pub struct Problem {
+    pub mesh_path: PathBuf,
+    pub mesh: Mesh,
+    pub topo: Topology,
+    pub check: MeshCheck,
+    pub constraints: Vec<Constraint>,
+    pub handles: Vec<HandleTarget>,
+    pub curvature: Vec<CurvatureRegion>,
+}
+
+impl Problem {
+    /// Read the job's mesh and resolve every selection on it.
+    pub fn load(job: &Job) -> Result<Problem> {
+        let mesh_path = job.mesh_path();
+        let mesh = crate::io::read_mesh(&mesh_path)?;
+        Problem::build(job, mesh, &mesh_path)
+    }
+
+    /// Resolve the job's selections on an already loaded mesh.
+    pub fn build(job: &Job, mesh: Mesh, mesh_path: &Path) -> Result<Problem> {
+        let topo = Topology::build(&mesh);
+        let check = validate(&mesh, &topo, mesh_path)?;
+        let x = &mesh.positions;
+        let mut constraints = Vec::new();
+        for (i, spec) in job.spec.constraint.iter().enumerate() {
+            let label = job.constraint_label(i);
+            let (selection, orientation) = match spec.kind {
+                MetricKind::Length => {
+                    let curve = spec.curve.as_ref().ok_or_else(|| {
+                        Error::bad(format!("{label}: a length constraint needs a curve"))
+                    })?;
+                    (
+                        Selection::Curve(build_curve(curve, &mesh, &topo, &label)?),
+                        1.0,
+                    )
+                }
+                MetricKind::Area => {
+                    let region = spec.region.as_ref().ok_or_else(|| {
+                        Error::bad(format!("{label}: an area constraint needs a region"))
+                    })?;
+                    (
+                        Selection::Region(build_region(region, &mesh, job, &label)?),
+                        1.0,
+                    )
+                }
+                MetricKind::Volume => {
+                    require_closed(&check, mesh_path, &label)?;
+                    let v = mesh.signed_volume(x);
+                    if v == 0.0 || !v.is_finite() {
+                        return Err(Error::bad(format!(
+                            "{label}: the mesh {} encloses no volume",
+                            mesh_path.display()
+                        )));
+                    }
+                    (Selection::Whole, v.signum())
+                }
+            };
+            let mut c = Constraint {
+                kind: spec.kind,
+                name: spec
+                    .name
+                    .clone()
+                    .unwrap_or_else(|| format!("{} {}", spec.kind, i)),
+                selection,
+                original: 0.0,
+                target: 0.0,
+                orientation,
+            };
+            c.original = c.measure(&mesh, x);
+            if !(c.original > 0.0) || !c.original.is_finite() {
+                return Err(Error::bad(format!(
+                    "{label}: the {} measures {} on the input mesh",
+                    spec.kind, c.original
+                )));
+            }
+            c.target = match (spec.scale, spec.value) {
+                (Some(s), None) => s * c.original,
+                (None, Some(v)) => v,
+                (None, None) => c.original,
+                (Some(_), Some(_)) => {
+                    return Err(Error::bad(format!(
+                        "{label}: give either scale or value, not both"
+                    )))
+                }
+            };
+            constraints.push(c);
+        }
+        let mut handles = Vec::new();
+        for (i, h) in job.spec.handle.iter().enumerate() {
+            let what = format!("handle {i}");
+            let t = h.translate.unwrap_or([0.0; 3]);
+            let t = DVec3::from_array(t);
+            for v in build_handle_vertices(h, &mesh, job, &what)? {
+                handles.push(HandleTarget {
+                    vertex: v,
+                    target: x[v as usize] + t,
+                });
+            }
+        }
+        let mut curvature = Vec::new();
+        for (i, c) in job.spec.curvature.iter().enumerate() {
+            let what = format!("curvature {i}");
+            if !(c.scale.is_finite()) {
+                return Err(Error::bad(format!("{what}: scale must be a finite number")));
+            }
+            let region = build_region(&c.region, &mesh, job, &what)?;
+            curvature.push(CurvatureRegion {
+                vertices: region.vertices(&mesh),
+                scale: c.scale,
+            });
+        }
+        Ok(Problem {
+            mesh_path: mesh_path.to_path_buf(),
+            mesh,
+            topo,
+            check,
+            constraints,
+            handles,
+            curvature,
+        })
+    }
+}
+
+/// Progress of a run, for the progress bar.
+#[derive(Debug, Clone)]
+pub enum Progress {
+    ScaleDriven {
+        iteration: usize,
+        max_error: f64,
+        max_scale_change: f64,
+    },
+    FineTune {
+        iteration: usize,
+        max_error: f64,
+    },
+}
+
+/// What a run produced.
+#[derive(Debug, Clone)]
+pub struct Outcome {
+    pub positions: Vec<DVec3>,
+    pub scale_driven_iterations: usize,
+    pub fine_tune_iterations: usize,
+    pub seconds_scale_driven: f64,
+    pub seconds_fine_tune: f64,
+    /// Per-face scale factor of the result relative to the input (sqrt of the area ratio).
+    pub face_scale: Vec<f64>,
+    /// Why the scale-driven phase stopped.
+    pub stop_reason: String,
+}
+
+/// Largest relative metric error.
+pub fn max_error(p: &Problem, x: &[DVec3]) -> f64 {
+    p.constraints
+        .iter()
+        .map(|c| c.residual(&p.mesh, x).abs())
+        .fold(0.0, f64::max)
+}
+
+/// Run the method on a resolved problem.
+pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> Result<Outcome> {
+    let mesh = &p.mesh;
+    let x0 = &mesh.positions;
+    let nf = mesh.num_faces();
+    let n = mesh.num_vertices();
+    let t0 = Instant::now();
+    let areas0 = mesh.face_areas(x0);
+    let groups: Vec<usize> = p
+        .constraints
+        .iter()
+        .map(|c| match c.kind {
+            MetricKind::Length => 0,
+            MetricKind::Area => 1,
+            MetricKind::Volume => 2,
+        })
+        .collect();
+    // Compact group ids so that per-kind grouping has no empty group.
+    let groups = compact(&groups);
+
+    let mut model = ShapeModel::new(mesh, &p.topo, p.handles.clone())?;
+    let mut curvature_factor = vec![1.0; n];
+    for r in &p.curvature {
+        for &v in &r.vertices {
+            curvature_factor[v as usize] *= r.scale;
+        }
+    }
+    let has_curvature = !p.curvature.is_empty();
+    let has_handles = !p.handles.is_empty();
+
+    let mut x = x0.clone();
+    let mut best = (max_error(p, &x), x.clone());
+    let mut iterations = 0usize;
+    let mut history: Vec<f64> = Vec::new();
+    let mut stop_reason = String::from("no constraints");
+    let cap = o.preview.unwrap_or(o.max_iterations);
+    if !p.constraints.is_empty() || has_handles || has_curvature {
+        let mut scale_system = if p.constraints.is_empty() {
+            None
+        } else {
+            Some(ScaleFactorSystem::new(
+                &p.topo.face_pairs,
+                &areas0,
+                o.k_d,
+                o.k_r,
+                o.regulariser,
+            )?)
+        };
+        stop_reason = "iteration cap".into();
+        loop {
+            let areas = mesh.face_areas(&x);
+            // Eq. 3: scale factors on the current mesh.
+            let (s, max_ds) = match scale_system.as_mut() {
+                Some(sys) => {
+                    let cons: Vec<ScaleConstraint> = p
+                        .constraints
+                        .iter()
+                        .zip(&groups)
+                        .map(|(c, &g)| ScaleConstraint {
+                            coeffs: c.face_coefficients(mesh, &x, &areas, o.volume_share),
+                            degree: c.degree(),
+                            target: c.target,
+                            group: g,
+                        })
+                        .collect();
+                    let (s, _info) = sys.estimate(&cons, o.multipliers)?;
+                    let m = s.iter().fold(0.0f64, |m, v| m.max((v - 1.0).abs()));
+                    (s, m)
+                }
+                None => (vec![1.0; nf], 0.0),
+            };
+            let err = max_error(p, &x);
+            progress(Progress::ScaleDriven {
+                iteration: iterations,
+                max_error: err,
+                max_scale_change: max_ds,
+            });
+            // Stopping rule (Sec. 2.4) plus stagnation and the cap.
+            let first_free_step = iterations == 0 && (has_handles || has_curvature);
+            if max_ds < o.scale_threshold && !first_free_step {
+                stop_reason = format!(
+                    "max |s - 1| = {max_ds:.2e} below the threshold {}",
+                    o.scale_threshold
+                );
+                break;
+            }
+            if iterations >= cap {
+                break;
+            }
+            if history.len() >= 4 {
+                let old = history[history.len() - 4];
+                if max_ds > 0.9 * old {
+                    stop_reason = format!(
+                        "stagnation: max |s - 1| = {max_ds:.3} after {iterations} iterations"
+                    );
+                    break;
+                }
+            }
+            history.push(max_ds);
+            // c_i: area-weighted mean scale factor around each vertex (Eq. 21).
+            let mut c = vec![1.0; n];
+            if o.curvature_target == CurvatureTarget::Scaled {
+                let mut num = vec![0.0; n];
+                let mut den = vec![0.0; n];
+                for (f, t) in mesh.faces.iter().enumerate() {
+                    for &v in t {
+                        num[v as usize] += areas[f] * s[f];
+                        den[v as usize] += areas[f];
+                    }
+                }
+                for v in 0..n {
+                    if den[v] > 0.0 {
+                        c[v] = num[v] / den[v];
+                    }
+                }
+            }
+            if iterations == 0 && has_curvature {
+                for v in 0..n {
+                    c[v] *= curvature_factor[v];
+                }
+            }
+            // Eq. 7 / 19.
+            model.assemble_and_factor(mesh, &x, &s, &c, &o.shape)?;
+            x = model.solve_unconstrained(&x)?;
+            iterations += 1;
+            let e = max_error(p, &x);
+            if e < best.0 || has_handles || has_curvature {
+                best = (e, x.clone());
+            }
+        }
+    }
+    let t1 = Instant::now();
+    let mut x = best.1;
+    let mut ft_iterations = 0;
+    if o.preview.is_none() && !p.constraints.is_empty() {
+        let (xf, it) = fine_tune(p, o, &mut model, &groups, &x, progress)?;
+        x = xf;
+        ft_iterations = it;
+    }
+    let t2 = Instant::now();
+    let face_scale = (0..nf)
+        .map(|f| {
+            let a = mesh.face_area(&x, f);
+            if areas0[f] > 0.0 {
+                (a / areas0[f]).sqrt()
+            } else {
+                1.0
+            }
+        })
+        .collect();
+    Ok(Outcome {
+        positions: x,
+        scale_driven_iterations: iterations,
+        fine_tune_iterations: ft_iterations,
+        seconds_scale_driven: (t1 - t0).as_secs_f64(),
+        seconds_fine_tune: (t2 - t1).as_secs_f64(),
+        face_scale,
+        stop_reason,
+    })
+}
+
+fn compact(groups: &[usize]) -> Vec<usize> {
+    let mut ids: Vec<usize> = groups.to_vec();
+    ids.sort_unstable();
+    ids.dedup();
+    groups
+        .iter()
+        .map(|g| ids.binary_search(g).unwrap())
+        .collect()
+}
+
+/// Eq. 8 (and Eq. 20 with handles): minimise the shape energy relative to the
+/// scale-driven result subject to the metrics as hard constraints.
+fn fine_tune(
+    p: &Problem,
+    o: &Options,
+    model: &mut ShapeModel,
+    groups: &[usize],
+    xstart: &[DVec3],
+    progress: &mut dyn FnMut(Progress),
+) -> Result<(Vec<DVec3>, usize)> {
+    let mesh = &p.mesh;
+    let n = mesh.num_vertices();
+    let nf = mesh.num_faces();
+    let ones_f = vec![1.0; nf];
+    let ones_v = vec![1.0; n];
+    // One factorization for the whole fine-tune (symbolic analysis reused).
+    model.assemble_and_factor(mesh, xstart, &ones_f, &ones_v, &o.fine_tune)?;
+    let goal = 0.01 * o.tolerance;
+    let mut dx = vec![0.0; 3 * n];
+    let apply = |dx: &[f64]| -> Vec<DVec3> {
+        (0..n)
+            .map(|v| xstart[v] + DVec3::new(dx[3 * v], dx[3 * v + 1], dx[3 * v + 2]))
+            .collect()
+    };
+    let mut x = xstart.to_vec();
+    let mut mu: f64 = 0.0;
+    let mut it = 0;
+    let residuals =
+        |x: &[DVec3]| -> Vec<f64> { p.constraints.iter().map(|c| c.residual(mesh, x)).collect() };
+    let merit = |model: &ShapeModel, dx: &[f64], c: &[f64], mu: f64| -> f64 {
+        model.energy(dx) + mu * c.iter().map(|v| v.abs()).sum::<f64>()
+    };
+    let mut c = residuals(&x);
+    while it < o.fine_tune_iterations {
+        let err = c.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        progress(Progress::FineTune {
+            iteration: it,
+            max_error: err,
+        });
+        if err <= goal {
+            break;
+        }
+        let g = model.gradient_at(&dx);
+        let neg: Vec<f64> = g.iter().map(|v| -v).collect();
+        let rows: Vec<Vec<f64>> = p
+            .constraints
+            .iter()
+            .map(|con| {
+                let mut r = vec![0.0; 3 * n];
+                con.add_gradient(mesh, &x, 1.0 / con.target, &mut r);
+                for v in 0..n {
+                    if model.fixed[v] {
+                        r[3 * v..3 * v + 3].iter_mut().for_each(|e| *e = 0.0);
+                    }
+                }
+                r
+            })
+            .collect();
+        let mut lin = Linearized {
+            values: c.clone(),
+            rows,
+        };
+        if o.multipliers == Multipliers::PerKind {
+            lin = lin.grouped(groups);
+        }
+        let step = constrained_step(model.solver(), &neg, &lin)?;
+        let lam_max = match o.multipliers {
+            Multipliers::PerConstraint => step.lambda.iter().fold(0.0f64, |m, l| m.max(l.abs())),
+            Multipliers::PerKind => groups
+                .iter()
+                .zip(&c)
+                .map(|(&g, cj)| (2.0 * step.lambda[g] * cj).abs())
+                .fold(0.0, f64::max),
+        };
+        mu = mu.max(2.0 * lam_max + 1e-6);
+        let phi0 = merit(model, &dx, &c, mu);
+        let mut alpha = 1.0;
+        let mut accepted = false;
+        while alpha > 1.0 / 1024.0 {
+            let trial: Vec<f64> = dx
+                .iter()
+                .zip(&step.dx)
+                .map(|(a, b)| a + alpha * b)
+                .collect();
+            let xt = apply(&trial);
+            let ct = residuals(&xt);
+            if merit(model, &trial, &ct, mu) < phi0 {
+                dx = trial;
+                x = xt;
+                c = ct;
+                accepted = true;
+                break;
+            }
+            alpha *= 0.5;
+        }
+        it += 1;
+        if !accepted {
+            log::info!("fine-tune: line search stalled at iteration {it}");
+            break;
+        }
+    }
+    Ok((x, it))
+}

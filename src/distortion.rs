@@ -1,0 +1,67 @@
+//! Quasi-conformal distortion (paper Fig. 17): per face, the ratio of the larger to
+//! the smaller singular value of the affine map from the input triangle to the
+//! output triangle; 1.0 is a similarity (uniform scale and rotation).
+
+use crate::Mesh;
+use glam::DVec3;
+
+/// Distortion of one face: sigma_max / sigma_min (infinity for a collapsed face).
+pub fn face_ratio(a: [DVec3; 3], b: [DVec3; 3]) -> f64 {
+    // Input triangle in its own orthonormal 2D frame.
+    let e1 = a[1] - a[0];
+    let e2 = a[2] - a[0];
+    let u = e1.normalize();
+    let nrm = e1.cross(e2);
+    let w = nrm.normalize().cross(u);
+    let (x1, x2, y2) = (e1.length(), e2.dot(u), e2.dot(w));
+    let det = x1 * y2;
+    if det == 0.0 || !det.is_finite() {
+        return f64::INFINITY;
+    }
+    // J = [f1 f2] * inv([[x1, x2], [0, y2]]) with f the output edges (3x2 map).
+    let f1 = b[1] - b[0];
+    let f2 = b[2] - b[0];
+    let j1 = f1 / x1;
+    let j2 = (f2 - j1 * x2) / y2;
+    // Singular values from the 2x2 Gram matrix.
+    let (p, q, r) = (j1.dot(j1), j1.dot(j2), j2.dot(j2));
+    let tr = p + r;
+    let disc = ((p - r) * (p - r) + 4.0 * q * q).sqrt();
+    let l1 = 0.5 * (tr + disc);
+    let l2 = (0.5 * (tr - disc)).max(0.0);
+    if l2 <= 0.0 {
+        return f64::INFINITY;
+    }
+    (l1 / l2).sqrt()
+}
+
+/// (area-weighted mean over faces with input area as weight, max).
+pub fn quasi_conformal(mesh: &Mesh, input: &[DVec3], output: &[DVec3]) -> (f64, f64) {
+    let mut sum = 0.0;
+    let mut wsum = 0.0;
+    let mut max = 1.0f64;
+    for f in 0..mesh.num_faces() {
+        let r = face_ratio(mesh.corners(input, f), mesh.corners(output, f));
+        let a = mesh.face_area(input, f);
+        if r.is_finite() {
+            sum += a * r;
+            wsum += a;
+        }
+        max = max.max(r);
+    }
+    (if wsum > 0.0 { sum / wsum } else { 1.0 }, max)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    #[test]
+    fn similarity_is_one_and_shear_is_not() {
+        let a = [DVec3::ZERO, DVec3::X, DVec3::Y];
+        let rot = glam::DQuat::from_rotation_z(0.7);
+        let b = a.map(|p| 2.5 * (rot * p) + DVec3::new(1.0, 2.0, 3.0));
+        assert!((face_ratio(a, b) - 1.0).abs() < 1e-12);
+        let c = a.map(|p| DVec3::new(3.0 * p.x, p.y, 0.0));
+        assert!((face_ratio(a, c) - 3.0).abs() < 1e-12);
+    }
+}

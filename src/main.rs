@@ -1,0 +1,419 @@
+//! `metricdeform`: the command line of the contract (deform, measure, adapters, demo).
+
+use clap::{Parser, Subcommand, ValueEnum};
+use indicatif::{ProgressBar, ProgressStyle};
+use metricdeform::deform::{deform, Options, Problem, Progress};
+use metricdeform::job::{Job, JobFormat};
+use metricdeform::report::{
+    constraint_rows, explain_miss, peak_memory_mb, table, Distortion, Iterations, MeshInfo, Report,
+    Seconds,
+};
+use metricdeform::{distortion, io, Error};
+use std::io::IsTerminal;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::time::Instant;
+
+const DEMO_JOB: &str = include_str!("../examples/spot-demo.toml");
+const DEMO_MESH: &str = include_str!("../data/meshes/spot.obj");
+
+#[derive(Parser)]
+#[command(
+    name = "metricdeform",
+    version,
+    about = "Deform a triangle mesh so that demanded lengths, areas and volumes hold exactly"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Copy, Clone, Debug, PartialEq, Eq, ValueEnum)]
+enum Backend {
+    Auto,
+    Cpu,
+    Gpu,
+}
+
+#[derive(clap::Args, Clone)]
+struct RunArgs {
+    /// auto (GPU when an adapter exists, else CPU), cpu or gpu. Default: METRICDEFORM_BACKEND, the job's [solver] backend, else auto.
+    #[arg(long, value_enum)]
+    backend: Option<Backend>,
+    /// Output mesh (overrides the job's `output`).
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Write the JSON report here.
+    #[arg(long)]
+    report: Option<PathBuf>,
+    /// Stop the scale-driven phase after N iterations and skip the fine-tune.
+    #[arg(long, value_name = "N")]
+    preview: Option<usize>,
+    /// Write a PNG of input and result side by side (not available yet).
+    #[arg(long)]
+    render: Option<PathBuf>,
+    /// No progress output (warnings still go to stderr).
+    #[arg(long)]
+    quiet: bool,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Deform the job's mesh so that its constraints hold.
+    Deform {
+        /// Job file (.toml or .json).
+        job: PathBuf,
+        #[command(flatten)]
+        args: RunArgs,
+    },
+    /// Print the metrics of the input mesh, no deformation.
+    Measure {
+        job: PathBuf,
+        #[arg(long)]
+        report: Option<PathBuf>,
+    },
+    /// List the GPU adapters and which one `--backend gpu` would use.
+    Adapters,
+    /// Run the bundled job on spot (no files needed).
+    Demo {
+        #[command(flatten)]
+        args: RunArgs,
+    },
+}
+
+fn main() -> ExitCode {
+    env_logger::Builder::from_env(env_logger::Env::default().default_filter_or("warn")).init();
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Deform { job, args } => Job::load(&job).and_then(|j| run(&j, &args)),
+        Command::Measure { job, report } => {
+            Job::load(&job).and_then(|j| measure(&j, report.as_deref()))
+        }
+        Command::Adapters => adapters(),
+        Command::Demo { args } => demo(&args),
+    };
+    match result {
+        Ok(code) => ExitCode::from(code),
+        Err(e) => {
+            eprintln!("error: {e}");
+            ExitCode::from(e.exit_code() as u8)
+        }
+    }
+}
+
+fn adapters() -> Result<u8, Error> {
+    match solver_gpu::open() {
+        Ok(never) => match never {},
+        Err(why) => {
+            println!("no GPU adapter in use: {why}");
+            println!("`--backend gpu` would fail; `--backend auto` uses the CPU.");
+        }
+    }
+    Ok(0)
+}
+
+fn demo(args: &RunArgs) -> Result<u8, Error> {
+    let dir = std::env::temp_dir().join(format!("metricdeform-demo-{}", std::process::id()));
+    std::fs::create_dir_all(dir.join("data/meshes")).map_err(|source| Error::Io {
+        path: dir.clone(),
+        source,
+    })?;
+    let mesh = dir.join("data/meshes/spot.obj");
+    std::fs::write(&mesh, DEMO_MESH).map_err(|source| Error::Io {
+        path: mesh.clone(),
+        source,
+    })?;
+    let mut job = Job::from_str(
+        DEMO_JOB,
+        JobFormat::Toml,
+        &dir.join("examples"),
+        "demo job (examples/spot-demo.toml)",
+    )?;
+    job.spec.mesh = PathBuf::from("../data/meshes/spot.obj");
+    let mut args = args.clone();
+    if args.out.is_none() {
+        args.out = Some(PathBuf::from("spot.deformed.obj"));
+    }
+    let result = run(&job, &args);
+    let _ = std::fs::remove_dir_all(&dir);
+    result
+}
+
+/// Resolve the backend: flag, then the job, then METRICDEFORM_BACKEND, then auto.
+fn choose_backend(
+    flag: Option<Backend>,
+    job: &Job,
+    quiet: bool,
+) -> Result<(String, Option<String>), Error> {
+    let from_env = std::env::var("METRICDEFORM_BACKEND")
+        .ok()
+        .filter(|s| !s.is_empty());
+    let name = match flag {
+        Some(Backend::Auto) => "auto".to_string(),
+        Some(Backend::Cpu) => "cpu".to_string(),
+        Some(Backend::Gpu) => "gpu".to_string(),
+        None => job
+            .spec
+            .solver
+            .backend
+            .clone()
+            .or(from_env)
+            .unwrap_or_else(|| "auto".into()),
+    };
+    match name.as_str() {
+        "cpu" => Ok(("cpu".into(), None)),
+        "gpu" => match solver_gpu::open() {
+            Ok(never) => match never {},
+            Err(why) => Err(Error::bad(format!("--backend gpu: no usable GPU adapter: {why}"))),
+        },
+        "auto" => {
+            let why = match solver_gpu::open() {
+                Ok(never) => match never {},
+                Err(why) => why,
+            };
+            let _ = quiet;
+            eprintln!("backend: cpu (auto: no GPU backend available: {why})");
+            Ok(("cpu".into(), None))
+        }
+        other => Err(Error::bad(format!(
+            "unknown backend '{other}' (from METRICDEFORM_BACKEND or the job): expected auto, cpu or gpu"
+        ))),
+    }
+}
+
+fn check_writable_dir(path: &Path, what: &str) -> Result<(), Error> {
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
+        _ => PathBuf::from("."),
+    };
+    if !dir.is_dir() {
+        return Err(Error::bad(format!(
+            "{what} {}: directory {} does not exist",
+            path.display(),
+            dir.display()
+        )));
+    }
+    Ok(())
+}
+
+fn run(job: &Job, args: &RunArgs) -> Result<u8, Error> {
+    let t0 = Instant::now();
+    if args.render.is_some() {
+        return Err(Error::bad("--render is not available in this version"));
+    }
+    let (backend, adapter) = choose_backend(args.backend, job, args.quiet)?;
+    let out_path = args.out.clone().unwrap_or_else(|| job.output_path());
+    check_writable_dir(&out_path, "output")?;
+    if let Some(r) = &args.report {
+        check_writable_dir(r, "report")?;
+    }
+    let mut options = Options::from_spec(&job.spec.solver);
+    options.preview = args.preview;
+    let problem = Problem::load(job)?;
+    if same_file(&out_path, &problem.mesh_path) {
+        return Err(Error::bad(format!(
+            "output {} is the input mesh: the input is never modified",
+            out_path.display()
+        )));
+    }
+    let t_load = t0.elapsed().as_secs_f64();
+
+    let bar = progress_bar(args.quiet);
+    let plain = !args.quiet && !std::io::stderr().is_terminal();
+    let mut on_progress = |p: Progress| match p {
+        Progress::ScaleDriven {
+            iteration,
+            max_error,
+            max_scale_change,
+        } => {
+            let msg = format!(
+                "scale-driven iteration {iteration}: max metric error {:.3e} %, max |s-1| {max_scale_change:.3e}",
+                max_error * 100.0
+            );
+            if plain {
+                eprintln!("{msg}");
+            } else if let Some(b) = &bar {
+                b.set_message(msg);
+                b.tick();
+            }
+        }
+        Progress::FineTune {
+            iteration,
+            max_error,
+        } => {
+            let msg = format!(
+                "fine-tune iteration {iteration}: max metric error {:.3e} %",
+                max_error * 100.0
+            );
+            if plain {
+                eprintln!("{msg}");
+            } else if let Some(b) = &bar {
+                b.set_message(msg);
+                b.tick();
+            }
+        }
+    };
+    let outcome = deform(&problem, &options, &mut on_progress)?;
+    if let Some(b) = bar {
+        b.finish_and_clear();
+    }
+    let mut x = outcome.positions.clone();
+    if out_path
+        .extension()
+        .map(|e| e.eq_ignore_ascii_case("stl"))
+        .unwrap_or(false)
+    {
+        // STL stores f32: measure what is written.
+        for p in x.iter_mut() {
+            *p = p.as_vec3().as_dvec3();
+        }
+    }
+    io::write_mesh(
+        &out_path,
+        &problem.mesh,
+        &outcome.positions,
+        Some(&problem.mesh_path),
+    )?;
+    let rows = constraint_rows(&problem, &x, options.tolerance);
+    let satisfied = rows.iter().all(|r| r.met);
+    let reason = if satisfied {
+        None
+    } else {
+        explain_miss(&problem, &rows, Some(&outcome))
+    };
+    let (qc_mean, qc_max) = distortion::quasi_conformal(&problem.mesh, &problem.mesh.positions, &x);
+    let report = Report {
+        mesh: MeshInfo {
+            path: problem.mesh_path.display().to_string(),
+            vertices: problem.mesh.num_vertices(),
+            faces: problem.mesh.num_faces(),
+        },
+        output: Some(out_path.display().to_string()),
+        backend,
+        adapter,
+        constraints: rows.clone(),
+        satisfied,
+        iterations: Iterations {
+            scale_driven: outcome.scale_driven_iterations,
+            fine_tune: outcome.fine_tune_iterations,
+        },
+        seconds: Seconds {
+            total: t0.elapsed().as_secs_f64(),
+            load: t_load,
+            scale_driven: outcome.seconds_scale_driven,
+            fine_tune: outcome.seconds_fine_tune,
+        },
+        distortion: Distortion {
+            quasi_conformal_mean: qc_mean,
+            quasi_conformal_max: qc_max,
+        },
+        reason: reason.clone(),
+        peak_memory_mb: peak_memory_mb(),
+    };
+    print!("{}", table(&rows));
+    println!(
+        "distortion: quasi-conformal mean {:.4}, max {:.4}; iterations: {} scale-driven, {} fine-tune; {:.2} s",
+        qc_mean, qc_max, report.iterations.scale_driven, report.iterations.fine_tune, report.seconds.total
+    );
+    println!("wrote {}", out_path.display());
+    if let Some(r) = &reason {
+        println!("NOT SATISFIED: {r}");
+        eprintln!("warning: {r}");
+    }
+    if let Some(path) = &args.report {
+        write_report(path, &report)?;
+    }
+    Ok(if satisfied { 0 } else { 3 })
+}
+
+fn measure(job: &Job, report_path: Option<&Path>) -> Result<u8, Error> {
+    let t0 = Instant::now();
+    if let Some(r) = report_path {
+        check_writable_dir(r, "report")?;
+    }
+    let options = Options::from_spec(&job.spec.solver);
+    let problem = Problem::load(job)?;
+    let x = &problem.mesh.positions;
+    let rows = constraint_rows(&problem, x, options.tolerance);
+    print!("{}", table(&rows));
+    let report = Report {
+        mesh: MeshInfo {
+            path: problem.mesh_path.display().to_string(),
+            vertices: problem.mesh.num_vertices(),
+            faces: problem.mesh.num_faces(),
+        },
+        output: None,
+        backend: "none".into(),
+        adapter: None,
+        satisfied: rows.iter().all(|r| r.met),
+        constraints: rows,
+        iterations: Iterations {
+            scale_driven: 0,
+            fine_tune: 0,
+        },
+        seconds: Seconds {
+            total: t0.elapsed().as_secs_f64(),
+            load: t0.elapsed().as_secs_f64(),
+            scale_driven: 0.0,
+            fine_tune: 0.0,
+        },
+        distortion: Distortion {
+            quasi_conformal_mean: 1.0,
+            quasi_conformal_max: 1.0,
+        },
+        reason: None,
+        peak_memory_mb: peak_memory_mb(),
+    };
+    if let Some(p) = report_path {
+        write_report(p, &report)?;
+    }
+    Ok(0)
+}
+
+fn write_report(path: &Path, report: &Report) -> Result<(), Error> {
+    let text = serde_json::to_string_pretty(report).map_err(|e| Error::Internal(e.to_string()))?;
+    let tmp = path.with_file_name(format!(
+        ".{}.tmp-{}",
+        path.file_name()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_default(),
+        std::process::id()
+    ));
+    let res = std::fs::write(&tmp, text + "\n").and_then(|_| std::fs::rename(&tmp, path));
+    if let Err(source) = res {
+        let _ = std::fs::remove_file(&tmp);
+        return Err(Error::Io {
+            path: path.to_path_buf(),
+            source,
+        });
+    }
+    Ok(())
+}
+
+fn same_file(a: &Path, b: &Path) -> bool {
+    match (
+        std::fs::canonicalize(b),
+        a.parent().map(|p| {
+            if p.as_os_str().is_empty() {
+                Path::new(".")
+            } else {
+                p
+            }
+        }),
+    ) {
+        (Ok(cb), Some(pa)) => match (std::fs::canonicalize(pa), a.file_name()) {
+            (Ok(ca), Some(name)) => ca.join(name) == cb,
+            _ => false,
+        },
+        _ => false,
+    }
+}
+
+fn progress_bar(quiet: bool) -> Option<ProgressBar> {
+    if quiet || !std::io::stderr().is_terminal() {
+        return None;
+    }
+    let b = ProgressBar::new_spinner();
+    b.set_style(ProgressStyle::with_template("{spinner} [{elapsed}] {msg}").unwrap());
+    Some(b)
+}

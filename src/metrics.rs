@@ -1,0 +1,194 @@
+//! The metrics users demand (paper Sec. 3): curve length, region area, enclosed
+//! volume. Each is measured in vertex positions `x` (with its gradient, for the
+//! hard constraints of Eqs. 10, 12, 14) and written as a polynomial in per-face
+//! scale factors `s` (for the scale-factor estimation of Eqs. 9, 11, 13).
+
+use crate::job::MetricKind;
+use crate::mesh::Mesh;
+use crate::selection::{Curve, Region};
+use glam::DVec3;
+
+/// What a constraint measures.
+#[derive(Debug, Clone)]
+pub enum Selection {
+    Curve(Curve),
+    Region(Region),
+    /// The whole (closed) mesh.
+    Whole,
+}
+
+/// How each face contributes to the volume in the scale-factor step (pitfall (c)).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum VolumeShare {
+    /// Each face carries an area share of the current volume (origin-independent; default).
+    #[default]
+    Area,
+    /// Each face carries its signed tetrahedron to the origin (paper Sec. 3.3, literal).
+    Tetrahedra,
+}
+
+/// One demanded metric, resolved on the input mesh.
+#[derive(Debug, Clone)]
+pub struct Constraint {
+    pub kind: MetricKind,
+    pub name: String,
+    pub selection: Selection,
+    /// Value on the input mesh.
+    pub original: f64,
+    /// Demanded value.
+    pub target: f64,
+    /// Sign of the input's signed volume (an inward-oriented mesh has -1).
+    pub orientation: f64,
+}
+
+impl Constraint {
+    /// The metric on positions `x` (volume as a positive number for the input's orientation).
+    pub fn measure(&self, mesh: &Mesh, x: &[DVec3]) -> f64 {
+        match &self.selection {
+            Selection::Curve(c) => c.length(mesh, x),
+            Selection::Region(r) => r.faces.iter().map(|&f| mesh.face_area(x, f as usize)).sum(),
+            Selection::Whole => match self.kind {
+                MetricKind::Volume => self.orientation * mesh.signed_volume(x),
+                _ => (0..mesh.num_faces()).map(|f| mesh.face_area(x, f)).sum(),
+            },
+        }
+    }
+
+    /// Relative residual `C = measure / target - 1` (the hard constraint of Eq. 8).
+    pub fn residual(&self, mesh: &Mesh, x: &[DVec3]) -> f64 {
+        self.measure(mesh, x) / self.target - 1.0
+    }
+
+    /// Adds `factor * d measure / d x` into `grad` (length 3n, dof 3v+r).
+    pub fn add_gradient(&self, mesh: &Mesh, x: &[DVec3], factor: f64, grad: &mut [f64]) {
+        let mut add = |v: u32, g: DVec3| {
+            let i = 3 * v as usize;
+            grad[i] += factor * g.x;
+            grad[i + 1] += factor * g.y;
+            grad[i + 2] += factor * g.z;
+        };
+        match &self.selection {
+            Selection::Curve(c) => {
+                for seg in &c.segments {
+                    let t = mesh.faces[seg.face as usize];
+                    let d = point(x, &t, &seg.b) - point(x, &t, &seg.a);
+                    let len = d.length();
+                    if len <= 0.0 {
+                        continue;
+                    }
+                    let u = d / len;
+                    for k in 0..3 {
+                        add(t[k], (seg.b[k] - seg.a[k]) * u);
+                    }
+                }
+            }
+            Selection::Region(r) => {
+                for &f in &r.faces {
+                    area_gradient(mesh, x, f as usize, &mut add);
+                }
+            }
+            Selection::Whole => match self.kind {
+                MetricKind::Volume => {
+                    let s = self.orientation / 6.0;
+                    for t in &mesh.faces {
+                        let [a, b, c] = [x[t[0] as usize], x[t[1] as usize], x[t[2] as usize]];
+                        add(t[0], s * b.cross(c));
+                        add(t[1], s * c.cross(a));
+                        add(t[2], s * a.cross(b));
+                    }
+                }
+                _ => {
+                    for f in 0..mesh.num_faces() {
+                        area_gradient(mesh, x, f, &mut add);
+                    }
+                }
+            },
+        }
+    }
+
+    /// Degree of the metric in the per-face scale factor (1 length, 2 area, 3 volume).
+    pub fn degree(&self) -> i32 {
+        match self.kind {
+            MetricKind::Length => 1,
+            MetricKind::Area => 2,
+            MetricKind::Volume => 3,
+        }
+    }
+
+    /// Per-face coefficients `c_f` so that the metric after scaling face f by `s_f`
+    /// is `sum_f c_f s_f^degree` (Eqs. 9, 11, 13), on current positions `x`.
+    pub fn face_coefficients(
+        &self,
+        mesh: &Mesh,
+        x: &[DVec3],
+        areas: &[f64],
+        share: VolumeShare,
+    ) -> Vec<(u32, f64)> {
+        match &self.selection {
+            Selection::Curve(c) => {
+                let mut out: Vec<(u32, f64)> = Vec::with_capacity(c.segments.len());
+                for seg in &c.segments {
+                    let t = mesh.faces[seg.face as usize];
+                    let l = (point(x, &t, &seg.b) - point(x, &t, &seg.a)).length();
+                    out.push((seg.face, l));
+                }
+                merge(out)
+            }
+            Selection::Region(r) => r.faces.iter().map(|&f| (f, areas[f as usize])).collect(),
+            Selection::Whole => match self.kind {
+                MetricKind::Volume => match share {
+                    VolumeShare::Area => {
+                        let vol = self.orientation * mesh.signed_volume(x);
+                        let total: f64 = areas.iter().sum();
+                        (0..mesh.num_faces())
+                            .map(|f| (f as u32, vol * areas[f] / total))
+                            .collect()
+                    }
+                    VolumeShare::Tetrahedra => (0..mesh.num_faces())
+                        .map(|f| {
+                            let [a, b, c] = mesh.corners(x, f);
+                            (f as u32, self.orientation * a.dot(b.cross(c)) / 6.0)
+                        })
+                        .collect(),
+                },
+                _ => (0..mesh.num_faces())
+                    .map(|f| (f as u32, areas[f]))
+                    .collect(),
+            },
+        }
+    }
+}
+
+#[inline]
+fn point(x: &[DVec3], t: &[u32; 3], bary: &[f64; 3]) -> DVec3 {
+    bary[0] * x[t[0] as usize] + bary[1] * x[t[1] as usize] + bary[2] * x[t[2] as usize]
+}
+
+/// d area / d corner k = 1/2 n_hat x (x_{k+2} - x_{k+1}).
+#[inline]
+fn area_gradient(mesh: &Mesh, x: &[DVec3], f: usize, add: &mut impl FnMut(u32, DVec3)) {
+    let t = mesh.faces[f];
+    let p = [x[t[0] as usize], x[t[1] as usize], x[t[2] as usize]];
+    let n = (p[1] - p[0]).cross(p[2] - p[0]);
+    let len = n.length();
+    if len <= 0.0 {
+        return;
+    }
+    let nh = n / len;
+    for k in 0..3 {
+        add(t[k], 0.5 * nh.cross(p[(k + 2) % 3] - p[(k + 1) % 3]));
+    }
+}
+
+/// Sum coefficients of repeated faces.
+fn merge(mut v: Vec<(u32, f64)>) -> Vec<(u32, f64)> {
+    v.sort_by_key(|e| e.0);
+    let mut out: Vec<(u32, f64)> = Vec::with_capacity(v.len());
+    for (f, c) in v {
+        match out.last_mut() {
+            Some(last) if last.0 == f => last.1 += c,
+            _ => out.push((f, c)),
+        }
+    }
+    out
+}

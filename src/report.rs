@@ -1,0 +1,161 @@
+//! The JSON report of the contract and the table printed on stdout.
+
+use crate::deform::{Outcome, Problem};
+use crate::job::MetricKind;
+use crate::metrics::Selection;
+use glam::DVec3;
+use serde::Serialize;
+
+#[derive(Debug, Clone, Serialize)]
+pub struct MeshInfo {
+    pub path: String,
+    pub vertices: usize,
+    pub faces: usize,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct ConstraintReport {
+    pub kind: String,
+    pub name: String,
+    pub original: f64,
+    pub target: f64,
+    pub result: f64,
+    pub error_percent: f64,
+    pub met: bool,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct Iterations {
+    pub scale_driven: usize,
+    pub fine_tune: usize,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct Seconds {
+    pub total: f64,
+    pub load: f64,
+    pub scale_driven: f64,
+    pub fine_tune: f64,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct Distortion {
+    pub quasi_conformal_mean: f64,
+    pub quasi_conformal_max: f64,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct Report {
+    pub mesh: MeshInfo,
+    pub output: Option<String>,
+    pub backend: String,
+    pub adapter: Option<String>,
+    pub constraints: Vec<ConstraintReport>,
+    pub satisfied: bool,
+    pub iterations: Iterations,
+    pub seconds: Seconds,
+    pub distortion: Distortion,
+    /// Why some constraint was missed (exit 3), when known.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub reason: Option<String>,
+    /// Peak resident memory of the process, MiB (Linux; 0 elsewhere).
+    pub peak_memory_mb: f64,
+}
+
+/// Metric rows for positions `x` (the result, or the input for `measure`).
+pub fn constraint_rows(p: &Problem, x: &[DVec3], tolerance: f64) -> Vec<ConstraintReport> {
+    p.constraints
+        .iter()
+        .map(|c| {
+            let result = c.measure(&p.mesh, x);
+            let rel = (result - c.target).abs() / c.target.abs();
+            ConstraintReport {
+                kind: c.kind.to_string(),
+                name: c.name.clone(),
+                original: c.original,
+                target: c.target,
+                result,
+                error_percent: rel * 100.0,
+                met: rel <= tolerance,
+            }
+        })
+        .collect()
+}
+
+/// A plain explanation for missed constraints, when one is known.
+pub fn explain_miss(
+    p: &Problem,
+    rows: &[ConstraintReport],
+    outcome: Option<&Outcome>,
+) -> Option<String> {
+    let missed: Vec<String> = rows
+        .iter()
+        .filter(|r| !r.met)
+        .map(|r| format!("{} '{}' off by {:.4} %", r.kind, r.name, r.error_percent))
+        .collect();
+    if missed.is_empty() {
+        return None;
+    }
+    let mut why = format!("missed: {}", missed.join(", "));
+    // Isoperimetric bound: 36 pi V^2 <= A^3 for any closed surface.
+    let total_area = p.constraints.iter().find(|c| {
+        c.kind == MetricKind::Area
+            && matches!(&c.selection, Selection::Region(r) if r.faces.len() == p.mesh.num_faces())
+    });
+    let volume = p.constraints.iter().find(|c| c.kind == MetricKind::Volume);
+    if let (Some(a), Some(v)) = (total_area, volume) {
+        let bound = (a.target.powi(3) / (36.0 * std::f64::consts::PI)).sqrt();
+        if v.target > bound {
+            why.push_str(&format!(
+                "; contradictory demands: a closed surface of area {:.6} encloses at most {:.6} (a sphere), but the volume target is {:.6}",
+                a.target, bound, v.target
+            ));
+            return Some(why);
+        }
+    }
+    if let Some(o) = outcome {
+        why.push_str(&format!(
+            "; the demands may be contradictory or infeasible (scale-driven phase stopped on {})",
+            o.stop_reason
+        ));
+    }
+    Some(why)
+}
+
+/// Peak resident set size of this process in MiB (VmHWM), 0 when unknown.
+pub fn peak_memory_mb() -> f64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines().find(|l| l.starts_with("VmHWM:")).and_then(|l| {
+                l.split_whitespace()
+                    .nth(1)
+                    .and_then(|kb| kb.parse::<f64>().ok())
+                    .map(|kb| kb / 1024.0)
+            })
+        })
+        .unwrap_or(0.0)
+}
+
+/// The stdout table.
+pub fn table(rows: &[ConstraintReport]) -> String {
+    let mut s = String::new();
+    let w = rows.iter().map(|r| r.name.len()).max().unwrap_or(4).max(10);
+    s.push_str(&format!(
+        "{:<w$}  {:<6}  {:>14}  {:>14}  {:>14}  {:>10}  {}\n",
+        "constraint", "kind", "original", "target", "result", "error %", "met"
+    ));
+    for r in rows {
+        s.push_str(&format!(
+            "{:<w$}  {:<6}  {:>14.6}  {:>14.6}  {:>14.6}  {:>10.6}  {}\n",
+            r.name,
+            r.kind,
+            r.original,
+            r.target,
+            r.result,
+            r.error_percent,
+            if r.met { "yes" } else { "NO" }
+        ));
+    }
+    s
+}

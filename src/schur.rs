@@ -1,0 +1,128 @@
+//! One sequential-linearly-constrained Newton step (paper Sec. 4, Eqs. 15-18).
+//!
+//! For a quadratic energy with Hessian `H` (prefactored) and constraints `F(x) = 0`
+//! with Jacobian `L`, the step `(dx, lambda)` solves
+//! `[H L^T; L 0] [dx; lambda] = [-grad E; -F]`. With `y = H^-1 (-grad E)` and
+//! `Y = H^-1 L^T` (k+1 right-hand sides through the same factor, Eq. 16-18):
+//! `(L Y) lambda = L y + F`, solved by SVD (pseudo-inverse, robust to redundant
+//! or contradictory demands), then `dx = y - Y lambda`.
+
+use crate::Result;
+use faer::Mat;
+use solver_cpu::SpdSolver;
+
+/// How constraints share Lagrange multipliers.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Multipliers {
+    /// One multiplier per constraint (default; converges in a few steps).
+    #[default]
+    PerConstraint,
+    /// One multiplier per metric kind on the squared sum of its constraints (the
+    /// paper's grouping, Eqs. 9-14; its gradient vanishes at the solution).
+    PerKind,
+}
+
+/// The constraints as the Newton step sees them: values and dense Jacobian rows.
+pub struct Linearized {
+    pub values: Vec<f64>,
+    pub rows: Vec<Vec<f64>>,
+}
+
+impl Linearized {
+    /// Group per kind (`groups[j]` = group of constraint j): `F_g = sum C_j^2`,
+    /// `grad F_g = sum 2 C_j grad C_j`.
+    pub fn grouped(self, groups: &[usize]) -> Linearized {
+        let ng = groups.iter().copied().max().map_or(0, |g| g + 1);
+        let n = self.rows.first().map_or(0, |r| r.len());
+        let mut values = vec![0.0; ng];
+        let mut rows = vec![vec![0.0; n]; ng];
+        for (j, &g) in groups.iter().enumerate() {
+            let c = self.values[j];
+            values[g] += c * c;
+            for (o, &v) in rows[g].iter_mut().zip(&self.rows[j]) {
+                *o += 2.0 * c * v;
+            }
+        }
+        Linearized { values, rows }
+    }
+}
+
+/// Result of one step.
+pub struct Step {
+    pub dx: Vec<f64>,
+    pub lambda: Vec<f64>,
+}
+
+/// Solve Eqs. 16-18 with the prepared solver. `neg_grad` is `-grad E` at the current point.
+pub fn constrained_step(
+    solver: &mut dyn SpdSolver,
+    neg_grad: &[f64],
+    lin: &Linearized,
+) -> Result<Step> {
+    let n = neg_grad.len();
+    let k = lin.values.len();
+    let mut rhs = Vec::with_capacity(n * (k + 1));
+    rhs.extend_from_slice(neg_grad);
+    for r in &lin.rows {
+        rhs.extend_from_slice(r);
+    }
+    solver.solve_in_place(&mut rhs, k + 1)?;
+    let (y, ycols) = rhs.split_at(n);
+    if k == 0 {
+        return Ok(Step {
+            dx: y.to_vec(),
+            lambda: vec![],
+        });
+    }
+    // S = L Y (k x k), r = L y + F.
+    let mut s = Mat::<f64>::zeros(k, k);
+    let mut r = vec![0.0; k];
+    for i in 0..k {
+        r[i] = dot(&lin.rows[i], y) + lin.values[i];
+        for j in 0..k {
+            s[(i, j)] = dot(&lin.rows[i], &ycols[j * n..(j + 1) * n]);
+        }
+    }
+    let lambda = pinv_solve(&s, &r)?;
+    let mut dx = y.to_vec();
+    for j in 0..k {
+        let col = &ycols[j * n..(j + 1) * n];
+        let l = lambda[j];
+        if l != 0.0 {
+            dx.iter_mut().zip(col).for_each(|(d, c)| *d -= l * c);
+        }
+    }
+    Ok(Step { dx, lambda })
+}
+
+/// Solve the small k x k system `S lambda = r` through its SVD, dropping singular
+/// values below `1e-12 * sigma_max` (redundant or contradictory constraints).
+pub fn pinv_solve(s: &Mat<f64>, r: &[f64]) -> Result<Vec<f64>> {
+    let k = r.len();
+    let svd = s.svd().map_err(|e| {
+        crate::Error::Internal(format!("SVD of the multiplier system failed: {e:?}"))
+    })?;
+    let (u, sv, v) = (svd.U(), svd.S().column_vector(), svd.V());
+    let smax = (0..k).map(|i| sv[i].abs()).fold(0.0, f64::max);
+    let mut out = vec![0.0; k];
+    for i in 0..k {
+        let si = sv[i];
+        if si.abs() <= 1e-12 * smax || si == 0.0 {
+            continue;
+        }
+        let mut ur = 0.0;
+        for a in 0..k {
+            ur += u[(a, i)] * r[a];
+        }
+        let c = ur / si;
+        for a in 0..k {
+            out[a] += v[(a, i)] * c;
+        }
+    }
+    Ok(out)
+}
+
+#[inline]
+pub fn dot(a: &[f64], b: &[f64]) -> f64 {
+    a.iter().zip(b).map(|(x, y)| x * y).sum()
+}

@@ -1,0 +1,746 @@
+//! Turning the job's curve/region/handle specs into concrete selections on the
+//! INPUT mesh (contract: "Curves", "Regions").
+//!
+//! Curves are polylines of surface points: each segment lies in one face and stores
+//! its ends as barycentric coordinates of that face (paper Sec. 3.1), so the curve
+//! follows the mesh when it deforms. Everything here runs in (near) linear time.
+
+use crate::error::{Error, Result};
+use crate::job::{CurveSpec, HandleSpec, Job, PlaneSpec, PointSpec, RegionSpec};
+use crate::mesh::Mesh;
+use crate::topology::Topology;
+use glam::DVec3;
+use std::cmp::Ordering;
+use std::collections::BinaryHeap;
+
+/// A point on the surface: barycentric coordinates in one face.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SurfacePoint {
+    pub face: u32,
+    pub bary: [f64; 3],
+}
+
+impl SurfacePoint {
+    /// Position for vertex positions `x`.
+    pub fn position(&self, mesh: &Mesh, x: &[DVec3]) -> DVec3 {
+        bary_point(mesh, x, self.face, &self.bary)
+    }
+}
+
+/// A curve segment lying in one face; its ends as barycentric coordinates of that
+/// face (paper Sec. 3.1).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Segment {
+    pub face: u32,
+    pub a: [f64; 3],
+    pub b: [f64; 3],
+}
+
+impl Segment {
+    /// The two end points for vertex positions `x`.
+    pub fn ends(&self, mesh: &Mesh, x: &[DVec3]) -> (DVec3, DVec3) {
+        (
+            bary_point(mesh, x, self.face, &self.a),
+            bary_point(mesh, x, self.face, &self.b),
+        )
+    }
+
+    /// Length for vertex positions `x`.
+    pub fn length(&self, mesh: &Mesh, x: &[DVec3]) -> f64 {
+        let (p, q) = self.ends(mesh, x);
+        (q - p).length()
+    }
+}
+
+/// A polyline on the surface. Consecutive segments meet (segment i's `b` is at the
+/// same surface point as segment i+1's `a`); `closed` when the last meets the first.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Curve {
+    pub segments: Vec<Segment>,
+    pub closed: bool,
+}
+
+impl Curve {
+    /// Sum of the segment lengths for vertex positions `x`.
+    pub fn length(&self, mesh: &Mesh, x: &[DVec3]) -> f64 {
+        self.segments.iter().map(|s| s.length(mesh, x)).sum()
+    }
+}
+
+/// A set of faces: sorted, unique, non-empty.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct Region {
+    pub faces: Vec<u32>,
+}
+
+impl Region {
+    /// Total area for vertex positions `x`.
+    pub fn area(&self, mesh: &Mesh, x: &[DVec3]) -> f64 {
+        self.faces
+            .iter()
+            .map(|&f| mesh.face_area(x, f as usize))
+            .sum()
+    }
+
+    /// The vertices of the region's faces, sorted and unique.
+    pub fn vertices(&self, mesh: &Mesh) -> Vec<u32> {
+        let mut v: Vec<u32> = self
+            .faces
+            .iter()
+            .flat_map(|&f| mesh.faces[f as usize])
+            .collect();
+        v.sort_unstable();
+        v.dedup();
+        v
+    }
+}
+
+#[inline]
+fn bary_point(mesh: &Mesh, x: &[DVec3], face: u32, w: &[f64; 3]) -> DVec3 {
+    let [i, j, k] = mesh.faces[face as usize];
+    x[i as usize] * w[0] + x[j as usize] * w[1] + x[k as usize] * w[2]
+}
+
+fn v3(a: &[f64; 3]) -> DVec3 {
+    DVec3::new(a[0], a[1], a[2])
+}
+
+// ---------------------------------------------------------------------------
+// Curves
+// ---------------------------------------------------------------------------
+
+/// Build the curve of a length constraint on the input mesh. `what` names the
+/// constraint in messages.
+pub fn build_curve(spec: &CurveSpec, mesh: &Mesh, topo: &Topology, what: &str) -> Result<Curve> {
+    spec.validate(what).map_err(Error::bad)?;
+    if let Some(plane) = &spec.plane {
+        plane_section(plane, mesh, topo, what)
+    } else if let Some(path) = &spec.path {
+        edge_path(path, spec.closed.unwrap_or(false), mesh, topo, what)
+    } else if let Some(points) = &spec.points {
+        point_curve(points, mesh, topo, what)
+    } else {
+        Err(Error::bad(format!("{what}: curve is empty")))
+    }
+}
+
+/// Plane section: see the module docs and the contract. One pass over the faces;
+/// crossing points are computed per edge so that neighbouring faces agree exactly.
+fn plane_section(plane: &PlaneSpec, mesh: &Mesh, topo: &Topology, what: &str) -> Result<Curve> {
+    let origin = v3(&plane.origin);
+    let normal = v3(&plane.normal);
+    let x = &mesh.positions;
+    let d: Vec<f64> = x.iter().map(|&p| (p - origin).dot(normal)).collect();
+    let pos = |v: u32| d[v as usize] >= 0.0;
+
+    // Parameter of the crossing on edge e, measured from its lower vertex.
+    let edge_t = |e: u32| -> f64 {
+        let [lo, hi] = topo.edges[e as usize];
+        let (dl, dh) = (d[lo as usize], d[hi as usize]);
+        dl / (dl - dh)
+    };
+    let edge_point = |e: u32| -> DVec3 {
+        let [lo, hi] = topo.edges[e as usize];
+        let t = edge_t(e);
+        x[lo as usize] * (1.0 - t) + x[hi as usize] * t
+    };
+    // Crossing point of face f's side k (edge e) in f's barycentric coordinates.
+    let side_bary = |f: u32, k: usize| -> [f64; 3] {
+        let e = topo.face_edges[f as usize][k];
+        let lo = topo.edges[e as usize][0];
+        let t = edge_t(e);
+        let k1 = (k + 1) % 3;
+        let mut w = [0.0; 3];
+        if mesh.faces[f as usize][k] == lo {
+            w[k] = 1.0 - t;
+            w[k1] = t;
+        } else {
+            w[k] = t;
+            w[k1] = 1.0 - t;
+        }
+        w
+    };
+    // The two crossed sides of face f, or None when f is not crossed.
+    let crossed_sides = |f: usize| -> Option<[usize; 2]> {
+        let t = mesh.faces[f];
+        let s = [pos(t[0]), pos(t[1]), pos(t[2])];
+        if s[0] == s[1] && s[1] == s[2] {
+            return None;
+        }
+        let mut out = [0usize; 2];
+        let mut n = 0;
+        for k in 0..3 {
+            if s[k] != s[(k + 1) % 3] {
+                out[n] = k;
+                n += 1;
+            }
+        }
+        debug_assert_eq!(n, 2);
+        Some(out)
+    };
+    // Next face across edge e from face f; None at a boundary.
+    let across = |f: u32, e: u32| -> Result<Option<u32>> {
+        let fs = &topo.edge_faces[e as usize];
+        match fs.len() {
+            0 | 1 => Ok(None),
+            2 => Ok(Some(if fs[0] == f { fs[1] } else { fs[0] })),
+            _ => {
+                let [a, b] = topo.edges[e as usize];
+                Err(Error::bad(format!(
+                    "{what}: the plane section branches at non-manifold edge ({a}, {b}); \
+                     choose another plane or give the curve as a path or points"
+                )))
+            }
+        }
+    };
+
+    let nf = mesh.faces.len();
+    let mut visited = vec![false; nf];
+    // Best piece so far: (distance of its nearest crossing to origin, segments, closed).
+    let mut best: Option<(f64, Vec<Segment>, bool)> = None;
+    for f0 in 0..nf {
+        if visited[f0] {
+            continue;
+        }
+        let Some(sides0) = crossed_sides(f0) else {
+            continue;
+        };
+        visited[f0] = true;
+        let f0 = f0 as u32;
+        let e_of = |f: u32, k: usize| topo.face_edges[f as usize][k];
+        // Walk forward from f0 leaving through its second crossed side. Each step
+        // records (face, entry side, exit side).
+        let mut forward: Vec<(u32, usize, usize)> = vec![(f0, sides0[0], sides0[1])];
+        let mut closed = false;
+        let mut cur = f0;
+        let mut exit_edge = e_of(f0, sides0[1]);
+        loop {
+            let Some(g) = across(cur, exit_edge)? else {
+                break;
+            };
+            if g == f0 {
+                closed = true;
+                break;
+            }
+            if visited[g as usize] {
+                return Err(Error::Internal(format!(
+                    "{what}: plane section revisits face {g}"
+                )));
+            }
+            visited[g as usize] = true;
+            let sides = crossed_sides(g as usize).ok_or_else(|| {
+                Error::Internal(format!("{what}: plane section reached uncrossed face {g}"))
+            })?;
+            let (entry, exit) = if e_of(g, sides[0]) == exit_edge {
+                (sides[0], sides[1])
+            } else {
+                (sides[1], sides[0])
+            };
+            forward.push((g, entry, exit));
+            cur = g;
+            exit_edge = e_of(g, exit);
+        }
+        let mut chain: Vec<(u32, usize, usize)> = Vec::new();
+        if !closed {
+            // Open piece: also walk backward from f0 through its first crossed side.
+            let mut backward: Vec<(u32, usize, usize)> = Vec::new();
+            let mut cur = f0;
+            let mut edge = e_of(f0, sides0[0]);
+            while let Some(g) = across(cur, edge)? {
+                if visited[g as usize] {
+                    return Err(Error::Internal(format!(
+                        "{what}: plane section revisits face {g}"
+                    )));
+                }
+                visited[g as usize] = true;
+                let sides = crossed_sides(g as usize).ok_or_else(|| {
+                    Error::Internal(format!("{what}: plane section reached uncrossed face {g}"))
+                })?;
+                // Walking backward we enter g through `edge`; in curve order that
+                // side is g's exit.
+                let (entry, exit) = if e_of(g, sides[0]) == edge {
+                    (sides[1], sides[0])
+                } else {
+                    (sides[0], sides[1])
+                };
+                backward.push((g, entry, exit));
+                cur = g;
+                edge = e_of(g, entry);
+            }
+            backward.reverse();
+            chain.extend(backward);
+        }
+        chain.extend(forward);
+
+        // Nearest crossing point to the origin, and the segments (dropping the
+        // degenerate ones where both ends are the same mesh vertex).
+        let mut dist = f64::INFINITY;
+        let mut segments = Vec::with_capacity(chain.len());
+        for &(f, entry, exit) in &chain {
+            for k in [entry, exit] {
+                let p = edge_point(e_of(f, k));
+                dist = dist.min((p - origin).length());
+            }
+            let a = side_bary(f, entry);
+            let b = side_bary(f, exit);
+            if a != b {
+                segments.push(Segment { face: f, a, b });
+            }
+        }
+        if segments.is_empty() {
+            continue; // the plane only touches the mesh at a vertex here
+        }
+        if best.as_ref().is_none_or(|(bd, _, _)| dist < *bd) {
+            best = Some((dist, segments, closed));
+        }
+    }
+    match best {
+        Some((_, segments, closed)) => Ok(Curve { segments, closed }),
+        None => Err(Error::bad(format!(
+            "{what}: the plane (origin {:?}, normal {:?}) misses the mesh",
+            plane.origin, plane.normal
+        ))),
+    }
+}
+
+/// Vertex-vertex adjacency (CSR) with the connecting edge index.
+struct Adjacency {
+    start: Vec<usize>,
+    nbr: Vec<(u32, u32)>, // (neighbour, edge)
+}
+
+impl Adjacency {
+    fn build(nv: usize, topo: &Topology) -> Adjacency {
+        let mut start = vec![0usize; nv + 1];
+        for &[a, b] in &topo.edges {
+            start[a as usize + 1] += 1;
+            start[b as usize + 1] += 1;
+        }
+        for i in 0..nv {
+            start[i + 1] += start[i];
+        }
+        let mut fill = start.clone();
+        let mut nbr = vec![(0u32, 0u32); start[nv]];
+        for (e, &[a, b]) in topo.edges.iter().enumerate() {
+            nbr[fill[a as usize]] = (b, e as u32);
+            fill[a as usize] += 1;
+            nbr[fill[b as usize]] = (a, e as u32);
+            fill[b as usize] += 1;
+        }
+        Adjacency { start, nbr }
+    }
+    fn of(&self, v: u32) -> &[(u32, u32)] {
+        &self.nbr[self.start[v as usize]..self.start[v as usize + 1]]
+    }
+}
+
+#[derive(PartialEq)]
+struct HeapItem(f64, u32);
+impl Eq for HeapItem {}
+impl Ord for HeapItem {
+    fn cmp(&self, o: &Self) -> Ordering {
+        // Min-heap on distance, ties by vertex index.
+        o.0.total_cmp(&self.0).then_with(|| o.1.cmp(&self.1))
+    }
+}
+impl PartialOrd for HeapItem {
+    fn partial_cmp(&self, o: &Self) -> Option<Ordering> {
+        Some(self.cmp(o))
+    }
+}
+
+/// Shortest edge path (Dijkstra on input edge lengths) through `path`, in order.
+fn edge_path(
+    path: &[usize],
+    closed: bool,
+    mesh: &Mesh,
+    topo: &Topology,
+    what: &str,
+) -> Result<Curve> {
+    let nv = mesh.positions.len();
+    if path.len() < 2 {
+        return Err(Error::bad(format!(
+            "{what}: a path needs at least 2 vertices (got {})",
+            path.len()
+        )));
+    }
+    for (i, &v) in path.iter().enumerate() {
+        if v >= nv {
+            return Err(Error::bad(format!(
+                "{what}: path vertex {v} (entry {i}) is out of range (mesh has {nv} vertices)"
+            )));
+        }
+    }
+    let x = &mesh.positions;
+    let adj = Adjacency::build(nv, topo);
+    let mut dist = vec![f64::INFINITY; nv];
+    let mut prev: Vec<(u32, u32)> = vec![(u32::MAX, u32::MAX); nv]; // (vertex, edge)
+    let mut touched: Vec<u32> = Vec::new();
+    let mut heap = BinaryHeap::new();
+
+    let mut stops: Vec<usize> = path.to_vec();
+    if closed && stops.first() != stops.last() {
+        stops.push(stops[0]);
+    }
+    let mut segments = Vec::new();
+    for leg in stops.windows(2) {
+        let (s, t) = (leg[0] as u32, leg[1] as u32);
+        if s == t {
+            continue;
+        }
+        for &v in &touched {
+            dist[v as usize] = f64::INFINITY;
+            prev[v as usize] = (u32::MAX, u32::MAX);
+        }
+        touched.clear();
+        heap.clear();
+        dist[s as usize] = 0.0;
+        touched.push(s);
+        heap.push(HeapItem(0.0, s));
+        let mut found = false;
+        while let Some(HeapItem(dv, v)) = heap.pop() {
+            if dv > dist[v as usize] {
+                continue;
+            }
+            if v == t {
+                found = true;
+                break;
+            }
+            for &(w, e) in adj.of(v) {
+                let nd = dv + (x[w as usize] - x[v as usize]).length();
+                if nd < dist[w as usize] {
+                    if dist[w as usize] == f64::INFINITY {
+                        touched.push(w);
+                    }
+                    dist[w as usize] = nd;
+                    prev[w as usize] = (v, e);
+                    heap.push(HeapItem(nd, w));
+                }
+            }
+        }
+        if !found {
+            return Err(Error::bad(format!(
+                "{what}: path vertex {t} cannot be reached from vertex {s} \
+                 along mesh edges (not in the same connected component)"
+            )));
+        }
+        // Reconstruct t -> s, then emit in s -> t order.
+        let mut steps: Vec<(u32, u32, u32)> = Vec::new(); // (from, to, edge)
+        let mut v = t;
+        while v != s {
+            let (p, e) = prev[v as usize];
+            steps.push((p, v, e));
+            v = p;
+        }
+        for &(a, b, e) in steps.iter().rev() {
+            let face = topo.edge_faces[e as usize][0];
+            let tri = mesh.faces[face as usize];
+            let mut wa = [0.0; 3];
+            let mut wb = [0.0; 3];
+            for k in 0..3 {
+                if tri[k] == a {
+                    wa[k] = 1.0;
+                }
+                if tri[k] == b {
+                    wb[k] = 1.0;
+                }
+            }
+            segments.push(Segment { face, a: wa, b: wb });
+        }
+    }
+    if segments.is_empty() {
+        return Err(Error::bad(format!(
+            "{what}: the path has zero length (all its vertices are the same)"
+        )));
+    }
+    let closed = closed || path.first() == path.last();
+    Ok(Curve { segments, closed })
+}
+
+/// A validated surface point: face and normalised barycentrics (tiny ones snapped to 0).
+struct VertexWeights {
+    face: u32,
+    bary: [f64; 3],
+}
+
+impl VertexWeights {
+    /// Faces that contain this point: its own face, or every face around the edge
+    /// or vertex it lies on.
+    fn support(&self, mesh: &Mesh, topo: &Topology) -> Vec<u32> {
+        let tri = mesh.faces[self.face as usize];
+        let nz: Vec<usize> = (0..3).filter(|&k| self.bary[k] != 0.0).collect();
+        match nz.len() {
+            1 => topo.vertex_faces(tri[nz[0]] as usize).to_vec(),
+            2 => {
+                // Side k joins corners k and k+1.
+                let k = if nz == [0, 1] {
+                    0
+                } else if nz == [1, 2] {
+                    1
+                } else {
+                    2
+                };
+                let e = topo.face_edges[self.face as usize][k];
+                topo.edge_faces[e as usize].clone()
+            }
+            _ => vec![self.face],
+        }
+    }
+
+    /// Barycentric coordinates in face `g`, which must contain the point.
+    fn in_face(&self, mesh: &Mesh, g: u32) -> [f64; 3] {
+        let tri = mesh.faces[self.face as usize];
+        let tg = mesh.faces[g as usize];
+        let mut w = [0.0; 3];
+        for k in 0..3 {
+            if self.bary[k] != 0.0 {
+                let j = (0..3).find(|&j| tg[j] == tri[k]).expect("support face");
+                w[j] += self.bary[k];
+            }
+        }
+        w
+    }
+
+    fn same_point(&self, mesh: &Mesh, o: &VertexWeights) -> bool {
+        let mut a: Vec<(u32, f64)> = (0..3)
+            .filter(|&k| self.bary[k] != 0.0)
+            .map(|k| (mesh.faces[self.face as usize][k], self.bary[k]))
+            .collect();
+        let mut b: Vec<(u32, f64)> = (0..3)
+            .filter(|&k| o.bary[k] != 0.0)
+            .map(|k| (mesh.faces[o.face as usize][k], o.bary[k]))
+            .collect();
+        a.sort_by_key(|p| p.0);
+        b.sort_by_key(|p| p.0);
+        a == b
+    }
+}
+
+fn check_point(p: &PointSpec, i: usize, mesh: &Mesh, what: &str) -> Result<VertexWeights> {
+    let nf = mesh.faces.len();
+    if p.face >= nf {
+        return Err(Error::bad(format!(
+            "{what}: point {i}: face {} is out of range (mesh has {nf} faces)",
+            p.face
+        )));
+    }
+    let w = p.bary;
+    if w.iter().any(|c| !c.is_finite() || *c < -1e-9) {
+        return Err(Error::bad(format!(
+            "{what}: point {i}: barycentric coordinates {w:?} must be finite and >= 0"
+        )));
+    }
+    let sum: f64 = w.iter().sum();
+    if (sum - 1.0).abs() > 1e-6 {
+        return Err(Error::bad(format!(
+            "{what}: point {i}: barycentric coordinates {w:?} must sum to 1 (sum is {sum})"
+        )));
+    }
+    // Snap tiny coordinates to zero (so points on edges/vertices are recognised),
+    // then normalise.
+    let mut b = w.map(|c| if c < 1e-9 { 0.0 } else { c });
+    let s: f64 = b.iter().sum();
+    for c in &mut b {
+        *c /= s;
+    }
+    Ok(VertexWeights {
+        face: p.face as u32,
+        bary: b,
+    })
+}
+
+/// Curve through explicit surface points; consecutive points must share a face.
+fn point_curve(points: &[PointSpec], mesh: &Mesh, topo: &Topology, what: &str) -> Result<Curve> {
+    if points.len() < 2 {
+        return Err(Error::bad(format!(
+            "{what}: a curve needs at least 2 points (got {})",
+            points.len()
+        )));
+    }
+    let pts: Vec<VertexWeights> = points
+        .iter()
+        .enumerate()
+        .map(|(i, p)| check_point(p, i, mesh, what))
+        .collect::<Result<_>>()?;
+    let mut segments = Vec::with_capacity(pts.len() - 1);
+    for i in 0..pts.len() - 1 {
+        let (p, q) = (&pts[i], &pts[i + 1]);
+        if p.same_point(mesh, q) {
+            continue;
+        }
+        let sp = p.support(mesh, topo);
+        let sq = q.support(mesh, topo);
+        let face = if sq.contains(&p.face) {
+            Some(p.face)
+        } else if sp.contains(&q.face) {
+            Some(q.face)
+        } else {
+            sp.iter().copied().filter(|f| sq.contains(f)).min()
+        };
+        let Some(face) = face else {
+            return Err(Error::bad(format!(
+                "{what}: points {i} (face {}) and {} (face {}) share no face; \
+                 consecutive points must lie in a common face",
+                p.face,
+                i + 1,
+                q.face
+            )));
+        };
+        segments.push(Segment {
+            face,
+            a: p.in_face(mesh, face),
+            b: q.in_face(mesh, face),
+        });
+    }
+    if segments.is_empty() {
+        return Err(Error::bad(format!(
+            "{what}: the curve has zero length (all its points are the same)"
+        )));
+    }
+    let closed = pts.len() > 2 && pts[0].same_point(mesh, &pts[pts.len() - 1]);
+    Ok(Curve { segments, closed })
+}
+
+// ---------------------------------------------------------------------------
+// Regions and handles
+// ---------------------------------------------------------------------------
+
+/// Build a region (a set of faces of the input mesh). `what` names the constraint,
+/// handle or curvature entry in messages. `vertices` is rejected here (handles use
+/// [`build_handle_vertices`]).
+pub fn build_region(spec: &RegionSpec, mesh: &Mesh, job: &Job, what: &str) -> Result<Region> {
+    spec.validate(what, false).map_err(Error::bad)?;
+    let nf = mesh.faces.len();
+    let x = &mesh.positions;
+    let mut faces: Vec<u32> = if let Some(list) = &spec.faces {
+        check_faces(list, nf, what, "region face index")?;
+        list.iter().map(|&f| f as u32).collect()
+    } else if let Some(file) = &spec.faces_file {
+        let path = job.resolve_path(file);
+        let text = std::fs::read_to_string(&path).map_err(|e| {
+            Error::bad(format!(
+                "{what}: cannot read faces_file {}: {e}",
+                path.display()
+            ))
+        })?;
+        let mut list = Vec::new();
+        for line in text.lines() {
+            let line = line.split('#').next().unwrap_or("");
+            for tok in line.split_whitespace() {
+                let f: usize = tok.parse().map_err(|_| {
+                    Error::bad(format!(
+                        "{what}: faces_file {}: '{tok}' is not a face index \
+                         (expected whitespace-separated non-negative integers)",
+                        path.display()
+                    ))
+                })?;
+                list.push(f);
+            }
+        }
+        let ctx = format!("face index in {}", path.display());
+        check_faces(&list, nf, what, &ctx)?;
+        list.into_iter().map(|f| f as u32).collect()
+    } else if let Some(s) = &spec.sphere {
+        let c = v3(&s.center);
+        let r2 = s.radius * s.radius;
+        (0..nf)
+            .filter(|&f| (mesh.centroid(x, f) - c).length_squared() <= r2)
+            .map(|f| f as u32)
+            .collect()
+    } else if let Some(b) = &spec.box_ {
+        let (lo, hi) = (v3(&b.min), v3(&b.max));
+        (0..nf)
+            .filter(|&f| {
+                let c = mesh.centroid(x, f);
+                c.cmpge(lo).all() && c.cmple(hi).all()
+            })
+            .map(|f| f as u32)
+            .collect()
+    } else if let Some(name) = &spec.group {
+        let matching: Vec<_> = mesh.groups.iter().filter(|g| &g.name == name).collect();
+        if matching.is_empty() {
+            if mesh.groups.is_empty() {
+                return Err(Error::bad(format!(
+                    "{what}: group '{name}' not found: the mesh has no groups \
+                     (only OBJ files have `g`/`o` groups)"
+                )));
+            }
+            let mut names: Vec<&str> = mesh.groups.iter().map(|g| g.name.as_str()).collect();
+            names.sort_unstable();
+            names.dedup();
+            let shown = if names.len() > 30 {
+                format!("{}, ... ({} in all)", names[..30].join(", "), names.len())
+            } else {
+                names.join(", ")
+            };
+            return Err(Error::bad(format!(
+                "{what}: group '{name}' not found; the mesh has groups: {shown}"
+            )));
+        }
+        let mut list = Vec::new();
+        for g in matching {
+            check_faces(&g.faces, nf, what, &format!("face index of group '{name}'"))?;
+            list.extend(g.faces.iter().map(|&f| f as u32));
+        }
+        list
+    } else {
+        return Err(Error::bad(format!("{what}: region is empty")));
+    };
+    faces.sort_unstable();
+    faces.dedup();
+    if faces.is_empty() {
+        return Err(Error::bad(format!(
+            "{what}: region selects no faces ({})",
+            spec.given().join("")
+        )));
+    }
+    Ok(Region { faces })
+}
+
+fn check_faces(list: &[usize], nf: usize, what: &str, ctx: &str) -> Result<()> {
+    if let Some(&f) = list.iter().find(|&&f| f >= nf) {
+        return Err(Error::bad(format!(
+            "{what}: {ctx} {f} is out of range (mesh has {nf} faces)"
+        )));
+    }
+    Ok(())
+}
+
+fn check_vertices(list: &[usize], nv: usize, what: &str) -> Result<Vec<u32>> {
+    if let Some(&v) = list.iter().find(|&&v| v >= nv) {
+        return Err(Error::bad(format!(
+            "{what}: vertex index {v} is out of range (mesh has {nv} vertices)"
+        )));
+    }
+    let mut out: Vec<u32> = list.iter().map(|&v| v as u32).collect();
+    out.sort_unstable();
+    out.dedup();
+    if out.is_empty() {
+        return Err(Error::bad(format!("{what}: selects no vertices")));
+    }
+    Ok(out)
+}
+
+/// The vertices a handle moves: its `vertices`, or all vertices of its region's
+/// faces; sorted and unique, non-empty.
+pub fn build_handle_vertices(
+    spec: &HandleSpec,
+    mesh: &Mesh,
+    job: &Job,
+    what: &str,
+) -> Result<Vec<u32>> {
+    spec.validate(what).map_err(Error::bad)?;
+    let nv = mesh.positions.len();
+    if let Some(list) = &spec.vertices {
+        return check_vertices(list, nv, what);
+    }
+    let region = spec
+        .region
+        .as_ref()
+        .ok_or_else(|| Error::bad(format!("{what}: needs a region or vertices")))?;
+    if let Some(list) = &region.vertices {
+        return check_vertices(list, nv, what);
+    }
+    let r = build_region(region, mesh, job, what)?;
+    Ok(r.vertices(mesh))
+}

@@ -1,0 +1,550 @@
+//! Shape optimisation (paper Sec. 2.3, Eqs. 4-7, with handles Eq. 19 and curvature
+//! scaling Eq. 21).
+//!
+//! Unknowns are vertex positions, dof `3 v + r`; the system matrix has one 3x3
+//! block per vertex pair of the 2-ring. Terms (all dimensionless, so the weights
+//! do not depend on the model's size or resolution):
+//!
+//! * `E_f` (Eq. 4) in the deformation-transfer form `||V (V^c)^-1 - s I||_F^2` that
+//!   the paper says it approximates. The fourth frame vertex (Sec. 2.1) enters one
+//!   face only and is eliminated in closed form: what remains is
+//!   `w_f ||D_f P_f - s_f P_f||_F^2`, the deviation of the face's deformation
+//!   gradient (restricted to its current tangent plane `P_f`) from `s_f` times the
+//!   identity, with `w_f = A_f^o / sum A^o`. Its Hessian per face is
+//!   `2 w_f (G_k . G_l) I3` with `G_k` the gradient of corner k's hat function.
+//! * `E_m` (Eqs. 5, 21): `sum_i ||delta_i(x) - c_i delta_i(x^c)||^2 / (4 A_i^o)`,
+//!   `delta` the cotangent Laplacian of the input; `c_i` is the area-weighted mean
+//!   scale factor around vertex i (pitfall (b)) times the curvature factor of Eq. 21.
+//! * `E_l` (Eq. 6): `sum_i a_i ||L(v_i) x L(v_i^c)||^2 / (rms|L(v^c)|^2 h^2)`, mean-value
+//!   Laplacian `L` of the input, `a_i = A_i^o / sum A^o`, `h` the mean input edge length.
+//! * `E_p` (Eq. 19): `sum_p ||v_p - v_p^t||^2 / (h^2 |P|)`.
+//!
+//! The energy is translation-invariant on every connected component without
+//! handles: one vertex of each such component is held (its increment is zero) and
+//! the component is re-centred after each step.
+
+use crate::mesh::Mesh;
+use crate::topology::Topology;
+use crate::Result;
+use glam::DVec3;
+use solver_cpu::{BlockSym3, CholeskySolver, SpdSolver, SymCsc};
+
+/// Weights of Eq. 7 / Eq. 19.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ShapeWeights {
+    pub k_f: f64,
+    pub k_m: f64,
+    pub k_l: f64,
+    pub k_p: f64,
+}
+
+/// Sparse rows `delta_i = diag_i x_i - sum_j w_ij x_j`.
+#[derive(Debug, Clone, Default)]
+pub struct Laplacian {
+    pub start: Vec<usize>,
+    pub idx: Vec<u32>,
+    pub w: Vec<f64>,
+    pub diag: Vec<f64>,
+}
+
+impl Laplacian {
+    fn from_triplets(n: usize, mut t: Vec<(u32, u32, f64)>, normalise: bool) -> Laplacian {
+        t.sort_unstable_by_key(|e| (e.0, e.1));
+        let mut start = vec![0usize; n + 1];
+        let mut idx = Vec::with_capacity(t.len());
+        let mut w: Vec<f64> = Vec::with_capacity(t.len());
+        let mut last: Option<(u32, u32)> = None;
+        for (i, j, v) in t {
+            if last == Some((i, j)) {
+                *w.last_mut().unwrap() += v;
+            } else {
+                idx.push(j);
+                w.push(v);
+                start[i as usize + 1] += 1;
+                last = Some((i, j));
+            }
+        }
+        for i in 0..n {
+            start[i + 1] += start[i];
+        }
+        let mut diag = vec![0.0; n];
+        for i in 0..n {
+            let r = start[i]..start[i + 1];
+            let sum: f64 = w[r.clone()].iter().sum();
+            if normalise {
+                if sum > 0.0 {
+                    w[r].iter_mut().for_each(|v| *v /= sum);
+                    diag[i] = 1.0;
+                }
+            } else {
+                diag[i] = sum;
+            }
+        }
+        Laplacian {
+            start,
+            idx,
+            w,
+            diag,
+        }
+    }
+
+    /// Row i as (vertex, coefficient) including the diagonal.
+    #[inline]
+    pub fn row(&self, i: usize) -> impl Iterator<Item = (usize, f64)> + '_ {
+        std::iter::once((i, self.diag[i])).chain(
+            (self.start[i]..self.start[i + 1]).map(move |k| (self.idx[k] as usize, -self.w[k])),
+        )
+    }
+
+    #[inline]
+    pub fn apply(&self, x: &[DVec3], i: usize) -> DVec3 {
+        self.row(i).fold(DVec3::ZERO, |acc, (j, c)| acc + c * x[j])
+    }
+
+    pub fn apply_all(&self, x: &[DVec3]) -> Vec<DVec3> {
+        (0..self.diag.len()).map(|i| self.apply(x, i)).collect()
+    }
+}
+
+/// Cotangent Laplacian (weights `(cot a + cot b) / 2`) of positions `x`.
+pub fn cotangent_laplacian(mesh: &Mesh, x: &[DVec3]) -> Laplacian {
+    let mut t = Vec::with_capacity(mesh.faces.len() * 6);
+    for f in &mesh.faces {
+        for k in 0..3 {
+            let (a, b, c) = (f[k], f[(k + 1) % 3], f[(k + 2) % 3]);
+            let e1 = x[a as usize] - x[c as usize];
+            let e2 = x[b as usize] - x[c as usize];
+            let cr = e1.cross(e2).length();
+            let cot = if cr > 0.0 { e1.dot(e2) / cr } else { 0.0 };
+            t.push((a, b, 0.5 * cot));
+            t.push((b, a, 0.5 * cot));
+        }
+    }
+    Laplacian::from_triplets(x.len(), t, false)
+}
+
+/// Mean-value Laplacian (Floater), rows normalised to sum 1.
+pub fn mean_value_laplacian(mesh: &Mesh, x: &[DVec3]) -> Laplacian {
+    let mut t = Vec::with_capacity(mesh.faces.len() * 6);
+    for f in &mesh.faces {
+        for k in 0..3 {
+            let (a, b, c) = (f[k], f[(k + 1) % 3], f[(k + 2) % 3]);
+            let e1 = x[b as usize] - x[a as usize];
+            let e2 = x[c as usize] - x[a as usize];
+            let (l1, l2) = (e1.length(), e2.length());
+            let denom = l1 * l2 + e1.dot(e2);
+            let tan_half = if denom > 0.0 {
+                e1.cross(e2).length() / denom
+            } else {
+                1e6
+            };
+            if l1 > 0.0 {
+                t.push((a, b, tan_half / l1));
+            }
+            if l2 > 0.0 {
+                t.push((a, c, tan_half / l2));
+            }
+        }
+    }
+    Laplacian::from_triplets(x.len(), t, true)
+}
+
+/// Barycentric vertex areas.
+pub fn vertex_areas(mesh: &Mesh, x: &[DVec3]) -> Vec<f64> {
+    let mut a = vec![0.0; x.len()];
+    for f in 0..mesh.faces.len() {
+        let ar = mesh.face_area(x, f) / 3.0;
+        for &v in &mesh.faces[f] {
+            a[v as usize] += ar;
+        }
+    }
+    a
+}
+
+/// A positional handle vertex (Eq. 19).
+#[derive(Debug, Clone, Copy)]
+pub struct HandleTarget {
+    pub vertex: u32,
+    pub target: DVec3,
+}
+
+/// Everything about the input that the shape steps reuse, plus the factorization.
+pub struct ShapeModel {
+    pub n: usize,
+    cot: Laplacian,
+    mv: Laplacian,
+    vertex_area: Vec<f64>,
+    face_weight: Vec<f64>,
+    total_area: f64,
+    mean_edge: f64,
+    /// Unscaled Hessian of E_m (constant: input cotangent weights).
+    hm: BlockSym3,
+    /// Working matrix (pattern of the 2-ring).
+    h: BlockSym3,
+    scalar: SymCsc,
+    pub fixed: Vec<bool>,
+    /// Components re-centred after each step (those without handles): vertex lists.
+    free_components: Vec<Vec<u32>>,
+    pub handles: Vec<HandleTarget>,
+    solver: Box<dyn SpdSolver>,
+    /// Gradient of the energy at the reference point of the last assembly.
+    grad: Vec<f64>,
+}
+
+impl ShapeModel {
+    pub fn new(mesh: &Mesh, topo: &Topology, handles: Vec<HandleTarget>) -> Result<Self> {
+        Self::with_solver(mesh, topo, handles, Box::new(CholeskySolver::new()))
+    }
+
+    pub fn with_solver(
+        mesh: &Mesh,
+        topo: &Topology,
+        handles: Vec<HandleTarget>,
+        solver: Box<dyn SpdSolver>,
+    ) -> Result<Self> {
+        let x = &mesh.positions;
+        let n = x.len();
+        let cot = cotangent_laplacian(mesh, x);
+        let mv = mean_value_laplacian(mesh, x);
+        let vertex_area = vertex_areas(mesh, x);
+        let areas = mesh.face_areas(x);
+        let total_area: f64 = areas.iter().sum();
+        let face_weight: Vec<f64> = areas.iter().map(|a| a / total_area).collect();
+        let mean_edge = if topo.edges.is_empty() {
+            1.0
+        } else {
+            topo.edges
+                .iter()
+                .map(|e| (x[e[0] as usize] - x[e[1] as usize]).length())
+                .sum::<f64>()
+                / topo.edges.len() as f64
+        };
+
+        // 2-ring block pattern: every pair within a closed 1-ring.
+        let mut pairs: Vec<(usize, usize)> = Vec::new();
+        for i in 0..n {
+            let ring: Vec<usize> = cot.row(i).map(|(j, _)| j).collect();
+            for (a, &p) in ring.iter().enumerate() {
+                for &q in &ring[..=a] {
+                    pairs.push((p, q));
+                }
+            }
+        }
+        let mut h = BlockSym3::from_pattern(n, pairs);
+        drop(h.blocks.iter_mut());
+        let mut hm = h.clone();
+        hm.clear();
+        for i in 0..n {
+            let m = 1.0 / (4.0 * vertex_area[i].max(1e-300));
+            if vertex_area[i] <= 0.0 {
+                continue;
+            }
+            let row: Vec<(usize, f64)> = cot.row(i).collect();
+            for &(a, ca) in &row {
+                for &(b, cb) in &row {
+                    if a >= b {
+                        hm.add_scalar(a, b, 2.0 * m * ca * cb);
+                    }
+                }
+            }
+        }
+        h.clear();
+        let scalar = h.scalar_pattern();
+
+        // Held vertices: unreferenced ones, and one per component without handles.
+        let mut referenced = vec![false; n];
+        for f in &mesh.faces {
+            for &v in f {
+                referenced[v as usize] = true;
+            }
+        }
+        let mut fixed: Vec<bool> = referenced.iter().map(|r| !r).collect();
+        let comp = components(mesh, n);
+        let mut has_handle = vec![false; comp.1];
+        for hd in &handles {
+            has_handle[comp.0[hd.vertex as usize] as usize] = true;
+        }
+        let mut free_components: Vec<Vec<u32>> = vec![Vec::new(); comp.1];
+        for v in 0..n {
+            if referenced[v] {
+                free_components[comp.0[v] as usize].push(v as u32);
+            }
+        }
+        let mut free = Vec::new();
+        for (c, verts) in free_components.into_iter().enumerate() {
+            if !has_handle[c] && !verts.is_empty() {
+                fixed[verts[0] as usize] = true;
+                free.push(verts);
+            }
+        }
+        Ok(ShapeModel {
+            n,
+            cot,
+            mv,
+            vertex_area,
+            face_weight,
+            total_area,
+            mean_edge,
+            hm,
+            h,
+            scalar,
+            fixed,
+            free_components: free,
+            handles,
+            solver,
+            grad: vec![0.0; 3 * n],
+        })
+    }
+
+    /// Mean input edge length.
+    pub fn mean_edge(&self) -> f64 {
+        self.mean_edge
+    }
+
+    /// Cotangent Laplacian of the input (for curvature measurements).
+    pub fn cotangent(&self) -> &Laplacian {
+        &self.cot
+    }
+
+    /// Assemble the Hessian and the gradient at the reference positions `xc`
+    /// for scale factors `s` (per face) and curvature targets `c` (per vertex),
+    /// then factor the Hessian.
+    pub fn assemble_and_factor(
+        &mut self,
+        mesh: &Mesh,
+        xc: &[DVec3],
+        s: &[f64],
+        c: &[f64],
+        w: &ShapeWeights,
+    ) -> Result<()> {
+        let n = self.n;
+        let h = &mut self.h;
+        for (o, m) in h.blocks.iter_mut().zip(&self.hm.blocks) {
+            for q in 0..9 {
+                o[q] = w.k_m * m[q];
+            }
+        }
+        let grad = &mut self.grad;
+        grad.iter_mut().for_each(|g| *g = 0.0);
+
+        // E_f (Eq. 4, fourth vertex eliminated).
+        for (f, t) in mesh.faces.iter().enumerate() {
+            let p = [xc[t[0] as usize], xc[t[1] as usize], xc[t[2] as usize]];
+            let nrm = (p[1] - p[0]).cross(p[2] - p[0]);
+            let a2 = nrm.length();
+            if a2 <= 0.0 {
+                continue;
+            }
+            let nh = nrm / a2;
+            let g: [DVec3; 3] =
+                std::array::from_fn(|k| nh.cross(p[(k + 2) % 3] - p[(k + 1) % 3]) / a2);
+            let wf = 2.0 * w.k_f * self.face_weight[f];
+            for k in 0..3 {
+                for l in 0..=k {
+                    let (a, b) = (t[k] as usize, t[l] as usize);
+                    let v = wf * g[k].dot(g[l]);
+                    if a == b && k != l {
+                        h.add_scalar(a, b, 2.0 * v);
+                    } else {
+                        h.add_scalar(a, b, v);
+                    }
+                }
+                let gk = wf * (1.0 - s[f]) * g[k];
+                let i = 3 * t[k] as usize;
+                grad[i] += gk.x;
+                grad[i + 1] += gk.y;
+                grad[i + 2] += gk.z;
+            }
+        }
+
+        // E_m (Eqs. 5, 21): gradient at xc; the Hessian is the constant part above.
+        if w.k_m > 0.0 {
+            for i in 0..n {
+                if self.vertex_area[i] <= 0.0 {
+                    continue;
+                }
+                let m = 1.0 / (4.0 * self.vertex_area[i]);
+                let r = (1.0 - c[i]) * self.cot.apply(xc, i);
+                if r == DVec3::ZERO {
+                    continue;
+                }
+                for (j, cj) in self.cot.row(i) {
+                    let g = 2.0 * w.k_m * m * cj * r;
+                    grad[3 * j] += g.x;
+                    grad[3 * j + 1] += g.y;
+                    grad[3 * j + 2] += g.z;
+                }
+            }
+        }
+
+        // E_l (Eq. 6): zero gradient at xc, Hessian sum_i 2 a_i L_i^T ([d]x^T [d]x) L_i.
+        if w.k_l > 0.0 {
+            let d = self.mv.apply_all(xc);
+            let ms: f64 = (0..n)
+                .filter(|&i| self.vertex_area[i] > 0.0)
+                .map(|i| d[i].length_squared())
+                .sum::<f64>()
+                / n.max(1) as f64;
+            if ms > 0.0 {
+                let norm = 2.0 * w.k_l / (self.total_area * ms * self.mean_edge * self.mean_edge);
+                for i in 0..n {
+                    let a = self.vertex_area[i] * norm;
+                    if a <= 0.0 {
+                        continue;
+                    }
+                    let di = d[i];
+                    let dd = di.length_squared();
+                    let k = [
+                        dd - di.x * di.x,
+                        -di.x * di.y,
+                        -di.x * di.z,
+                        -di.y * di.x,
+                        dd - di.y * di.y,
+                        -di.y * di.z,
+                        -di.z * di.x,
+                        -di.z * di.y,
+                        dd - di.z * di.z,
+                    ];
+                    let row: Vec<(usize, f64)> = self.mv.row(i).collect();
+                    for &(p, cp) in &row {
+                        for &(q, cq) in &row {
+                            if p >= q {
+                                let s = a * cp * cq;
+                                let m: [f64; 9] = std::array::from_fn(|e| s * k[e]);
+                                h.add_block(p, q, &m);
+                            }
+                        }
+                    }
+                }
+            }
+        }
+
+        // E_p (Eq. 19).
+        if !self.handles.is_empty() && w.k_p > 0.0 {
+            let beta = 2.0 * w.k_p / (self.mean_edge * self.mean_edge * self.handles.len() as f64);
+            for hd in &self.handles {
+                let v = hd.vertex as usize;
+                h.add_scalar(v, v, beta);
+                let g = beta * (xc[v] - hd.target);
+                grad[3 * v] += g.x;
+                grad[3 * v + 1] += g.y;
+                grad[3 * v + 2] += g.z;
+            }
+        }
+
+        for v in 0..n {
+            if self.fixed[v] {
+                grad[3 * v..3 * v + 3].iter_mut().for_each(|g| *g = 0.0);
+            }
+        }
+        self.h.fill_scalar(&mut self.scalar, &self.fixed);
+        self.solver.prepare(&self.scalar)?;
+        Ok(())
+    }
+
+    /// Gradient of the energy at the reference positions of the last assembly.
+    pub fn reference_gradient(&self) -> &[f64] {
+        &self.grad
+    }
+
+    /// Energy (up to a constant) at `xref + dx`: `1/2 dx^T H dx + g0 . dx`.
+    pub fn energy(&self, dx: &[f64]) -> f64 {
+        let mut hd = vec![0.0; dx.len()];
+        self.h.mul_vec(dx, &mut hd);
+        let mut e = 0.0;
+        for i in 0..dx.len() {
+            let v = i / 3;
+            if self.fixed[v] {
+                continue;
+            }
+            e += 0.5 * dx[i] * hd[i] + self.grad[i] * dx[i];
+        }
+        e
+    }
+
+    /// Gradient at `xref + dx`: `H dx + g0` (held dofs zero).
+    pub fn gradient_at(&self, dx: &[f64]) -> Vec<f64> {
+        let mut g = vec![0.0; dx.len()];
+        self.h.mul_vec(dx, &mut g);
+        for i in 0..dx.len() {
+            g[i] = if self.fixed[i / 3] {
+                0.0
+            } else {
+                g[i] + self.grad[i]
+            };
+        }
+        g
+    }
+
+    /// Unconstrained minimiser (Eq. 7 / 19): `xc + dx` with `H dx = -g0`, then
+    /// each handle-free component re-centred on its previous centroid.
+    pub fn solve_unconstrained(&mut self, xc: &[DVec3]) -> Result<Vec<DVec3>> {
+        let mut rhs: Vec<f64> = self.grad.iter().map(|g| -g).collect();
+        self.solver.solve_in_place(&mut rhs, 1)?;
+        let mut x: Vec<DVec3> = (0..self.n)
+            .map(|v| {
+                if self.fixed[v] {
+                    xc[v]
+                } else {
+                    xc[v] + DVec3::new(rhs[3 * v], rhs[3 * v + 1], rhs[3 * v + 2])
+                }
+            })
+            .collect();
+        self.recentre(xc, &mut x);
+        Ok(x)
+    }
+
+    /// Translate each handle-free component so that its vertex centroid is unchanged.
+    pub fn recentre(&self, before: &[DVec3], after: &mut [DVec3]) {
+        for comp in &self.free_components {
+            let mut d = DVec3::ZERO;
+            for &v in comp {
+                d += before[v as usize] - after[v as usize];
+            }
+            d /= comp.len() as f64;
+            for &v in comp {
+                after[v as usize] += d;
+            }
+        }
+    }
+
+    /// Access the prepared solver (for the constrained steps of Eq. 8).
+    pub fn solver(&mut self) -> &mut dyn SpdSolver {
+        self.solver.as_mut()
+    }
+}
+
+/// Connected components of faces through shared vertices: (label per vertex, count).
+pub fn components(mesh: &Mesh, n: usize) -> (Vec<u32>, usize) {
+    let mut parent: Vec<u32> = (0..n as u32).collect();
+    fn find(p: &mut [u32], mut a: u32) -> u32 {
+        while p[a as usize] != a {
+            p[a as usize] = p[p[a as usize] as usize];
+            a = p[a as usize];
+        }
+        a
+    }
+    for f in &mesh.faces {
+        let r0 = find(&mut parent, f[0]);
+        for &v in &f[1..] {
+            let r = find(&mut parent, v);
+            if r != r0 {
+                parent[r as usize] = r0;
+            }
+        }
+        // keep the root of f[0] fresh
+        let _ = find(&mut parent, f[0]);
+    }
+    let mut label = vec![u32::MAX; n];
+    let mut count = 0usize;
+    let mut out = vec![0u32; n];
+    for v in 0..n {
+        let r = find(&mut parent, v as u32) as usize;
+        if label[r] == u32::MAX {
+            label[r] = count as u32;
+            count += 1;
+        }
+        out[v] = label[r];
+    }
+    (out, count)
+}

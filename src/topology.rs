@@ -1,0 +1,122 @@
+//! Edge and adjacency structure of a triangle mesh.
+
+use crate::mesh::Mesh;
+use std::collections::HashMap;
+
+/// Undirected edges, the faces around them, and face-face adjacency.
+#[derive(Clone, Debug, Default)]
+pub struct Topology {
+    /// Unique undirected edges `[a, b]` with `a < b`.
+    pub edges: Vec<[u32; 2]>,
+    /// For each edge, the faces that use it (1 = boundary, 2 = interior, >2 = non-manifold).
+    pub edge_faces: Vec<Vec<u32>>,
+    /// For each face, the edge index of each side: side k joins corners k and k+1.
+    pub face_edges: Vec<[u32; 3]>,
+    /// Pairs of faces sharing a manifold interior edge (the set Q of Eq. 2).
+    pub face_pairs: Vec<[u32; 2]>,
+    /// Edges with exactly one face.
+    pub boundary_edges: Vec<usize>,
+    /// Edges with more than two faces.
+    pub non_manifold_edges: Vec<usize>,
+    /// Faces around each vertex, CSR: faces of v are `vf_index[vf_start[v]..vf_start[v+1]]`.
+    pub vf_start: Vec<usize>,
+    pub vf_index: Vec<u32>,
+}
+
+impl Topology {
+    pub fn build(mesh: &Mesh) -> Topology {
+        let nf = mesh.faces.len();
+        let nv = mesh.positions.len();
+        let mut map: HashMap<(u32, u32), u32> = HashMap::with_capacity(nf * 3 / 2 + 16);
+        let mut edges = Vec::with_capacity(nf * 3 / 2 + 16);
+        let mut edge_faces: Vec<Vec<u32>> = Vec::with_capacity(nf * 3 / 2 + 16);
+        let mut face_edges = Vec::with_capacity(nf);
+        for (f, t) in mesh.faces.iter().enumerate() {
+            let mut fe = [0u32; 3];
+            for k in 0..3 {
+                let (a, b) = (t[k], t[(k + 1) % 3]);
+                let key = (a.min(b), a.max(b));
+                let e = *map.entry(key).or_insert_with(|| {
+                    edges.push([key.0, key.1]);
+                    edge_faces.push(Vec::with_capacity(2));
+                    (edges.len() - 1) as u32
+                });
+                edge_faces[e as usize].push(f as u32);
+                fe[k] = e;
+            }
+            face_edges.push(fe);
+        }
+        let mut face_pairs = Vec::new();
+        let mut boundary_edges = Vec::new();
+        let mut non_manifold_edges = Vec::new();
+        for (e, fs) in edge_faces.iter().enumerate() {
+            match fs.len() {
+                1 => boundary_edges.push(e),
+                2 => {
+                    if fs[0] != fs[1] {
+                        face_pairs.push([fs[0], fs[1]])
+                    }
+                }
+                _ => non_manifold_edges.push(e),
+            }
+        }
+        let mut vf_start = vec![0usize; nv + 1];
+        for t in &mesh.faces {
+            for &v in t {
+                if (v as usize) < nv {
+                    vf_start[v as usize + 1] += 1;
+                }
+            }
+        }
+        for i in 0..nv {
+            vf_start[i + 1] += vf_start[i];
+        }
+        let mut fill = vf_start.clone();
+        let mut vf_index = vec![0u32; vf_start[nv]];
+        for (f, t) in mesh.faces.iter().enumerate() {
+            for &v in t {
+                if (v as usize) < nv {
+                    vf_index[fill[v as usize]] = f as u32;
+                    fill[v as usize] += 1;
+                }
+            }
+        }
+        Topology {
+            edges,
+            edge_faces,
+            face_edges,
+            face_pairs,
+            boundary_edges,
+            non_manifold_edges,
+            vf_start,
+            vf_index,
+        }
+    }
+
+    /// Faces around vertex `v`.
+    #[inline]
+    pub fn vertex_faces(&self, v: usize) -> &[u32] {
+        &self.vf_index[self.vf_start[v]..self.vf_start[v + 1]]
+    }
+
+    /// True when every edge has exactly two faces.
+    pub fn is_closed(&self) -> bool {
+        self.boundary_edges.is_empty() && self.non_manifold_edges.is_empty()
+    }
+
+    /// Edge index of the undirected edge (a, b), if it exists.
+    pub fn find_edge(&self, mesh: &Mesh, a: u32, b: u32) -> Option<usize> {
+        let (lo, hi) = (a.min(b), a.max(b));
+        for &f in self.vertex_faces(lo as usize) {
+            let t = mesh.faces[f as usize];
+            for k in 0..3 {
+                let e = self.face_edges[f as usize][k] as usize;
+                if self.edges[e] == [lo, hi] {
+                    let _ = t;
+                    return Some(e);
+                }
+            }
+        }
+        None
+    }
+}
