@@ -54,7 +54,7 @@ impl Default for Options {
             tolerance: 1e-5,
             max_iterations: 100,
             fine_tune_iterations: 50,
-            scale_threshold: 0.01,
+            scale_threshold: 0.05,
             shape: ShapeWeights {
                 k_f: 1000.0,
                 k_m: 1.0,

@@ -114,10 +114,12 @@ fn adapters() -> Result<u8, Error> {
 
 fn demo(args: &RunArgs) -> Result<u8, Error> {
     let dir = std::env::temp_dir().join(format!("metricdeform-demo-{}", std::process::id()));
-    std::fs::create_dir_all(dir.join("data/meshes")).map_err(|source| Error::Io {
-        path: dir.clone(),
-        source,
-    })?;
+    std::fs::create_dir_all(dir.join("data/meshes"))
+        .and_then(|_| std::fs::create_dir_all(dir.join("examples")))
+        .map_err(|source| Error::Io {
+            path: dir.clone(),
+            source,
+        })?;
     let mesh = dir.join("data/meshes/spot.obj");
     std::fs::write(&mesh, DEMO_MESH).map_err(|source| Error::Io {
         path: mesh.clone(),

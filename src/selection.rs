@@ -214,10 +214,7 @@ fn plane_section(plane: &PlaneSpec, mesh: &Mesh, topo: &Topology, what: &str) ->
         let mut closed = false;
         let mut cur = f0;
         let mut exit_edge = e_of(f0, sides0[1]);
-        loop {
-            let Some(g) = across(cur, exit_edge)? else {
-                break;
-            };
+        while let Some(g) = across(cur, exit_edge)? {
             if g == f0 {
                 closed = true;
                 break;
@@ -492,9 +489,9 @@ impl VertexWeights {
         let tri = mesh.faces[self.face as usize];
         let tg = mesh.faces[g as usize];
         let mut w = [0.0; 3];
-        for k in 0..3 {
+        for (k, &v) in tri.iter().enumerate() {
             if self.bary[k] != 0.0 {
-                let j = (0..3).find(|&j| tg[j] == tri[k]).expect("support face");
+                let j = (0..3).find(|&j| tg[j] == v).expect("support face");
                 w[j] += self.bary[k];
             }
         }

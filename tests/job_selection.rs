@@ -547,8 +547,9 @@ fn plane_chooses_piece_nearest_origin() {
 
 /// Independent plane section: all crossed faces, grouped into pieces by
 /// union-find over shared crossed edges; returns the length and closedness of the
-/// piece with the crossing point nearest to `origin`.
-fn reference_section(m: &Mesh, origin: DVec3, normal: DVec3) -> (f64, bool, usize) {
+/// piece with the crossing point nearest to `origin`, its number of faces, and the
+/// number of crossed faces in all pieces.
+fn reference_section(m: &Mesh, origin: DVec3, normal: DVec3) -> (f64, bool, usize, usize) {
     let d: Vec<f64> = m
         .positions
         .iter()
@@ -611,7 +612,8 @@ fn reference_section(m: &Mesh, origin: DVec3, normal: DVec3) -> (f64, bool, usiz
         let _ = (a, b);
         find(&mut parent, f) != root || n == 2
     });
-    (len, closed, count)
+    let total = crossed.iter().filter(|&&c| c).count();
+    (len, closed, count, total)
 }
 
 #[test]
@@ -626,9 +628,11 @@ fn plane_section_of_spot_matches_reference() {
         ([0.0, -0.6, 0.2], [0.0, 1.0, 0.0]), // through the legs: several pieces
     ];
     let mut lengths = vec![];
+    let mut several_pieces = false;
     for (o, n) in planes {
         let c = build_curve(&plane(o, n), &m, &topo, "c").unwrap();
-        let (len, closed, count) = reference_section(&m, DVec3::from(o), DVec3::from(n));
+        let (len, closed, count, total) = reference_section(&m, DVec3::from(o), DVec3::from(n));
+        several_pieces |= count < total;
         let got = c.length(&m, &m.positions);
         assert!(
             (got - len).abs() < 1e-9 * len.max(1.0),
@@ -643,6 +647,10 @@ fn plane_section_of_spot_matches_reference() {
         lengths.push(got);
     }
     assert!(lengths.iter().all(|&l| l > 0.1), "{lengths:?}");
+    assert!(
+        several_pieces,
+        "one of the planes should cut spot in several pieces"
+    );
 }
 
 // ---------------------------------------------------------------------------

@@ -1,0 +1,294 @@
+//! The command line of the contract: exit codes, messages, nothing written on bad
+//! input, the input never modified.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn meshes() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("data/meshes")
+}
+
+fn bin() -> Command {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_metricdeform"));
+    c.env_remove("METRICDEFORM_BACKEND");
+    c
+}
+
+/// Write a job into a fresh directory (with a copy of the mesh) and run `deform`.
+fn deform_job(mesh: &str, job: &str, extra: &[&str]) -> (Output, tempfile::TempDir) {
+    let dir = tempfile::tempdir().unwrap();
+    if !mesh.is_empty() {
+        std::fs::copy(meshes().join(mesh), dir.path().join(mesh)).unwrap();
+    }
+    let job_path = dir.path().join("job.toml");
+    std::fs::write(&job_path, job).unwrap();
+    let mut cmd = bin();
+    cmd.arg("deform").arg(&job_path).arg("--quiet");
+    if !extra.contains(&"--backend") {
+        cmd.args(["--backend", "cpu"]);
+    }
+    let out = cmd.args(extra).current_dir(dir.path()).output().unwrap();
+    (out, dir)
+}
+
+fn files(dir: &Path) -> Vec<String> {
+    let mut v: Vec<String> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    v.sort();
+    v
+}
+
+/// Exit 2, the message contains every `needle`, nothing new written, input intact.
+fn assert_bad_input(mesh: &str, job: &str, needles: &[&str]) {
+    let (out, dir) = deform_job(mesh, job, &["--report", "report.json"]);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "stderr: {stderr}");
+    for n in needles {
+        assert!(stderr.contains(n), "message lacks '{n}': {stderr}");
+    }
+    let mut expected = vec!["job.toml".to_string()];
+    if !mesh.is_empty() {
+        expected.push(mesh.to_string());
+        let a = std::fs::read(meshes().join(mesh)).unwrap();
+        let b = std::fs::read(dir.path().join(mesh)).unwrap();
+        assert!(a == b, "input mesh modified");
+    }
+    expected.sort();
+    assert_eq!(files(dir.path()), expected, "something was written");
+}
+
+#[test]
+fn volume_on_open_mesh_is_refused() {
+    assert_bad_input(
+        "stanford-bunny.obj",
+        "mesh = \"stanford-bunny.obj\"\n[[constraint]]\nkind = \"volume\"\nname = \"body\"\n",
+        &["stanford-bunny.obj", "body", "boundary edges"],
+    );
+}
+
+#[test]
+fn non_manifold_mesh_is_refused() {
+    assert_bad_input(
+        "suzanne.obj",
+        "mesh = \"suzanne.obj\"\n[[constraint]]\nkind = \"area\"\nregion = { faces = [0, 1] }\n",
+        &["suzanne.obj", "non-manifold"],
+    );
+}
+
+#[test]
+fn unknown_field_is_rejected() {
+    assert_bad_input("spot.obj", "mesh = \"spot.obj\"\ncolour = 3\n", &["colour"]);
+    assert_bad_input(
+        "spot.obj",
+        "mesh = \"spot.obj\"\n[[constraint]]\nkind = \"volume\"\nwieght = 2.0\n",
+        &["wieght"],
+    );
+}
+
+#[test]
+fn unknown_kind_is_rejected() {
+    assert_bad_input(
+        "spot.obj",
+        "mesh = \"spot.obj\"\n[[constraint]]\nkind = \"lenght\"\n",
+        &["lenght"],
+    );
+}
+
+#[test]
+fn missing_mesh_file_is_named() {
+    assert_bad_input(
+        "",
+        "mesh = \"nowhere.obj\"\n[[constraint]]\nkind = \"volume\"\n",
+        &["nowhere.obj"],
+    );
+}
+
+#[test]
+fn out_of_range_indices_are_named() {
+    assert_bad_input(
+        "spot.obj",
+        "mesh = \"spot.obj\"\n[[constraint]]\nkind = \"area\"\nname = \"ear\"\nregion = { faces = [1, 99999] }\n",
+        &["ear", "99999"],
+    );
+    assert_bad_input(
+        "spot.obj",
+        "mesh = \"spot.obj\"\n[[constraint]]\nkind = \"length\"\nname = \"seam\"\ncurve = { path = [0, 123456] }\n",
+        &["seam", "123456"],
+    );
+}
+
+#[test]
+fn plane_missing_the_mesh_is_refused() {
+    assert_bad_input(
+        "spot.obj",
+        "mesh = \"spot.obj\"\n[[constraint]]\nkind = \"length\"\nname = \"girth\"\ncurve = { plane = { origin = [0.0, 50.0, 0.0], normal = [0.0, 1.0, 0.0] } }\n",
+        &["girth", "misses"],
+    );
+}
+
+#[test]
+fn empty_region_is_refused() {
+    assert_bad_input(
+        "spot.obj",
+        "mesh = \"spot.obj\"\n[[constraint]]\nkind = \"area\"\nname = \"nothing\"\nregion = { sphere = { center = [40.0, 0.0, 0.0], radius = 0.1 } }\n",
+        &["nothing", "no faces"],
+    );
+}
+
+#[test]
+fn nan_coordinates_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = std::fs::read_to_string(meshes().join("spot.obj")).unwrap();
+    let bad = text.replacen(
+        "v 0.348799 -0.334989 -0.0832331",
+        "v 0.348799 nan -0.0832331",
+        1,
+    );
+    assert_ne!(bad, text);
+    std::fs::write(dir.path().join("nan.obj"), bad).unwrap();
+    std::fs::write(
+        dir.path().join("job.toml"),
+        "mesh = \"nan.obj\"\n[[constraint]]\nkind = \"volume\"\n",
+    )
+    .unwrap();
+    let out = bin()
+        .args(["deform", "job.toml", "--backend", "cpu", "--quiet"])
+        .current_dir(dir.path())
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{stderr}");
+    assert!(
+        stderr.contains("nan.obj") && stderr.contains("vertex 0"),
+        "{stderr}"
+    );
+    assert_eq!(
+        files(dir.path()),
+        vec!["job.toml".to_string(), "nan.obj".to_string()]
+    );
+}
+
+#[test]
+fn scale_and_value_together_are_refused() {
+    assert_bad_input(
+        "spot.obj",
+        "mesh = \"spot.obj\"\n[[constraint]]\nkind = \"volume\"\nname = \"v\"\nscale = 1.1\nvalue = 0.8\n",
+        &["'v'", "scale", "value"],
+    );
+}
+
+#[test]
+fn gpu_backend_without_adapter_is_usage_error() {
+    let (out, dir) = deform_job(
+        "spot.obj",
+        "mesh = \"spot.obj\"\n[[constraint]]\nkind = \"volume\"\n",
+        &["--backend", "gpu"],
+    );
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("gpu"));
+    assert_eq!(
+        files(dir.path()),
+        vec!["job.toml".to_string(), "spot.obj".to_string()]
+    );
+}
+
+/// Fig. 16 through the CLI: exit 3, the result still written, the report names the missed metric.
+#[test]
+fn contradictory_demands_exit_3_with_result_and_report() {
+    let job = "mesh = \"spot.obj\"\noutput = \"out.obj\"\n[[constraint]]\nkind = \"area\"\nname = \"surface\"\nregion = { box = { min = [-9.0, -9.0, -9.0], max = [9.0, 9.0, 9.0] } }\n[[constraint]]\nkind = \"volume\"\nname = \"inflate\"\nscale = 3.0\n[solver]\nmax_iterations = 10\nfine_tune_iterations = 10\n";
+    let (out, dir) = deform_job("spot.obj", job, &["--report", "report.json"]);
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert_eq!(
+        out.status.code(),
+        Some(3),
+        "{stdout}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(dir.path().join("out.obj").exists());
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.path().join("report.json")).unwrap())
+            .unwrap();
+    assert_eq!(report["satisfied"], false);
+    let missed: Vec<&serde_json::Value> = report["constraints"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|c| c["met"] == false)
+        .collect();
+    assert!(!missed.is_empty());
+    assert!(missed
+        .iter()
+        .all(|c| c["error_percent"].as_f64().unwrap() > 1e-3));
+    assert!(report["reason"]
+        .as_str()
+        .unwrap()
+        .contains("encloses at most"));
+    assert!(stdout.contains("NOT SATISFIED"));
+}
+
+/// The embedded demo runs without any file and meets its constraints.
+#[test]
+fn demo_runs_and_meets_its_constraints() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = bin()
+        .args(["demo", "--backend", "cpu", "--quiet", "--report", "r.json"])
+        .current_dir(dir.path())
+        .output()
+        .unwrap();
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(dir.path().join("spot.deformed.obj").exists());
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.path().join("r.json")).unwrap()).unwrap();
+    assert_eq!(report["satisfied"], true);
+    assert_eq!(report["backend"], "cpu");
+    for c in report["constraints"].as_array().unwrap() {
+        assert!(c["error_percent"].as_f64().unwrap() <= 1e-3);
+    }
+    assert!(
+        report["distortion"]["quasi_conformal_mean"]
+            .as_f64()
+            .unwrap()
+            >= 1.0
+    );
+}
+
+/// `measure` prints the input's metrics and changes nothing.
+#[test]
+fn measure_reports_input_metrics() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::copy(meshes().join("spot.obj"), dir.path().join("spot.obj")).unwrap();
+    std::fs::write(
+        dir.path().join("job.json"),
+        r#"{"mesh": "spot.obj", "constraint": [{"kind": "volume", "scale": 2.0}]}"#,
+    )
+    .unwrap();
+    let out = bin()
+        .args(["measure", "job.json", "--report", "m.json"])
+        .current_dir(dir.path())
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(0));
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.path().join("m.json")).unwrap()).unwrap();
+    let c = &report["constraints"][0];
+    let (orig, target) = (
+        c["original"].as_f64().unwrap(),
+        c["target"].as_f64().unwrap(),
+    );
+    assert!((target - 2.0 * orig).abs() < 1e-12 && orig > 0.0);
+    assert_eq!(
+        files(dir.path()),
+        vec![
+            "job.json".to_string(),
+            "m.json".to_string(),
+            "spot.obj".to_string()
+        ]
+    );
+}
