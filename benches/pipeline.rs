@@ -1,1 +1,122 @@
-fn main() {}
+//! Pipeline benchmark: full runs to 0.001 % on the CPU backend, printed as a table
+//! (mesh, faces, iterations, seconds per phase, max metric error, peak memory).
+//!
+//! `cargo bench --bench pipeline` (add `-- --quick` to skip the largest mesh).
+//! Each row runs in a fresh child process so that peak memory is per run.
+
+use metricdeform::deform::{deform, max_error, Options, Problem};
+use metricdeform::job::{Job, JobFormat};
+use metricdeform::report::peak_memory_mb;
+use std::path::Path;
+use std::time::Instant;
+
+const SPOT_JOB: &str = r#"
+mesh = "spot.obj"
+[[constraint]]
+kind = "length"
+curve = { plane = { origin = [0.0, -0.1, 0.3], normal = [0.0, 0.0, 1.0] } }
+scale = 1.1
+[[constraint]]
+kind = "area"
+region = { sphere = { center = [0.0, 0.55, -0.4], radius = 0.35 } }
+scale = 1.3
+[[constraint]]
+kind = "volume"
+"#;
+
+const FANDISK_JOB: &str = r#"
+mesh = "fandisk.obj"
+[[constraint]]
+kind = "area"
+region = { box = { min = [-100.0, 16.0, -100.0], max = [100.0, 100.0, 100.0] } }
+scale = 2.0
+[[constraint]]
+kind = "area"
+region = { box = { min = [-100.0, -100.0, -100.0], max = [100.0, 14.0, 100.0] } }
+"#;
+
+const HOMER_JOB: &str = r#"
+mesh = "homer.obj"
+[[constraint]]
+kind = "length"
+curve = { plane = { origin = [0.5, 0.5, 0.49], normal = [0.0, 1.0, 0.0] } }
+scale = 1.2
+[[constraint]]
+kind = "length"
+curve = { plane = { origin = [0.5, 0.85, 0.49], normal = [0.0, 1.0, 0.0] } }
+[[constraint]]
+kind = "area"
+region = { box = { min = [-10.0, 0.6, -10.0], max = [10.0, 10.0, 10.0] } }
+scale = 1.2
+[[constraint]]
+kind = "volume"
+scale = 1.1
+"#;
+
+fn row(name: &str, job_text: &str, subdivisions: usize, multipliers: &str) {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/meshes");
+    let text = format!("{job_text}\n[solver]\nmultipliers = \"{multipliers}\"\n");
+    let job = Job::from_str(&text, JobFormat::Toml, &dir, name).unwrap();
+    let t0 = Instant::now();
+    let mut mesh = metricdeform::io::read_mesh(&job.mesh_path()).unwrap();
+    for _ in 0..subdivisions {
+        mesh = mesh.subdivide_midpoint();
+    }
+    let problem = Problem::build(&job, mesh, &job.mesh_path()).unwrap();
+    let load = t0.elapsed().as_secs_f64();
+    let options = Options::from_spec(&job.spec.solver);
+    let out = deform(&problem, &options, &mut |_| {}).unwrap();
+    let total = t0.elapsed().as_secs_f64();
+    println!(
+        "| {name} | {} | {multipliers} | {} + {} | {:.3} | {:.3} | {:.3} | {:.3} | {:.2e} | {:.0} |",
+        problem.mesh.num_faces(),
+        out.scale_driven_iterations,
+        out.fine_tune_iterations,
+        load,
+        out.seconds_scale_driven,
+        out.seconds_fine_tune,
+        total,
+        100.0 * max_error(&problem, &out.positions),
+        peak_memory_mb()
+    );
+}
+
+fn main() {
+    let args: Vec<String> = std::env::args().collect();
+    if let Some(i) = args.iter().position(|a| a == "--row") {
+        let (name, mult) = (&args[i + 1], &args[i + 2]);
+        match name.as_str() {
+            "spot" => row("spot", SPOT_JOB, 0, mult),
+            "fandisk" => row("fandisk", FANDISK_JOB, 0, mult),
+            "homer" => row("homer", HOMER_JOB, 0, mult),
+            "spot-x16" => row("spot-x16", SPOT_JOB, 2, mult),
+            "homer-x16" => row("homer-x16", HOMER_JOB, 2, mult),
+            _ => panic!("unknown row {name}"),
+        }
+        return;
+    }
+    let quick = args.iter().any(|a| a == "--quick");
+    println!("| mesh | faces | multipliers | iterations (scale-driven + fine-tune) | load s | scale-driven s | fine-tune s | total s | max metric error % | peak MiB |");
+    println!("|---|---|---|---|---|---|---|---|---|---|");
+    let mut rows = vec![
+        ("spot", "per_constraint"),
+        ("fandisk", "per_constraint"),
+        ("homer", "per_constraint"),
+        ("spot", "per_kind"),
+        ("homer", "per_kind"),
+    ];
+    if !quick {
+        rows.push(("spot-x16", "per_constraint"));
+        rows.push(("homer-x16", "per_constraint"));
+    }
+    let exe = std::env::current_exe().unwrap();
+    for (name, mult) in rows {
+        let status = std::process::Command::new(&exe)
+            .args(["--row", name, mult])
+            .status()
+            .unwrap();
+        if !status.success() {
+            println!("| {name} | - | {mult} | failed: {status} | | | | | | |");
+        }
+    }
+}

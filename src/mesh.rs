@@ -83,3 +83,31 @@ impl Mesh {
         (a + b + c) / 3.0
     }
 }
+
+impl Mesh {
+    /// 1-to-4 midpoint subdivision (for benchmarks at larger sizes). Groups are dropped.
+    pub fn subdivide_midpoint(&self) -> Mesh {
+        use std::collections::HashMap;
+        let mut positions = self.positions.clone();
+        let mut mid: HashMap<(u32, u32), u32> = HashMap::with_capacity(self.faces.len() * 2);
+        let mut faces = Vec::with_capacity(self.faces.len() * 4);
+        let mut midpoint = |a: u32, b: u32, positions: &mut Vec<DVec3>| -> u32 {
+            let key = (a.min(b), a.max(b));
+            *mid.entry(key).or_insert_with(|| {
+                positions.push(0.5 * (positions[a as usize] + positions[b as usize]));
+                (positions.len() - 1) as u32
+            })
+        };
+        for &[a, b, c] in &self.faces {
+            let ab = midpoint(a, b, &mut positions);
+            let bc = midpoint(b, c, &mut positions);
+            let ca = midpoint(c, a, &mut positions);
+            faces.extend_from_slice(&[[a, ab, ca], [ab, b, bc], [ca, bc, c], [ab, bc, ca]]);
+        }
+        Mesh {
+            positions,
+            faces,
+            groups: Vec::new(),
+        }
+    }
+}

@@ -1,23 +1,25 @@
 //! Reference backend: sparse Cholesky `A = L L^T` with faer.
 //!
-//! Symbolic/numeric split: the elimination tree, ordering and supernodes are
-//! computed once per sparsity pattern (`SymbolicLlt`) and reused for every new set
-//! of values (`Llt::try_new_with_symbolic`).
+//! Symbolic/numeric split: the ordering, elimination tree and supernodes are
+//! computed once per sparsity pattern and reused for every new set of values;
+//! the numeric factor's storage and the scratch memory are reused too, so a
+//! refactorization allocates nothing.
 
 use crate::{SolveInfo, SolverError, SpdSolver, SymCsc};
-use faer::linalg::solvers::SolveCore;
-use faer::sparse::linalg::solvers::{Llt, SymbolicLlt};
-use faer::sparse::linalg::LltError;
+use faer::dyn_stack::{MemBuffer, MemStack};
+use faer::sparse::linalg::cholesky::{factorize_symbolic_cholesky, LltRef, SymbolicCholesky};
 use faer::sparse::{SparseColMatRef, SymbolicSparseColMatRef};
-use faer::{Conj, MatMut, Side};
+use faer::{get_global_parallelism, Conj, MatMut, Side};
 
 /// faer sparse Cholesky with the symbolic factorization reused across matrices
 /// of the same pattern.
 #[derive(Default)]
 pub struct CholeskySolver {
     pattern: Option<(Vec<usize>, Vec<usize>)>,
-    symbolic: Option<SymbolicLlt<usize>>,
-    numeric: Option<Llt<usize, f64>>,
+    symbolic: Option<SymbolicCholesky<usize>>,
+    numeric: Vec<f64>,
+    factored: bool,
+    scratch: Option<MemBuffer>,
     n: usize,
     /// How many symbolic analyses were made (for tests and benchmarks).
     pub symbolic_count: usize,
@@ -29,34 +31,64 @@ impl CholeskySolver {
     pub fn new() -> Self {
         Self::default()
     }
+
+    /// Stored entries of the factor L.
+    pub fn factor_nnz(&self) -> usize {
+        self.symbolic.as_ref().map_or(0, |s| s.len_val())
+    }
 }
 
 impl SpdSolver for CholeskySolver {
     fn prepare(&mut self, a: &SymCsc) -> Result<(), SolverError> {
         let same = matches!(&self.pattern, Some((cp, ri)) if *cp == a.col_ptr && *ri == a.row_idx);
-        // SAFETY-free: the pattern is validated by faer's checked constructor.
         let sym_ref = SymbolicSparseColMatRef::new_checked(a.n, a.n, &a.col_ptr, None, &a.row_idx);
         if !same || self.symbolic.is_none() {
-            let sym = SymbolicLlt::try_new(sym_ref, Side::Lower)
-                .map_err(|e| SolverError::Backend(format!("symbolic Cholesky: {e:?}")))?;
+            let sym = factorize_symbolic_cholesky(
+                sym_ref,
+                Side::Lower,
+                Default::default(),
+                Default::default(),
+            )
+            .map_err(|e| SolverError::Backend(format!("symbolic Cholesky: {e:?}")))?;
+            self.numeric = Vec::new();
+            self.numeric
+                .try_reserve_exact(sym.len_val())
+                .map_err(|_| SolverError::OutOfMemory)?;
+            self.numeric.resize(sym.len_val(), 0.0);
             self.symbolic = Some(sym);
             self.pattern = Some((a.col_ptr.clone(), a.row_idx.clone()));
+            self.scratch = None;
             self.symbolic_count += 1;
         }
+        let sym = self.symbolic.as_ref().unwrap();
+        let par = get_global_parallelism();
+        if self.scratch.is_none() {
+            let req = sym.factorize_numeric_llt_scratch::<f64>(par, Default::default());
+            let req = req.or(sym.solve_in_place_scratch::<f64>(8, par));
+            self.scratch = Some(MemBuffer::try_new(req).map_err(|_| SolverError::OutOfMemory)?);
+        }
         let mat = SparseColMatRef::new(sym_ref, &a.values);
-        let llt = Llt::try_new_with_symbolic(self.symbolic.clone().unwrap(), mat, Side::Lower)
-            .map_err(|e| match e {
-                LltError::Numeric(_) => SolverError::NotPositiveDefinite,
-                LltError::Generic(g) => SolverError::Backend(format!("{g:?}")),
-            })?;
-        self.numeric = Some(llt);
+        self.factored = false;
+        sym.factorize_numeric_llt::<f64>(
+            &mut self.numeric,
+            mat,
+            Side::Lower,
+            Default::default(),
+            par,
+            MemStack::new(self.scratch.as_mut().unwrap()),
+            Default::default(),
+        )
+        .map_err(|_| SolverError::NotPositiveDefinite)?;
+        self.factored = true;
         self.n = a.n;
         self.numeric_count += 1;
         Ok(())
     }
 
     fn solve_in_place(&mut self, rhs: &mut [f64], ncols: usize) -> Result<SolveInfo, SolverError> {
-        let llt = self.numeric.as_ref().ok_or(SolverError::NotPrepared)?;
+        if !self.factored {
+            return Err(SolverError::NotPrepared);
+        }
         if rhs.len() != self.n * ncols {
             return Err(SolverError::DimensionMismatch(format!(
                 "rhs has {} entries, expected {} x {}",
@@ -65,8 +97,17 @@ impl SpdSolver for CholeskySolver {
                 ncols
             )));
         }
+        let sym = self.symbolic.as_ref().unwrap();
+        let par = get_global_parallelism();
         let m = MatMut::from_column_major_slice_mut(rhs, self.n, ncols);
-        llt.solve_in_place_with_conj(Conj::No, m);
+        let mut buf = MemBuffer::try_new(sym.solve_in_place_scratch::<f64>(ncols, par))
+            .map_err(|_| SolverError::OutOfMemory)?;
+        LltRef::<'_, usize, f64>::new(sym, &self.numeric).solve_in_place_with_conj(
+            Conj::No,
+            m,
+            par,
+            MemStack::new(&mut buf),
+        );
         if rhs.iter().any(|v| !v.is_finite()) {
             return Err(SolverError::NotPositiveDefinite);
         }
