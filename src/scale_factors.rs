@@ -31,7 +31,8 @@ pub struct ScaleConstraint {
 }
 
 impl ScaleConstraint {
-    fn value(&self, s: &[f64]) -> f64 {
+    /// `C(s)`.
+    pub fn value(&self, s: &[f64]) -> f64 {
         let sum: f64 = self
             .coeffs
             .iter()
@@ -39,7 +40,8 @@ impl ScaleConstraint {
             .sum();
         sum / self.target - 1.0
     }
-    fn gradient(&self, s: &[f64], out: &mut [f64]) {
+    /// Adds `dC/ds` into `out`.
+    pub fn gradient(&self, s: &[f64], out: &mut [f64]) {
         let p = self.degree as f64;
         for &(f, c) in &self.coeffs {
             out[f as usize] += p * c * s[f as usize].powi(self.degree - 1) / self.target;

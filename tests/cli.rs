@@ -292,3 +292,17 @@ fn measure_reports_input_metrics() {
         ]
     );
 }
+
+/// `--preview N`: at most N scale-driven iterations and no fine-tune.
+#[test]
+fn preview_stops_early_and_skips_fine_tune() {
+    let job = "mesh = \"spot.obj\"\noutput = \"out.obj\"\n[[constraint]]\nkind = \"volume\"\nscale = 1.5\n[[constraint]]\nkind = \"length\"\ncurve = { plane = { origin = [0.0, -0.1, 0.3], normal = [0.0, 0.0, 1.0] } }\nscale = 0.9\n";
+    let (out, dir) = deform_job("spot.obj", job, &["--preview", "1", "--report", "r.json"]);
+    let code = out.status.code().unwrap();
+    assert!(code == 0 || code == 3, "exit {code}");
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.path().join("r.json")).unwrap()).unwrap();
+    assert!(report["iterations"]["scale_driven"].as_u64().unwrap() <= 1);
+    assert_eq!(report["iterations"]["fine_tune"].as_u64().unwrap(), 0);
+    assert!(dir.path().join("out.obj").exists());
+}

@@ -385,3 +385,68 @@ kind = "volume"
         }
     }
 }
+
+/// Constraint Jacobians in s (Eqs. 9, 11, 13) against central differences.
+#[test]
+fn scale_factor_gradients_match_finite_differences() {
+    use metricdeform::scale_factors::ScaleConstraint;
+    let job = job(r#"
+mesh = "spot.obj"
+[[constraint]]
+kind = "length"
+curve = { plane = { origin = [0.0, -0.1, 0.3], normal = [0.0, 0.0, 1.0] } }
+scale = 1.2
+[[constraint]]
+kind = "area"
+region = { sphere = { center = [0.0, 0.55, -0.4], radius = 0.35 } }
+scale = 1.5
+[[constraint]]
+kind = "volume"
+scale = 0.8
+"#);
+    let p = Problem::load(&job).unwrap();
+    let x = &p.mesh.positions;
+    let areas = p.mesh.face_areas(x);
+    let nf = p.mesh.num_faces();
+    // A non-uniform s so that the quadratic and cubic terms matter.
+    let s: Vec<f64> = (0..nf)
+        .map(|f| 1.0 + 0.3 * ((f as f64) * 0.37).sin())
+        .collect();
+    for c in &p.constraints {
+        let sc = ScaleConstraint {
+            coeffs: c.face_coefficients(
+                &p.mesh,
+                x,
+                &areas,
+                metricdeform::metrics::VolumeShare::Area,
+            ),
+            degree: c.degree(),
+            target: c.target,
+            group: 0,
+        };
+        let mut g = vec![0.0; nf];
+        sc.gradient(&s, &mut g);
+        let faces: Vec<usize> = sc
+            .coeffs
+            .iter()
+            .take(20)
+            .map(|&(f, _)| f as usize)
+            .collect();
+        assert!(!faces.is_empty());
+        for f in faces {
+            let h = 1e-6;
+            let mut sp = s.clone();
+            let mut sm = s.clone();
+            sp[f] += h;
+            sm[f] -= h;
+            let fd = (sc.value(&sp) - sc.value(&sm)) / (2.0 * h);
+            assert!(
+                (fd - g[f]).abs() < 1e-7 * (1.0 + g[f].abs()),
+                "{:?} face {f}: fd {fd} analytic {}",
+                c.kind,
+                g[f]
+            );
+            assert!(g[f] != 0.0);
+        }
+    }
+}
