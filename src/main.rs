@@ -222,37 +222,21 @@ fn run(job: &Job, args: &RunArgs) -> Result<u8, Error> {
 
     let bar = progress_bar(args.quiet);
     let plain = !args.quiet && !std::io::stderr().is_terminal();
-    let mut on_progress = |p: Progress| match p {
-        Progress::ScaleDriven {
-            iteration,
-            max_error,
-            max_scale_change,
-        } => {
-            let msg = format!(
+    let mut on_progress = |p: Progress| {
+        let msg = match p {
+            Progress::ScaleDriven { iteration, max_error, max_scale_change } => format!(
                 "scale-driven iteration {iteration}: max metric error {:.3e} %, max |s-1| {max_scale_change:.3e}",
                 max_error * 100.0
-            );
-            if plain {
-                eprintln!("{msg}");
-            } else if let Some(b) = &bar {
-                b.set_message(msg);
-                b.tick();
+            ),
+            Progress::FineTune { iteration, max_error } => {
+                format!("fine-tune iteration {iteration}: max metric error {:.3e} %", max_error * 100.0)
             }
-        }
-        Progress::FineTune {
-            iteration,
-            max_error,
-        } => {
-            let msg = format!(
-                "fine-tune iteration {iteration}: max metric error {:.3e} %",
-                max_error * 100.0
-            );
-            if plain {
-                eprintln!("{msg}");
-            } else if let Some(b) = &bar {
-                b.set_message(msg);
-                b.tick();
-            }
+        };
+        if plain {
+            eprintln!("{msg}");
+        } else if let Some(b) = &bar {
+            b.set_message(msg);
+            b.tick();
         }
     };
     let outcome = deform(&problem, &options, &mut on_progress)?;

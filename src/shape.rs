@@ -231,7 +231,6 @@ impl ShapeModel {
             }
         }
         let mut h = BlockSym3::from_pattern(n, pairs);
-        drop(h.blocks.iter_mut());
         let mut hm = h.clone();
         hm.clear();
         for i in 0..n {
