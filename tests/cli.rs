@@ -31,6 +31,11 @@ fn deform_job(mesh: &str, job: &str, extra: &[&str]) -> (Output, tempfile::TempD
     (out, dir)
 }
 
+/// Parse a JSON file the command wrote.
+fn read_json(dir: &Path, name: &str) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(dir.join(name)).unwrap()).unwrap()
+}
+
 fn files(dir: &Path) -> Vec<String> {
     let mut v: Vec<String> = std::fs::read_dir(dir)
         .unwrap()
@@ -207,9 +212,7 @@ fn contradictory_demands_exit_3_with_result_and_report() {
         String::from_utf8_lossy(&out.stderr)
     );
     assert!(dir.path().join("out.obj").exists());
-    let report: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(dir.path().join("report.json")).unwrap())
-            .unwrap();
+    let report: serde_json::Value = read_json(dir.path(), "report.json");
     assert_eq!(report["satisfied"], false);
     let missed: Vec<&serde_json::Value> = report["constraints"]
         .as_array()
@@ -244,8 +247,7 @@ fn demo_runs_and_meets_its_constraints() {
         String::from_utf8_lossy(&out.stderr)
     );
     assert!(dir.path().join("spot.deformed.obj").exists());
-    let report: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(dir.path().join("r.json")).unwrap()).unwrap();
+    let report: serde_json::Value = read_json(dir.path(), "r.json");
     assert_eq!(report["satisfied"], true);
     assert_eq!(report["backend"], "cpu");
     for c in report["constraints"].as_array().unwrap() {
@@ -275,8 +277,7 @@ fn measure_reports_input_metrics() {
         .output()
         .unwrap();
     assert_eq!(out.status.code(), Some(0));
-    let report: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(dir.path().join("m.json")).unwrap()).unwrap();
+    let report: serde_json::Value = read_json(dir.path(), "m.json");
     let c = &report["constraints"][0];
     let (orig, target) = (
         c["original"].as_f64().unwrap(),
@@ -300,8 +301,7 @@ fn preview_stops_early_and_skips_fine_tune() {
     let (out, dir) = deform_job("spot.obj", job, &["--preview", "1", "--report", "r.json"]);
     let code = out.status.code().unwrap();
     assert!(code == 0 || code == 3, "exit {code}");
-    let report: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(dir.path().join("r.json")).unwrap()).unwrap();
+    let report: serde_json::Value = read_json(dir.path(), "r.json");
     assert!(report["iterations"]["scale_driven"].as_u64().unwrap() <= 1);
     assert_eq!(report["iterations"]["fine_tune"].as_u64().unwrap(), 0);
     assert!(dir.path().join("out.obj").exists());
