@@ -27,7 +27,7 @@ use crate::mesh::Mesh;
 use crate::topology::Topology;
 use crate::Result;
 use glam::DVec3;
-use solver_cpu::{BlockSym3, CholeskySolver, SpdSolver, SymCsc};
+use solver_cpu::{BlockSym3, CholeskySolver, SpdSolver};
 
 /// Weights of Eq. 7 / Eq. 19.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -181,7 +181,6 @@ pub struct ShapeModel {
     hm: BlockSym3,
     /// Working matrix (pattern of the 2-ring).
     h: BlockSym3,
-    scalar: SymCsc,
     pub fixed: Vec<bool>,
     /// Components re-centred after each step (those without handles): vertex lists.
     free_components: Vec<Vec<u32>>,
@@ -248,7 +247,6 @@ impl ShapeModel {
             }
         }
         h.clear();
-        let scalar = h.scalar_pattern();
 
         // Held vertices: unreferenced ones, and one per component without handles.
         let mut referenced = vec![false; n];
@@ -286,7 +284,6 @@ impl ShapeModel {
             mean_edge,
             hm,
             h,
-            scalar,
             fixed,
             free_components: free,
             handles,
@@ -436,8 +433,7 @@ impl ShapeModel {
                 grad[3 * v..3 * v + 3].iter_mut().for_each(|g| *g = 0.0);
             }
         }
-        self.h.fill_scalar(&mut self.scalar, &self.fixed);
-        self.solver.prepare(&self.scalar)?;
+        self.solver.prepare_blocks(&self.h, &self.fixed)?;
         Ok(())
     }
 

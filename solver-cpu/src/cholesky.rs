@@ -5,7 +5,7 @@
 //! the numeric factor's storage and the scratch memory are reused too, so a
 //! refactorization allocates nothing.
 
-use crate::{SolveInfo, SolverError, SpdSolver, SymCsc};
+use crate::{BlockSym3, SolveInfo, SolverError, SpdSolver, SymCsc};
 use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::sparse::linalg::cholesky::{factorize_symbolic_cholesky, LltRef, SymbolicCholesky};
 use faer::sparse::{SparseColMatRef, SymbolicSparseColMatRef};
@@ -21,6 +21,8 @@ pub struct CholeskySolver {
     factored: bool,
     scratch: Option<MemBuffer>,
     n: usize,
+    /// Scalar copy of the last block matrix (pattern kept while unchanged).
+    block_scalar: Option<(Vec<usize>, Vec<usize>, SymCsc)>,
     /// How many symbolic analyses were made (for tests and benchmarks).
     pub symbolic_count: usize,
     /// How many numeric factorizations were made.
@@ -83,6 +85,25 @@ impl SpdSolver for CholeskySolver {
         self.n = a.n;
         self.numeric_count += 1;
         Ok(())
+    }
+
+    fn prepare_blocks(&mut self, a: &BlockSym3, fixed: &[bool]) -> Result<(), SolverError> {
+        if fixed.len() != a.n {
+            return Err(SolverError::DimensionMismatch(format!(
+                "{} fixed flags for {} block rows",
+                fixed.len(),
+                a.n
+            )));
+        }
+        let same = matches!(&self.block_scalar, Some((cp, ri, _)) if *cp == a.col_ptr && *ri == a.row_idx);
+        if !same {
+            self.block_scalar = Some((a.col_ptr.clone(), a.row_idx.clone(), a.scalar_pattern()));
+        }
+        let mut scalar = std::mem::take(&mut self.block_scalar.as_mut().unwrap().2);
+        a.fill_scalar(&mut scalar, fixed);
+        let r = self.prepare(&scalar);
+        self.block_scalar.as_mut().unwrap().2 = scalar;
+        r
     }
 
     fn solve_in_place(&mut self, rhs: &mut [f64], ncols: usize) -> Result<SolveInfo, SolverError> {

@@ -108,11 +108,29 @@ impl SymCsc {
 /// then solve many right-hand sides. Implemented by the CPU Cholesky reference
 /// backend and by the GPU preconditioned-conjugate-gradient backend.
 pub trait SpdSolver {
-    /// Factor (or upload) the matrix. The symbolic analysis is reused while the
-    /// sparsity pattern is unchanged.
+    /// Factor (or upload) a scalar matrix. The symbolic analysis is reused while
+    /// the sparsity pattern is unchanged.
     fn prepare(&mut self, a: &SymCsc) -> Result<(), SolverError>;
+    /// Factor (or upload) a 3x3-block matrix. Vertices with `fixed[v]` are held:
+    /// their rows and columns become the identity (zero increment for a zero
+    /// right-hand side there).
+    fn prepare_blocks(&mut self, a: &BlockSym3, fixed: &[bool]) -> Result<(), SolverError>;
     /// Solve `A X = B` in place; `rhs` holds `ncols` columns of length `n`, column-major.
     fn solve_in_place(&mut self, rhs: &mut [f64], ncols: usize) -> Result<SolveInfo, SolverError>;
+    /// Solve `A X = B` with `x` holding an initial guess on entry (iterative
+    /// backends warm-start from it; direct ones ignore it).
+    fn solve_with_guess(
+        &mut self,
+        b: &[f64],
+        x: &mut [f64],
+        ncols: usize,
+    ) -> Result<SolveInfo, SolverError> {
+        x.copy_from_slice(b);
+        self.solve_in_place(x, ncols)
+    }
+    /// Relative residual `||A x - b|| / ||b||` an iterative backend must reach
+    /// (ignored by direct solvers).
+    fn set_tolerance(&mut self, _relative_residual: f64) {}
     /// Short name for reports ("cpu", "gpu").
     fn name(&self) -> &str;
 }
