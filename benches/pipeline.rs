@@ -84,6 +84,7 @@ fn row(name: &str, job_text: &str, subdivisions: usize, multipliers: &str) {
 fn main() {
     let args: Vec<String> = std::env::args().collect();
     if let Some(i) = args.iter().position(|a| a == "--row") {
+        let _ = env_logger::builder().format_timestamp_millis().try_init();
         let (name, mult) = (&args[i + 1], &args[i + 2]);
         match name.as_str() {
             "spot" => row("spot", SPOT_JOB, 0, mult),

@@ -349,6 +349,7 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
         };
         stop_reason = "iteration cap".into();
         loop {
+            let t_iter = Instant::now();
             let areas = mesh.face_areas(&x);
             // Eq. 3: scale factors on the current mesh.
             let (s, max_ds) = match scale_system.as_mut() {
@@ -364,7 +365,12 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
                             group: g,
                         })
                         .collect();
-                    let (s, _info) = sys.estimate(&cons, o.multipliers)?;
+                    let (s, info) = sys.estimate(&cons, o.multipliers)?;
+                    log::debug!(
+                        "scale factors: {} Newton steps, {:.3} s",
+                        info.newton_iterations,
+                        t_iter.elapsed().as_secs_f64()
+                    );
                     let m = s.iter().fold(0.0f64, |m, v| m.max((v - 1.0).abs()));
                     (s, m)
                 }
@@ -421,9 +427,17 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
                 }
             }
             // Eq. 7 / 19.
+            let t_shape = Instant::now();
             model.assemble_and_factor(mesh, &x, &s, &c, &o.shape)?;
+            let t_solve = Instant::now();
             x = model.solve_unconstrained(&x)?;
             iterations += 1;
+            log::debug!(
+                "outer iteration {iterations}: max |s-1| {max_ds:.4}, assemble+factor {:.3} s, solve {:.3} s, total {:.3} s",
+                (t_solve - t_shape).as_secs_f64(),
+                t_solve.elapsed().as_secs_f64(),
+                t_iter.elapsed().as_secs_f64()
+            );
             let e = max_error(p, &x);
             if e < best.0 || has_handles || has_curvature {
                 best = (e, x.clone());

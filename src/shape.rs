@@ -27,7 +27,7 @@ use crate::mesh::Mesh;
 use crate::topology::Topology;
 use crate::Result;
 use glam::DVec3;
-use solver_cpu::{BlockSym3, CholeskySolver, SpdSolver};
+use solver_cpu::{BlockPcgSolver, BlockRows, BlockSym3, SpdSolver};
 
 /// Weights of Eq. 7 / Eq. 19.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -181,6 +181,15 @@ pub struct ShapeModel {
     hm: BlockSym3,
     /// Working matrix (pattern of the 2-ring).
     h: BlockSym3,
+    /// Row index of `h` for the parallel product.
+    h_rows: BlockRows,
+    /// Block slots of each face's corner pairs (k, l), l <= k, in the order
+    /// (0,0) (1,0) (1,1) (2,0) (2,1) (2,2) (E_f assembly without searching).
+    face_slots: Vec<[u32; 6]>,
+    /// Block slots of the pairs (p >= q) of each mean-value Laplacian row, in the
+    /// order the E_l assembly visits them.
+    mv_slot_ptr: Vec<usize>,
+    mv_slots: Vec<u32>,
     pub fixed: Vec<bool>,
     /// Components re-centred after each step (those without handles): vertex lists.
     free_components: Vec<Vec<u32>>,
@@ -192,7 +201,7 @@ pub struct ShapeModel {
 
 impl ShapeModel {
     pub fn new(mesh: &Mesh, topo: &Topology, handles: Vec<HandleTarget>) -> Result<Self> {
-        Self::with_solver(mesh, topo, handles, Box::new(CholeskySolver::new()))
+        Self::with_solver(mesh, topo, handles, Box::new(BlockPcgSolver::new()))
     }
 
     pub fn with_solver(
@@ -247,6 +256,39 @@ impl ShapeModel {
             }
         }
         h.clear();
+        let slot = |a: u32, b: u32| -> u32 {
+            h.slot(a as usize, b as usize)
+                .expect("pair inside the 2-ring pattern")
+                .0 as u32
+        };
+        let face_slots: Vec<[u32; 6]> = mesh
+            .faces
+            .iter()
+            .map(|t| {
+                [
+                    slot(t[0], t[0]),
+                    slot(t[1], t[0]),
+                    slot(t[1], t[1]),
+                    slot(t[2], t[0]),
+                    slot(t[2], t[1]),
+                    slot(t[2], t[2]),
+                ]
+            })
+            .collect();
+        let mut mv_slot_ptr = Vec::with_capacity(n + 1);
+        let mut mv_slots = Vec::new();
+        mv_slot_ptr.push(0);
+        for i in 0..n {
+            for (p, _) in mv.row(i) {
+                for (q, _) in mv.row(i) {
+                    if p >= q {
+                        mv_slots.push(slot(p as u32, q as u32));
+                    }
+                }
+            }
+            mv_slot_ptr.push(mv_slots.len());
+        }
+        let h_rows = h.row_index();
 
         // Held vertices: unreferenced ones, and one per component without handles.
         let mut referenced = vec![false; n];
@@ -284,6 +326,10 @@ impl ShapeModel {
             mean_edge,
             hm,
             h,
+            h_rows,
+            face_slots,
+            mv_slot_ptr,
+            mv_slots,
             fixed,
             free_components: free,
             handles,
@@ -314,6 +360,7 @@ impl ShapeModel {
         w: &ShapeWeights,
     ) -> Result<()> {
         let n = self.n;
+        let t0 = std::time::Instant::now();
         let h = &mut self.h;
         for (o, m) in h.blocks.iter_mut().zip(&self.hm.blocks) {
             for q in 0..9 {
@@ -335,15 +382,18 @@ impl ShapeModel {
             let g: [DVec3; 3] =
                 std::array::from_fn(|k| nh.cross(p[(k + 2) % 3] - p[(k + 1) % 3]) / a2);
             let wf = 2.0 * w.k_f * self.face_weight[f];
+            let slots = &self.face_slots[f];
             for k in 0..3 {
                 for l in 0..=k {
-                    let (a, b) = (t[k] as usize, t[l] as usize);
-                    let v = wf * g[k].dot(g[l]);
+                    let (a, b) = (t[k], t[l]);
+                    let mut v = wf * g[k].dot(g[l]);
                     if a == b && k != l {
-                        h.add_scalar(a, b, 2.0 * v);
-                    } else {
-                        h.add_scalar(a, b, v);
+                        v *= 2.0;
                     }
+                    let blk = &mut h.blocks[slots[k * (k + 1) / 2 + l] as usize];
+                    blk[0] += v;
+                    blk[4] += v;
+                    blk[8] += v;
                 }
                 let gk = wf * (1.0 - s[f]) * g[k];
                 let i = 3 * t[k] as usize;
@@ -401,13 +451,15 @@ impl ShapeModel {
                         -di.z * di.y,
                         dd - di.z * di.z,
                     ];
-                    let row: Vec<(usize, f64)> = self.mv.row(i).collect();
-                    for &(p, cp) in &row {
-                        for &(q, cq) in &row {
+                    let mut slots = self.mv_slots[self.mv_slot_ptr[i]..].iter();
+                    for (p, cp) in self.mv.row(i) {
+                        for (q, cq) in self.mv.row(i) {
                             if p >= q {
                                 let s = a * cp * cq;
-                                let m: [f64; 9] = std::array::from_fn(|e| s * k[e]);
-                                h.add_block(p, q, &m);
+                                let blk = &mut h.blocks[*slots.next().unwrap() as usize];
+                                for e in 0..9 {
+                                    blk[e] += s * k[e];
+                                }
                             }
                         }
                     }
@@ -433,7 +485,14 @@ impl ShapeModel {
                 grad[3 * v..3 * v + 3].iter_mut().for_each(|g| *g = 0.0);
             }
         }
+        let t1 = std::time::Instant::now();
         self.solver.prepare_blocks(&self.h, &self.fixed)?;
+        log::debug!(
+            "shape system: assembly {:.3} s, {} {:.3} s",
+            (t1 - t0).as_secs_f64(),
+            self.solver.name(),
+            t1.elapsed().as_secs_f64()
+        );
         Ok(())
     }
 
@@ -445,7 +504,7 @@ impl ShapeModel {
     /// Energy (up to a constant) at `xref + dx`: `1/2 dx^T H dx + g0 . dx`.
     pub fn energy(&self, dx: &[f64]) -> f64 {
         let mut hd = vec![0.0; dx.len()];
-        self.h.mul_vec(dx, &mut hd);
+        self.h.mul_vec_rows(&self.h_rows, dx, &mut hd);
         let mut e = 0.0;
         for i in 0..dx.len() {
             let v = i / 3;
@@ -460,7 +519,7 @@ impl ShapeModel {
     /// Gradient at `xref + dx`: `H dx + g0` (held dofs zero).
     pub fn gradient_at(&self, dx: &[f64]) -> Vec<f64> {
         let mut g = vec![0.0; dx.len()];
-        self.h.mul_vec(dx, &mut g);
+        self.h.mul_vec_rows(&self.h_rows, dx, &mut g);
         for i in 0..dx.len() {
             g[i] = if self.fixed[i / 3] {
                 0.0

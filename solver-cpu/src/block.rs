@@ -3,6 +3,15 @@
 
 use crate::SymCsc;
 
+/// The strictly lower blocks of a [`BlockSym3`] listed by block row: for row `i`,
+/// `entries[row_ptr[i]..row_ptr[i + 1]]` holds (block slot, block column). With
+/// the column-wise storage this gives a gather-only, row-parallel product.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct BlockRows {
+    pub row_ptr: Vec<usize>,
+    pub entries: Vec<(u32, u32)>,
+}
+
 /// Lower-triangular block pattern (block row >= block column), each block a
 /// row-major 3x3 matrix. Diagonal blocks are stored whole (symmetric).
 #[derive(Debug, Clone, Default)]
@@ -128,6 +137,61 @@ impl BlockSym3 {
             }
         }
         debug_assert_eq!(pos, out.values.len());
+    }
+
+    /// Row-wise index of the strictly lower blocks (for [`BlockSym3::mul_vec_rows`]).
+    pub fn row_index(&self) -> BlockRows {
+        let n = self.n;
+        let mut row_ptr = vec![0usize; n + 1];
+        for j in 0..n {
+            for k in self.col_ptr[j]..self.col_ptr[j + 1] {
+                if self.row_idx[k] != j {
+                    row_ptr[self.row_idx[k] + 1] += 1;
+                }
+            }
+        }
+        for i in 0..n {
+            row_ptr[i + 1] += row_ptr[i];
+        }
+        let mut next = row_ptr.clone();
+        let mut entries = vec![(0u32, 0u32); row_ptr[n]];
+        for j in 0..n {
+            for k in self.col_ptr[j]..self.col_ptr[j + 1] {
+                let i = self.row_idx[k];
+                if i != j {
+                    entries[next[i]] = (k as u32, j as u32);
+                    next[i] += 1;
+                }
+            }
+        }
+        BlockRows { row_ptr, entries }
+    }
+
+    /// y = A x, parallel over block rows; `rows` is this pattern's [`BlockSym3::row_index`].
+    pub fn mul_vec_rows(&self, rows: &BlockRows, x: &[f64], y: &mut [f64]) {
+        use rayon::prelude::*;
+        y.par_chunks_mut(3).enumerate().for_each(|(v, out)| {
+            let mut acc = [0.0f64; 3];
+            // Column v: blocks (i, v), i >= v, contribute B^T x_i.
+            for k in self.col_ptr[v]..self.col_ptr[v + 1] {
+                let i = self.row_idx[k];
+                let b = &self.blocks[k];
+                let xi = &x[3 * i..3 * i + 3];
+                for c in 0..3 {
+                    acc[c] += b[c] * xi[0] + b[3 + c] * xi[1] + b[6 + c] * xi[2];
+                }
+            }
+            // Row v, strictly lower: blocks (v, j), j < v, contribute B x_j.
+            for &(k, j) in &rows.entries[rows.row_ptr[v]..rows.row_ptr[v + 1]] {
+                let b = &self.blocks[k as usize];
+                let j = j as usize;
+                let xj = &x[3 * j..3 * j + 3];
+                for r in 0..3 {
+                    acc[r] += b[3 * r] * xj[0] + b[3 * r + 1] * xj[1] + b[3 * r + 2] * xj[2];
+                }
+            }
+            out.copy_from_slice(&acc);
+        });
     }
 
     /// y = A x for the full symmetric block matrix (x, y of length 3n).

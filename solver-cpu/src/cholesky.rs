@@ -61,6 +61,12 @@ impl SpdSolver for CholeskySolver {
             self.pattern = Some((a.col_ptr.clone(), a.row_idx.clone()));
             self.scratch = None;
             self.symbolic_count += 1;
+            log::debug!(
+                "Cholesky symbolic analysis: n {}, nnz(A) {}, nnz(L) {}",
+                a.n,
+                a.row_idx.len(),
+                self.numeric.len()
+            );
         }
         let sym = self.symbolic.as_ref().unwrap();
         let par = get_global_parallelism();
@@ -95,7 +101,8 @@ impl SpdSolver for CholeskySolver {
                 a.n
             )));
         }
-        let same = matches!(&self.block_scalar, Some((cp, ri, _)) if *cp == a.col_ptr && *ri == a.row_idx);
+        let same =
+            matches!(&self.block_scalar, Some((cp, ri, _)) if *cp == a.col_ptr && *ri == a.row_idx);
         if !same {
             self.block_scalar = Some((a.col_ptr.clone(), a.row_idx.clone(), a.scalar_pattern()));
         }
