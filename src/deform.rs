@@ -13,6 +13,7 @@ use crate::topology::Topology;
 use crate::validate::{require_closed, validate, MeshCheck};
 use crate::{Error, Mesh, Result};
 use glam::DVec3;
+use solver_cpu::{BlockPcgSolver, CholeskySolver, SpdSolver};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -24,6 +25,57 @@ pub enum CurvatureTarget {
     Scaled,
     /// `c_i` = 1 (Eq. 5 as printed), except in curvature regions.
     Literal,
+}
+
+/// Which linear solvers a run uses (`--backend`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum SolverBackend {
+    /// CPU reference: shape systems by block PCG preconditioned with the sparse
+    /// Cholesky factor of their isotropic part, the scale-factor system by sparse
+    /// Cholesky (faer, symbolic factor reused).
+    #[default]
+    Cpu,
+    /// CPU, sparse Cholesky of every system (no iteration at all).
+    CpuDirect,
+    /// GPU: every system by the WGSL preconditioned conjugate gradient.
+    Gpu,
+}
+
+impl SolverBackend {
+    pub fn name(self) -> &'static str {
+        match self {
+            SolverBackend::Cpu => "cpu",
+            SolverBackend::CpuDirect => "cpu-direct",
+            SolverBackend::Gpu => "gpu",
+        }
+    }
+
+    /// A solver for the shape systems (Eqs. 7, 8 and 16-18).
+    pub fn shape_solver(self) -> Result<Box<dyn SpdSolver>> {
+        match self {
+            SolverBackend::Cpu => Ok(Box::new(BlockPcgSolver::new())),
+            SolverBackend::CpuDirect => Ok(Box::new(CholeskySolver::new())),
+            SolverBackend::Gpu => open_gpu(),
+        }
+    }
+
+    /// A solver for the scale-factor system (Eq. 3).
+    pub fn scale_solver(self) -> Result<Box<dyn SpdSolver>> {
+        match self {
+            SolverBackend::Cpu | SolverBackend::CpuDirect => Ok(Box::new(CholeskySolver::new())),
+            SolverBackend::Gpu => open_gpu(),
+        }
+    }
+}
+
+fn open_gpu() -> Result<Box<dyn SpdSolver>> {
+    match solver_gpu::open() {
+        Ok(s) => Ok(Box::new(s)),
+        Err(e @ solver_gpu::GpuError::NoAdapter(_)) => Err(Error::bad(format!(
+            "--backend gpu: no usable GPU adapter: {e}"
+        ))),
+        Err(e) => Err(Error::Solver(e.into())),
+    }
 }
 
 /// Solver settings (`[solver]` of the job file, with defaults).
@@ -46,6 +98,7 @@ pub struct Options {
     pub volume_share: VolumeShare,
     /// `--preview N`: stop the scale-driven phase after N iterations, skip the fine-tune.
     pub preview: Option<usize>,
+    pub backend: SolverBackend,
 }
 
 impl Default for Options {
@@ -74,6 +127,7 @@ impl Default for Options {
             curvature_target: CurvatureTarget::Scaled,
             volume_share: VolumeShare::Area,
             preview: None,
+            backend: SolverBackend::Cpu,
         }
     }
 }
@@ -319,7 +373,8 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
     // Compact group ids so that per-kind grouping has no empty group.
     let groups = compact(&groups);
 
-    let mut model = ShapeModel::new(mesh, &p.topo, p.handles.clone())?;
+    let mut model =
+        ShapeModel::with_solver(mesh, &p.topo, p.handles.clone(), o.backend.shape_solver()?)?;
     let mut curvature_factor = vec![1.0; n];
     for r in &p.curvature {
         for &v in &r.vertices {
@@ -339,12 +394,13 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
         let mut scale_system = if p.constraints.is_empty() {
             None
         } else {
-            Some(ScaleFactorSystem::new(
+            Some(ScaleFactorSystem::with_solver(
                 &p.topo.face_pairs,
                 &areas0,
                 o.k_d,
                 o.k_r,
                 o.regulariser,
+                o.backend.scale_solver()?,
             )?)
         };
         stop_reason = "iteration cap".into();
