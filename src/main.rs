@@ -102,8 +102,26 @@ fn main() -> ExitCode {
 }
 
 fn adapters() -> Result<u8, Error> {
-    match solver_gpu::open() {
-        Ok(never) => match never {},
+    let list = solver_gpu::list_adapters();
+    if list.is_empty() {
+        println!("wgpu sees no GPU adapter (Vulkan)");
+    }
+    for a in &list {
+        println!(
+            "{} ({}, {}, driver {} {}, SHADER_F64: {})",
+            a.name,
+            a.backend,
+            a.device_type,
+            a.driver,
+            a.driver_info,
+            if a.shader_f64 { "yes" } else { "no" }
+        );
+    }
+    match solver_gpu::default_adapter() {
+        Ok(a) => println!(
+            "`--backend gpu` would use: {} (set WGPU_ADAPTER_NAME to choose)",
+            a.name
+        ),
         Err(why) => {
             println!("no GPU adapter in use: {why}");
             println!("`--backend gpu` would fail; `--backend auto` uses the CPU.");
@@ -165,16 +183,19 @@ fn choose_backend(
     match name.as_str() {
         "cpu" => Ok(("cpu".into(), None)),
         "gpu" => match solver_gpu::open() {
-            Ok(never) => match never {},
+            Ok(gpu) => Err(Error::bad(format!(
+                "--backend gpu: the GPU solver opens on {}, but the deformation pipeline does not use it in this version; use --backend cpu",
+                gpu.adapter_name()
+            ))),
             Err(why) => Err(Error::bad(format!("--backend gpu: no usable GPU adapter: {why}"))),
         },
         "auto" => {
-            let why = match solver_gpu::open() {
-                Ok(never) => match never {},
-                Err(why) => why,
+            let why = match solver_gpu::default_adapter() {
+                Ok(a) => format!("adapter {} found, but the pipeline does not use the GPU solver in this version", a.name),
+                Err(why) => why.to_string(),
             };
             let _ = quiet;
-            eprintln!("backend: cpu (auto: no GPU backend available: {why})");
+            eprintln!("backend: cpu (auto: {why})");
             Ok(("cpu".into(), None))
         }
         other => Err(Error::bad(format!(

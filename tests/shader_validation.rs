@@ -23,16 +23,19 @@ fn every_shader_parses_and_validates() {
         validator
             .validate(&module)
             .unwrap_or_else(|e| panic!("{name}: {}", e.emit_to_string(&source)));
-        assert!(
-            !module.entry_points.is_empty(),
-            "{name}: no entry point"
-        );
+        assert!(!module.entry_points.is_empty(), "{name}: no entry point");
         names.push(name);
     }
     names.sort();
     eprintln!("validated: {names:?}");
     assert!(!names.is_empty(), "no .wgsl file found in {dir}");
-    for expected in ["bsr_spmv.wgsl", "csr_spmv.wgsl", "dot.wgsl", "block_jacobi.wgsl", "pcg.wgsl"] {
+    for expected in [
+        "bsr_spmv.wgsl",
+        "csr_spmv.wgsl",
+        "dot.wgsl",
+        "block_jacobi.wgsl",
+        "pcg.wgsl",
+    ] {
         assert!(names.iter().any(|n| n == expected), "{expected} missing");
     }
 }

@@ -1,18 +1,510 @@
-//! GPU backend (wgpu compute shaders, WGSL preconditioned conjugate gradient).
+//! GPU backend: a preconditioned conjugate gradient in WGSL compute shaders on
+//! wgpu (Vulkan), behind [`solver_cpu::SpdSolver`].
 //!
-//! Not implemented yet: this crate only reports that the backend is unavailable,
-//! so that `--backend gpu` fails with a clear message (exit 2) instead of falling
-//! back silently. The GPU issue fills it in behind `solver_cpu::SpdSolver`.
+//! # The math
+//!
+//! For an SPD matrix `A` (3x3-block vertex systems, or the scalar face system),
+//! each right-hand side `b` is solved by **mixed-precision iterative refinement**
+//! around an **f32 PCG** on the GPU:
+//!
+//! ```text
+//! x = x0 (0, or the caller's guess)                        host, f64
+//! loop (at most max_rounds):
+//!     r = b - A x                    f64 SpMV on the host (rayon)
+//!     stop if ||r|| <= tol ||b||     (tol = 1e-10 by default, per column)
+//!     solve A d = r / ||r||          f32 PCG on the GPU, d0 = 0, to a relative
+//!                                    residual eta = clamp(0.5 tol ||b|| / ||r||, 1e-5, 0.1)
+//!     x += ||r|| d                   host, f64
+//! ```
+//!
+//! The f64 residual makes the result as accurate as a direct f64 solve (to the
+//! tolerance) although the GPU only ever computes in f32; each round gains about
+//! `eta` as long as `cond(A) * 2^-24 << 1`. A warm start (`solve_with_guess`)
+//! helps through the first residual: a good guess needs fewer or cheaper rounds.
+//!
+//! The PCG itself (`shaders/pcg.wgsl`, see [`pcg`](crate::pcg)) uses the
+//! block-Jacobi preconditioner `M = blockdiag(A)` (3x3 blocks inverted on the CPU
+//! in f64; plain Jacobi for the scalar system) and keeps every scalar on the GPU:
+//! `alpha = r.z / p.Ap` and `beta = r'.z' / r.z` are computed per column by a
+//! one-workgroup kernel from per-workgroup partial sums; the host reads the
+//! per-column state back only every `check_every` (16) iterations. Up to
+//! [`CMAX`] right-hand sides run together, so the matrix is read once per
+//! iteration for all of them. Breakdown (`p.Ap <= 0`, NaN) means the matrix is
+//! not positive definite ([`SolverError::NotPositiveDefinite`]); running out of
+//! rounds or iterations gives [`SolverError::NoConvergence`], never a hang.
+//!
+//! The matrix pattern is uploaded once per pattern; a new matrix with the same
+//! pattern only rewrites the values. Vector buffers are sized for the largest
+//! number of columns seen and reused.
 
-/// Why the GPU backend cannot be used.
-#[derive(Debug, Clone, thiserror::Error)]
-#[error("{0}")]
-pub struct Unavailable(pub String);
+pub mod block_jacobi;
+pub mod bsr_spmv;
+pub mod csr_spmv;
+mod device;
+pub mod dot;
+pub mod kernels;
+mod matrix;
+pub mod pcg;
 
-/// Returns the GPU solver, or why there is none.
-pub fn open() -> Result<std::convert::Infallible, Unavailable> {
-    Err(Unavailable(
-        "the GPU backend is not implemented in this version of metricdeform; use --backend cpu"
-            .into(),
-    ))
+pub use device::{AdapterSummary, OpenOptions};
+pub use wgpu;
+pub use wgpu::naga;
+
+use device::Context;
+use matrix::{GpuMatrix, HostMatrix};
+use pcg::{Spmv, Workspace};
+use solver_cpu::{BlockSym3, SolveInfo, SolverError, SpdSolver, SymCsc};
+
+/// Most right-hand sides one PCG batch carries (more are solved in batches).
+pub const CMAX: usize = 8;
+
+/// Errors of the GPU backend.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum GpuError {
+    #[error("no GPU adapter: {0}")]
+    NoAdapter(String),
+    #[error("could not open the GPU device: {0}")]
+    RequestDevice(String),
+    #[error("GPU device lost: {0}")]
+    DeviceLost(String),
+    #[error("GPU out of memory: {0}")]
+    OutOfMemory(String),
+    #[error("{what} needs {needed}, over the device limit {limit_name} = {limit}")]
+    LimitExceeded {
+        what: String,
+        limit_name: &'static str,
+        needed: u64,
+        limit: u64,
+    },
+    #[error(
+        "PCG did not converge after {iterations} iterations (relative residual {residual:.3e})"
+    )]
+    NoConvergence { iterations: usize, residual: f64 },
+    #[error("matrix is not positive definite (PCG breakdown)")]
+    NotPositiveDefinite,
+    #[error("GPU backend: {0}")]
+    Backend(String),
+}
+
+impl From<GpuError> for SolverError {
+    fn from(e: GpuError) -> SolverError {
+        match e {
+            GpuError::NoConvergence {
+                iterations,
+                residual,
+            } => SolverError::NoConvergence {
+                iterations,
+                residual,
+            },
+            GpuError::OutOfMemory(_) => SolverError::OutOfMemory,
+            GpuError::NotPositiveDefinite => SolverError::NotPositiveDefinite,
+            other => SolverError::Backend(other.to_string()),
+        }
+    }
+}
+
+/// Adapters wgpu sees (Vulkan), for `metricdeform adapters`.
+pub fn list_adapters() -> Vec<AdapterSummary> {
+    device::list_adapters()
+}
+
+/// The adapter [`open`] would pick (`WGPU_ADAPTER_NAME` substring, else wgpu's
+/// high-performance default), without opening a device.
+pub fn default_adapter() -> Result<AdapterSummary, GpuError> {
+    device::default_adapter()
+}
+
+/// Whether some adapter is available.
+pub fn gpu_available() -> bool {
+    default_adapter().is_ok()
+}
+
+/// Open the GPU solver on the adapter named by `WGPU_ADAPTER_NAME`
+/// (case-insensitive substring) or wgpu's default high-performance adapter, with
+/// the adapter's own limits.
+pub fn open() -> Result<GpuSolver, GpuError> {
+    open_with(OpenOptions::default())
+}
+
+/// [`open`] with options (adapter name, lowered limits).
+pub fn open_with(opts: OpenOptions) -> Result<GpuSolver, GpuError> {
+    let ctx = Context::open(&opts)?;
+    let kernels = Kernels {
+        bsr: bsr_spmv::BsrSpmv::new(&ctx)?,
+        csr: csr_spmv::CsrSpmv::new(&ctx)?,
+        dot: dot::Dot::new(&ctx)?,
+        jacobi: block_jacobi::BlockJacobi::new(&ctx)?,
+        pcg: pcg::Pcg::new(&ctx)?,
+    };
+    ctx.check()?;
+    Ok(GpuSolver {
+        ctx,
+        k: kernels,
+        host: None,
+        gpu: None,
+        ws: None,
+        tol: 1e-10,
+        inner_min: 1e-5,
+        max_iterations: 50_000,
+        max_rounds: 20,
+        check_every: 16,
+        stats: SolveStats::default(),
+        pattern_uploads: 0,
+        value_uploads: 0,
+    })
+}
+
+pub(crate) struct Kernels {
+    pub bsr: bsr_spmv::BsrSpmv,
+    pub csr: csr_spmv::CsrSpmv,
+    pub dot: dot::Dot,
+    pub jacobi: block_jacobi::BlockJacobi,
+    pub pcg: pcg::Pcg,
+}
+
+/// Counters of the last solve.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct SolveStats {
+    /// Refinement rounds (f64 residual evaluations that launched a GPU solve).
+    pub rounds: usize,
+    /// PCG iterations summed over rounds (largest column of each batch).
+    pub iterations: usize,
+    /// Largest final relative residual (f64).
+    pub residual: f64,
+}
+
+/// The GPU PCG solver.
+pub struct GpuSolver {
+    ctx: Context,
+    k: Kernels,
+    host: Option<HostMatrix>,
+    gpu: Option<GpuMatrix>,
+    ws: Option<Workspace>,
+    tol: f64,
+    inner_min: f64,
+    max_iterations: usize,
+    max_rounds: usize,
+    check_every: usize,
+    stats: SolveStats,
+    /// How many times a matrix pattern was uploaded (tests, benchmarks).
+    pub pattern_uploads: usize,
+    /// How many times only the values were rewritten.
+    pub value_uploads: usize,
+}
+
+impl GpuSolver {
+    /// Name of the adapter in use.
+    pub fn adapter_name(&self) -> &str {
+        &self.ctx.info.name
+    }
+
+    /// The adapter in use.
+    pub fn adapter(&self) -> AdapterSummary {
+        let i = &self.ctx.info;
+        AdapterSummary {
+            name: i.name.clone(),
+            backend: format!("{:?}", i.backend),
+            device_type: format!("{:?}", i.device_type),
+            driver: i.driver.clone(),
+            driver_info: i.driver_info.clone(),
+            shader_f64: false,
+        }
+    }
+
+    /// The limits the device was opened with.
+    pub fn limits(&self) -> &wgpu::Limits {
+        &self.ctx.limits
+    }
+
+    /// Cap on the PCG iterations of one solve (all rounds together).
+    pub fn set_max_iterations(&mut self, n: usize) {
+        self.max_iterations = n.max(1);
+    }
+
+    /// Cap on the refinement rounds of one solve.
+    pub fn set_max_rounds(&mut self, n: usize) {
+        self.max_rounds = n.max(1);
+    }
+
+    /// How often (in iterations) the host reads the residuals back.
+    pub fn set_check_every(&mut self, n: usize) {
+        self.check_every = n.max(1);
+    }
+
+    /// Relative residual the f32 inner solve must reach at least (default 1e-5).
+    pub fn set_inner_tolerance(&mut self, eta: f64) {
+        self.inner_min = eta.clamp(1e-7, 0.5);
+    }
+
+    /// Counters of the last solve.
+    pub fn last_stats(&self) -> SolveStats {
+        self.stats
+    }
+
+    fn spmv(&self) -> Spmv<'_> {
+        match self.host.as_ref().map(|h| h.bs) {
+            Some(1) => Spmv::Scalar(&self.k.csr),
+            _ => Spmv::Block(&self.k.bsr),
+        }
+    }
+
+    /// Upload a prepared host matrix (pattern if new, else values only).
+    fn upload(&mut self, h: HostMatrix, same: bool) -> Result<(), GpuError> {
+        let minv = block_jacobi::inverse_diagonal(&h).map_err(|e| match e {
+            SolverError::NotPositiveDefinite => GpuError::NotPositiveDefinite,
+            other => GpuError::Backend(other.to_string()),
+        })?;
+        match (same, self.gpu.as_ref()) {
+            (true, Some(gpu)) => {
+                gpu.write_values(&self.ctx, &h, &minv);
+                self.value_uploads += 1;
+            }
+            _ => {
+                self.gpu = None;
+                self.ws = None;
+                self.gpu = Some(GpuMatrix::upload(&self.ctx, &h, &minv)?);
+                self.pattern_uploads += 1;
+            }
+        }
+        self.host = Some(h);
+        self.ctx.check()
+    }
+
+    /// The workspace for at least `ncols` columns.
+    fn workspace(&mut self, ncols: usize) -> Result<(), GpuError> {
+        let want = ncols.min(CMAX);
+        if self.ws.as_ref().is_some_and(|w| w.cmax >= want) {
+            return Ok(());
+        }
+        self.ws = None;
+        let h = self.host.as_ref().unwrap();
+        let ws = self.k.pcg.workspace(
+            &self.ctx,
+            &self.spmv(),
+            self.gpu.as_ref().unwrap(),
+            h.rows,
+            h.bs,
+            want,
+        )?;
+        self.ws = Some(ws);
+        Ok(())
+    }
+
+    /// Solve up to CMAX columns: `x` holds the start on entry.
+    fn solve_batch(&mut self, b: &[f64], x: &mut [f64], ncols: usize) -> Result<(), GpuError> {
+        let n = self.host.as_ref().unwrap().n();
+        let bnorm: Vec<f64> = (0..ncols).map(|c| norm(&b[c * n..(c + 1) * n])).collect();
+        for c in 0..ncols {
+            if bnorm[c] == 0.0 {
+                x[c * n..(c + 1) * n].fill(0.0);
+            }
+        }
+        self.workspace(ncols)?;
+        let mut r = vec![0.0; n * ncols];
+        let mut r32 = vec![0f32; n * ncols];
+        let mut total = 0usize;
+        let mut worse = 0;
+        let mut prev = f64::INFINITY;
+        for round in 0.. {
+            self.host.as_ref().unwrap().residual(b, x, &mut r, ncols);
+            let rnorm: Vec<f64> = (0..ncols).map(|c| norm(&r[c * n..(c + 1) * n])).collect();
+            let rel: Vec<f64> = (0..ncols)
+                .map(|c| {
+                    if bnorm[c] == 0.0 {
+                        0.0
+                    } else {
+                        rnorm[c] / bnorm[c]
+                    }
+                })
+                .collect();
+            let worst = rel.iter().cloned().fold(0.0, f64::max);
+            self.stats.residual = self.stats.residual.max(worst);
+            if rel.iter().any(|v| !v.is_finite()) {
+                return Err(GpuError::NotPositiveDefinite);
+            }
+            if worst <= self.tol {
+                self.stats.residual = worst;
+                return Ok(());
+            }
+            // Not improving for three rounds: the f32 solve cannot help (cond(A) too large).
+            if worst > 0.5 * prev {
+                worse += 1;
+            } else {
+                worse = 0;
+            }
+            prev = prev.min(worst);
+            if round >= self.max_rounds || total >= self.max_iterations || worse >= 3 {
+                self.stats.residual = worst;
+                return Err(GpuError::NoConvergence {
+                    iterations: total,
+                    residual: worst,
+                });
+            }
+            let mut thr = vec![0f32; ncols];
+            for c in 0..ncols {
+                let active = rel[c] > self.tol;
+                let scale = if active { 1.0 / rnorm[c] } else { 0.0 };
+                for (o, v) in r32[c * n..(c + 1) * n]
+                    .iter_mut()
+                    .zip(&r[c * n..(c + 1) * n])
+                {
+                    *o = (v * scale) as f32;
+                }
+                let eta = if active {
+                    (0.5 * self.tol / rel[c]).clamp(self.inner_min, 0.1)
+                } else {
+                    1.0
+                };
+                thr[c] = (eta * eta) as f32;
+            }
+            let ws = self.ws.as_mut().unwrap();
+            self.ctx
+                .queue
+                .write_buffer(&ws.r, 0, bytemuck::cast_slice(&r32));
+            let spmv = match self.host.as_ref().unwrap().bs {
+                1 => Spmv::Scalar(&self.k.csr),
+                _ => Spmv::Block(&self.k.bsr),
+            };
+            let run = self.k.pcg.run(
+                &self.ctx,
+                &spmv,
+                ws,
+                ncols,
+                &thr,
+                self.max_iterations - total,
+                self.check_every,
+            )?;
+            total += run.iterations();
+            self.stats.rounds += 1;
+            if run.breakdown() {
+                return Err(GpuError::NotPositiveDefinite);
+            }
+            let d = self.k.pcg.read_x(&self.ctx, ws, ncols)?;
+            for c in 0..ncols {
+                if rel[c] > self.tol {
+                    let s = rnorm[c];
+                    for (xi, di) in x[c * n..(c + 1) * n].iter_mut().zip(&d[c * n..(c + 1) * n]) {
+                        *xi += s * *di as f64;
+                    }
+                }
+            }
+            self.stats.iterations = total;
+        }
+        unreachable!()
+    }
+
+    fn solve(&mut self, b: &[f64], x: &mut [f64], ncols: usize) -> Result<SolveInfo, SolverError> {
+        let Some(h) = self.host.as_ref() else {
+            return Err(SolverError::NotPrepared);
+        };
+        let n = h.n();
+        if b.len() != n * ncols || x.len() != n * ncols {
+            return Err(SolverError::DimensionMismatch(format!(
+                "right-hand sides have {} entries, guesses {}, expected {} x {}",
+                b.len(),
+                x.len(),
+                n,
+                ncols
+            )));
+        }
+        self.stats = SolveStats::default();
+        let mut worst = 0.0f64;
+        let mut iterations = 0;
+        for c0 in (0..ncols).step_by(CMAX) {
+            let m = CMAX.min(ncols - c0);
+            let rng = c0 * n..(c0 + m) * n;
+            let before = self.stats;
+            self.stats = SolveStats::default();
+            let res = self.solve_batch(&b[rng.clone()], &mut x[rng], m);
+            iterations += self.stats.iterations;
+            worst = worst.max(self.stats.residual);
+            self.stats = SolveStats {
+                rounds: before.rounds + self.stats.rounds,
+                iterations,
+                residual: worst,
+            };
+            res.map_err(|e| match e {
+                GpuError::NoConvergence { residual, .. } => SolverError::NoConvergence {
+                    iterations,
+                    residual,
+                },
+                other => other.into(),
+            })?;
+        }
+        Ok(SolveInfo {
+            iterations,
+            residual: worst,
+        })
+    }
+}
+
+fn norm(v: &[f64]) -> f64 {
+    v.iter().map(|a| a * a).sum::<f64>().sqrt()
+}
+
+impl SpdSolver for GpuSolver {
+    fn prepare(&mut self, a: &SymCsc) -> Result<(), SolverError> {
+        let same = self
+            .host
+            .as_ref()
+            .is_some_and(|h| h.same_pattern(1, &a.col_ptr, &a.row_idx));
+        let mut h = match (same, self.host.take()) {
+            (true, Some(h)) => h,
+            _ => HostMatrix::pattern(a.n, 1, &a.col_ptr, &a.row_idx)?,
+        };
+        if a.values.len() != a.row_idx.len() {
+            return Err(SolverError::DimensionMismatch(format!(
+                "{} values for {} entries",
+                a.values.len(),
+                a.row_idx.len()
+            )));
+        }
+        h.fill_scalar(a);
+        self.upload(h, same).map_err(Into::into)
+    }
+
+    fn prepare_blocks(&mut self, a: &BlockSym3, fixed: &[bool]) -> Result<(), SolverError> {
+        if fixed.len() != a.n || a.blocks.len() != a.row_idx.len() {
+            return Err(SolverError::DimensionMismatch(format!(
+                "{} fixed flags and {} blocks for {} block rows and {} pattern entries",
+                fixed.len(),
+                a.blocks.len(),
+                a.n,
+                a.row_idx.len()
+            )));
+        }
+        let same = self
+            .host
+            .as_ref()
+            .is_some_and(|h| h.same_pattern(3, &a.col_ptr, &a.row_idx));
+        let mut h = match (same, self.host.take()) {
+            (true, Some(h)) => h,
+            _ => HostMatrix::pattern(a.n, 3, &a.col_ptr, &a.row_idx)?,
+        };
+        h.fill_blocks(a, fixed);
+        self.upload(h, same).map_err(Into::into)
+    }
+
+    fn solve_in_place(&mut self, rhs: &mut [f64], ncols: usize) -> Result<SolveInfo, SolverError> {
+        let b = rhs.to_vec();
+        rhs.fill(0.0);
+        self.solve(&b, rhs, ncols)
+    }
+
+    fn solve_with_guess(
+        &mut self,
+        b: &[f64],
+        x: &mut [f64],
+        ncols: usize,
+    ) -> Result<SolveInfo, SolverError> {
+        self.solve(b, x, ncols)
+    }
+
+    fn set_tolerance(&mut self, relative_residual: f64) {
+        self.tol = relative_residual.max(1e-15);
+    }
+
+    fn name(&self) -> &str {
+        "gpu"
+    }
 }

@@ -1,0 +1,244 @@
+// Preconditioned conjugate gradient, everything but the SpMV (bsr_spmv.wgsl /
+// csr_spmv.wgsl). All scalars stay on the GPU in `cols`; the host reads them back
+// only every few iterations to test convergence.
+//
+// Driven by solver-gpu/src/pcg.rs. One iteration, per column c (all columns of a
+// batch advance together, a converged column is frozen with alpha = beta = 0):
+//   spmv         Ap = A p, partials slot 0 = p . Ap                 (SpMV shader)
+//   finish_alpha pap = sum of partials; alpha = rz / pap            (1 workgroup)
+//   update       x += alpha p; r -= alpha Ap; z = M^-1 r (block-Jacobi);
+//                partials slot 0 = r . z, slot 1 = r . r            (one pass)
+//   finish_beta  rz' = sum slot 0, rr = sum slot 1; beta = rz' / rz; rz = rz';
+//                done when rr <= thr                                (1 workgroup)
+//   direction    p = z + beta p
+// Start: x = p = Ap = 0, r = b, alpha = rz = 0; then update, finish_beta and
+// direction give z = M^-1 b, p = z, rz = b . z.
+//
+// Bindings (group 0), each entry point uses a subset:
+//   0  P        uniform  rows = block rows, bs = block size (1 or 3), n = rows * bs
+//                        (length of one column), ncols (<= CMAX), groups =
+//                        ceil(rows / WG) = workgroups of `update` (and of the
+//                        SpMV, whose partials finish_alpha reduces).
+//                        2-D dispatch: linear workgroup index wid.x + wid.y * nwg.x.
+//   1  cols     rw       one ColState per column (see below).
+//   2  partials rw       slot s, column c, workgroup g at (s * ncols + c) * groups + g.
+//   3  minv     read     rows * bs * bs f32, inverted diagonal blocks (row-major).
+//   4  p        rw       search directions, ncols columns of length n, column-major.
+//   5  ap       read     A p, same layout.
+//   6  x        rw       solution (starts at 0).
+//   7  r        rw       residual (starts at b).
+//   8  z        rw       preconditioned residual.
+//   update: 0-8; finish_alpha, finish_beta: 0-2; direction: 0, 1, 4, 8.
+
+struct Params {
+    rows: u32,
+    ncols: u32,
+    n: u32,
+    groups: u32,
+    bs: u32,
+    pad0: u32,
+    pad1: u32,
+    pad2: u32,
+}
+
+// Per-column scalars. `thr` (squared residual norm at which the column is done)
+// is set by the host; done: 0 running, 1 converged, 2 breakdown (p . Ap <= 0,
+// r . z <= 0 or NaN while the residual is not small: matrix not SPD).
+struct ColState {
+    rz: f32,
+    pap: f32,
+    alpha: f32,
+    beta: f32,
+    rr: f32,
+    thr: f32,
+    done: u32,
+    iters: u32,
+}
+
+const WG: u32 = 128u;
+const FWG: u32 = 256u;
+const CMAX: u32 = 8u;
+// Squared residual norm (columns are scaled to unit norm on upload) below which
+// a breakdown is taken for stagnation at f32 precision, not indefiniteness.
+const TINY: f32 = 1e-12;
+const HUGE: f32 = 1e37;
+
+@group(0) @binding(0) var<uniform> P: Params;
+@group(0) @binding(1) var<storage, read_write> cols: array<ColState>;
+@group(0) @binding(2) var<storage, read_write> partials: array<f32>;
+@group(0) @binding(3) var<storage, read> minv: array<f32>;
+@group(0) @binding(4) var<storage, read_write> p: array<f32>;
+@group(0) @binding(5) var<storage, read> ap: array<f32>;
+@group(0) @binding(6) var<storage, read_write> x: array<f32>;
+@group(0) @binding(7) var<storage, read_write> r: array<f32>;
+@group(0) @binding(8) var<storage, read_write> z: array<f32>;
+
+var<workgroup> red: array<f32, 2048>; // 2 * CMAX * WG
+var<workgroup> fred: array<f32, 512>; // 2 * FWG
+
+@compute @workgroup_size(128)
+fn update(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let g = wid.x + wid.y * nwg.x;
+    if g >= P.groups {
+        return;
+    }
+    let ncols = min(P.ncols, CMAX);
+    let bs = min(P.bs, 3u);
+    let row = g * WG + lid;
+    var rz: array<f32, 8>;
+    var rr: array<f32, 8>;
+    if row < P.rows {
+        var m: array<f32, 9>;
+        for (var q = 0u; q < bs * bs; q++) {
+            m[q] = minv[row * bs * bs + q];
+        }
+        for (var c = 0u; c < ncols; c++) {
+            let alpha = cols[c].alpha;
+            let o = c * P.n + row * bs;
+            var rv: array<f32, 3>;
+            for (var q = 0u; q < bs; q++) {
+                let i = o + q;
+                x[i] += alpha * p[i];
+                let rn = r[i] - alpha * ap[i];
+                r[i] = rn;
+                rv[q] = rn;
+                rr[c] += rn * rn;
+            }
+            for (var q = 0u; q < bs; q++) {
+                var s = 0.0;
+                for (var t = 0u; t < bs; t++) {
+                    s += m[q * bs + t] * rv[t];
+                }
+                z[o + q] = s;
+                rz[c] += rv[q] * s;
+            }
+        }
+    }
+    for (var c = 0u; c < ncols; c++) {
+        red[c * WG + lid] = rz[c];
+        red[(CMAX + c) * WG + lid] = rr[c];
+    }
+    workgroupBarrier();
+    for (var s = WG / 2u; s > 0u; s >>= 1u) {
+        if lid < s {
+            for (var c = 0u; c < ncols; c++) {
+                red[c * WG + lid] += red[c * WG + lid + s];
+                red[(CMAX + c) * WG + lid] += red[(CMAX + c) * WG + lid + s];
+            }
+        }
+        workgroupBarrier();
+    }
+    if lid == 0u {
+        for (var c = 0u; c < ncols; c++) {
+            partials[c * P.groups + g] = red[c * WG];
+            partials[(ncols + c) * P.groups + g] = red[(CMAX + c) * WG];
+        }
+    }
+}
+
+// Sums slot `slot` of column c's partials into fred[0] (all invocations call it).
+fn reduce_slot(lid: u32, ncols: u32, slot: u32, c: u32, half: u32) {
+    var s = 0.0;
+    let base = (slot * ncols + c) * P.groups;
+    for (var i = lid; i < P.groups; i += FWG) {
+        s += partials[base + i];
+    }
+    fred[half * FWG + lid] = s;
+}
+
+fn tree(lid: u32) {
+    workgroupBarrier();
+    for (var h = FWG / 2u; h > 0u; h >>= 1u) {
+        if lid < h {
+            fred[lid] += fred[lid + h];
+            fred[FWG + lid] += fred[FWG + lid + h];
+        }
+        workgroupBarrier();
+    }
+}
+
+@compute @workgroup_size(256)
+fn finish_alpha(@builtin(local_invocation_index) lid: u32) {
+    let ncols = min(P.ncols, CMAX);
+    for (var c = 0u; c < ncols; c++) {
+        reduce_slot(lid, ncols, 0u, c, 0u);
+        fred[FWG + lid] = 0.0;
+        tree(lid);
+        if lid == 0u {
+            var st = cols[c];
+            let pap = fred[0];
+            st.pap = pap;
+            if st.done == 0u {
+                if pap > 0.0 && pap < HUGE && st.rz > 0.0 && st.rz < HUGE {
+                    st.alpha = st.rz / pap;
+                    st.iters += 1u;
+                } else {
+                    st.alpha = 0.0;
+                    if st.rr <= TINY {
+                        st.done = 1u;
+                    } else {
+                        st.done = 2u;
+                    }
+                }
+            } else {
+                st.alpha = 0.0;
+            }
+            cols[c] = st;
+        }
+        workgroupBarrier();
+    }
+}
+
+@compute @workgroup_size(256)
+fn finish_beta(@builtin(local_invocation_index) lid: u32) {
+    let ncols = min(P.ncols, CMAX);
+    for (var c = 0u; c < ncols; c++) {
+        reduce_slot(lid, ncols, 0u, c, 0u);
+        reduce_slot(lid, ncols, 1u, c, 1u);
+        tree(lid);
+        if lid == 0u {
+            var st = cols[c];
+            let rz = fred[0];
+            let rr = fred[FWG];
+            if st.done == 0u {
+                if !(rr < HUGE) || !(rz >= 0.0) {
+                    st.done = 2u;
+                    st.beta = 0.0;
+                } else {
+                    if st.rz > 0.0 {
+                        st.beta = rz / st.rz;
+                    } else {
+                        st.beta = 0.0;
+                    }
+                    st.rz = rz;
+                    st.rr = rr;
+                    if rr <= st.thr {
+                        st.done = 1u;
+                    }
+                }
+            } else {
+                st.beta = 0.0;
+            }
+            cols[c] = st;
+        }
+        workgroupBarrier();
+    }
+}
+
+@compute @workgroup_size(256)
+fn direction(
+    @builtin(global_invocation_id) gid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+) {
+    let i = gid.x + gid.y * nwg.x * FWG;
+    let ncols = min(P.ncols, CMAX);
+    if i >= P.n * ncols {
+        return;
+    }
+    let c = i / P.n;
+    p[i] = z[i] + cols[c].beta * p[i];
+}

@@ -1,0 +1,117 @@
+//! Block-Jacobi preconditioner `M = blockdiag(A)`: the diagonal blocks are
+//! inverted here on the CPU in f64 at prepare time (a non-positive-definite
+//! block means the matrix is not SPD) and uploaded as f32; `shaders/block_jacobi.wgsl`
+//! applies `z = M^-1 r`. For the scalar system the blocks are 1x1 (plain Jacobi).
+//! The PCG loop applies the same inverse inside its fused update kernel.
+//!
+//! Bindings (group 0), as the shader's header describes:
+//! - 0 `P` uniform [`Params`](crate::device::Params): rows, bs (1 or 3),
+//!   n = rows bs, ncols;
+//! - 1 `minv` (read): rows * bs * bs f32;
+//! - 2 `r` (read), 3 `z` (written): column-major, stride n.
+//!
+//! Dispatch: ceil(rows / 128) workgroups of 128, 2-D.
+
+use crate::device::{Context, Kernel};
+use crate::matrix::HostMatrix;
+use crate::GpuError;
+use rayon::prelude::*;
+use solver_cpu::SolverError;
+
+pub(crate) const SOURCE: &str = include_str!("../../shaders/block_jacobi.wgsl");
+
+pub(crate) struct BlockJacobi(pub Kernel);
+
+impl BlockJacobi {
+    pub fn new(ctx: &Context) -> Result<Self, GpuError> {
+        let m = ctx.shader("block_jacobi.wgsl", SOURCE)?;
+        Ok(BlockJacobi(Kernel::new(ctx, "block_jacobi", &m, "main")?))
+    }
+
+    pub fn bind(
+        &self,
+        ctx: &Context,
+        params: &wgpu::Buffer,
+        minv: &wgpu::Buffer,
+        r: &wgpu::Buffer,
+        z: &wgpu::Buffer,
+    ) -> Result<wgpu::BindGroup, GpuError> {
+        self.0.bind(ctx, &[(0, params), (1, minv), (2, r), (3, z)])
+    }
+}
+
+/// Inverses of the diagonal blocks (f64, checked positive definite), as f32.
+pub(crate) fn inverse_diagonal(h: &HostMatrix) -> Result<Vec<f32>, SolverError> {
+    let bs = h.bs;
+    let bb = bs * bs;
+    let mut out = vec![0f32; h.rows * bb];
+    let ok = out.par_chunks_mut(bb).enumerate().all(|(row, dst)| {
+        let p = h.diag[row] as usize * bb;
+        let d = &h.vals[p..p + bb];
+        let inv = if bs == 1 {
+            (d[0] > 0.0 && d[0].is_finite()).then(|| [1.0 / d[0]; 1].to_vec())
+        } else {
+            invert_spd3(d).map(|m| m.to_vec())
+        };
+        match inv {
+            Some(inv) if inv.iter().all(|v| (*v as f32).is_finite()) => {
+                for (o, v) in dst.iter_mut().zip(inv) {
+                    *o = v as f32;
+                }
+                true
+            }
+            _ => false,
+        }
+    });
+    if ok {
+        Ok(out)
+    } else {
+        Err(SolverError::NotPositiveDefinite)
+    }
+}
+
+/// Inverse of a symmetric positive definite 3x3 matrix (row-major; the
+/// symmetric part is used), or `None` if a leading minor is not positive.
+pub(crate) fn invert_spd3(m: &[f64]) -> Option<[f64; 9]> {
+    let (a, b, c) = (m[0], 0.5 * (m[1] + m[3]), 0.5 * (m[2] + m[6]));
+    let (d, e) = (m[4], 0.5 * (m[5] + m[7]));
+    let f = m[8];
+    let m2 = a * d - b * b;
+    let c00 = d * f - e * e;
+    let c01 = c * e - b * f;
+    let c02 = b * e - c * d;
+    let det = a * c00 + b * c01 + c * c02;
+    if !(a > 0.0 && m2 > 0.0 && det > 0.0 && det.is_finite()) {
+        return None;
+    }
+    let c11 = a * f - c * c;
+    let c12 = b * c - a * e;
+    let inv = 1.0 / det;
+    Some([
+        c00 * inv,
+        c01 * inv,
+        c02 * inv,
+        c01 * inv,
+        c11 * inv,
+        c12 * inv,
+        c02 * inv,
+        c12 * inv,
+        m2 * inv,
+    ])
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn invert_spd3_is_inverse() {
+        let m = [4.0, 1.0, 0.5, 1.0, 3.0, 0.2, 0.5, 0.2, 2.0];
+        let inv = super::invert_spd3(&m).unwrap();
+        for r in 0..3 {
+            for c in 0..3 {
+                let s: f64 = (0..3).map(|k| m[3 * r + k] * inv[3 * k + c]).sum();
+                assert!((s - if r == c { 1.0 } else { 0.0 }).abs() < 1e-14);
+            }
+        }
+        assert!(super::invert_spd3(&[1.0, 2.0, 0.0, 2.0, 1.0, 0.0, 0.0, 0.0, 1.0]).is_none());
+    }
+}

@@ -1,0 +1,495 @@
+//! The wgpu context: instance, adapter choice, device and queue, plus the helpers
+//! every kernel module uses (pipelines, buffers with limit checks, 2-D dispatch
+//! sizes, read-back, turning device errors into [`GpuError`]).
+
+use crate::GpuError;
+use std::sync::{Arc, Mutex};
+
+/// Uniform parameters shared by every shader (each declares the same struct).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub(crate) struct Params {
+    /// Rows handled one per invocation (block rows for the 3x3 systems).
+    pub rows: u32,
+    /// Columns (right-hand sides) in this batch, at most [`crate::CMAX`].
+    pub ncols: u32,
+    /// Length of one column (`rows * bs`).
+    pub n: u32,
+    /// Workgroups that own rows: `ceil(rows / ROW_WG)`.
+    pub groups: u32,
+    /// Block size: 3 (vertex systems) or 1 (scalar).
+    pub bs: u32,
+    pub pad: [u32; 3],
+}
+
+/// Invocations per workgroup of the row kernels (SpMV, update, dot partials,
+/// block-Jacobi); must match `WG` in the shaders.
+pub(crate) const ROW_WG: u32 = 128;
+/// Invocations of the single-workgroup finishing passes and of the element-wise
+/// kernels; must match `FWG` in the shaders.
+pub(crate) const FLAT_WG: u32 = 256;
+
+/// Summary of one adapter, for `metricdeform adapters`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct AdapterSummary {
+    pub name: String,
+    pub backend: String,
+    pub device_type: String,
+    pub driver: String,
+    pub driver_info: String,
+    /// Whether the adapter offers `SHADER_F64` (the kernels do not need it).
+    pub shader_f64: bool,
+}
+
+/// Adjusts the limits requested from the adapter.
+pub type LimitsHook = Box<dyn Fn(&mut wgpu::Limits)>;
+
+/// How to open the device (tests lower limits through `adjust_limits`).
+#[derive(Default)]
+pub struct OpenOptions {
+    /// Case-insensitive substring of the adapter name; `None` = the
+    /// `WGPU_ADAPTER_NAME` environment variable, else wgpu's high-performance default.
+    pub adapter_name: Option<String>,
+    /// Called with the adapter's limits before the device is requested.
+    pub adjust_limits: Option<LimitsHook>,
+}
+
+pub(crate) struct Context {
+    pub device: wgpu::Device,
+    pub queue: wgpu::Queue,
+    pub info: wgpu::AdapterInfo,
+    pub limits: wgpu::Limits,
+    /// First uncaptured device error since the last check.
+    errors: Arc<Mutex<Option<GpuError>>>,
+    /// Set by the device-lost callback.
+    lost: Arc<Mutex<Option<String>>>,
+}
+
+fn instance() -> wgpu::Instance {
+    let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
+    desc.backends = wgpu::Backends::VULKAN;
+    wgpu::Instance::new(desc.with_env())
+}
+
+fn summary(a: &wgpu::Adapter) -> AdapterSummary {
+    let i = a.get_info();
+    AdapterSummary {
+        name: i.name.clone(),
+        backend: format!("{:?}", i.backend),
+        device_type: format!("{:?}", i.device_type),
+        driver: i.driver.clone(),
+        driver_info: i.driver_info.clone(),
+        shader_f64: a.features().contains(wgpu::Features::SHADER_F64),
+    }
+}
+
+pub(crate) fn list_adapters() -> Vec<AdapterSummary> {
+    let inst = instance();
+    pollster::block_on(inst.enumerate_adapters(wgpu::Backends::all()))
+        .iter()
+        .map(summary)
+        .collect()
+}
+
+fn choose_adapter(inst: &wgpu::Instance, name: Option<&str>) -> Result<wgpu::Adapter, GpuError> {
+    if let Some(want) = name {
+        let want_lc = want.to_lowercase();
+        let all = pollster::block_on(inst.enumerate_adapters(wgpu::Backends::all()));
+        let names: Vec<String> = all.iter().map(|a| a.get_info().name).collect();
+        return all
+            .into_iter()
+            .find(|a| a.get_info().name.to_lowercase().contains(&want_lc))
+            .ok_or_else(|| {
+                GpuError::NoAdapter(format!(
+                    "no adapter name contains '{want}' (WGPU_ADAPTER_NAME); adapters: [{}]",
+                    names.join(", ")
+                ))
+            });
+    }
+    pollster::block_on(inst.request_adapter(&wgpu::RequestAdapterOptions {
+        power_preference: wgpu::PowerPreference::HighPerformance,
+        ..Default::default()
+    }))
+    .map_err(|e| GpuError::NoAdapter(format!("wgpu found no Vulkan adapter ({e})")))
+}
+
+/// The adapter `open()` would use, without opening a device.
+pub(crate) fn default_adapter() -> Result<AdapterSummary, GpuError> {
+    let inst = instance();
+    let name = std::env::var("WGPU_ADAPTER_NAME")
+        .ok()
+        .filter(|s| !s.is_empty());
+    choose_adapter(&inst, name.as_deref()).map(|a| summary(&a))
+}
+
+impl Context {
+    pub fn open(opts: &OpenOptions) -> Result<Context, GpuError> {
+        let inst = instance();
+        let env = std::env::var("WGPU_ADAPTER_NAME")
+            .ok()
+            .filter(|s| !s.is_empty());
+        let adapter = choose_adapter(&inst, opts.adapter_name.as_deref().or(env.as_deref()))?;
+        let info = adapter.get_info();
+        let mut limits = adapter.limits();
+        if let Some(f) = &opts.adjust_limits {
+            f(&mut limits);
+        }
+        check_min(&limits)?;
+        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
+            label: Some("metricdeform pcg"),
+            required_features: wgpu::Features::empty(),
+            required_limits: limits.clone(),
+            memory_hints: wgpu::MemoryHints::Performance,
+            ..Default::default()
+        }))
+        .map_err(|e| GpuError::RequestDevice(format!("{}: {e}", info.name)))?;
+        let errors: Arc<Mutex<Option<GpuError>>> = Arc::default();
+        let sink = errors.clone();
+        device.on_uncaptured_error(Arc::new(move |e: wgpu::Error| {
+            let mut slot = sink.lock().unwrap();
+            if slot.is_none() {
+                *slot = Some(from_wgpu(e));
+            }
+        }));
+        let lost: Arc<Mutex<Option<String>>> = Arc::default();
+        let lost_sink = lost.clone();
+        device.set_device_lost_callback(move |reason, msg| {
+            *lost_sink.lock().unwrap() = Some(format!("{reason:?}: {msg}"));
+        });
+        log::info!(
+            "GPU solver on {} ({:?}, {:?}, {})",
+            info.name,
+            info.backend,
+            info.device_type,
+            info.driver
+        );
+        Ok(Context {
+            device,
+            queue,
+            info,
+            limits,
+            errors,
+            lost,
+        })
+    }
+
+    /// The first device error (uncaptured) or loss since the last call.
+    pub fn check(&self) -> Result<(), GpuError> {
+        if let Some(why) = self.lost.lock().unwrap().clone() {
+            return Err(GpuError::DeviceLost(why));
+        }
+        match self.errors.lock().unwrap().take() {
+            Some(e) => Err(e),
+            None => Ok(()),
+        }
+    }
+
+    /// Size check of one storage buffer against the binding and buffer limits.
+    pub fn check_storage(&self, what: &str, bytes: u64) -> Result<(), GpuError> {
+        let l = &self.limits;
+        if bytes > l.max_storage_buffer_binding_size {
+            return Err(GpuError::LimitExceeded {
+                what: what.to_string(),
+                limit_name: "max_storage_buffer_binding_size",
+                needed: bytes,
+                limit: l.max_storage_buffer_binding_size,
+            });
+        }
+        if bytes > l.max_buffer_size {
+            return Err(GpuError::LimitExceeded {
+                what: what.to_string(),
+                limit_name: "max_buffer_size",
+                needed: bytes,
+                limit: l.max_buffer_size,
+            });
+        }
+        Ok(())
+    }
+
+    /// A storage buffer of at least `bytes` (rounded up to 4, at least 16),
+    /// checked against the limits; allocation failures become typed errors.
+    pub fn storage(&self, what: &str, bytes: u64) -> Result<wgpu::Buffer, GpuError> {
+        let size = bytes.max(16).div_ceil(4) * 4;
+        self.check_storage(what, size)?;
+        self.create(&wgpu::BufferDescriptor {
+            label: Some(what),
+            size,
+            usage: wgpu::BufferUsages::STORAGE
+                | wgpu::BufferUsages::COPY_DST
+                | wgpu::BufferUsages::COPY_SRC,
+            mapped_at_creation: false,
+        })
+    }
+
+    /// A storage buffer holding `data`.
+    pub fn storage_init<T: bytemuck::Pod>(
+        &self,
+        what: &str,
+        data: &[T],
+    ) -> Result<wgpu::Buffer, GpuError> {
+        let b = self.storage(what, std::mem::size_of_val(data) as u64)?;
+        if !data.is_empty() {
+            self.queue.write_buffer(&b, 0, bytemuck::cast_slice(data));
+        }
+        Ok(b)
+    }
+
+    pub fn uniform(&self, what: &str, p: &Params) -> Result<wgpu::Buffer, GpuError> {
+        let b = self.create(&wgpu::BufferDescriptor {
+            label: Some(what),
+            size: std::mem::size_of::<Params>() as u64,
+            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        })?;
+        self.queue.write_buffer(&b, 0, bytemuck::bytes_of(p));
+        Ok(b)
+    }
+
+    fn create(&self, desc: &wgpu::BufferDescriptor) -> Result<wgpu::Buffer, GpuError> {
+        let oom = self.device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
+        let val = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let b = self.device.create_buffer(desc);
+        if let Some(e) = pollster::block_on(val.pop()) {
+            drop(oom);
+            return Err(from_wgpu(e));
+        }
+        if let Some(e) = pollster::block_on(oom.pop()) {
+            return Err(from_wgpu(e));
+        }
+        Ok(b)
+    }
+
+    /// Compute pipeline for `entry` of a WGSL source (auto layout); shader or
+    /// pipeline validation errors become `GpuError::Backend`.
+    pub fn pipeline(
+        &self,
+        label: &str,
+        module: &wgpu::ShaderModule,
+        entry: &str,
+    ) -> Result<wgpu::ComputePipeline, GpuError> {
+        let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let p = self
+            .device
+            .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some(label),
+                layout: None,
+                module,
+                entry_point: Some(entry),
+                compilation_options: Default::default(),
+                cache: None,
+            });
+        match pollster::block_on(scope.pop()) {
+            Some(e) => Err(GpuError::Backend(format!("pipeline {label}: {e}"))),
+            None => Ok(p),
+        }
+    }
+
+    pub fn shader(&self, label: &str, source: &str) -> Result<wgpu::ShaderModule, GpuError> {
+        let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let m = self
+            .device
+            .create_shader_module(wgpu::ShaderModuleDescriptor {
+                label: Some(label),
+                source: wgpu::ShaderSource::Wgsl(source.into()),
+            });
+        match pollster::block_on(scope.pop()) {
+            Some(e) => Err(GpuError::Backend(format!("shader {label}: {e}"))),
+            None => Ok(m),
+        }
+    }
+
+    /// Bind group 0 of `pipeline` with `(binding, buffer)` entries.
+    pub fn bind(
+        &self,
+        label: &str,
+        pipeline: &wgpu::ComputePipeline,
+        entries: &[(u32, &wgpu::Buffer)],
+    ) -> Result<wgpu::BindGroup, GpuError> {
+        let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let layout = pipeline.get_bind_group_layout(0);
+        let e: Vec<wgpu::BindGroupEntry> = entries
+            .iter()
+            .map(|(i, b)| wgpu::BindGroupEntry {
+                binding: *i,
+                resource: b.as_entire_binding(),
+            })
+            .collect();
+        let bg = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some(label),
+            layout: &layout,
+            entries: &e,
+        });
+        match pollster::block_on(scope.pop()) {
+            Some(e) => Err(GpuError::Backend(format!("bind group {label}: {e}"))),
+            None => Ok(bg),
+        }
+    }
+
+    /// 2-D dispatch for `groups` workgroups: x = min(groups, max per dimension),
+    /// y = ceil(groups / x). The shaders rebuild the linear index and skip overrun.
+    pub fn dims(&self, what: &str, groups: u64) -> Result<(u32, u32), GpuError> {
+        let max = self.limits.max_compute_workgroups_per_dimension as u64;
+        let x = groups.clamp(1, max);
+        let y = groups.div_ceil(x).max(1);
+        if y > max {
+            return Err(GpuError::LimitExceeded {
+                what: format!("{what}: {groups} workgroups"),
+                limit_name: "max_compute_workgroups_per_dimension",
+                needed: y,
+                limit: max,
+            });
+        }
+        Ok((x as u32, y as u32))
+    }
+
+    /// Submit and wait for the queue to drain.
+    pub fn submit_wait(&self, enc: wgpu::CommandEncoder) -> Result<(), GpuError> {
+        self.queue.submit([enc.finish()]);
+        self.wait()
+    }
+
+    pub fn wait(&self) -> Result<(), GpuError> {
+        self.device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map_err(|e| GpuError::Backend(format!("poll: {e}")))?;
+        self.check()
+    }
+
+    pub fn encoder(&self, label: &str) -> wgpu::CommandEncoder {
+        self.device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some(label) })
+    }
+
+    /// Copy `bytes` bytes of `src` (from 0) into the host, via a staging buffer
+    /// that is kept in `staging` and reused while large enough.
+    pub fn read<T: bytemuck::Pod>(
+        &self,
+        src: &wgpu::Buffer,
+        count: usize,
+        staging: &mut Option<wgpu::Buffer>,
+        enc: Option<wgpu::CommandEncoder>,
+    ) -> Result<Vec<T>, GpuError> {
+        let bytes = (count * std::mem::size_of::<T>()) as u64;
+        if bytes == 0 {
+            if let Some(enc) = enc {
+                self.submit_wait(enc)?;
+            }
+            return Ok(Vec::new());
+        }
+        let padded = bytes.div_ceil(4) * 4;
+        if staging.as_ref().is_none_or(|s| s.size() < padded) {
+            if padded > self.limits.max_buffer_size {
+                return Err(GpuError::LimitExceeded {
+                    what: "read-back staging buffer".into(),
+                    limit_name: "max_buffer_size",
+                    needed: padded,
+                    limit: self.limits.max_buffer_size,
+                });
+            }
+            *staging = Some(self.create(&wgpu::BufferDescriptor {
+                label: Some("staging"),
+                size: padded,
+                usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            })?);
+        }
+        let st = staging.as_ref().unwrap();
+        let mut enc = enc.unwrap_or_else(|| self.encoder("read"));
+        enc.copy_buffer_to_buffer(src, 0, st, 0, padded);
+        self.queue.submit([enc.finish()]);
+        let (tx, rx) = std::sync::mpsc::channel();
+        st.map_async(wgpu::MapMode::Read, 0..padded, move |r| {
+            let _ = tx.send(r);
+        });
+        self.wait()?;
+        rx.recv()
+            .map_err(|_| GpuError::Backend("buffer map callback dropped".into()))?
+            .map_err(|e| GpuError::Backend(format!("map read-back buffer: {e}")))?;
+        let out = {
+            let view = st
+                .get_mapped_range(0..padded)
+                .map_err(|e| GpuError::Backend(format!("mapped range: {e}")))?;
+            bytemuck::cast_slice::<u8, T>(&view[..bytes as usize]).to_vec()
+        };
+        st.unmap();
+        Ok(out)
+    }
+}
+
+/// Limits every kernel relies on, checked before the device is requested.
+fn check_min(l: &wgpu::Limits) -> Result<(), GpuError> {
+    let need: [(&'static str, u64, u64); 4] = [
+        (
+            "max_storage_buffers_per_shader_stage",
+            8,
+            l.max_storage_buffers_per_shader_stage as u64,
+        ),
+        (
+            "max_compute_invocations_per_workgroup",
+            FLAT_WG as u64,
+            l.max_compute_invocations_per_workgroup as u64,
+        ),
+        (
+            "max_compute_workgroup_size_x",
+            FLAT_WG as u64,
+            l.max_compute_workgroup_size_x as u64,
+        ),
+        (
+            "max_compute_workgroup_storage_size",
+            8192,
+            l.max_compute_workgroup_storage_size as u64,
+        ),
+    ];
+    for (name, needed, limit) in need {
+        if limit < needed {
+            return Err(GpuError::LimitExceeded {
+                what: "the PCG kernels".into(),
+                limit_name: name,
+                needed,
+                limit,
+            });
+        }
+    }
+    Ok(())
+}
+
+pub(crate) fn from_wgpu(e: wgpu::Error) -> GpuError {
+    match e {
+        wgpu::Error::OutOfMemory { source } => GpuError::OutOfMemory(source.to_string()),
+        other => GpuError::Backend(other.to_string()),
+    }
+}
+
+/// One compute pipeline (an entry point of a shader) with its label.
+pub(crate) struct Kernel {
+    pub label: &'static str,
+    pub pipeline: wgpu::ComputePipeline,
+}
+
+impl Kernel {
+    pub fn new(
+        ctx: &Context,
+        label: &'static str,
+        module: &wgpu::ShaderModule,
+        entry: &str,
+    ) -> Result<Kernel, GpuError> {
+        Ok(Kernel {
+            label,
+            pipeline: ctx.pipeline(label, module, entry)?,
+        })
+    }
+
+    pub fn bind(
+        &self,
+        ctx: &Context,
+        entries: &[(u32, &wgpu::Buffer)],
+    ) -> Result<wgpu::BindGroup, GpuError> {
+        ctx.bind(self.label, &self.pipeline, entries)
+    }
+
+    pub fn dispatch(&self, pass: &mut wgpu::ComputePass, bg: &wgpu::BindGroup, dims: (u32, u32)) {
+        pass.set_pipeline(&self.pipeline);
+        pass.set_bind_group(0, bg, &[]);
+        pass.dispatch_workgroups(dims.0, dims.1, 1);
+    }
+}

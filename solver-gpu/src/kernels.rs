@@ -1,0 +1,213 @@
+//! Single kernels on the prepared matrix, for the tests and the benchmark
+//! (not needed to use the solver). Every output buffer is poisoned with NaN
+//! before the kernel runs, so a kernel that writes nothing is caught.
+
+use crate::device::{Params, ROW_WG};
+use crate::pcg::Spmv;
+use crate::{GpuError, GpuSolver, CMAX};
+
+/// The prepared matrix as the GPU sees it: full (both triangles) block-CSR,
+/// `bs` = 3 or 1, f64 values (`bs * bs` per block, row-major).
+pub struct FullMatrix<'a> {
+    pub bs: usize,
+    pub rows: usize,
+    pub row_ptr: &'a [u32],
+    pub col_idx: &'a [u32],
+    pub vals: &'a [f64],
+}
+
+/// The prepared matrix, if any.
+pub fn full_matrix(s: &GpuSolver) -> Option<FullMatrix<'_>> {
+    s.host.as_ref().map(|h| FullMatrix {
+        bs: h.bs,
+        rows: h.rows,
+        row_ptr: &h.row_ptr,
+        col_idx: &h.col_idx,
+        vals: &h.vals,
+    })
+}
+
+fn check_cols(s: &GpuSolver, len: usize, ncols: usize) -> Result<(usize, usize, usize), GpuError> {
+    let h = s
+        .host
+        .as_ref()
+        .ok_or_else(|| GpuError::Backend("no matrix prepared".into()))?;
+    if ncols == 0 || ncols > CMAX || len != h.n() * ncols {
+        return Err(GpuError::Backend(format!(
+            "{len} entries for {ncols} columns of length {} (1..={CMAX} columns)",
+            h.n()
+        )));
+    }
+    Ok((h.rows, h.bs, h.n()))
+}
+
+fn poisoned(s: &GpuSolver, what: &str, len: usize) -> Result<wgpu::Buffer, GpuError> {
+    s.ctx.storage_init(what, &vec![f32::NAN; len.max(1)])
+}
+
+/// `y = A x` with the SpMV kernel of the prepared matrix (block or scalar);
+/// returns `y` and the per-column `x . y` reduced from the kernel's partials.
+pub fn spmv(s: &GpuSolver, x: &[f32], ncols: usize) -> Result<(Vec<f32>, Vec<f64>), GpuError> {
+    let (rows, bs, n) = check_cols(s, x.len(), ncols)?;
+    let ctx = &s.ctx;
+    let groups = (rows as u64).div_ceil(ROW_WG as u64).max(1);
+    let params = ctx.uniform(
+        "spmv params",
+        &Params {
+            rows: rows as u32,
+            ncols: ncols as u32,
+            n: n as u32,
+            groups: groups as u32,
+            bs: bs as u32,
+            pad: [0; 3],
+        },
+    )?;
+    let xb = ctx.storage_init("x", x)?;
+    let y = poisoned(s, "y", x.len())?;
+    let partials = poisoned(s, "partials", ncols * groups as usize)?;
+    let spmv = s.spmv();
+    let bg = spmv.bind(ctx, &params, s.gpu.as_ref().unwrap(), &xb, &y, &partials)?;
+    let dims = ctx.dims("spmv", groups)?;
+    let mut enc = ctx.encoder("spmv");
+    {
+        let mut pass = enc.begin_compute_pass(&Default::default());
+        spmv.kernel().dispatch(&mut pass, &bg, dims);
+    }
+    ctx.submit_wait(enc)?;
+    let yv: Vec<f32> = ctx.read(&y, x.len(), &mut None, None)?;
+    let pv: Vec<f32> = ctx.read(&partials, ncols * groups as usize, &mut None, None)?;
+    let dots = pv
+        .chunks(groups as usize)
+        .map(|c| c.iter().map(|&v| v as f64).sum())
+        .collect();
+    Ok((yv, dots))
+}
+
+/// `a_c . b_c` for `ncols` columns of length `len / ncols` (two-pass reduction).
+pub fn dot(s: &GpuSolver, a: &[f32], b: &[f32], ncols: usize) -> Result<Vec<f32>, GpuError> {
+    if ncols == 0 || ncols > CMAX || a.len() != b.len() || !a.len().is_multiple_of(ncols) {
+        return Err(GpuError::Backend("dot: bad lengths".into()));
+    }
+    let ctx = &s.ctx;
+    let n = a.len() / ncols;
+    let groups = (n as u64).div_ceil(ROW_WG as u64).max(1);
+    let params = ctx.uniform(
+        "dot params",
+        &Params {
+            rows: n as u32,
+            ncols: ncols as u32,
+            n: n as u32,
+            groups: groups as u32,
+            bs: 1,
+            pad: [0; 3],
+        },
+    )?;
+    let ab = ctx.storage_init("a", a)?;
+    let bb = ctx.storage_init("b", b)?;
+    let partials = poisoned(s, "partials", ncols * groups as usize)?;
+    let out = poisoned(s, "out", ncols)?;
+    let (bg1, bg2) = s.k.dot.bind(ctx, &params, &ab, &bb, &partials, &out)?;
+    let dims = ctx.dims("dot", groups)?;
+    let mut enc = ctx.encoder("dot");
+    {
+        let mut pass = enc.begin_compute_pass(&Default::default());
+        s.k.dot.partial.dispatch(&mut pass, &bg1, dims);
+        s.k.dot.finish.dispatch(&mut pass, &bg2, (1, 1));
+    }
+    ctx.read(&out, ncols, &mut None, Some(enc))
+}
+
+/// `z = M^-1 r` with the block-Jacobi kernel and the prepared matrix's inverse
+/// diagonal blocks.
+pub fn block_jacobi(s: &GpuSolver, r: &[f32], ncols: usize) -> Result<Vec<f32>, GpuError> {
+    let (rows, bs, n) = check_cols(s, r.len(), ncols)?;
+    let ctx = &s.ctx;
+    let groups = (rows as u64).div_ceil(ROW_WG as u64).max(1);
+    let params = ctx.uniform(
+        "jacobi params",
+        &Params {
+            rows: rows as u32,
+            ncols: ncols as u32,
+            n: n as u32,
+            groups: groups as u32,
+            bs: bs as u32,
+            pad: [0; 3],
+        },
+    )?;
+    let rb = ctx.storage_init("r", r)?;
+    let z = poisoned(s, "z", r.len())?;
+    let bg =
+        s.k.jacobi
+            .bind(ctx, &params, &s.gpu.as_ref().unwrap().minv, &rb, &z)?;
+    let dims = ctx.dims("block_jacobi", groups)?;
+    let mut enc = ctx.encoder("block_jacobi");
+    {
+        let mut pass = enc.begin_compute_pass(&Default::default());
+        s.k.jacobi.0.dispatch(&mut pass, &bg, dims);
+    }
+    ctx.read(&z, r.len(), &mut None, Some(enc))
+}
+
+/// Result of one f32 PCG run ([`pcg`]).
+#[derive(Debug, Clone)]
+pub struct PcgOutput {
+    /// Solution, column-major.
+    pub x: Vec<f32>,
+    /// Iterations per column.
+    pub iterations: Vec<u32>,
+    /// Final recurrence residual `||r|| / ||b||` per column.
+    pub residual: Vec<f32>,
+    /// Per column: 0 running (iteration cap), 1 converged, 2 breakdown.
+    pub status: Vec<u32>,
+    /// Iterations dispatched (a multiple of the check interval).
+    pub dispatched: usize,
+}
+
+/// One plain f32 PCG solve on the GPU (no refinement), from x = 0, until
+/// `||r|| <= rel_tol ||b||` per column or `max_iters`; `rel_tol = 0` runs exactly
+/// `max_iters` iterations (rounded up to the check interval), for timing.
+pub fn pcg(
+    s: &mut GpuSolver,
+    b: &[f32],
+    ncols: usize,
+    rel_tol: f32,
+    max_iters: usize,
+) -> Result<PcgOutput, GpuError> {
+    check_cols(s, b.len(), ncols)?;
+    s.workspace(ncols)?;
+    let n = b.len() / ncols;
+    let bb: Vec<f64> = (0..ncols)
+        .map(|c| {
+            b[c * n..(c + 1) * n]
+                .iter()
+                .map(|&v| (v as f64) * (v as f64))
+                .sum()
+        })
+        .collect();
+    let thr: Vec<f32> = bb
+        .iter()
+        .map(|&v| (v * (rel_tol as f64).powi(2)) as f32)
+        .collect();
+    let ws = s.ws.as_mut().unwrap();
+    s.ctx.queue.write_buffer(&ws.r, 0, bytemuck::cast_slice(b));
+    let spmv = match s.host.as_ref().unwrap().bs {
+        1 => Spmv::Scalar(&s.k.csr),
+        _ => Spmv::Block(&s.k.bsr),
+    };
+    let run =
+        s.k.pcg
+            .run(&s.ctx, &spmv, ws, ncols, &thr, max_iters, s.check_every)?;
+    let x = s.k.pcg.read_x(&s.ctx, ws, ncols)?;
+    Ok(PcgOutput {
+        x,
+        iterations: run.cols.iter().map(|c| c.iters).collect(),
+        residual: run
+            .cols
+            .iter()
+            .zip(&bb)
+            .map(|(c, &b2)| ((c.rr as f64) / b2.max(f64::MIN_POSITIVE)).sqrt() as f32)
+            .collect(),
+        status: run.cols.iter().map(|c| c.done).collect(),
+        dispatched: run.dispatched,
+    })
+}

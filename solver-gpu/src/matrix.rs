@@ -1,0 +1,236 @@
+//! The prepared matrix: the lower-triangle CSC input expanded to a full
+//! (both triangles) block-CSR with block size 3 (vertex systems) or 1 (scalar
+//! system). An f64 copy stays on the host for the residuals of iterative
+//! refinement; an f32 copy and the inverted diagonal blocks go to the GPU.
+
+use crate::device::Context;
+use crate::GpuError;
+use rayon::prelude::*;
+use solver_cpu::{BlockSym3, SolverError, SymCsc};
+
+/// Full block-CSR pattern and f64 values (host side).
+pub(crate) struct HostMatrix {
+    pub bs: usize,
+    pub rows: usize,
+    pub row_ptr: Vec<u32>,
+    pub col_idx: Vec<u32>,
+    /// `bs * bs` per stored block, row-major.
+    pub vals: Vec<f64>,
+    /// For each lower-triangle input entry: its position in the full pattern, and
+    /// the position of its transpose (`u32::MAX` on the diagonal).
+    lower_to_full: Vec<(u32, u32)>,
+    /// Full position of each row's diagonal block.
+    pub diag: Vec<u32>,
+    /// The input pattern (lower CSC), to recognise a repeated pattern.
+    pub key: (Vec<usize>, Vec<usize>),
+}
+
+impl HostMatrix {
+    /// Pattern from a lower-triangle CSC (row >= col, sorted, diagonal present).
+    pub fn pattern(
+        n: usize,
+        bs: usize,
+        col_ptr: &[usize],
+        row_idx: &[usize],
+    ) -> Result<HostMatrix, SolverError> {
+        if col_ptr.len() != n + 1 || col_ptr[n] != row_idx.len() {
+            return Err(SolverError::DimensionMismatch(format!(
+                "column pointers ({}) do not describe {} columns and {} entries",
+                col_ptr.len(),
+                n,
+                row_idx.len()
+            )));
+        }
+        let nnz_full = 2 * row_idx.len() - n;
+        if nnz_full as u64 * (bs * bs) as u64 >= u32::MAX as u64
+            || n * bs * crate::CMAX >= u32::MAX as usize
+        {
+            return Err(SolverError::Backend(format!(
+                "matrix too large for 32-bit GPU indices ({n} rows, {nnz_full} blocks)"
+            )));
+        }
+        let mut count = vec![0u32; n + 1];
+        for j in 0..n {
+            let (s, e) = (col_ptr[j], col_ptr[j + 1]);
+            if s >= e || row_idx[s] != j {
+                return Err(SolverError::NotPositiveDefinite);
+            }
+            for &i in &row_idx[s..e] {
+                if i < j || i >= n {
+                    return Err(SolverError::DimensionMismatch(format!(
+                        "entry ({i}, {j}) is not in the lower triangle of a {n} x {n} matrix"
+                    )));
+                }
+                count[i + 1] += 1;
+                if i != j {
+                    count[j + 1] += 1;
+                }
+            }
+        }
+        for i in 0..n {
+            count[i + 1] += count[i];
+        }
+        let row_ptr = count.clone();
+        let mut next = count;
+        let mut col_idx = vec![0u32; nnz_full];
+        let mut lower_to_full = Vec::with_capacity(row_idx.len());
+        let mut diag = vec![0u32; n];
+        for j in 0..n {
+            for &i in &row_idx[col_ptr[j]..col_ptr[j + 1]] {
+                let lo = next[i];
+                next[i] += 1;
+                col_idx[lo as usize] = j as u32;
+                if i == j {
+                    diag[i] = lo;
+                    lower_to_full.push((lo, u32::MAX));
+                } else {
+                    let up = next[j];
+                    next[j] += 1;
+                    col_idx[up as usize] = i as u32;
+                    lower_to_full.push((lo, up));
+                }
+            }
+        }
+        Ok(HostMatrix {
+            bs,
+            rows: n,
+            row_ptr,
+            col_idx,
+            vals: vec![0.0; nnz_full * bs * bs],
+            lower_to_full,
+            diag,
+            key: (col_ptr.to_vec(), row_idx.to_vec()),
+        })
+    }
+
+    pub fn same_pattern(&self, bs: usize, col_ptr: &[usize], row_idx: &[usize]) -> bool {
+        self.bs == bs && self.key.0 == col_ptr && self.key.1 == row_idx
+    }
+
+    /// Length of one column.
+    pub fn n(&self) -> usize {
+        self.rows * self.bs
+    }
+
+    pub fn nnz_blocks(&self) -> usize {
+        self.col_idx.len()
+    }
+
+    /// Values of a block matrix; rows/columns of fixed vertices become identity
+    /// (as `BlockSym3::fill_scalar`).
+    pub fn fill_blocks(&mut self, a: &BlockSym3, fixed: &[bool]) {
+        debug_assert_eq!(self.bs, 3);
+        let mut k = 0;
+        for j in 0..a.n {
+            for kk in a.col_ptr[j]..a.col_ptr[j + 1] {
+                let i = a.row_idx[kk];
+                let b = &a.blocks[kk];
+                let (lo, up) = self.lower_to_full[k];
+                k += 1;
+                let cut = fixed[i] || fixed[j];
+                let dst = &mut self.vals[9 * lo as usize..9 * lo as usize + 9];
+                if cut {
+                    dst.fill(0.0);
+                    if i == j {
+                        dst[0] = 1.0;
+                        dst[4] = 1.0;
+                        dst[8] = 1.0;
+                    }
+                } else {
+                    dst.copy_from_slice(b);
+                }
+                if up != u32::MAX {
+                    let dst = &mut self.vals[9 * up as usize..9 * up as usize + 9];
+                    for r in 0..3 {
+                        for c in 0..3 {
+                            dst[3 * r + c] = if cut { 0.0 } else { b[3 * c + r] };
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    /// Values of a scalar matrix.
+    pub fn fill_scalar(&mut self, a: &SymCsc) {
+        debug_assert_eq!(self.bs, 1);
+        for (k, &(lo, up)) in self.lower_to_full.iter().enumerate() {
+            self.vals[lo as usize] = a.values[k];
+            if up != u32::MAX {
+                self.vals[up as usize] = a.values[k];
+            }
+        }
+    }
+
+    /// `r = b - A x` in f64 for `ncols` columns (column-major, length `n` each).
+    pub fn residual(&self, b: &[f64], x: &[f64], r: &mut [f64], ncols: usize) {
+        let n = self.n();
+        let bs = self.bs;
+        for c in 0..ncols {
+            let (bc, xc) = (&b[c * n..(c + 1) * n], &x[c * n..(c + 1) * n]);
+            r[c * n..(c + 1) * n]
+                .par_chunks_mut(bs)
+                .enumerate()
+                .for_each(|(row, out)| {
+                    let mut acc = [0f64; 3];
+                    for k in self.row_ptr[row] as usize..self.row_ptr[row + 1] as usize {
+                        let j = self.col_idx[k] as usize;
+                        let m = &self.vals[k * bs * bs..(k + 1) * bs * bs];
+                        for q in 0..bs {
+                            let mut s = 0.0;
+                            for t in 0..bs {
+                                s += m[q * bs + t] * xc[j * bs + t];
+                            }
+                            acc[q] += s;
+                        }
+                    }
+                    for q in 0..bs {
+                        out[q] = bc[row * bs + q] - acc[q];
+                    }
+                });
+        }
+    }
+}
+
+/// The f32 copy on the GPU.
+pub(crate) struct GpuMatrix {
+    pub row_ptr: wgpu::Buffer,
+    pub col_idx: wgpu::Buffer,
+    pub vals: wgpu::Buffer,
+    pub minv: wgpu::Buffer,
+}
+
+impl GpuMatrix {
+    pub fn upload(ctx: &Context, h: &HostMatrix, minv: &[f32]) -> Result<GpuMatrix, GpuError> {
+        let what = if h.bs == 3 { "block" } else { "scalar" };
+        // Check every size first so the error names the first buffer over a limit.
+        ctx.check_storage(
+            &format!(
+                "{what} matrix values ({} blocks of {} f32)",
+                h.nnz_blocks(),
+                h.bs * h.bs
+            ),
+            (h.vals.len() * 4) as u64,
+        )?;
+        ctx.check_storage(
+            &format!("{what} matrix column indices"),
+            (h.col_idx.len() * 4) as u64,
+        )?;
+        let vals32: Vec<f32> = h.vals.iter().map(|&v| v as f32).collect();
+        Ok(GpuMatrix {
+            row_ptr: ctx.storage_init("matrix row pointers", &h.row_ptr)?,
+            col_idx: ctx.storage_init("matrix column indices", &h.col_idx)?,
+            vals: ctx.storage_init("matrix values", &vals32)?,
+            minv: ctx.storage_init("inverted diagonal blocks", minv)?,
+        })
+    }
+
+    /// New values, same pattern.
+    pub fn write_values(&self, ctx: &Context, h: &HostMatrix, minv: &[f32]) {
+        let vals32: Vec<f32> = h.vals.iter().map(|&v| v as f32).collect();
+        ctx.queue
+            .write_buffer(&self.vals, 0, bytemuck::cast_slice(&vals32));
+        ctx.queue
+            .write_buffer(&self.minv, 0, bytemuck::cast_slice(minv));
+    }
+}

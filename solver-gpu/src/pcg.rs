@@ -1,0 +1,347 @@
+//! Drives `shaders/pcg.wgsl`: the f32 preconditioned conjugate gradient loop,
+//! every scalar kept on the GPU. One iteration is five dispatches in one compute
+//! pass (no host round trip):
+//!
+//! 1. SpMV (`bsr_spmv.wgsl` or `csr_spmv.wgsl`): `Ap = A p`, partials of `p . Ap`;
+//! 2. `finish_alpha` (1 workgroup): `alpha = rz / (p . Ap)` per column, breakdown check;
+//! 3. `update`: `x += alpha p`, `r -= alpha Ap`, `z = M^-1 r` (block-Jacobi),
+//!    partials of `r . z` and `r . r`;
+//! 4. `finish_beta` (1 workgroup): `beta = rz' / rz`, convergence flag `rr <= thr`;
+//! 5. `direction`: `p = z + beta p`.
+//!
+//! The host reads the 32-byte [`ColState`] of each column back every
+//! `check_every` iterations (batched in one submission) and stops when every
+//! column is done (converged or broken down) or the iteration budget is spent.
+//!
+//! Bindings of `pcg.wgsl` (group 0): 0 `P` uniform [`Params`]; 1 `cols`
+//! ([`ColState`] per column); 2 `partials` (slot s, column c, workgroup g at
+//! `(s ncols + c) groups + g`); 3 `minv` (inverted diagonal blocks); 4 `p`;
+//! 5 `ap`; 6 `x`; 7 `r`; 8 `z` (vectors column-major, stride n).
+//! `update` uses all nine, `finish_alpha`/`finish_beta` 0-2, `direction` 0, 1, 4, 8.
+
+use crate::bsr_spmv::BsrSpmv;
+use crate::csr_spmv::CsrSpmv;
+use crate::device::{Context, Kernel, Params, FLAT_WG, ROW_WG};
+use crate::matrix::GpuMatrix;
+use crate::{GpuError, CMAX};
+
+pub(crate) const SOURCE: &str = include_str!("../../shaders/pcg.wgsl");
+
+/// Per-column scalars, as `ColState` in `pcg.wgsl`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub(crate) struct ColState {
+    pub rz: f32,
+    pub pap: f32,
+    pub alpha: f32,
+    pub beta: f32,
+    /// Squared norm of the recurrence residual.
+    pub rr: f32,
+    /// The column is done when `rr <= thr`.
+    pub thr: f32,
+    /// 0 running, 1 converged, 2 breakdown.
+    pub done: u32,
+    pub iters: u32,
+}
+
+pub(crate) const DONE_BREAKDOWN: u32 = 2;
+
+pub(crate) struct Pcg {
+    pub update: Kernel,
+    pub finish_alpha: Kernel,
+    pub finish_beta: Kernel,
+    pub direction: Kernel,
+}
+
+/// The SpMV kernel of the prepared matrix (block or scalar).
+pub(crate) enum Spmv<'a> {
+    Block(&'a BsrSpmv),
+    Scalar(&'a CsrSpmv),
+}
+
+impl Spmv<'_> {
+    pub fn kernel(&self) -> &Kernel {
+        match self {
+            Spmv::Block(k) => &k.0,
+            Spmv::Scalar(k) => &k.0,
+        }
+    }
+
+    pub fn bind(
+        &self,
+        ctx: &Context,
+        params: &wgpu::Buffer,
+        m: &GpuMatrix,
+        x: &wgpu::Buffer,
+        y: &wgpu::Buffer,
+        partials: &wgpu::Buffer,
+    ) -> Result<wgpu::BindGroup, GpuError> {
+        match self {
+            Spmv::Block(k) => k.bind(ctx, params, m, x, y, partials),
+            Spmv::Scalar(k) => k.bind(ctx, params, m, x, y, partials),
+        }
+    }
+}
+
+/// Vector buffers and bind groups for one prepared matrix and up to `cmax`
+/// columns; reused by every solve until the pattern changes or more columns
+/// are needed.
+pub(crate) struct Workspace {
+    pub cmax: usize,
+    pub rows: usize,
+    pub bs: usize,
+    pub groups: u32,
+    pub params: wgpu::Buffer,
+    pub cols: wgpu::Buffer,
+    /// Only used through the bind groups.
+    #[allow(dead_code)]
+    pub partials: wgpu::Buffer,
+    pub x: wgpu::Buffer,
+    pub r: wgpu::Buffer,
+    #[allow(dead_code)]
+    pub z: wgpu::Buffer,
+    pub p: wgpu::Buffer,
+    pub ap: wgpu::Buffer,
+    bg_spmv: wgpu::BindGroup,
+    bg_update: wgpu::BindGroup,
+    bg_alpha: wgpu::BindGroup,
+    bg_beta: wgpu::BindGroup,
+    bg_direction: wgpu::BindGroup,
+    row_dims: (u32, u32),
+    pub staging_cols: Option<wgpu::Buffer>,
+    pub staging_x: Option<wgpu::Buffer>,
+}
+
+impl Workspace {
+    pub fn n(&self) -> usize {
+        self.rows * self.bs
+    }
+
+    pub fn params(&self, ncols: usize) -> Params {
+        Params {
+            rows: self.rows as u32,
+            ncols: ncols as u32,
+            n: self.n() as u32,
+            groups: self.groups,
+            bs: self.bs as u32,
+            pad: [0; 3],
+        }
+    }
+}
+
+/// What one PCG run did.
+#[derive(Debug, Clone)]
+pub(crate) struct PcgRun {
+    /// Iterations dispatched (the largest per-column count is `max(cols.iters)`).
+    pub dispatched: usize,
+    pub cols: Vec<ColState>,
+}
+
+impl PcgRun {
+    pub fn iterations(&self) -> usize {
+        self.cols
+            .iter()
+            .map(|c| c.iters as usize)
+            .max()
+            .unwrap_or(0)
+    }
+
+    pub fn all_done(&self) -> bool {
+        self.cols.iter().all(|c| c.done != 0)
+    }
+
+    pub fn breakdown(&self) -> bool {
+        self.cols.iter().any(|c| c.done == DONE_BREAKDOWN)
+    }
+}
+
+impl Pcg {
+    pub fn new(ctx: &Context) -> Result<Self, GpuError> {
+        let m = ctx.shader("pcg.wgsl", SOURCE)?;
+        Ok(Pcg {
+            update: Kernel::new(ctx, "pcg_update", &m, "update")?,
+            finish_alpha: Kernel::new(ctx, "pcg_finish_alpha", &m, "finish_alpha")?,
+            finish_beta: Kernel::new(ctx, "pcg_finish_beta", &m, "finish_beta")?,
+            direction: Kernel::new(ctx, "pcg_direction", &m, "direction")?,
+        })
+    }
+
+    /// Allocate the vectors for `cmax` columns of the prepared matrix (`rows`
+    /// block rows of size `bs`) and bind everything.
+    #[allow(clippy::too_many_arguments)]
+    pub fn workspace(
+        &self,
+        ctx: &Context,
+        spmv: &Spmv,
+        m: &GpuMatrix,
+        rows: usize,
+        bs: usize,
+        cmax: usize,
+    ) -> Result<Workspace, GpuError> {
+        let cmax = cmax.clamp(1, CMAX);
+        let n = rows * bs;
+        let groups = (rows as u64).div_ceil(ROW_WG as u64).max(1);
+        let row_dims = ctx.dims("row kernels", groups)?;
+        ctx.dims(
+            "element-wise kernels",
+            ((n * cmax) as u64).div_ceil(FLAT_WG as u64),
+        )?;
+        let vec_bytes = (n * cmax * 4) as u64;
+        let what = |name: &str| format!("PCG vector {name} ({n} x {cmax} f32)");
+        for name in ["x", "r", "z", "p", "Ap"] {
+            ctx.check_storage(&what(name), vec_bytes)?;
+        }
+        let params = ctx.uniform("pcg params", &Params::default())?;
+        let cols = ctx.storage(
+            "pcg column scalars",
+            (cmax * std::mem::size_of::<ColState>()) as u64,
+        )?;
+        let partials = ctx.storage("pcg partial sums", 2 * cmax as u64 * groups * 4)?;
+        let x = ctx.storage(&what("x"), vec_bytes)?;
+        let r = ctx.storage(&what("r"), vec_bytes)?;
+        let z = ctx.storage(&what("z"), vec_bytes)?;
+        let p = ctx.storage(&what("p"), vec_bytes)?;
+        let ap = ctx.storage(&what("Ap"), vec_bytes)?;
+        let bg_spmv = spmv.bind(ctx, &params, m, &p, &ap, &partials)?;
+        let bg_update = self.update.bind(
+            ctx,
+            &[
+                (0, &params),
+                (1, &cols),
+                (2, &partials),
+                (3, &m.minv),
+                (4, &p),
+                (5, &ap),
+                (6, &x),
+                (7, &r),
+                (8, &z),
+            ],
+        )?;
+        // Auto layouts are per pipeline: one bind group for each finishing kernel.
+        let bg_alpha = self
+            .finish_alpha
+            .bind(ctx, &[(0, &params), (1, &cols), (2, &partials)])?;
+        let bg_beta = self
+            .finish_beta
+            .bind(ctx, &[(0, &params), (1, &cols), (2, &partials)])?;
+        let bg_direction = self
+            .direction
+            .bind(ctx, &[(0, &params), (1, &cols), (4, &p), (8, &z)])?;
+        Ok(Workspace {
+            cmax,
+            rows,
+            bs,
+            groups: groups as u32,
+            params,
+            cols,
+            partials,
+            x,
+            r,
+            z,
+            p,
+            ap,
+            bg_spmv,
+            bg_update,
+            bg_alpha,
+            bg_beta,
+            bg_direction,
+            row_dims,
+            staging_cols: None,
+            staging_x: None,
+        })
+    }
+
+    /// Run PCG on `ncols` columns whose right-hand sides are already in `ws.r`
+    /// (x starts at 0). `thr[c]` is the squared residual norm at which column c
+    /// is done. Stops when every column is done or after `max_iters` iterations
+    /// (rounded up to a multiple of `check_every`).
+    #[allow(clippy::too_many_arguments)]
+    pub fn run(
+        &self,
+        ctx: &Context,
+        spmv: &Spmv,
+        ws: &mut Workspace,
+        ncols: usize,
+        thr: &[f32],
+        max_iters: usize,
+        check_every: usize,
+    ) -> Result<PcgRun, GpuError> {
+        assert!(ncols >= 1 && ncols <= ws.cmax && thr.len() == ncols);
+        let n = ws.n();
+        ctx.queue
+            .write_buffer(&ws.params, 0, bytemuck::bytes_of(&ws.params(ncols)));
+        let init: Vec<ColState> = thr
+            .iter()
+            .map(|&t| ColState {
+                thr: t,
+                ..Default::default()
+            })
+            .collect();
+        ctx.queue
+            .write_buffer(&ws.cols, 0, bytemuck::cast_slice(&init));
+        let flat_dims = ctx.dims(
+            "element-wise kernels",
+            ((n * ncols) as u64).div_ceil(FLAT_WG as u64),
+        )?;
+        let used = (n * ncols * 4) as u64;
+        let mut enc = ctx.encoder("pcg init");
+        for b in [&ws.x, &ws.p, &ws.ap] {
+            enc.clear_buffer(b, 0, Some(used));
+        }
+        {
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("pcg init"),
+                timestamp_writes: None,
+            });
+            self.update.dispatch(&mut pass, &ws.bg_update, ws.row_dims);
+            self.finish_beta.dispatch(&mut pass, &ws.bg_beta, (1, 1));
+            self.direction
+                .dispatch(&mut pass, &ws.bg_direction, flat_dims);
+        }
+        let check_every = check_every.max(1);
+        let mut dispatched = 0;
+        let mut staging = ws.staging_cols.take();
+        let result = loop {
+            let k = check_every.min(max_iters.saturating_sub(dispatched)).max(1);
+            {
+                let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                    label: Some("pcg iterations"),
+                    timestamp_writes: None,
+                });
+                for _ in 0..k {
+                    spmv.kernel().dispatch(&mut pass, &ws.bg_spmv, ws.row_dims);
+                    self.finish_alpha.dispatch(&mut pass, &ws.bg_alpha, (1, 1));
+                    self.update.dispatch(&mut pass, &ws.bg_update, ws.row_dims);
+                    self.finish_beta.dispatch(&mut pass, &ws.bg_beta, (1, 1));
+                    self.direction
+                        .dispatch(&mut pass, &ws.bg_direction, flat_dims);
+                }
+            }
+            dispatched += k;
+            let cols: Vec<ColState> = match ctx.read(&ws.cols, ncols, &mut staging, Some(enc)) {
+                Ok(c) => c,
+                Err(e) => break Err(e),
+            };
+            let run = PcgRun { dispatched, cols };
+            if run.all_done() || run.breakdown() || dispatched >= max_iters {
+                break Ok(run);
+            }
+            enc = ctx.encoder("pcg iterations");
+        };
+        ws.staging_cols = staging;
+        result
+    }
+
+    /// Read the first `ncols` columns of `x`.
+    pub fn read_x(
+        &self,
+        ctx: &Context,
+        ws: &mut Workspace,
+        ncols: usize,
+    ) -> Result<Vec<f32>, GpuError> {
+        let mut staging = ws.staging_x.take();
+        let out = ctx.read(&ws.x, ws.n() * ncols, &mut staging, None);
+        ws.staging_x = staging;
+        out
+    }
+}

@@ -1,0 +1,498 @@
+//! The GPU kernels and the solver against CPU references (lavapipe is enough).
+//! Without an adapter each test prints "skipping: no GPU adapter" and passes,
+//! unless REQUIRE_GPU=1, where it fails.
+
+use solver_cpu::{BlockSym3, CholeskySolver, SolverError, SpdSolver, SymCsc};
+use solver_gpu::{kernels, GpuError, GpuSolver, OpenOptions};
+
+fn require_gpu() -> bool {
+    std::env::var("REQUIRE_GPU").is_ok_and(|v| v == "1")
+}
+
+fn skip_or_fail(e: GpuError) -> Option<GpuSolver> {
+    match e {
+        GpuError::NoAdapter(why) if !require_gpu() => {
+            eprintln!("skipping: no GPU adapter ({why})");
+            None
+        }
+        other => panic!("could not open the GPU solver: {other}"),
+    }
+}
+
+/// The GPU solver, or `None` (test skipped) when there is no adapter.
+fn gpu() -> Option<GpuSolver> {
+    solver_gpu::open().map_or_else(skip_or_fail, Some)
+}
+
+/// SplitMix64: seeded, reproducible.
+struct Rng(u64);
+impl Rng {
+    fn next(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    }
+    /// Uniform in [-1, 1).
+    fn sym(&mut self) -> f64 {
+        (self.next() >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0
+    }
+    /// Never zero: magnitude in [0.5, 1.5), random sign.
+    fn nonzero(&mut self) -> f64 {
+        let m = 1.0 + 0.5 * self.sym();
+        if self.next() & 1 == 0 {
+            m
+        } else {
+            -m
+        }
+    }
+    fn vec(&mut self, n: usize) -> Vec<f64> {
+        (0..n).map(|_| self.nonzero()).collect()
+    }
+}
+
+/// Edges of a triangulated nx x ny grid (a mesh-like vertex graph, 6-ring inside).
+fn grid_edges(nx: usize, ny: usize) -> Vec<(usize, usize)> {
+    let id = |i: usize, j: usize| j * nx + i;
+    let mut e = Vec::new();
+    for j in 0..ny {
+        for i in 0..nx {
+            if i + 1 < nx {
+                e.push((id(i, j), id(i + 1, j)));
+            }
+            if j + 1 < ny {
+                e.push((id(i, j), id(i, j + 1)));
+            }
+            if i + 1 < nx && j + 1 < ny {
+                e.push((id(i, j), id(i + 1, j + 1)));
+            }
+        }
+    }
+    e
+}
+
+/// SPD block matrix: weighted graph Laplacian x I3 plus random (non-symmetric)
+/// 3x3 couplings, made block diagonally dominant with a relative `shift`.
+fn spd_blocks(nx: usize, ny: usize, shift: f64, rng: &mut Rng) -> BlockSym3 {
+    let n = nx * ny;
+    let edges = grid_edges(nx, ny);
+    let mut a = BlockSym3::from_pattern(n, edges.iter().copied());
+    let mut dom = vec![0.0; n];
+    for &(i, j) in &edges {
+        let w = 1.0 + 0.5 * rng.sym();
+        let mut b = [0.0; 9];
+        for (q, v) in b.iter_mut().enumerate() {
+            *v = 0.2 * w * rng.sym() + if q % 4 == 0 { -w } else { 0.0 };
+        }
+        let norm = b.iter().map(|v| v * v).sum::<f64>().sqrt();
+        dom[i] += norm;
+        dom[j] += norm;
+        a.add_block(j.max(i), j.min(i), &b);
+    }
+    for (i, d) in dom.iter().enumerate() {
+        let s = 0.1 * shift * d * rng.sym().abs();
+        let off = [0.3 * s, -0.2 * s, 0.1 * s];
+        let m = [
+            d * (1.0 + shift),
+            off[0],
+            off[1],
+            off[0],
+            d * (1.0 + shift),
+            off[2],
+            off[1],
+            off[2],
+            d * (1.0 + shift),
+        ];
+        a.add_block(i, i, &m);
+    }
+    a
+}
+
+/// The scalar copy (with the fixed-vertex identity rows) the CPU uses.
+fn scalar_of(a: &BlockSym3, fixed: &[bool]) -> SymCsc {
+    let mut s = a.scalar_pattern();
+    a.fill_scalar(&mut s, fixed);
+    s
+}
+
+/// Face-adjacency-like scalar SPD matrix: ~4 off-diagonals a row.
+fn spd_scalar(n: usize, rng: &mut Rng) -> SymCsc {
+    let mut pairs = Vec::new();
+    for i in 0..n {
+        pairs.push((i, (i + 1) % n));
+        pairs.push((i, (i + 37) % n));
+    }
+    let mut s = SymCsc::from_pattern(n, pairs.iter().copied());
+    let mut dom = vec![0.0; n];
+    for c in 0..n {
+        for k in s.col_ptr[c]..s.col_ptr[c + 1] {
+            let r = s.row_idx[k];
+            if r != c {
+                let v = -(1.0 + 0.5 * rng.sym());
+                s.values[k] = v;
+                dom[r] += v.abs();
+                dom[c] += v.abs();
+            }
+        }
+    }
+    for (i, d) in dom.iter().enumerate() {
+        let k = s.slot(i, i).unwrap();
+        s.values[k] = d * 1.01 + 1e-3;
+    }
+    s
+}
+
+fn fixed_every(n: usize, k: usize) -> Vec<bool> {
+    (0..n).map(|v| v % k == 3).collect()
+}
+
+fn rel_err(a: &[f64], b: &[f64]) -> f64 {
+    let d: f64 = a.iter().zip(b).map(|(x, y)| (x - y) * (x - y)).sum();
+    let n: f64 = b.iter().map(|y| y * y).sum();
+    (d / n).sqrt()
+}
+
+fn f32s(v: &[f64]) -> Vec<f32> {
+    v.iter().map(|&x| x as f32).collect()
+}
+
+#[test]
+fn block_spmv_matches_cpu_for_1_to_8_columns() {
+    let Some(mut s) = gpu() else { return };
+    let mut rng = Rng(1);
+    let a = spd_blocks(23, 17, 0.1, &mut rng);
+    let fixed = fixed_every(a.n, 11);
+    s.prepare_blocks(&a, &fixed).unwrap();
+    let cpu = scalar_of(&a, &fixed);
+    let n = 3 * a.n;
+    for ncols in [1, 2, 5, 8] {
+        let x = f32s(&rng.vec(n * ncols));
+        let (y, dots) = kernels::spmv(&s, &x, ncols).unwrap();
+        for c in 0..ncols {
+            let xc: Vec<f64> = x[c * n..(c + 1) * n].iter().map(|&v| v as f64).collect();
+            let mut yc = vec![0.0; n];
+            cpu.mul_vec(&xc, &mut yc);
+            let yg: Vec<f64> = y[c * n..(c + 1) * n].iter().map(|&v| v as f64).collect();
+            let e = rel_err(&yg, &yc);
+            assert!(e < 1e-6, "ncols {ncols} column {c}: relative error {e:e}");
+            let d: f64 = xc.iter().zip(&yc).map(|(a, b)| a * b).sum();
+            let scale: f64 = xc.iter().zip(&yc).map(|(a, b)| (a * b).abs()).sum();
+            assert!(
+                (dots[c] - d).abs() < 1e-5 * scale,
+                "ncols {ncols} column {c}: x.Ax {} vs {d}",
+                dots[c]
+            );
+        }
+    }
+}
+
+#[test]
+fn scalar_csr_spmv_matches_cpu() {
+    let Some(mut s) = gpu() else { return };
+    let mut rng = Rng(2);
+    let a = spd_scalar(1000, &mut rng);
+    s.prepare(&a).unwrap();
+    for ncols in [1, 3] {
+        let x = f32s(&rng.vec(a.n * ncols));
+        let (y, dots) = kernels::spmv(&s, &x, ncols).unwrap();
+        for c in 0..ncols {
+            let xc: Vec<f64> = x[c * a.n..(c + 1) * a.n]
+                .iter()
+                .map(|&v| v as f64)
+                .collect();
+            let mut yc = vec![0.0; a.n];
+            a.mul_vec(&xc, &mut yc);
+            let yg: Vec<f64> = y[c * a.n..(c + 1) * a.n]
+                .iter()
+                .map(|&v| v as f64)
+                .collect();
+            assert!(rel_err(&yg, &yc) < 1e-6);
+            let d: f64 = xc.iter().zip(&yc).map(|(a, b)| a * b).sum();
+            let scale: f64 = xc.iter().zip(&yc).map(|(a, b)| (a * b).abs()).sum();
+            assert!((dots[c] - d).abs() < 1e-5 * scale);
+        }
+    }
+}
+
+#[test]
+fn dot_products_two_pass() {
+    let Some(s) = gpu() else { return };
+    let mut rng = Rng(3);
+    // Lengths: one partial workgroup, several, and more partials than the final
+    // workgroup has invocations.
+    for (n, ncols) in [(77, 1), (5000, 3), (100_003, 8)] {
+        let a = f32s(&rng.vec(n * ncols));
+        let b = f32s(&rng.vec(n * ncols));
+        let d = kernels::dot(&s, &a, &b, ncols).unwrap();
+        assert_eq!(d.len(), ncols);
+        for (c, &dc) in d.iter().enumerate() {
+            let r = c * n..(c + 1) * n;
+            let exact: f64 = a[r.clone()]
+                .iter()
+                .zip(&b[r.clone()])
+                .map(|(x, y)| *x as f64 * *y as f64)
+                .sum();
+            let scale: f64 = a[r.clone()]
+                .iter()
+                .zip(&b[r])
+                .map(|(x, y)| (*x as f64 * *y as f64).abs())
+                .sum();
+            assert!(
+                (dc as f64 - exact).abs() < 1e-5 * scale,
+                "n {n} column {c}: {dc} vs {exact}"
+            );
+        }
+    }
+}
+
+#[test]
+fn block_jacobi_apply_inverts_the_diagonal_blocks() {
+    let Some(mut s) = gpu() else { return };
+    let mut rng = Rng(4);
+    let a = spd_blocks(13, 11, 0.1, &mut rng);
+    let fixed = fixed_every(a.n, 7);
+    s.prepare_blocks(&a, &fixed).unwrap();
+    let n = 3 * a.n;
+    let ncols = 3;
+    let r = f32s(&rng.vec(n * ncols));
+    let z = kernels::block_jacobi(&s, &r, ncols).unwrap();
+    // D z = r per vertex block, D the diagonal block (identity where fixed).
+    for c in 0..ncols {
+        for (v, &fv) in fixed.iter().enumerate() {
+            let (k, _) = a.slot(v, v).unwrap();
+            let d = if fv {
+                [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
+            } else {
+                a.blocks[k]
+            };
+            let o = c * n + 3 * v;
+            for q in 0..3 {
+                let dz: f64 = (0..3).map(|t| d[3 * q + t] * z[o + t] as f64).sum();
+                let rv = r[o + q] as f64;
+                assert!(
+                    (dz - rv).abs() < 1e-5 * rv.abs().max(1.0),
+                    "vertex {v}: {dz} vs {rv}"
+                );
+            }
+        }
+    }
+    // Scalar: plain Jacobi.
+    let sa = spd_scalar(300, &mut rng);
+    s.prepare(&sa).unwrap();
+    let r = f32s(&rng.vec(sa.n));
+    let z = kernels::block_jacobi(&s, &r, 1).unwrap();
+    for i in 0..sa.n {
+        let d = sa.values[sa.slot(i, i).unwrap()];
+        assert!((d * z[i] as f64 - r[i] as f64).abs() < 1e-5);
+    }
+}
+
+#[test]
+fn pcg_solve_matches_cholesky_with_fixed_vertices() {
+    let Some(mut s) = gpu() else { return };
+    let mut rng = Rng(5);
+    let a = spd_blocks(40, 35, 0.05, &mut rng);
+    let fixed = fixed_every(a.n, 50);
+    let n = 3 * a.n;
+    s.prepare_blocks(&a, &fixed).unwrap();
+    let mut cpu = CholeskySolver::new();
+    cpu.prepare_blocks(&a, &fixed).unwrap();
+    let b = rng.vec(n);
+    let mut x = b.clone();
+    let info = s.solve_in_place(&mut x, 1).unwrap();
+    let mut xc = b.clone();
+    cpu.solve_in_place(&mut xc, 1).unwrap();
+    let e = rel_err(&x, &xc);
+    assert!(e < 1e-8, "GPU vs Cholesky: {e:e} ({info:?})");
+    assert!(info.residual <= 1e-10 && info.iterations > 0, "{info:?}");
+    // Fixed vertices: identity rows, x = b there.
+    for v in (0..a.n).filter(|&v| fixed[v]) {
+        for q in 0..3 {
+            assert!((x[3 * v + q] - b[3 * v + q]).abs() < 1e-9 * b[3 * v + q].abs());
+        }
+    }
+    eprintln!("one column: {info:?}, {:?}", s.last_stats());
+}
+
+#[test]
+fn multiple_right_hand_sides_together_and_in_batches() {
+    let Some(mut s) = gpu() else { return };
+    let mut rng = Rng(6);
+    let a = spd_blocks(30, 20, 0.05, &mut rng);
+    let fixed = fixed_every(a.n, 40);
+    let n = 3 * a.n;
+    s.prepare_blocks(&a, &fixed).unwrap();
+    let mut cpu = CholeskySolver::new();
+    cpu.prepare_blocks(&a, &fixed).unwrap();
+    for ncols in [5, 11] {
+        let mut b = rng.vec(n * ncols);
+        // A zero column is solved trivially.
+        b[2 * n..3 * n].fill(0.0);
+        let mut x = b.clone();
+        let info = s.solve_in_place(&mut x, ncols).unwrap();
+        let mut xc = b.clone();
+        cpu.solve_in_place(&mut xc, ncols).unwrap();
+        for c in 0..ncols {
+            let r = c * n..(c + 1) * n;
+            if c == 2 {
+                assert!(x[r].iter().all(|&v| v == 0.0));
+                continue;
+            }
+            let e = rel_err(&x[r.clone()], &xc[r]);
+            assert!(e < 1e-8, "{ncols} columns, column {c}: {e:e}");
+        }
+        assert!(info.residual <= 1e-10);
+    }
+}
+
+#[test]
+fn scalar_system_matches_cholesky() {
+    let Some(mut s) = gpu() else { return };
+    let mut rng = Rng(7);
+    let a = spd_scalar(5000, &mut rng);
+    s.prepare(&a).unwrap();
+    let mut cpu = CholeskySolver::new();
+    cpu.prepare(&a).unwrap();
+    let b = rng.vec(2 * a.n);
+    let mut x = b.clone();
+    s.solve_in_place(&mut x, 2).unwrap();
+    let mut xc = b.clone();
+    cpu.solve_in_place(&mut xc, 2).unwrap();
+    assert!(rel_err(&x, &xc) < 1e-8);
+}
+
+#[test]
+fn same_pattern_uploads_values_only_and_warm_start_saves_iterations() {
+    let Some(mut s) = gpu() else { return };
+    let mut rng = Rng(8);
+    let mut a = spd_blocks(40, 40, 0.02, &mut rng);
+    let fixed = fixed_every(a.n, 60);
+    let n = 3 * a.n;
+    s.prepare_blocks(&a, &fixed).unwrap();
+    let b = rng.vec(n);
+    let mut x0 = vec![0.0; n];
+    s.solve_with_guess(&b, &mut x0, 1).unwrap();
+    // Next "outer iteration": same pattern, slightly different values.
+    for blk in a.blocks.iter_mut() {
+        for v in blk.iter_mut() {
+            *v *= 1.0 + 1e-4 * rng.sym().abs();
+        }
+    }
+    s.prepare_blocks(&a, &fixed).unwrap();
+    assert_eq!((s.pattern_uploads, s.value_uploads), (1, 1));
+    let mut cold = vec![0.0; n];
+    let ci = s.solve_with_guess(&b, &mut cold, 1).unwrap();
+    let mut warm = x0.clone();
+    let wi = s.solve_with_guess(&b, &mut warm, 1).unwrap();
+    assert!(rel_err(&warm, &cold) < 1e-8);
+    eprintln!("cold {ci:?}, warm {wi:?}");
+    assert!(
+        wi.iterations < ci.iterations,
+        "warm start {} iterations, cold {}",
+        wi.iterations,
+        ci.iterations
+    );
+}
+
+#[test]
+fn iteration_cap_gives_no_convergence_instead_of_hanging() {
+    let Some(mut s) = gpu() else { return };
+    let mut rng = Rng(9);
+    let a = spd_blocks(40, 40, 0.01, &mut rng);
+    let fixed = vec![false; a.n];
+    s.prepare_blocks(&a, &fixed).unwrap();
+    s.set_max_iterations(5);
+    let mut x = rng.vec(3 * a.n);
+    match s.solve_in_place(&mut x, 1) {
+        Err(SolverError::NoConvergence {
+            iterations,
+            residual,
+        }) => {
+            assert!(iterations <= 32, "{iterations}");
+            assert!(residual > 1e-10);
+        }
+        other => panic!("expected NoConvergence, got {other:?}"),
+    }
+    // The limit is lifted: the same solver converges.
+    s.set_max_iterations(100_000);
+    let mut x = rng.vec(3 * a.n);
+    s.solve_in_place(&mut x, 1).unwrap();
+}
+
+#[test]
+fn buffer_over_the_binding_limit_is_a_typed_error() {
+    // Lower the device's binding limit so that a small matrix exceeds it.
+    let opts = OpenOptions {
+        adjust_limits: Some(Box::new(|l: &mut solver_gpu::wgpu::Limits| {
+            l.max_storage_buffer_binding_size = 4096;
+        })),
+        ..Default::default()
+    };
+    let Some(mut s) = solver_gpu::open_with(opts).map_or_else(skip_or_fail, Some) else {
+        return;
+    };
+    assert_eq!(s.limits().max_storage_buffer_binding_size, 4096);
+    let mut rng = Rng(10);
+    let a = spd_blocks(20, 20, 0.1, &mut rng);
+    let err = s.prepare_blocks(&a, &vec![false; a.n]).unwrap_err();
+    match &err {
+        SolverError::Backend(msg) => assert!(
+            msg.contains("max_storage_buffer_binding_size") && msg.contains("matrix values"),
+            "{msg}"
+        ),
+        other => panic!("expected a limit error, got {other:?}"),
+    }
+    let mut x = vec![1.0; 3 * a.n];
+    assert_eq!(s.solve_in_place(&mut x, 1), Err(SolverError::NotPrepared));
+}
+
+#[test]
+fn indefinite_matrices_are_reported() {
+    let Some(mut s) = gpu() else { return };
+    // Negative diagonal block: caught when the preconditioner is built.
+    let mut a = BlockSym3::from_pattern(2, [(1, 0)]);
+    a.add_scalar(0, 0, -1.0);
+    a.add_scalar(1, 1, 1.0);
+    assert_eq!(
+        s.prepare_blocks(&a, &[false, false]),
+        Err(SolverError::NotPositiveDefinite)
+    );
+    // Positive diagonal, indefinite matrix [[I, 2I], [2I, I]]: PCG breakdown.
+    let mut a = BlockSym3::from_pattern(2, [(1, 0)]);
+    a.add_scalar(0, 0, 1.0);
+    a.add_scalar(1, 1, 1.0);
+    a.add_scalar(1, 0, 2.0);
+    s.prepare_blocks(&a, &[false, false]).unwrap();
+    let mut x = vec![1.0, 1.0, 1.0, -1.0, -1.0, -1.0];
+    assert_eq!(
+        s.solve_in_place(&mut x, 1),
+        Err(SolverError::NotPositiveDefinite)
+    );
+}
+
+#[test]
+fn plain_f32_pcg_converges() {
+    let Some(mut s) = gpu() else { return };
+    let mut rng = Rng(11);
+    let a = spd_blocks(30, 30, 0.05, &mut rng);
+    let fixed = fixed_every(a.n, 30);
+    s.prepare_blocks(&a, &fixed).unwrap();
+    let n = 3 * a.n;
+    let b = f32s(&rng.vec(2 * n));
+    let out = kernels::pcg(&mut s, &b, 2, 1e-5, 10_000).unwrap();
+    assert_eq!(out.status, vec![1, 1]);
+    assert!(out.residual.iter().all(|&r| r <= 1e-5));
+    // True residual in f64 of the f32 solution.
+    let cpu = scalar_of(&a, &fixed);
+    for c in 0..2 {
+        let xc: Vec<f64> = out.x[c * n..(c + 1) * n]
+            .iter()
+            .map(|&v| v as f64)
+            .collect();
+        let mut ax = vec![0.0; n];
+        cpu.mul_vec(&xc, &mut ax);
+        let bc: Vec<f64> = b[c * n..(c + 1) * n].iter().map(|&v| v as f64).collect();
+        assert!(rel_err(&ax, &bc) < 1e-4);
+    }
+}
