@@ -496,6 +496,12 @@ impl ShapeModel {
         Ok(())
     }
 
+    /// The assembled Hessian of the last assembly and the held vertices (for
+    /// benchmarks and solver tests on the real shape system).
+    pub fn system(&self) -> (&BlockSym3, &[bool]) {
+        (&self.h, &self.fixed)
+    }
+
     /// Gradient of the energy at the reference positions of the last assembly.
     pub fn reference_gradient(&self) -> &[f64] {
         &self.grad

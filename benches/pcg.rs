@@ -1,0 +1,180 @@
+//! Shape-system solve benchmark (paper Eq. 7, the system every outer iteration
+//! solves): GPU PCG (WGSL, f32 with f64 refinement) next to the CPU block PCG and
+//! the CPU sparse Cholesky, on spot subdivided to ~94k and ~1.5M faces and on
+//! fandisk (13k). Prints a markdown table.
+//!
+//! `cargo bench --bench pcg` (`-- --quick` skips the largest mesh). The adapter's
+//! name is printed: on lavapipe (a CPU emulation) the GPU column is a
+//! correctness/efficiency check, never GPU performance.
+//!
+//! Effective bandwidth = bytes one minimal SpMV must move (each stored block once,
+//! its column index, x read once and y written once, in the solver's precision)
+//! / time per PCG iteration.
+
+use metricdeform::shape::{ShapeModel, ShapeWeights};
+use metricdeform::Mesh;
+use solver_cpu::{BlockPcgSolver, BlockSym3, CholeskySolver, SpdSolver};
+use std::path::Path;
+use std::time::Instant;
+
+fn load(name: &str, subdivisions: usize) -> Mesh {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/meshes");
+    let mut mesh = metricdeform::io::read_mesh(&dir.join(name)).unwrap();
+    for _ in 0..subdivisions {
+        mesh = mesh.subdivide_midpoint();
+    }
+    mesh
+}
+
+/// Bytes of one minimal SpMV over the full symmetric matrix with `scalar` bytes per value.
+fn spmv_bytes(a: &BlockSym3, scalar: usize) -> f64 {
+    let full_blocks = 2 * a.row_idx.len() - a.n;
+    (full_blocks * (9 * scalar + 4) + a.n * 4 + 2 * 3 * a.n * scalar) as f64
+}
+
+fn residual(a: &BlockSym3, fixed: &[bool], x: &[f64], b: &[f64]) -> f64 {
+    let mut ax = vec![0.0; x.len()];
+    a.mul_vec(x, &mut ax);
+    let (mut rr, mut bb) = (0.0, 0.0);
+    for i in 0..x.len() {
+        if fixed[i / 3] {
+            continue;
+        }
+        rr += (ax[i] - b[i]).powi(2);
+        bb += b[i] * b[i];
+    }
+    (rr / bb).sqrt()
+}
+
+fn row(label: &str, mesh: &Mesh, quick_direct: bool) {
+    let topo = metricdeform::topology::Topology::build(mesh);
+    let mut model = ShapeModel::new(mesh, &topo, Vec::new()).unwrap();
+    let nf = mesh.num_faces();
+    let n = mesh.num_vertices();
+    // The first outer iteration of a demanding job: every face asked to grow 10 %.
+    let s = vec![1.1; nf];
+    let c = vec![1.1; n];
+    let w = ShapeWeights {
+        k_f: 1000.0,
+        k_m: 1.0,
+        k_l: 1.0,
+        k_p: 1000.0,
+    };
+    model
+        .assemble_and_factor(mesh, &mesh.positions, &s, &c, &w)
+        .unwrap();
+    let b: Vec<f64> = model.reference_gradient().iter().map(|g| -g).collect();
+    let (a, fixed) = model.system();
+    let bytes64 = spmv_bytes(a, 8);
+    let bytes32 = spmv_bytes(a, 4);
+
+    // CPU block PCG (f64).
+    let mut pcg = BlockPcgSolver::new();
+    let t = Instant::now();
+    pcg.prepare_blocks(a, fixed).unwrap();
+    let t_prep = t.elapsed().as_secs_f64();
+    let mut x = vec![0.0; b.len()];
+    let t = Instant::now();
+    let info = pcg.solve_with_guess(&b, &mut x, 1).unwrap();
+    let t_solve = t.elapsed().as_secs_f64();
+    // Time of one bare SpMV pass (the memory-bound floor of an iteration).
+    let mut y = vec![0.0; b.len()];
+    let reps = 10;
+    let t = Instant::now();
+    for _ in 0..reps {
+        pcg.mul_vec(&x, &mut y);
+    }
+    let t_spmv = t.elapsed().as_secs_f64() / reps as f64;
+    println!(
+        "| {label} | {nf} | cpu block PCG (f64, isotropic Cholesky precond.) | {:.3} | {:.3} | {} | {:.2} | {:.2} (SpMV alone {:.2} GB/s) | {:.1e} |",
+        t_prep,
+        t_solve,
+        info.iterations,
+        1e3 * t_solve / info.iterations.max(1) as f64,
+        bytes64 * info.iterations.max(1) as f64 / t_solve / 1e9,
+        bytes64 / t_spmv / 1e9,
+        residual(a, fixed, &x, &b)
+    );
+    // Warm start from a nearby solution (the previous outer iteration's role).
+    let mut xw: Vec<f64> = x.iter().map(|v| v * 0.9).collect();
+    let info_w = pcg.solve_with_guess(&b, &mut xw, 1).unwrap();
+    println!(
+        "| {label} | {nf} | cpu block PCG, warm start from 0.9 x | | | {} | | | {:.1e} |",
+        info_w.iterations,
+        residual(a, fixed, &xw, &b)
+    );
+
+    // CPU sparse Cholesky (f64).
+    if quick_direct {
+        let mut chol = CholeskySolver::new();
+        let t = Instant::now();
+        chol.prepare_blocks(a, fixed).unwrap();
+        let t_prep = t.elapsed().as_secs_f64();
+        let mut xc = b.clone();
+        let t = Instant::now();
+        chol.solve_in_place(&mut xc, 1).unwrap();
+        let t_solve = t.elapsed().as_secs_f64();
+        println!(
+            "| {label} | {nf} | cpu sparse Cholesky (f64, nnz(L) = {}) | {:.3} | {:.3} | - | | | {:.1e} |",
+            chol.factor_nnz(),
+            t_prep,
+            t_solve,
+            residual(a, fixed, &xc, &b)
+        );
+    } else {
+        println!("| {label} | {nf} | cpu sparse Cholesky | skipped (factor beyond this machine's memory budget) | | | | | |");
+    }
+
+    // GPU PCG.
+    match solver_gpu::open() {
+        Err(e) => println!("| {label} | {nf} | gpu | unavailable: {e} | | | | | |"),
+        Ok(mut gpu) => {
+            let name = gpu.adapter_name().to_string();
+            let t = Instant::now();
+            let prep = gpu.prepare_blocks(a, fixed);
+            let t_prep = t.elapsed().as_secs_f64();
+            if let Err(e) = prep {
+                println!("| {label} | {nf} | gpu ({name}) | failed: {e} | | | | | |");
+                return;
+            }
+            let mut xg = vec![0.0; b.len()];
+            let t = Instant::now();
+            match gpu.solve_with_guess(&b, &mut xg, 1) {
+                Err(e) => println!("| {label} | {nf} | gpu ({name}) | failed: {e} | | | | | |"),
+                Ok(_) => {
+                    let t_solve = t.elapsed().as_secs_f64();
+                    let st = gpu.last_stats();
+                    println!(
+                        "| {label} | {nf} | gpu ({name}; f32 PCG, block Jacobi, {} f64 refinement rounds) | {:.3} | {:.3} | {} | {:.2} | {:.2} | {:.1e} |",
+                        st.rounds,
+                        t_prep,
+                        t_solve,
+                        st.iterations,
+                        1e3 * t_solve / st.iterations.max(1) as f64,
+                        bytes32 * st.iterations.max(1) as f64 / t_solve / 1e9,
+                        residual(a, fixed, &xg, &b)
+                    );
+                    let mut xw: Vec<f64> = xg.iter().map(|v| v * 0.9).collect();
+                    if gpu.solve_with_guess(&b, &mut xw, 1).is_ok() {
+                        println!(
+                            "| {label} | {nf} | gpu, warm start from 0.9 x | | | {} | | | {:.1e} |",
+                            gpu.last_stats().iterations,
+                            residual(a, fixed, &xw, &b)
+                        );
+                    }
+                }
+            }
+        }
+    }
+}
+
+fn main() {
+    let quick = std::env::args().any(|a| a == "--quick");
+    println!("| mesh | faces | solver | prepare s | solve s | iterations | ms / iteration | effective GB/s | relative residual |");
+    println!("|---|---|---|---|---|---|---|---|---|");
+    row("fandisk", &load("fandisk.obj", 0), true);
+    row("spot-x16", &load("spot.obj", 2), true);
+    if !quick {
+        row("spot-x256", &load("spot.obj", 4), false);
+    }
+}
