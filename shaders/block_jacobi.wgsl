@@ -8,7 +8,7 @@
 //
 // Bindings (group 0):
 //   0  P     uniform   rows = block rows, bs = block size (1 or 3), n = rows * bs,
-//                      ncols (<= CMAX), groups = ceil(rows / WG); 2-D dispatch,
+//                      ncols (= NCOLS), groups = ceil(rows / WG); 2-D dispatch,
 //                      linear workgroup index wid.x + wid.y * nwg.x, rows past
 //                      `rows` do nothing.
 //   1  minv  read      rows * bs * bs f32, each inverse block row-major.
@@ -28,6 +28,10 @@ struct Params {
 
 const WG: u32 = 128u;
 const CMAX: u32 = 8u;
+// Columns handled by this pipeline (1..=CMAX), fixed when the pipeline is
+// created: the column loops unroll and the per-column accumulators stay in
+// registers. P.ncols must equal it.
+override NCOLS: u32 = 1u;
 
 @group(0) @binding(0) var<uniform> P: Params;
 @group(0) @binding(1) var<storage, read> minv: array<f32>;
@@ -45,7 +49,7 @@ fn main(
         return;
     }
     let bs = min(P.bs, 3u);
-    let ncols = min(P.ncols, CMAX);
+    let ncols = NCOLS;
     var m: array<f32, 9>;
     for (var q = 0u; q < bs * bs; q++) {
         m[q] = minv[row * bs * bs + q];

@@ -4,7 +4,7 @@
 // Driven by solver-gpu/src/bsr_spmv.rs.
 //
 // Bindings (group 0):
-//   0  P        uniform   rows = block rows, ncols (<= CMAX), n = 3 * rows (length
+//   0  P        uniform   rows = block rows, ncols (= NCOLS), n = 3 * rows (length
 //                         of one column), groups = number of workgroups that hold
 //                         rows (ceil(rows / WG)); the dispatch is 2-D, so the
 //                         linear workgroup index is wid.x + wid.y * nwg.x and
@@ -39,6 +39,10 @@ struct Params {
 
 const WG: u32 = 128u;
 const CMAX: u32 = 8u;
+// Columns handled by this pipeline (1..=CMAX), fixed when the pipeline is
+// created: the column loops unroll and the per-column accumulators stay in
+// registers. P.ncols must equal it.
+override NCOLS: u32 = 1u;
 
 @group(0) @binding(0) var<uniform> P: Params;
 @group(0) @binding(1) var<storage, read> row_ptr: array<u32>;
@@ -65,7 +69,7 @@ fn main(
     if g >= P.groups {
         return;
     }
-    let ncols = min(P.ncols, CMAX);
+    let ncols = NCOLS;
     let row = g * WG + lid;
     var acc: array<f32, 8>;
     if row < P.rows {

@@ -5,7 +5,7 @@
 // Driven by solver-gpu/src/csr_spmv.rs.
 //
 // Bindings (group 0):
-//   0  P        uniform   rows, ncols (<= CMAX), n = rows (length of one column),
+//   0  P        uniform   rows, ncols (= NCOLS), n = rows (length of one column),
 //                         groups = ceil(rows / WG); 2-D dispatch, linear
 //                         workgroup index wid.x + wid.y * nwg.x, workgroups past
 //                         `groups` return at once.
@@ -32,6 +32,10 @@ struct Params {
 
 const WG: u32 = 128u;
 const CMAX: u32 = 8u;
+// Columns handled by this pipeline (1..=CMAX), fixed when the pipeline is
+// created: the column loops unroll and the per-column accumulators stay in
+// registers. P.ncols must equal it.
+override NCOLS: u32 = 1u;
 
 @group(0) @binding(0) var<uniform> P: Params;
 @group(0) @binding(1) var<storage, read> row_ptr: array<u32>;
@@ -53,7 +57,7 @@ fn main(
     if g >= P.groups {
         return;
     }
-    let ncols = min(P.ncols, CMAX);
+    let ncols = NCOLS;
     let row = g * WG + lid;
     var acc: array<f32, 8>;
     if row < P.rows {

@@ -8,7 +8,7 @@
 // pcg.wgsl, which reduce the same partials layout and then update alpha/beta.)
 //
 // Bindings (group 0):
-//   0  P        uniform   rows = n = length of one column, ncols (<= CMAX),
+//   0  P        uniform   rows = n = length of one column, ncols (= NCOLS),
 //                         groups = ceil(n / WG); 2-D dispatch of `partial`,
 //                         linear workgroup index wid.x + wid.y * nwg.x,
 //                         workgroups past `groups` return at once.
@@ -31,6 +31,10 @@ struct Params {
 const WG: u32 = 128u;
 const FWG: u32 = 256u;
 const CMAX: u32 = 8u;
+// Columns handled by this pipeline (1..=CMAX), fixed when the pipeline is
+// created: the column loops unroll and the per-column accumulators stay in
+// registers. P.ncols must equal it.
+override NCOLS: u32 = 1u;
 
 @group(0) @binding(0) var<uniform> P: Params;
 @group(0) @binding(1) var<storage, read> a: array<f32>;
@@ -51,7 +55,7 @@ fn partial(
     if g >= P.groups {
         return;
     }
-    let ncols = min(P.ncols, CMAX);
+    let ncols = NCOLS;
     let i = g * WG + lid;
     for (var c = 0u; c < ncols; c++) {
         var v = 0.0;
@@ -78,7 +82,7 @@ fn partial(
 
 @compute @workgroup_size(256)
 fn finish(@builtin(local_invocation_index) lid: u32) {
-    let ncols = min(P.ncols, CMAX);
+    let ncols = NCOLS;
     for (var c = 0u; c < ncols; c++) {
         var s = 0.0;
         for (var i = lid; i < P.groups; i += FWG) {

@@ -16,7 +16,7 @@
 //
 // Bindings (group 0), each entry point uses a subset:
 //   0  P        uniform  rows = block rows, bs = block size (1 or 3), n = rows * bs
-//                        (length of one column), ncols (<= CMAX), groups =
+//                        (length of one column), ncols (= NCOLS), groups =
 //                        ceil(rows / WG) = workgroups of `update` (and of the
 //                        SpMV, whose partials finish_alpha reduces).
 //                        2-D dispatch: linear workgroup index wid.x + wid.y * nwg.x.
@@ -28,7 +28,8 @@
 //   6  x        rw       solution (starts at 0).
 //   7  r        rw       residual (starts at b).
 //   8  z        rw       preconditioned residual.
-//   update: 0-8; finish_alpha, finish_beta: 0-2; direction: 0, 1, 4, 8.
+//   update uses 0-8; finish_alpha, finish_beta 0-2; direction 0, 1, 4, 8. The
+//   host binds all nine through one explicit layout shared by every entry point.
 
 struct Params {
     rows: u32,
@@ -58,6 +59,10 @@ struct ColState {
 const WG: u32 = 128u;
 const FWG: u32 = 256u;
 const CMAX: u32 = 8u;
+// Columns handled by this pipeline (1..=CMAX), fixed when the pipeline is
+// created: the column loops unroll and the per-column accumulators stay in
+// registers. P.ncols must equal it.
+override NCOLS: u32 = 1u;
 // Squared residual norm (columns are scaled to unit norm on upload) below which
 // a breakdown is taken for stagnation at f32 precision, not indefiniteness.
 const TINY: f32 = 1e-12;
@@ -86,7 +91,7 @@ fn update(
     if g >= P.groups {
         return;
     }
-    let ncols = min(P.ncols, CMAX);
+    let ncols = NCOLS;
     let bs = min(P.bs, 3u);
     let row = g * WG + lid;
     var rz: array<f32, 8>;
@@ -163,7 +168,7 @@ fn tree(lid: u32) {
 
 @compute @workgroup_size(256)
 fn finish_alpha(@builtin(local_invocation_index) lid: u32) {
-    let ncols = min(P.ncols, CMAX);
+    let ncols = NCOLS;
     for (var c = 0u; c < ncols; c++) {
         reduce_slot(lid, ncols, 0u, c, 0u);
         fred[FWG + lid] = 0.0;
@@ -195,7 +200,7 @@ fn finish_alpha(@builtin(local_invocation_index) lid: u32) {
 
 @compute @workgroup_size(256)
 fn finish_beta(@builtin(local_invocation_index) lid: u32) {
-    let ncols = min(P.ncols, CMAX);
+    let ncols = NCOLS;
     for (var c = 0u; c < ncols; c++) {
         reduce_slot(lid, ncols, 0u, c, 0u);
         reduce_slot(lid, ncols, 1u, c, 1u);
@@ -235,7 +240,7 @@ fn direction(
     @builtin(num_workgroups) nwg: vec3<u32>,
 ) {
     let i = gid.x + gid.y * nwg.x * FWG;
-    let ncols = min(P.ncols, CMAX);
+    let ncols = NCOLS;
     if i >= P.n * ncols {
         return;
     }

@@ -12,7 +12,7 @@
 //!
 //! Dispatch: ceil(rows / 128) workgroups of 128, 2-D.
 
-use crate::device::{Context, Kernel};
+use crate::device::{Bind, Context, Kernel, Shader};
 use crate::matrix::HostMatrix;
 use crate::GpuError;
 use rayon::prelude::*;
@@ -20,12 +20,24 @@ use solver_cpu::SolverError;
 
 pub(crate) const SOURCE: &str = include_str!("../../shaders/block_jacobi.wgsl");
 
-pub(crate) struct BlockJacobi(pub Kernel);
+/// Layout of `block_jacobi.wgsl` (group 0).
+const BINDINGS: [(u32, Bind); 4] = [
+    (0, Bind::Uniform),
+    (1, Bind::Read),
+    (2, Bind::Read),
+    (3, Bind::ReadWrite),
+];
+
+pub(crate) struct BlockJacobi {
+    shader: Shader,
+    pub kernel: Kernel,
+}
 
 impl BlockJacobi {
     pub fn new(ctx: &Context) -> Result<Self, GpuError> {
-        let m = ctx.shader("block_jacobi.wgsl", SOURCE)?;
-        Ok(BlockJacobi(Kernel::new(ctx, "block_jacobi", &m, "main")?))
+        let shader = Shader::new(ctx, "block_jacobi.wgsl", SOURCE, &BINDINGS)?;
+        let kernel = Kernel::new(&shader, "block_jacobi", "main");
+        Ok(BlockJacobi { shader, kernel })
     }
 
     pub fn bind(
@@ -36,7 +48,8 @@ impl BlockJacobi {
         r: &wgpu::Buffer,
         z: &wgpu::Buffer,
     ) -> Result<wgpu::BindGroup, GpuError> {
-        self.0.bind(ctx, &[(0, params), (1, minv), (2, r), (3, z)])
+        self.shader
+            .bind(ctx, &[(0, params), (1, minv), (2, r), (3, z)])
     }
 }
 
@@ -72,7 +85,7 @@ pub(crate) fn inverse_diagonal(h: &HostMatrix) -> Result<Vec<f32>, SolverError> 
 
 /// Inverse of a symmetric positive definite 3x3 matrix (row-major; the
 /// symmetric part is used), or `None` if a leading minor is not positive.
-pub(crate) fn invert_spd3(m: &[f64]) -> Option<[f64; 9]> {
+pub fn invert_spd3(m: &[f64]) -> Option<[f64; 9]> {
     let (a, b, c) = (m[0], 0.5 * (m[1] + m[3]), 0.5 * (m[2] + m[6]));
     let (d, e) = (m[4], 0.5 * (m[5] + m[7]));
     let f = m[8];

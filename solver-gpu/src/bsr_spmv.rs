@@ -12,18 +12,33 @@
 //!
 //! Dispatch: `groups` workgroups of 128 invocations, 2-D (see `Context::dims`).
 
-use crate::device::{Context, Kernel};
+use crate::device::{Bind, Context, Kernel, Shader};
 use crate::matrix::GpuMatrix;
 use crate::GpuError;
 
 pub(crate) const SOURCE: &str = include_str!("../../shaders/bsr_spmv.wgsl");
 
-pub(crate) struct BsrSpmv(pub Kernel);
+/// Layout of `bsr_spmv.wgsl` (group 0).
+const BINDINGS: [(u32, Bind); 7] = [
+    (0, Bind::Uniform),
+    (1, Bind::Read),
+    (2, Bind::Read),
+    (3, Bind::Read),
+    (4, Bind::Read),
+    (5, Bind::ReadWrite),
+    (6, Bind::ReadWrite),
+];
+
+pub(crate) struct BsrSpmv {
+    shader: Shader,
+    pub kernel: Kernel,
+}
 
 impl BsrSpmv {
     pub fn new(ctx: &Context) -> Result<Self, GpuError> {
-        let m = ctx.shader("bsr_spmv.wgsl", SOURCE)?;
-        Ok(BsrSpmv(Kernel::new(ctx, "bsr_spmv", &m, "main")?))
+        let shader = Shader::new(ctx, "bsr_spmv.wgsl", SOURCE, &BINDINGS)?;
+        let kernel = Kernel::new(&shader, "bsr_spmv", "main");
+        Ok(BsrSpmv { shader, kernel })
     }
 
     pub fn bind(
@@ -35,7 +50,7 @@ impl BsrSpmv {
         y: &wgpu::Buffer,
         partials: &wgpu::Buffer,
     ) -> Result<wgpu::BindGroup, GpuError> {
-        self.0.bind(
+        self.shader.bind(
             ctx,
             &[
                 (0, params),

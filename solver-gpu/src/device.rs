@@ -259,31 +259,6 @@ impl Context {
         Ok(b)
     }
 
-    /// Compute pipeline for `entry` of a WGSL source (auto layout); shader or
-    /// pipeline validation errors become `GpuError::Backend`.
-    pub fn pipeline(
-        &self,
-        label: &str,
-        module: &wgpu::ShaderModule,
-        entry: &str,
-    ) -> Result<wgpu::ComputePipeline, GpuError> {
-        let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
-        let p = self
-            .device
-            .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                label: Some(label),
-                layout: None,
-                module,
-                entry_point: Some(entry),
-                compilation_options: Default::default(),
-                cache: None,
-            });
-        match pollster::block_on(scope.pop()) {
-            Some(e) => Err(GpuError::Backend(format!("pipeline {label}: {e}"))),
-            None => Ok(p),
-        }
-    }
-
     pub fn shader(&self, label: &str, source: &str) -> Result<wgpu::ShaderModule, GpuError> {
         let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
         let m = self
@@ -298,15 +273,14 @@ impl Context {
         }
     }
 
-    /// Bind group 0 of `pipeline` with `(binding, buffer)` entries.
+    /// Bind group with `(binding, buffer)` entries for `layout`.
     pub fn bind(
         &self,
         label: &str,
-        pipeline: &wgpu::ComputePipeline,
+        layout: &wgpu::BindGroupLayout,
         entries: &[(u32, &wgpu::Buffer)],
     ) -> Result<wgpu::BindGroup, GpuError> {
         let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
-        let layout = pipeline.get_bind_group_layout(0);
         let e: Vec<wgpu::BindGroupEntry> = entries
             .iter()
             .map(|(i, b)| wgpu::BindGroupEntry {
@@ -316,7 +290,7 @@ impl Context {
             .collect();
         let bg = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some(label),
-            layout: &layout,
+            layout,
             entries: &e,
         });
         match pollster::block_on(scope.pop()) {
@@ -460,36 +434,142 @@ pub(crate) fn from_wgpu(e: wgpu::Error) -> GpuError {
     }
 }
 
-/// One compute pipeline (an entry point of a shader) with its label.
-pub(crate) struct Kernel {
-    pub label: &'static str,
-    pub pipeline: wgpu::ComputePipeline,
+/// How a binding is declared in the shader.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum Bind {
+    Uniform,
+    Read,
+    ReadWrite,
 }
 
-impl Kernel {
+/// A shader module with the explicit bind group layout (group 0) that all its
+/// entry points and all their column-count variants share.
+pub(crate) struct Shader {
+    pub label: &'static str,
+    pub module: wgpu::ShaderModule,
+    pub layout: wgpu::BindGroupLayout,
+    pipeline_layout: wgpu::PipelineLayout,
+}
+
+impl Shader {
     pub fn new(
         ctx: &Context,
         label: &'static str,
-        module: &wgpu::ShaderModule,
-        entry: &str,
-    ) -> Result<Kernel, GpuError> {
-        Ok(Kernel {
+        source: &str,
+        bindings: &[(u32, Bind)],
+    ) -> Result<Shader, GpuError> {
+        let module = ctx.shader(label, source)?;
+        let scope = ctx.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let entries: Vec<wgpu::BindGroupLayoutEntry> = bindings
+            .iter()
+            .map(|&(binding, kind)| wgpu::BindGroupLayoutEntry {
+                binding,
+                visibility: wgpu::ShaderStages::COMPUTE,
+                ty: wgpu::BindingType::Buffer {
+                    ty: match kind {
+                        Bind::Uniform => wgpu::BufferBindingType::Uniform,
+                        Bind::Read => wgpu::BufferBindingType::Storage { read_only: true },
+                        Bind::ReadWrite => wgpu::BufferBindingType::Storage { read_only: false },
+                    },
+                    has_dynamic_offset: false,
+                    min_binding_size: None,
+                },
+                count: None,
+            })
+            .collect();
+        let layout = ctx
+            .device
+            .create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+                label: Some(label),
+                entries: &entries,
+            });
+        let pipeline_layout = ctx
+            .device
+            .create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+                label: Some(label),
+                bind_group_layouts: &[Some(&layout)],
+                immediate_size: 0,
+            });
+        if let Some(e) = pollster::block_on(scope.pop()) {
+            return Err(GpuError::Backend(format!("layout of {label}: {e}")));
+        }
+        Ok(Shader {
             label,
-            pipeline: ctx.pipeline(label, module, entry)?,
+            module,
+            layout,
+            pipeline_layout,
         })
     }
 
+    /// Bind group 0 with `(binding, buffer)` entries (every binding of the layout).
     pub fn bind(
         &self,
         ctx: &Context,
         entries: &[(u32, &wgpu::Buffer)],
     ) -> Result<wgpu::BindGroup, GpuError> {
-        ctx.bind(self.label, &self.pipeline, entries)
+        ctx.bind(self.label, &self.layout, entries)
+    }
+}
+
+/// One entry point of a shader; its pipelines are specialised by the number of
+/// columns (the `NCOLS` override) and compiled on first use.
+pub(crate) struct Kernel {
+    pub label: &'static str,
+    entry: &'static str,
+    module: wgpu::ShaderModule,
+    pipeline_layout: wgpu::PipelineLayout,
+    variants: Mutex<Vec<Option<wgpu::ComputePipeline>>>,
+}
+
+impl Kernel {
+    pub fn new(shader: &Shader, label: &'static str, entry: &'static str) -> Kernel {
+        Kernel {
+            label,
+            entry,
+            module: shader.module.clone(),
+            pipeline_layout: shader.pipeline_layout.clone(),
+            variants: Mutex::new(vec![None; crate::CMAX]),
+        }
     }
 
-    pub fn dispatch(&self, pass: &mut wgpu::ComputePass, bg: &wgpu::BindGroup, dims: (u32, u32)) {
-        pass.set_pipeline(&self.pipeline);
-        pass.set_bind_group(0, bg, &[]);
-        pass.dispatch_workgroups(dims.0, dims.1, 1);
+    /// The pipeline for `ncols` columns (1..=CMAX).
+    pub fn pipeline(&self, ctx: &Context, ncols: usize) -> Result<wgpu::ComputePipeline, GpuError> {
+        assert!((1..=crate::CMAX).contains(&ncols));
+        let mut v = self.variants.lock().unwrap();
+        if let Some(p) = &v[ncols - 1] {
+            return Ok(p.clone());
+        }
+        let scope = ctx.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let p = ctx
+            .device
+            .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some(self.label),
+                layout: Some(&self.pipeline_layout),
+                module: &self.module,
+                entry_point: Some(self.entry),
+                compilation_options: wgpu::PipelineCompilationOptions {
+                    constants: &[("NCOLS", ncols as f64)],
+                    // Every workgroup-memory slot is written before it is read.
+                    zero_initialize_workgroup_memory: false,
+                },
+                cache: None,
+            });
+        if let Some(e) = pollster::block_on(scope.pop()) {
+            return Err(GpuError::Backend(format!("pipeline {}: {e}", self.label)));
+        }
+        v[ncols - 1] = Some(p.clone());
+        Ok(p)
     }
+}
+
+/// Record one dispatch.
+pub(crate) fn dispatch(
+    pass: &mut wgpu::ComputePass,
+    pipeline: &wgpu::ComputePipeline,
+    bg: &wgpu::BindGroup,
+    dims: (u32, u32),
+) {
+    pass.set_pipeline(pipeline);
+    pass.set_bind_group(0, bg, &[]);
+    pass.dispatch_workgroups(dims.0, dims.1, 1);
 }

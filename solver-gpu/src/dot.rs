@@ -13,26 +13,37 @@
 //! workgroup of 256. The PCG loop reduces the same partials layout in its own
 //! finishing kernels (`pcg.wgsl`), which also update alpha and beta.
 
-use crate::device::{Context, Kernel};
+use crate::device::{Bind, Context, Kernel, Shader};
 use crate::GpuError;
 
 pub(crate) const SOURCE: &str = include_str!("../../shaders/dot.wgsl");
 
+/// Layout of `dot.wgsl` (group 0).
+const BINDINGS: [(u32, Bind); 5] = [
+    (0, Bind::Uniform),
+    (1, Bind::Read),
+    (2, Bind::Read),
+    (3, Bind::ReadWrite),
+    (4, Bind::ReadWrite),
+];
+
 pub(crate) struct Dot {
+    shader: Shader,
     pub partial: Kernel,
     pub finish: Kernel,
 }
 
 impl Dot {
     pub fn new(ctx: &Context) -> Result<Self, GpuError> {
-        let m = ctx.shader("dot.wgsl", SOURCE)?;
+        let shader = Shader::new(ctx, "dot.wgsl", SOURCE, &BINDINGS)?;
         Ok(Dot {
-            partial: Kernel::new(ctx, "dot_partial", &m, "partial")?,
-            finish: Kernel::new(ctx, "dot_finish", &m, "finish")?,
+            partial: Kernel::new(&shader, "dot_partial", "partial"),
+            finish: Kernel::new(&shader, "dot_finish", "finish"),
+            shader,
         })
     }
 
-    /// Bind groups of the two passes.
+    /// The bind group of both passes.
     pub fn bind(
         &self,
         ctx: &Context,
@@ -41,12 +52,8 @@ impl Dot {
         b: &wgpu::Buffer,
         partials: &wgpu::Buffer,
         out: &wgpu::Buffer,
-    ) -> Result<(wgpu::BindGroup, wgpu::BindGroup), GpuError> {
-        Ok((
-            self.partial
-                .bind(ctx, &[(0, params), (1, a), (2, b), (3, partials)])?,
-            self.finish
-                .bind(ctx, &[(0, params), (3, partials), (4, out)])?,
-        ))
+    ) -> Result<wgpu::BindGroup, GpuError> {
+        self.shader
+            .bind(ctx, &[(0, params), (1, a), (2, b), (3, partials), (4, out)])
     }
 }

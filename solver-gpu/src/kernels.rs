@@ -2,7 +2,7 @@
 //! (not needed to use the solver). Every output buffer is poisoned with NaN
 //! before the kernel runs, so a kernel that writes nothing is caught.
 
-use crate::device::{Params, ROW_WG};
+use crate::device::{dispatch, Params, ROW_WG};
 use crate::pcg::Spmv;
 use crate::{GpuError, GpuSolver, CMAX};
 
@@ -68,10 +68,11 @@ pub fn spmv(s: &GpuSolver, x: &[f32], ncols: usize) -> Result<(Vec<f32>, Vec<f64
     let spmv = s.spmv();
     let bg = spmv.bind(ctx, &params, s.gpu.as_ref().unwrap(), &xb, &y, &partials)?;
     let dims = ctx.dims("spmv", groups)?;
+    let pipeline = spmv.kernel().pipeline(ctx, ncols)?;
     let mut enc = ctx.encoder("spmv");
     {
         let mut pass = enc.begin_compute_pass(&Default::default());
-        spmv.kernel().dispatch(&mut pass, &bg, dims);
+        dispatch(&mut pass, &pipeline, &bg, dims);
     }
     ctx.submit_wait(enc)?;
     let yv: Vec<f32> = ctx.read(&y, x.len(), &mut None, None)?;
@@ -106,13 +107,17 @@ pub fn dot(s: &GpuSolver, a: &[f32], b: &[f32], ncols: usize) -> Result<Vec<f32>
     let bb = ctx.storage_init("b", b)?;
     let partials = poisoned(s, "partials", ncols * groups as usize)?;
     let out = poisoned(s, "out", ncols)?;
-    let (bg1, bg2) = s.k.dot.bind(ctx, &params, &ab, &bb, &partials, &out)?;
+    let bg = s.k.dot.bind(ctx, &params, &ab, &bb, &partials, &out)?;
     let dims = ctx.dims("dot", groups)?;
+    let (k1, k2) = (
+        s.k.dot.partial.pipeline(ctx, ncols)?,
+        s.k.dot.finish.pipeline(ctx, ncols)?,
+    );
     let mut enc = ctx.encoder("dot");
     {
         let mut pass = enc.begin_compute_pass(&Default::default());
-        s.k.dot.partial.dispatch(&mut pass, &bg1, dims);
-        s.k.dot.finish.dispatch(&mut pass, &bg2, (1, 1));
+        dispatch(&mut pass, &k1, &bg, dims);
+        dispatch(&mut pass, &k2, &bg, (1, 1));
     }
     ctx.read(&out, ncols, &mut None, Some(enc))
 }
@@ -140,10 +145,11 @@ pub fn block_jacobi(s: &GpuSolver, r: &[f32], ncols: usize) -> Result<Vec<f32>, 
         s.k.jacobi
             .bind(ctx, &params, &s.gpu.as_ref().unwrap().minv, &rb, &z)?;
     let dims = ctx.dims("block_jacobi", groups)?;
+    let pipeline = s.k.jacobi.kernel.pipeline(ctx, ncols)?;
     let mut enc = ctx.encoder("block_jacobi");
     {
         let mut pass = enc.begin_compute_pass(&Default::default());
-        s.k.jacobi.0.dispatch(&mut pass, &bg, dims);
+        dispatch(&mut pass, &pipeline, &bg, dims);
     }
     ctx.read(&z, r.len(), &mut None, Some(enc))
 }
@@ -165,7 +171,7 @@ pub struct PcgOutput {
 
 /// One plain f32 PCG solve on the GPU (no refinement), from x = 0, until
 /// `||r|| <= rel_tol ||b||` per column or `max_iters`; `rel_tol = 0` runs exactly
-/// `max_iters` iterations (rounded up to the check interval), for timing.
+/// `max_iters` iterations (in batches of the check interval, 32), for timing.
 pub fn pcg(
     s: &mut GpuSolver,
     b: &[f32],
@@ -194,9 +200,16 @@ pub fn pcg(
         1 => Spmv::Scalar(&s.k.csr),
         _ => Spmv::Block(&s.k.bsr),
     };
-    let run =
-        s.k.pcg
-            .run(&s.ctx, &spmv, ws, ncols, &thr, max_iters, s.check_every)?;
+    let run = s.k.pcg.run(
+        &s.ctx,
+        &spmv,
+        ws,
+        ncols,
+        &thr,
+        max_iters,
+        s.check_every,
+        rel_tol == 0.0,
+    )?;
     let x = s.k.pcg.read_x(&s.ctx, ws, ncols)?;
     Ok(PcgOutput {
         x,
@@ -210,4 +223,23 @@ pub fn pcg(
         status: run.cols.iter().map(|c| c.done).collect(),
         dispatched: run.dispatched,
     })
+}
+
+/// Seconds per dispatch of each kernel of one PCG iteration on the prepared
+/// matrix with `ncols` columns: `[(label, seconds)]` for the SpMV,
+/// `finish_alpha`, `update`, `finish_beta` and `direction`.
+pub fn profile_iteration(
+    s: &mut GpuSolver,
+    ncols: usize,
+    reps: usize,
+) -> Result<Vec<(&'static str, f64)>, GpuError> {
+    if s.host.is_none() || ncols == 0 || ncols > CMAX {
+        return Err(GpuError::Backend(
+            "profile: no matrix or bad column count".into(),
+        ));
+    }
+    s.workspace(ncols)?;
+    let spmv = s.spmv();
+    s.k.pcg
+        .profile(&s.ctx, &spmv, s.ws.as_ref().unwrap(), ncols, reps.max(1))
 }

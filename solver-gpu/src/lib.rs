@@ -27,7 +27,8 @@
 //! in f64; plain Jacobi for the scalar system) and keeps every scalar on the GPU:
 //! `alpha = r.z / p.Ap` and `beta = r'.z' / r.z` are computed per column by a
 //! one-workgroup kernel from per-workgroup partial sums; the host reads the
-//! per-column state back only every `check_every` (16) iterations. Up to
+//! per-column state back only after batches of iterations (sized from the
+//! observed convergence rate, at most 32). Up to
 //! [`CMAX`] right-hand sides run together, so the matrix is read once per
 //! iteration for all of them. Breakdown (`p.Ap <= 0`, NaN) means the matrix is
 //! not positive definite ([`SolverError::NotPositiveDefinite`]); running out of
@@ -147,7 +148,7 @@ pub fn open_with(opts: OpenOptions) -> Result<GpuSolver, GpuError> {
         inner_min: 1e-5,
         max_iterations: 50_000,
         max_rounds: 20,
-        check_every: 16,
+        check_every: 32,
         stats: SolveStats::default(),
         pattern_uploads: 0,
         value_uploads: 0,
@@ -226,7 +227,7 @@ impl GpuSolver {
         self.max_rounds = n.max(1);
     }
 
-    /// How often (in iterations) the host reads the residuals back.
+    /// Most iterations between two read-backs of the residuals (default 32).
     pub fn set_check_every(&mut self, n: usize) {
         self.check_every = n.max(1);
     }
@@ -373,6 +374,7 @@ impl GpuSolver {
                 &thr,
                 self.max_iterations - total,
                 self.check_every,
+                false,
             )?;
             total += run.iterations();
             self.stats.rounds += 1;

@@ -9,19 +9,24 @@
 //! 4. `finish_beta` (1 workgroup): `beta = rz' / rz`, convergence flag `rr <= thr`;
 //! 5. `direction`: `p = z + beta p`.
 //!
-//! The host reads the 32-byte [`ColState`] of each column back every
-//! `check_every` iterations (batched in one submission) and stops when every
-//! column is done (converged or broken down) or the iteration budget is spent.
+//! The host reads the 32-byte [`ColState`] of each column back after each batch
+//! of iterations (one submission) and stops when every column is done (converged
+//! or broken down) or the iteration budget is spent. Batch sizes adapt: the first
+//! batch has 8 iterations, later ones the predicted remaining count (from the
+//! observed residual reduction rate, plus 2), between 2 and `check_every` (the
+//! cap, 32 by default), so few iterations are wasted past convergence.
 //!
 //! Bindings of `pcg.wgsl` (group 0): 0 `P` uniform [`Params`]; 1 `cols`
 //! ([`ColState`] per column); 2 `partials` (slot s, column c, workgroup g at
 //! `(s ncols + c) groups + g`); 3 `minv` (inverted diagonal blocks); 4 `p`;
 //! 5 `ap`; 6 `x`; 7 `r`; 8 `z` (vectors column-major, stride n).
-//! `update` uses all nine, `finish_alpha`/`finish_beta` 0-2, `direction` 0, 1, 4, 8.
+//! `update` uses all nine, `finish_alpha`/`finish_beta` 0-2, `direction` 0, 1, 4, 8;
+//! one bind group through one explicit layout serves them all. Every pipeline is
+//! specialised for the number of columns (`NCOLS` override, compiled on first use).
 
 use crate::bsr_spmv::BsrSpmv;
 use crate::csr_spmv::CsrSpmv;
-use crate::device::{Context, Kernel, Params, FLAT_WG, ROW_WG};
+use crate::device::{dispatch, Bind, Context, Kernel, Params, Shader, FLAT_WG, ROW_WG};
 use crate::matrix::GpuMatrix;
 use crate::{GpuError, CMAX};
 
@@ -46,7 +51,21 @@ pub(crate) struct ColState {
 
 pub(crate) const DONE_BREAKDOWN: u32 = 2;
 
+/// Layout of `pcg.wgsl` (group 0), shared by its four entry points.
+const BINDINGS: [(u32, Bind); 9] = [
+    (0, Bind::Uniform),
+    (1, Bind::ReadWrite),
+    (2, Bind::ReadWrite),
+    (3, Bind::Read),
+    (4, Bind::ReadWrite),
+    (5, Bind::Read),
+    (6, Bind::ReadWrite),
+    (7, Bind::ReadWrite),
+    (8, Bind::ReadWrite),
+];
+
 pub(crate) struct Pcg {
+    shader: Shader,
     pub update: Kernel,
     pub finish_alpha: Kernel,
     pub finish_beta: Kernel,
@@ -62,8 +81,8 @@ pub(crate) enum Spmv<'a> {
 impl Spmv<'_> {
     pub fn kernel(&self) -> &Kernel {
         match self {
-            Spmv::Block(k) => &k.0,
-            Spmv::Scalar(k) => &k.0,
+            Spmv::Block(k) => &k.kernel,
+            Spmv::Scalar(k) => &k.kernel,
         }
     }
 
@@ -103,10 +122,7 @@ pub(crate) struct Workspace {
     pub p: wgpu::Buffer,
     pub ap: wgpu::Buffer,
     bg_spmv: wgpu::BindGroup,
-    bg_update: wgpu::BindGroup,
-    bg_alpha: wgpu::BindGroup,
-    bg_beta: wgpu::BindGroup,
-    bg_direction: wgpu::BindGroup,
+    bg_pcg: wgpu::BindGroup,
     row_dims: (u32, u32),
     pub staging_cols: Option<wgpu::Buffer>,
     pub staging_x: Option<wgpu::Buffer>,
@@ -157,12 +173,13 @@ impl PcgRun {
 
 impl Pcg {
     pub fn new(ctx: &Context) -> Result<Self, GpuError> {
-        let m = ctx.shader("pcg.wgsl", SOURCE)?;
+        let shader = Shader::new(ctx, "pcg.wgsl", SOURCE, &BINDINGS)?;
         Ok(Pcg {
-            update: Kernel::new(ctx, "pcg_update", &m, "update")?,
-            finish_alpha: Kernel::new(ctx, "pcg_finish_alpha", &m, "finish_alpha")?,
-            finish_beta: Kernel::new(ctx, "pcg_finish_beta", &m, "finish_beta")?,
-            direction: Kernel::new(ctx, "pcg_direction", &m, "direction")?,
+            update: Kernel::new(&shader, "pcg_update", "update"),
+            finish_alpha: Kernel::new(&shader, "pcg_finish_alpha", "finish_alpha"),
+            finish_beta: Kernel::new(&shader, "pcg_finish_beta", "finish_beta"),
+            direction: Kernel::new(&shader, "pcg_direction", "direction"),
+            shader,
         })
     }
 
@@ -203,7 +220,7 @@ impl Pcg {
         let p = ctx.storage(&what("p"), vec_bytes)?;
         let ap = ctx.storage(&what("Ap"), vec_bytes)?;
         let bg_spmv = spmv.bind(ctx, &params, m, &p, &ap, &partials)?;
-        let bg_update = self.update.bind(
+        let bg_pcg = self.shader.bind(
             ctx,
             &[
                 (0, &params),
@@ -217,16 +234,6 @@ impl Pcg {
                 (8, &z),
             ],
         )?;
-        // Auto layouts are per pipeline: one bind group for each finishing kernel.
-        let bg_alpha = self
-            .finish_alpha
-            .bind(ctx, &[(0, &params), (1, &cols), (2, &partials)])?;
-        let bg_beta = self
-            .finish_beta
-            .bind(ctx, &[(0, &params), (1, &cols), (2, &partials)])?;
-        let bg_direction = self
-            .direction
-            .bind(ctx, &[(0, &params), (1, &cols), (4, &p), (8, &z)])?;
         Ok(Workspace {
             cmax,
             rows,
@@ -241,10 +248,7 @@ impl Pcg {
             p,
             ap,
             bg_spmv,
-            bg_update,
-            bg_alpha,
-            bg_beta,
-            bg_direction,
+            bg_pcg,
             row_dims,
             staging_cols: None,
             staging_x: None,
@@ -253,8 +257,9 @@ impl Pcg {
 
     /// Run PCG on `ncols` columns whose right-hand sides are already in `ws.r`
     /// (x starts at 0). `thr[c]` is the squared residual norm at which column c
-    /// is done. Stops when every column is done or after `max_iters` iterations
-    /// (rounded up to a multiple of `check_every`).
+    /// is done. Stops when every column is done or after `max_iters` iterations;
+    /// batches between read-backs hold at most `check_every` iterations
+    /// (`fixed_batches`: exactly `check_every`, for timing).
     #[allow(clippy::too_many_arguments)]
     pub fn run(
         &self,
@@ -265,6 +270,7 @@ impl Pcg {
         thr: &[f32],
         max_iters: usize,
         check_every: usize,
+        fixed_batches: bool,
     ) -> Result<PcgRun, GpuError> {
         assert!(ncols >= 1 && ncols <= ws.cmax && thr.len() == ncols);
         let n = ws.n();
@@ -284,6 +290,11 @@ impl Pcg {
             ((n * ncols) as u64).div_ceil(FLAT_WG as u64),
         )?;
         let used = (n * ncols * 4) as u64;
+        let k_spmv = spmv.kernel().pipeline(ctx, ncols)?;
+        let k_alpha = self.finish_alpha.pipeline(ctx, ncols)?;
+        let k_update = self.update.pipeline(ctx, ncols)?;
+        let k_beta = self.finish_beta.pipeline(ctx, ncols)?;
+        let k_dir = self.direction.pipeline(ctx, ncols)?;
         let mut enc = ctx.encoder("pcg init");
         for b in [&ws.x, &ws.p, &ws.ap] {
             enc.clear_buffer(b, 0, Some(used));
@@ -293,28 +304,32 @@ impl Pcg {
                 label: Some("pcg init"),
                 timestamp_writes: None,
             });
-            self.update.dispatch(&mut pass, &ws.bg_update, ws.row_dims);
-            self.finish_beta.dispatch(&mut pass, &ws.bg_beta, (1, 1));
-            self.direction
-                .dispatch(&mut pass, &ws.bg_direction, flat_dims);
+            dispatch(&mut pass, &k_update, &ws.bg_pcg, ws.row_dims);
+            dispatch(&mut pass, &k_beta, &ws.bg_pcg, (1, 1));
+            dispatch(&mut pass, &k_dir, &ws.bg_pcg, flat_dims);
         }
         let check_every = check_every.max(1);
         let mut dispatched = 0;
         let mut staging = ws.staging_cols.take();
+        let mut next = if fixed_batches {
+            check_every
+        } else {
+            check_every.min(8)
+        };
+        let mut last: Option<(usize, Vec<ColState>)> = None;
         let result = loop {
-            let k = check_every.min(max_iters.saturating_sub(dispatched)).max(1);
+            let k = next.min(max_iters.saturating_sub(dispatched)).max(1);
             {
                 let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
                     label: Some("pcg iterations"),
                     timestamp_writes: None,
                 });
                 for _ in 0..k {
-                    spmv.kernel().dispatch(&mut pass, &ws.bg_spmv, ws.row_dims);
-                    self.finish_alpha.dispatch(&mut pass, &ws.bg_alpha, (1, 1));
-                    self.update.dispatch(&mut pass, &ws.bg_update, ws.row_dims);
-                    self.finish_beta.dispatch(&mut pass, &ws.bg_beta, (1, 1));
-                    self.direction
-                        .dispatch(&mut pass, &ws.bg_direction, flat_dims);
+                    dispatch(&mut pass, &k_spmv, &ws.bg_spmv, ws.row_dims);
+                    dispatch(&mut pass, &k_alpha, &ws.bg_pcg, (1, 1));
+                    dispatch(&mut pass, &k_update, &ws.bg_pcg, ws.row_dims);
+                    dispatch(&mut pass, &k_beta, &ws.bg_pcg, (1, 1));
+                    dispatch(&mut pass, &k_dir, &ws.bg_pcg, flat_dims);
                 }
             }
             dispatched += k;
@@ -326,10 +341,61 @@ impl Pcg {
             if run.all_done() || run.breakdown() || dispatched >= max_iters {
                 break Ok(run);
             }
+            if !fixed_batches {
+                next = predict(last.as_ref(), &run, check_every);
+            }
+            last = Some((dispatched, run.cols));
             enc = ctx.encoder("pcg iterations");
         };
         ws.staging_cols = staging;
         result
+    }
+
+    /// Seconds per dispatch of each kernel of an iteration (SpMV, finish_alpha,
+    /// update, finish_beta, direction), each submitted `reps` times alone on the
+    /// current workspace state (values are meaningless; for profiling).
+    pub fn profile(
+        &self,
+        ctx: &Context,
+        spmv: &Spmv,
+        ws: &Workspace,
+        ncols: usize,
+        reps: usize,
+    ) -> Result<Vec<(&'static str, f64)>, GpuError> {
+        ctx.queue
+            .write_buffer(&ws.params, 0, bytemuck::bytes_of(&ws.params(ncols)));
+        let flat_dims = ctx.dims(
+            "element-wise kernels",
+            ((ws.n() * ncols) as u64).div_ceil(FLAT_WG as u64),
+        )?;
+        let kernels: [(&Kernel, &wgpu::BindGroup, (u32, u32)); 5] = [
+            (spmv.kernel(), &ws.bg_spmv, ws.row_dims),
+            (&self.finish_alpha, &ws.bg_pcg, (1, 1)),
+            (&self.update, &ws.bg_pcg, ws.row_dims),
+            (&self.finish_beta, &ws.bg_pcg, (1, 1)),
+            (&self.direction, &ws.bg_pcg, flat_dims),
+        ];
+        let mut out = Vec::new();
+        for (k, bg, dims) in kernels {
+            let pipeline = k.pipeline(ctx, ncols)?;
+            let mut enc = ctx.encoder("profile");
+            {
+                let mut pass = enc.begin_compute_pass(&Default::default());
+                dispatch(&mut pass, &pipeline, bg, dims);
+            }
+            ctx.submit_wait(enc)?;
+            let t = std::time::Instant::now();
+            let mut enc = ctx.encoder("profile");
+            {
+                let mut pass = enc.begin_compute_pass(&Default::default());
+                for _ in 0..reps {
+                    dispatch(&mut pass, &pipeline, bg, dims);
+                }
+            }
+            ctx.submit_wait(enc)?;
+            out.push((k.label, t.elapsed().as_secs_f64() / reps as f64));
+        }
+        Ok(out)
     }
 
     /// Read the first `ncols` columns of `x`.
@@ -344,4 +410,28 @@ impl Pcg {
         ws.staging_x = staging;
         out
     }
+}
+
+/// Iterations until every running column is predicted to be done, from the
+/// residual reduction between the last two read-backs (2..=cap).
+fn predict(last: Option<&(usize, Vec<ColState>)>, run: &PcgRun, cap: usize) -> usize {
+    let Some((at, prev)) = last else {
+        return cap.min(8);
+    };
+    let k = (run.dispatched - at) as f64;
+    let mut need = 2.0f64;
+    for (c, p) in run.cols.iter().zip(prev) {
+        if c.done != 0 {
+            continue;
+        }
+        let (r0, r1) = (p.rr as f64, c.rr as f64);
+        let rate = (r1 / r0).powf(1.0 / k);
+        let useful = rate > 0.0 && rate < 0.999 && c.thr > 0.0;
+        if !useful {
+            return cap;
+        }
+        let left = (c.thr as f64 / r1).ln() / rate.ln();
+        need = need.max(left.ceil() + 2.0);
+    }
+    (need as usize).clamp(2, cap)
 }
