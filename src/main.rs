@@ -2,7 +2,7 @@
 
 use clap::{Parser, Subcommand, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
-use metricdeform::deform::{deform, Options, Problem, Progress};
+use metricdeform::deform::{deform, Options, Problem, Progress, SolverBackend};
 use metricdeform::job::{Job, JobFormat};
 use metricdeform::report::{
     constraint_rows, explain_miss, peak_memory_mb, table, Distortion, Iterations, MeshInfo, Report,
@@ -160,11 +160,12 @@ fn demo(args: &RunArgs) -> Result<u8, Error> {
 }
 
 /// Resolve the backend: flag, then the job, then METRICDEFORM_BACKEND, then auto.
+/// Returns the solver backend and the adapter in use (GPU only).
 fn choose_backend(
     flag: Option<Backend>,
     job: &Job,
     quiet: bool,
-) -> Result<(String, Option<String>), Error> {
+) -> Result<(SolverBackend, Option<String>), Error> {
     let from_env = std::env::var("METRICDEFORM_BACKEND")
         .ok()
         .filter(|s| !s.is_empty());
@@ -181,23 +182,32 @@ fn choose_backend(
             .unwrap_or_else(|| "auto".into()),
     };
     match name.as_str() {
-        "cpu" => Ok(("cpu".into(), None)),
-        "gpu" => match solver_gpu::open() {
-            Ok(gpu) => Err(Error::bad(format!(
-                "--backend gpu: the GPU solver opens on {}, but the deformation pipeline does not use it in this version; use --backend cpu",
-                gpu.adapter_name()
+        "cpu" => Ok((SolverBackend::Cpu, None)),
+        "gpu" => match solver_gpu::default_adapter() {
+            Ok(a) => Ok((SolverBackend::Gpu, Some(a.name))),
+            Err(why) => Err(Error::bad(format!(
+                "--backend gpu: no usable GPU adapter: {why}"
             ))),
-            Err(why) => Err(Error::bad(format!("--backend gpu: no usable GPU adapter: {why}"))),
         },
-        "auto" => {
-            let why = match solver_gpu::default_adapter() {
-                Ok(a) => format!("adapter {} found, but the pipeline does not use the GPU solver in this version", a.name),
-                Err(why) => why.to_string(),
-            };
-            let _ = quiet;
-            eprintln!("backend: cpu (auto: {why})");
-            Ok(("cpu".into(), None))
-        }
+        "auto" => match solver_gpu::default_adapter() {
+            Ok(a) if a.device_type != "Cpu" => {
+                if !quiet {
+                    eprintln!("backend: gpu (auto: adapter {})", a.name);
+                }
+                Ok((SolverBackend::Gpu, Some(a.name)))
+            }
+            Ok(a) => {
+                eprintln!(
+                    "backend: cpu (auto: the only adapter, {}, is a CPU emulation; --backend gpu uses it anyway)",
+                    a.name
+                );
+                Ok((SolverBackend::Cpu, None))
+            }
+            Err(why) => {
+                eprintln!("backend: cpu (auto: {why})");
+                Ok((SolverBackend::Cpu, None))
+            }
+        },
         other => Err(Error::bad(format!(
             "unknown backend '{other}' (from METRICDEFORM_BACKEND or the job): expected auto, cpu or gpu"
         ))),
@@ -232,6 +242,7 @@ fn run(job: &Job, args: &RunArgs) -> Result<u8, Error> {
     }
     let mut options = Options::from_spec(&job.spec.solver);
     options.preview = args.preview;
+    options.backend = backend;
     let problem = Problem::load(job)?;
     if same_file(&out_path, &problem.mesh_path) {
         return Err(Error::bad(format!(
@@ -296,7 +307,7 @@ fn run(job: &Job, args: &RunArgs) -> Result<u8, Error> {
             faces: problem.mesh.num_faces(),
         },
         output: Some(out_path.display().to_string()),
-        backend,
+        backend: backend.name().to_string(),
         adapter,
         constraints: rows.clone(),
         satisfied,

@@ -16,6 +16,15 @@ fn bin() -> Command {
 
 /// Write a job into a fresh directory (with a copy of the mesh) and run `deform`.
 fn deform_job(mesh: &str, job: &str, extra: &[&str]) -> (Output, tempfile::TempDir) {
+    deform_job_env(mesh, job, extra, &[])
+}
+
+fn deform_job_env(
+    mesh: &str,
+    job: &str,
+    extra: &[&str],
+    env: &[(&str, &str)],
+) -> (Output, tempfile::TempDir) {
     let dir = tempfile::tempdir().unwrap();
     if !mesh.is_empty() {
         std::fs::copy(meshes().join(mesh), dir.path().join(mesh)).unwrap();
@@ -26,6 +35,9 @@ fn deform_job(mesh: &str, job: &str, extra: &[&str]) -> (Output, tempfile::TempD
     cmd.arg("deform").arg(&job_path).arg("--quiet");
     if !extra.contains(&"--backend") {
         cmd.args(["--backend", "cpu"]);
+    }
+    for (k, v) in env {
+        cmd.env(k, v);
     }
     let out = cmd.args(extra).current_dir(dir.path()).output().unwrap();
     (out, dir)
@@ -184,19 +196,68 @@ fn scale_and_value_together_are_refused() {
     );
 }
 
+/// No adapter matches: `--backend gpu` is a usage error (exit 2), never a silent
+/// fallback; `auto` falls back to the CPU and says so.
 #[test]
 fn gpu_backend_without_adapter_is_usage_error() {
-    let (out, dir) = deform_job(
-        "spot.obj",
-        "mesh = \"spot.obj\"\n[[constraint]]\nkind = \"volume\"\n",
-        &["--backend", "gpu"],
-    );
+    let job = "mesh = \"spot.obj\"\n[[constraint]]\nkind = \"volume\"\n";
+    let no_adapter = [("WGPU_ADAPTER_NAME", "no-such-adapter-anywhere")];
+    let (out, dir) = deform_job_env("spot.obj", job, &["--backend", "gpu"], &no_adapter);
     assert_eq!(out.status.code(), Some(2));
-    assert!(String::from_utf8_lossy(&out.stderr).contains("gpu"));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("--backend gpu") && err.contains("no-such-adapter-anywhere"),
+        "{err}"
+    );
     assert_eq!(
         files(dir.path()),
         vec!["job.toml".to_string(), "spot.obj".to_string()]
     );
+    let (out, dir) = deform_job_env(
+        "spot.obj",
+        job,
+        &["--backend", "auto", "--report", "r.json"],
+        &no_adapter,
+    );
+    assert_eq!(out.status.code(), Some(0));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("backend: cpu (auto"));
+    assert_eq!(read_json(dir.path(), "r.json")["backend"], "cpu");
+}
+
+/// `METRICDEFORM_BACKEND` sets the default; the flag overrides it.
+#[test]
+fn backend_environment_default_and_flag_override() {
+    let (_out, dir) = deform_job(
+        "spot.obj",
+        "mesh = \"spot.obj\"\n[[constraint]]\nkind = \"volume\"\n",
+        &[],
+    );
+    let run = |flag: Option<&str>| {
+        let mut cmd = bin();
+        cmd.arg("deform").arg("job.toml").arg("--quiet");
+        if let Some(f) = flag {
+            cmd.args(["--backend", f]);
+        }
+        cmd.args(["--report", "r.json"])
+            .env("METRICDEFORM_BACKEND", "gpu")
+            .env("WGPU_ADAPTER_NAME", "no-such-adapter-anywhere")
+            .current_dir(dir.path())
+            .output()
+            .unwrap()
+    };
+    // No flag: the environment asks for the GPU, and there is none: exit 2.
+    let out = run(None);
+    assert_eq!(
+        out.status.code(),
+        Some(2),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--backend gpu"));
+    // The flag wins over the environment.
+    let out = run(Some("cpu"));
+    assert_eq!(out.status.code(), Some(0));
+    assert_eq!(read_json(dir.path(), "r.json")["backend"], "cpu");
 }
 
 /// Fig. 16 through the CLI: exit 3, the result still written, the report names the missed metric.
