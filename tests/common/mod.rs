@@ -175,4 +175,3 @@ pub fn fig3_job(mesh: &str, kind: &str, scale: f64) -> String {
         ),
     }
 }
-
