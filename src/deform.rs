@@ -6,7 +6,7 @@
 use crate::job::{Job, MetricKind, SolverSpec};
 use crate::metrics::{Constraint, Selection, VolumeShare};
 use crate::scale_factors::{Regulariser, ScaleConstraint, ScaleFactorSystem};
-use crate::schur::{constrained_step, Linearized, Multipliers};
+use crate::schur::{constrained_step_warm, Linearized, Multipliers};
 use crate::selection::{build_curve, build_handle_vertices, build_region};
 use crate::shape::{HandleTarget, ShapeModel, ShapeWeights};
 use crate::topology::Topology;
@@ -573,6 +573,8 @@ fn fine_tune(
         model.energy(dx) + mu * c.iter().map(|v| v.abs()).sum::<f64>()
     };
     let mut c = residuals(&x);
+    // Solutions of the previous Newton step: the initial guess of iterative solvers.
+    let mut warm = Vec::new();
     while it < o.fine_tune_iterations {
         let err = c.iter().fold(0.0f64, |m, v| m.max(v.abs()));
         progress(Progress::FineTune {
@@ -605,7 +607,7 @@ fn fine_tune(
         if o.multipliers == Multipliers::PerKind {
             lin = lin.grouped(groups);
         }
-        let step = constrained_step(model.solver(), &neg, &lin)?;
+        let step = constrained_step_warm(model.solver(), &neg, &lin, &mut warm)?;
         let lam_max = match o.multipliers {
             Multipliers::PerConstraint => step.lambda.iter().fold(0.0f64, |m, l| m.max(l.abs())),
             Multipliers::PerKind => groups

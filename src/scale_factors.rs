@@ -8,7 +8,7 @@
 //! resolution-dependent; `Regulariser::Uniform` keeps the paper's literal form).
 //! The Hessian is constant for the whole run: it is factored once.
 
-use crate::schur::{constrained_step, Linearized, Multipliers};
+use crate::schur::{constrained_step_warm, Linearized, Multipliers};
 use crate::Result;
 use solver_cpu::{CholeskySolver, SpdSolver, SymCsc};
 
@@ -61,6 +61,8 @@ pub struct ScaleFactorSystem {
     n: usize,
     hessian: SymCsc,
     solver: Box<dyn SpdSolver>,
+    /// Solutions of the last Newton step (initial guess of iterative solvers).
+    warm: Vec<f64>,
 }
 
 impl ScaleFactorSystem {
@@ -118,6 +120,7 @@ impl ScaleFactorSystem {
             n,
             hessian: h,
             solver,
+            warm: Vec::new(),
         })
     }
 
@@ -163,7 +166,7 @@ impl ScaleFactorSystem {
             if mode == Multipliers::PerKind {
                 lin = lin.grouped(&groups);
             }
-            let step = constrained_step(self.solver.as_mut(), &neg, &lin)?;
+            let step = constrained_step_warm(self.solver.as_mut(), &neg, &lin, &mut self.warm)?;
             // Keep every scale factor positive (a face cannot be scaled through zero).
             let mut alpha: f64 = 1.0;
             for i in 0..n {

@@ -59,6 +59,18 @@ pub fn constrained_step(
     neg_grad: &[f64],
     lin: &Linearized,
 ) -> Result<Step> {
+    constrained_step_warm(solver, neg_grad, lin, &mut Vec::new())
+}
+
+/// [`constrained_step`] with the k+1 solutions `[y | Y]` of the previous step in
+/// `warm` as the initial guess of an iterative solver (unused when its size does
+/// not match); `warm` receives this step's solutions.
+pub fn constrained_step_warm(
+    solver: &mut dyn SpdSolver,
+    neg_grad: &[f64],
+    lin: &Linearized,
+    warm: &mut Vec<f64>,
+) -> Result<Step> {
     let n = neg_grad.len();
     let k = lin.values.len();
     let mut rhs = Vec::with_capacity(n * (k + 1));
@@ -66,8 +78,13 @@ pub fn constrained_step(
     for r in &lin.rows {
         rhs.extend_from_slice(r);
     }
-    solver.solve_in_place(&mut rhs, k + 1)?;
-    let (y, ycols) = rhs.split_at(n);
+    if warm.len() == rhs.len() {
+        solver.solve_with_guess(&rhs, warm, k + 1)?;
+    } else {
+        solver.solve_in_place(&mut rhs, k + 1)?;
+        *warm = rhs;
+    }
+    let (y, ycols) = warm.split_at(n);
     if k == 0 {
         return Ok(Step {
             dx: y.to_vec(),
