@@ -125,17 +125,39 @@ impl SpdSolver for CholeskySolver {
                 ncols
             )));
         }
+        // The triangular solves are memory-bound: faer's own parallel split is
+        // slower here than sequential solves of the columns split among threads.
         let sym = self.symbolic.as_ref().unwrap();
-        let par = get_global_parallelism();
-        let m = MatMut::from_column_major_slice_mut(rhs, self.n, ncols);
-        let mut buf = MemBuffer::try_new(sym.solve_in_place_scratch::<f64>(ncols, par))
-            .map_err(|_| SolverError::OutOfMemory)?;
-        LltRef::<'_, usize, f64>::new(sym, &self.numeric).solve_in_place_with_conj(
-            Conj::No,
-            m,
-            par,
-            MemStack::new(&mut buf),
-        );
+        let numeric = &self.numeric;
+        let n = self.n;
+        let threads = rayon::current_num_threads().max(1);
+        let per = ncols.div_ceil(threads).max(1);
+        let failed = std::sync::atomic::AtomicBool::new(false);
+        rayon::scope(|scope| {
+            for chunk in rhs.chunks_mut(n * per) {
+                let failed = &failed;
+                scope.spawn(move |_| {
+                    let cols = chunk.len() / n;
+                    let par = faer::Par::Seq;
+                    let Ok(mut buf) =
+                        MemBuffer::try_new(sym.solve_in_place_scratch::<f64>(cols, par))
+                    else {
+                        failed.store(true, std::sync::atomic::Ordering::Relaxed);
+                        return;
+                    };
+                    let m = MatMut::from_column_major_slice_mut(chunk, n, cols);
+                    LltRef::<'_, usize, f64>::new(sym, numeric).solve_in_place_with_conj(
+                        Conj::No,
+                        m,
+                        par,
+                        MemStack::new(&mut buf),
+                    );
+                });
+            }
+        });
+        if failed.into_inner() {
+            return Err(SolverError::OutOfMemory);
+        }
         if rhs.iter().any(|v| !v.is_finite()) {
             return Err(SolverError::NotPositiveDefinite);
         }
