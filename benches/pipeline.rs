@@ -92,6 +92,8 @@ fn main() {
             "homer" => row("homer", HOMER_JOB, 0, mult),
             "spot-x16" => row("spot-x16", SPOT_JOB, 2, mult),
             "homer-x16" => row("homer-x16", HOMER_JOB, 2, mult),
+            "spot-x64" => row("spot-x64", SPOT_JOB, 3, mult),
+            "spot-x256" => row("spot-x256", SPOT_JOB, 4, mult),
             _ => panic!("unknown row {name}"),
         }
         return;
