@@ -38,6 +38,7 @@
 //! pattern only rewrites the values. Vector buffers are sized for the largest
 //! number of columns seen and reused.
 
+pub mod amg;
 pub mod block_jacobi;
 pub mod bsr_spmv;
 pub mod csr_spmv;

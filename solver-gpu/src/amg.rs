@@ -1,0 +1,1018 @@
+//! Smoothed-aggregation algebraic multigrid (SA-AMG), built on the CPU in f64:
+//! the hierarchy behind the GPU V-cycle preconditioner (`amg_gpu.rs`,
+//! `shaders/amg.wgsl`), plus an f64 reference V-cycle and PCG for the tests.
+//!
+//! # Setup (per level, on the full symmetric block-CSR matrix, `bs` = 3 or 1)
+//!
+//! 1. **Strength**: off-diagonal block `(i, j)` is strong when
+//!    `||A_ij||_F >= theta sqrt(||A_ii||_F ||A_jj||_F)` (`theta` = 0.08).
+//!    Rows with no strong neighbour (held vertices: identity rows) belong to no
+//!    aggregate: their row of `P` is zero and the smoother alone handles them.
+//! 2. **Aggregation** (Vanek, Mandel, Brezina): pass 1 makes an aggregate of
+//!    every node whose strong neighbourhood is still free; pass 2 attaches the
+//!    leftovers to the pass-1 aggregate of their strongest aggregated neighbour;
+//!    pass 3 groups whatever is left with its free strong neighbours.
+//! 3. **Prolongator**: tentative `P0` = identity block per (node, its aggregate),
+//!    smoothed `P = (I - omega D^-1 A) P0`, `omega = 4 / (3 rho(D^-1 A))` (`rho`
+//!    from a few power iterations; `D` = block diagonal); `R = P^T` is stored.
+//! 4. **Coarse operator** `A_c = R (A P)` (two row-parallel sparse products).
+//!
+//! Coarsening stops at `max_coarse` unknowns (or when it stalls, more than 0.8 of
+//! the rows left); the coarsest matrix is inverted densely (Cholesky, f64).
+//!
+//! # V-cycle (the preconditioner `z = M^-1 r`; symmetric, so PCG stays valid)
+//!
+//! ```text
+//! vcycle(l, b):
+//!   l coarsest: return C^-1 b                          (dense inverse)
+//!   x = w D^-1 b; repeat sweeps-1: x += w D^-1 (b - A x)   (pre-smoothing)
+//!   x += P vcycle(l+1, R (b - A x))                    (coarse correction)
+//!   repeat sweeps: x += w D^-1 (b - A x)               (post-smoothing)
+//! ```
+//!
+//! with damped block Jacobi `w = 4 / (3 rho(D^-1 A))`. The pre-smoother from
+//! zero and the post-smoother are adjoint (same polynomial in `D^-1 A`), so `M`
+//! is symmetric positive definite.
+
+use rayon::prelude::*;
+
+/// A block-CSR matrix (`bs` x `bs` blocks, row-major), possibly rectangular.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Bsr {
+    pub bs: usize,
+    /// Block rows.
+    pub rows: usize,
+    /// Block columns.
+    pub cols: usize,
+    pub row_ptr: Vec<u32>,
+    pub col_idx: Vec<u32>,
+    /// `bs * bs` f64 per stored block.
+    pub vals: Vec<f64>,
+}
+
+impl Bsr {
+    pub fn nnz_blocks(&self) -> usize {
+        self.col_idx.len()
+    }
+
+    pub fn same_pattern(&self, o: &Bsr) -> bool {
+        self.bs == o.bs
+            && self.rows == o.rows
+            && self.cols == o.cols
+            && self.row_ptr == o.row_ptr
+            && self.col_idx == o.col_idx
+    }
+
+    fn range(&self, i: usize) -> std::ops::Range<usize> {
+        self.row_ptr[i] as usize..self.row_ptr[i + 1] as usize
+    }
+
+    fn block(&self, k: usize) -> &[f64] {
+        let bb = self.bs * self.bs;
+        &self.vals[k * bb..(k + 1) * bb]
+    }
+
+    /// `y = A x` for one column (`x`: cols * bs, `y`: rows * bs).
+    pub fn matvec(&self, x: &[f64], y: &mut [f64]) {
+        let bs = self.bs;
+        y.par_chunks_mut(bs).enumerate().for_each(|(i, out)| {
+            out.fill(0.0);
+            for k in self.range(i) {
+                let j = self.col_idx[k] as usize;
+                let m = self.block(k);
+                for q in 0..bs {
+                    for t in 0..bs {
+                        out[q] += m[q * bs + t] * x[j * bs + t];
+                    }
+                }
+            }
+        });
+    }
+
+    /// `A^T`, blocks transposed.
+    pub fn transpose(&self) -> Bsr {
+        let bs = self.bs;
+        let bb = bs * bs;
+        let mut count = vec![0u32; self.cols + 1];
+        for &j in &self.col_idx {
+            count[j as usize + 1] += 1;
+        }
+        for j in 0..self.cols {
+            count[j + 1] += count[j];
+        }
+        let row_ptr = count.clone();
+        let mut next = count;
+        let mut col_idx = vec![0u32; self.nnz_blocks()];
+        let mut vals = vec![0f64; self.vals.len()];
+        for i in 0..self.rows {
+            for k in self.range(i) {
+                let j = self.col_idx[k] as usize;
+                let d = next[j] as usize;
+                next[j] += 1;
+                col_idx[d] = i as u32;
+                let (src, dst) = (self.block(k), &mut vals[d * bb..(d + 1) * bb]);
+                for q in 0..bs {
+                    for t in 0..bs {
+                        dst[t * bs + q] = src[q * bs + t];
+                    }
+                }
+            }
+        }
+        Bsr {
+            bs,
+            rows: self.cols,
+            cols: self.rows,
+            row_ptr,
+            col_idx,
+            vals,
+        }
+    }
+
+    /// Inverses of the diagonal blocks (f64), or `None` if one is missing or
+    /// not positive definite.
+    pub fn inverse_diagonal(&self) -> Option<Vec<f64>> {
+        let bs = self.bs;
+        let bb = bs * bs;
+        let mut out = vec![0f64; self.rows * bb];
+        let ok = out.par_chunks_mut(bb).enumerate().all(|(i, dst)| {
+            let Some(k) = self.range(i).find(|&k| self.col_idx[k] as usize == i) else {
+                return false;
+            };
+            let d = self.block(k);
+            let inv = if bs == 1 {
+                (d[0] > 0.0 && d[0].is_finite()).then(|| vec![1.0 / d[0]])
+            } else {
+                crate::block_jacobi::invert_spd3(d).map(|m| m.to_vec())
+            };
+            match inv {
+                Some(v) if v.iter().all(|a| a.is_finite()) => {
+                    dst.copy_from_slice(&v);
+                    true
+                }
+                _ => false,
+            }
+        });
+        ok.then_some(out)
+    }
+
+    /// `A B` (row-parallel Gustavson product; the pattern keeps structural zeros).
+    pub fn mul(&self, b: &Bsr) -> Bsr {
+        assert_eq!(self.cols, b.rows);
+        assert_eq!(self.bs, b.bs);
+        let bs = self.bs;
+        let bb = bs * bs;
+        let rows: Vec<(Vec<u32>, Vec<f64>)> = (0..self.rows)
+            .into_par_iter()
+            .map_init(
+                || (vec![u32::MAX; b.cols], Vec::new(), Vec::new()),
+                |(mark, cols, vals): &mut (Vec<u32>, Vec<u32>, Vec<f64>), i| {
+                    cols.clear();
+                    vals.clear();
+                    for k in self.range(i) {
+                        let ab = self.block(k);
+                        for kk in b.range(self.col_idx[k] as usize) {
+                            let c = b.col_idx[kk] as usize;
+                            if mark[c] == u32::MAX {
+                                mark[c] = cols.len() as u32;
+                                cols.push(c as u32);
+                                vals.resize(vals.len() + bb, 0.0);
+                            }
+                            let p = mark[c] as usize * bb;
+                            gemm_acc(bs, ab, b.block(kk), &mut vals[p..p + bb]);
+                        }
+                    }
+                    let mut order: Vec<usize> = (0..cols.len()).collect();
+                    order.sort_unstable_by_key(|&p| cols[p]);
+                    let oc: Vec<u32> = order.iter().map(|&p| cols[p]).collect();
+                    let mut ov = Vec::with_capacity(vals.len());
+                    for &p in &order {
+                        ov.extend_from_slice(&vals[p * bb..(p + 1) * bb]);
+                    }
+                    for &c in cols.iter() {
+                        mark[c as usize] = u32::MAX;
+                    }
+                    (oc, ov)
+                },
+            )
+            .collect();
+        assemble(bs, self.rows, b.cols, rows)
+    }
+
+    /// Dense row-major copy (`rows bs` x `cols bs`), symmetrised if square.
+    fn dense_symmetric(&self) -> Vec<f64> {
+        let bs = self.bs;
+        let (nr, nc) = (self.rows * bs, self.cols * bs);
+        let mut d = vec![0f64; nr * nc];
+        for i in 0..self.rows {
+            for k in self.range(i) {
+                let j = self.col_idx[k] as usize;
+                let m = self.block(k);
+                for q in 0..bs {
+                    for t in 0..bs {
+                        d[(i * bs + q) * nc + j * bs + t] = m[q * bs + t];
+                    }
+                }
+            }
+        }
+        for r in 0..nr {
+            for c in 0..r {
+                let s = 0.5 * (d[r * nc + c] + d[c * nc + r]);
+                d[r * nc + c] = s;
+                d[c * nc + r] = s;
+            }
+        }
+        d
+    }
+}
+
+fn assemble(bs: usize, rows: usize, cols: usize, parts: Vec<(Vec<u32>, Vec<f64>)>) -> Bsr {
+    let mut row_ptr = Vec::with_capacity(rows + 1);
+    row_ptr.push(0u32);
+    let total: usize = parts.iter().map(|p| p.0.len()).sum();
+    let mut col_idx = Vec::with_capacity(total);
+    let mut vals = Vec::with_capacity(total * bs * bs);
+    for (c, v) in parts {
+        col_idx.extend_from_slice(&c);
+        vals.extend_from_slice(&v);
+        row_ptr.push(col_idx.len() as u32);
+    }
+    Bsr {
+        bs,
+        rows,
+        cols,
+        row_ptr,
+        col_idx,
+        vals,
+    }
+}
+
+/// `c += a b` for `bs` x `bs` row-major blocks.
+fn gemm_acc(bs: usize, a: &[f64], b: &[f64], c: &mut [f64]) {
+    for q in 0..bs {
+        for t in 0..bs {
+            let aq = a[q * bs + t];
+            for u in 0..bs {
+                c[q * bs + u] += aq * b[t * bs + u];
+            }
+        }
+    }
+}
+
+fn frob(m: &[f64]) -> f64 {
+    m.iter().map(|v| v * v).sum::<f64>().sqrt()
+}
+
+/// Tuning of the hierarchy.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct AmgOptions {
+    /// Strength threshold.
+    pub theta: f64,
+    /// Stop coarsening at or below this many unknowns (rows * bs).
+    pub max_coarse: usize,
+    /// Largest coarsest matrix (unknowns) that is inverted densely; a hierarchy
+    /// whose coarsening stalls above it is refused.
+    pub dense_max: usize,
+    pub max_levels: usize,
+    /// Smoothing sweeps before and after the coarse correction.
+    pub sweeps: usize,
+    /// Jacobi smoother weight times `rho(D^-1 A)`.
+    pub smoother_weight: f64,
+    /// Power iterations for `rho(D^-1 A)`.
+    pub power_iterations: usize,
+}
+
+impl Default for AmgOptions {
+    fn default() -> Self {
+        AmgOptions {
+            theta: 0.08,
+            max_coarse: 600,
+            dense_max: 2000,
+            max_levels: 12,
+            sweeps: 1,
+            smoother_weight: 4.0 / 3.0,
+            power_iterations: 15,
+        }
+    }
+}
+
+/// One level above the coarsest.
+#[derive(Debug, Clone)]
+pub struct Level {
+    pub a: Bsr,
+    /// Inverted diagonal blocks of `a`.
+    pub dinv: Vec<f64>,
+    /// Jacobi smoother weight.
+    pub omega: f64,
+    /// Aggregate of each row (`u32::MAX`: none).
+    pub agg: Vec<u32>,
+    pub naggs: usize,
+    /// Prolongator (rows of `a` x next level's rows) and `R = P^T`.
+    pub p: Bsr,
+    pub r: Bsr,
+}
+
+/// The SA-AMG hierarchy.
+#[derive(Debug, Clone)]
+pub struct Hierarchy {
+    pub bs: usize,
+    pub opts: AmgOptions,
+    pub levels: Vec<Level>,
+    /// The coarsest matrix and its dense inverse (row-major, `n x n`).
+    pub coarse: Bsr,
+    pub coarse_inv: Vec<f64>,
+}
+
+/// Why a hierarchy could not be built.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum AmgError {
+    #[error("a diagonal block is not positive definite")]
+    NotPositiveDefinite,
+    #[error("coarsening stalled at {0} unknowns (dense coarse solve limited to {1})")]
+    Stalled(usize, usize),
+}
+
+/// Strength graph (CSR, strong neighbours of each row, with their measures).
+fn strength(a: &Bsr, theta: f64) -> (Vec<u32>, Vec<u32>, Vec<f64>) {
+    let diag: Vec<f64> = (0..a.rows)
+        .into_par_iter()
+        .map(|i| {
+            a.range(i)
+                .find(|&k| a.col_idx[k] as usize == i)
+                .map_or(0.0, |k| frob(a.block(k)))
+        })
+        .collect();
+    let rows: Vec<(Vec<u32>, Vec<f64>)> = (0..a.rows)
+        .into_par_iter()
+        .map(|i| {
+            let mut c = Vec::new();
+            let mut v = Vec::new();
+            for k in a.range(i) {
+                let j = a.col_idx[k] as usize;
+                if j == i {
+                    continue;
+                }
+                let s = frob(a.block(k));
+                if s > 0.0 && s >= theta * (diag[i] * diag[j]).sqrt() {
+                    c.push(j as u32);
+                    v.push(s / (diag[i] * diag[j]).sqrt());
+                }
+            }
+            (c, v)
+        })
+        .collect();
+    let mut ptr = vec![0u32];
+    let mut idx = Vec::new();
+    let mut val = Vec::new();
+    for (c, v) in rows {
+        idx.extend(c);
+        val.extend(v);
+        ptr.push(idx.len() as u32);
+    }
+    (ptr, idx, val)
+}
+
+/// Greedy aggregation; returns the aggregate of each row (`u32::MAX` for rows
+/// without strong neighbours) and the number of aggregates.
+pub fn aggregate(a: &Bsr, theta: f64) -> (Vec<u32>, usize) {
+    const FREE: u32 = u32::MAX;
+    let (sp, si, sv) = strength(a, theta);
+    let n = a.rows;
+    let nb = |i: usize| sp[i] as usize..sp[i + 1] as usize;
+    let mut agg = vec![FREE; n];
+    let mut next = 0u32;
+    // Pass 1: whole free strong neighbourhoods.
+    for i in 0..n {
+        if agg[i] != FREE || sp[i] == sp[i + 1] {
+            continue;
+        }
+        if nb(i).all(|k| agg[si[k] as usize] == FREE) {
+            agg[i] = next;
+            for k in nb(i) {
+                agg[si[k] as usize] = next;
+            }
+            next += 1;
+        }
+    }
+    // Pass 2: join the pass-1 aggregate of the strongest aggregated neighbour.
+    let pass1 = agg.clone();
+    for i in 0..n {
+        if agg[i] != FREE {
+            continue;
+        }
+        let mut best = (0.0, FREE);
+        for k in nb(i) {
+            let g = pass1[si[k] as usize];
+            if g != FREE && sv[k] > best.0 {
+                best = (sv[k], g);
+            }
+        }
+        agg[i] = best.1;
+    }
+    // Pass 3: leftovers with strong neighbours form aggregates with their free
+    // strong neighbours.
+    for i in 0..n {
+        if agg[i] != FREE || sp[i] == sp[i + 1] {
+            continue;
+        }
+        agg[i] = next;
+        for k in nb(i) {
+            let j = si[k] as usize;
+            if agg[j] == FREE {
+                agg[j] = next;
+            }
+        }
+        next += 1;
+    }
+    (agg, next as usize)
+}
+
+/// `rho(D^-1 A)` by power iteration (Rayleigh quotient `x.Ax / x.Dx`).
+fn spectral_radius(a: &Bsr, dinv: &[f64], iters: usize) -> f64 {
+    let bs = a.bs;
+    let bb = bs * bs;
+    let n = a.rows * bs;
+    // Deterministic, non-smooth start.
+    let mut x: Vec<f64> = (0..n)
+        .map(|i| {
+            let h = (i as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+            ((h >> 11) as f64 / (1u64 << 53) as f64) + 0.5
+        })
+        .collect();
+    let mut ax = vec![0f64; n];
+    for _ in 0..iters.max(1) {
+        a.matvec(&x, &mut ax);
+        let y: Vec<f64> = ax
+            .par_chunks(bs)
+            .enumerate()
+            .flat_map_iter(|(i, r)| {
+                let m = &dinv[i * bb..(i + 1) * bb];
+                (0..bs).map(move |q| (0..bs).map(|t| m[q * bs + t] * r[t]).sum::<f64>())
+            })
+            .collect();
+        let ny = y.iter().map(|v| v * v).sum::<f64>().sqrt();
+        if !(ny > 0.0 && ny.is_finite()) {
+            break;
+        }
+        x = y.into_iter().map(|v| v / ny).collect();
+    }
+    // Rayleigh quotient of the generalised problem A x = lambda D x.
+    a.matvec(&x, &mut ax);
+    let xax: f64 = x.iter().zip(&ax).map(|(a, b)| a * b).sum();
+    let xdx = d_norm2(a, &x);
+    let rho = if xdx > 0.0 && xax.is_finite() {
+        xax / xdx
+    } else {
+        1.0
+    };
+    rho.max(1e-12)
+}
+
+/// `x . D x` with `D` the block diagonal of `a`.
+fn d_norm2(a: &Bsr, x: &[f64]) -> f64 {
+    let bs = a.bs;
+    (0..a.rows)
+        .into_par_iter()
+        .map(|i| {
+            let Some(k) = a.range(i).find(|&k| a.col_idx[k] as usize == i) else {
+                return 0.0;
+            };
+            let m = a.block(k);
+            let mut s = 0.0;
+            for q in 0..bs {
+                for t in 0..bs {
+                    s += x[i * bs + q] * m[q * bs + t] * x[i * bs + t];
+                }
+            }
+            s
+        })
+        .sum()
+}
+
+/// `P = (I - omega D^-1 A) P0` for the aggregation `agg`.
+fn smoothed_prolongator(a: &Bsr, dinv: &[f64], agg: &[u32], naggs: usize, omega: f64) -> Bsr {
+    let bs = a.bs;
+    let bb = bs * bs;
+    let rows: Vec<(Vec<u32>, Vec<f64>)> = (0..a.rows)
+        .into_par_iter()
+        .map(|i| {
+            // (A P0) row i: blocks A_ij summed per aggregate of j.
+            let mut cols: Vec<u32> = Vec::new();
+            let mut acc: Vec<f64> = Vec::new();
+            for k in a.range(i) {
+                let g = agg[a.col_idx[k] as usize];
+                if g == u32::MAX {
+                    continue;
+                }
+                let p = match cols.iter().position(|&c| c == g) {
+                    Some(p) => p,
+                    None => {
+                        cols.push(g);
+                        acc.resize(acc.len() + bb, 0.0);
+                        cols.len() - 1
+                    }
+                };
+                for (o, v) in acc[p * bb..(p + 1) * bb].iter_mut().zip(a.block(k)) {
+                    *o += v;
+                }
+            }
+            if agg[i] != u32::MAX && !cols.contains(&agg[i]) {
+                cols.push(agg[i]);
+                acc.resize(acc.len() + bb, 0.0);
+            }
+            let m = &dinv[i * bb..(i + 1) * bb];
+            let mut order: Vec<usize> = (0..cols.len()).collect();
+            order.sort_unstable_by_key(|&p| cols[p]);
+            let mut oc = Vec::with_capacity(cols.len());
+            let mut ov = Vec::with_capacity(acc.len());
+            for p in order {
+                let mut blk = vec![0f64; bb];
+                gemm_acc(bs, m, &acc[p * bb..(p + 1) * bb], &mut blk);
+                for v in blk.iter_mut() {
+                    *v *= -omega;
+                }
+                if cols[p] == agg[i] {
+                    for q in 0..bs {
+                        blk[q * bs + q] += 1.0;
+                    }
+                }
+                oc.push(cols[p]);
+                ov.extend_from_slice(&blk);
+            }
+            (oc, ov)
+        })
+        .collect();
+    assemble(bs, a.rows, naggs, rows)
+}
+
+/// Inverse of a dense SPD matrix (row-major `n x n`) by Cholesky, or `None`.
+pub fn dense_spd_inverse(a: &[f64], n: usize) -> Option<Vec<f64>> {
+    // L row-major, lower.
+    let mut l = a.to_vec();
+    for j in 0..n {
+        let mut d = l[j * n + j];
+        for k in 0..j {
+            d -= l[j * n + k] * l[j * n + k];
+        }
+        if !(d > 0.0 && d.is_finite()) {
+            return None;
+        }
+        let d = d.sqrt();
+        l[j * n + j] = d;
+        let (head, tail) = l.split_at_mut((j + 1) * n);
+        let lj = &head[j * n..j * n + j];
+        tail.par_chunks_mut(n).for_each(|row| {
+            let mut s = row[j];
+            for k in 0..j {
+                s -= row[k] * lj[k];
+            }
+            row[j] = s / d;
+        });
+    }
+    // Columns of A^-1 = L^-T L^-1 e_c, in parallel.
+    let cols: Vec<Vec<f64>> = (0..n)
+        .into_par_iter()
+        .map(|c| {
+            let mut y = vec![0f64; n];
+            y[c] = 1.0;
+            for i in c..n {
+                let mut s = y[i];
+                for k in c..i {
+                    s -= l[i * n + k] * y[k];
+                }
+                y[i] = s / l[i * n + i];
+            }
+            for i in (0..n).rev() {
+                let mut s = y[i];
+                for k in i + 1..n {
+                    s -= l[k * n + i] * y[k];
+                }
+                y[i] = s / l[i * n + i];
+            }
+            y
+        })
+        .collect();
+    let mut inv = vec![0f64; n * n];
+    for (c, col) in cols.iter().enumerate() {
+        for r in 0..n {
+            inv[r * n + c] = col[r];
+        }
+    }
+    Some(inv)
+}
+
+impl Hierarchy {
+    /// Build the hierarchy of `a` (full symmetric BSR, held rows identity).
+    /// `reuse`: a previous hierarchy of a matrix with the same pattern, whose
+    /// aggregates are kept (only the values are recomputed; the level patterns
+    /// then stay the same).
+    pub fn build(
+        a: Bsr,
+        opts: &AmgOptions,
+        reuse: Option<&Hierarchy>,
+    ) -> Result<Hierarchy, AmgError> {
+        let bs = a.bs;
+        let reuse = reuse.filter(|h| {
+            h.bs == bs
+                && h.opts == *opts
+                && h.levels
+                    .first()
+                    .map_or(&h.coarse, |l| &l.a)
+                    .same_pattern(&a)
+        });
+        let mut levels: Vec<Level> = Vec::new();
+        let mut a = a;
+        loop {
+            let depth = levels.len();
+            let dinv = a.inverse_diagonal().ok_or(AmgError::NotPositiveDefinite)?;
+            let (agg, naggs) = match reuse {
+                Some(h) => match h.levels.get(depth) {
+                    Some(l) => (l.agg.clone(), l.naggs),
+                    None => break,
+                },
+                None => {
+                    if a.rows * bs <= opts.max_coarse || depth + 1 >= opts.max_levels {
+                        break;
+                    }
+                    let (agg, naggs) = aggregate(&a, opts.theta);
+                    if naggs == 0 || naggs as f64 > 0.8 * a.rows as f64 {
+                        break;
+                    }
+                    (agg, naggs)
+                }
+            };
+            let rho = spectral_radius(&a, &dinv, opts.power_iterations);
+            let omega = 4.0 / (3.0 * rho);
+            let p = smoothed_prolongator(&a, &dinv, &agg, naggs, omega);
+            let r = p.transpose();
+            let ac = r.mul(&a.mul(&p));
+            levels.push(Level {
+                a,
+                dinv,
+                omega: opts.smoother_weight / rho,
+                agg,
+                naggs,
+                p,
+                r,
+            });
+            a = ac;
+        }
+        let n = a.rows * bs;
+        if n > opts.dense_max {
+            return Err(AmgError::Stalled(n, opts.dense_max));
+        }
+        let coarse_inv =
+            dense_spd_inverse(&a.dense_symmetric(), n).ok_or(AmgError::NotPositiveDefinite)?;
+        Ok(Hierarchy {
+            bs,
+            opts: *opts,
+            levels,
+            coarse: a,
+            coarse_inv,
+        })
+    }
+
+    /// Unknowns per level, finest first (the coarsest last).
+    pub fn sizes(&self) -> Vec<usize> {
+        self.levels
+            .iter()
+            .map(|l| &l.a)
+            .chain([&self.coarse])
+            .map(|a| a.rows * self.bs)
+            .collect()
+    }
+
+    /// Stored blocks of all levels over those of the finest (operator complexity).
+    pub fn operator_complexity(&self) -> f64 {
+        let all: usize =
+            self.levels.iter().map(|l| l.a.nnz_blocks()).sum::<usize>() + self.coarse.nnz_blocks();
+        let fine = self
+            .levels
+            .first()
+            .map_or(self.coarse.nnz_blocks(), |l| l.a.nnz_blocks());
+        all as f64 / fine.max(1) as f64
+    }
+
+    /// Unknowns of the finest level.
+    pub fn n(&self) -> usize {
+        self.sizes()[0]
+    }
+
+    /// `z = M^-1 b` (one V-cycle, f64) for one column.
+    pub fn vcycle(&self, b: &[f64]) -> Vec<f64> {
+        self.vcycle_at(0, b)
+    }
+
+    fn vcycle_at(&self, l: usize, b: &[f64]) -> Vec<f64> {
+        let Some(lv) = self.levels.get(l) else {
+            let n = b.len();
+            return (0..n)
+                .into_par_iter()
+                .map(|r| {
+                    let row = &self.coarse_inv[r * n..(r + 1) * n];
+                    row.iter().zip(b).map(|(a, x)| a * x).sum()
+                })
+                .collect();
+        };
+        let n = b.len();
+        let mut x = vec![0f64; n];
+        let mut t = vec![0f64; n];
+        jacobi(lv, b, &mut x, false);
+        for _ in 1..self.opts.sweeps {
+            residual(&lv.a, b, &x, &mut t);
+            jacobi(lv, &t, &mut x, true);
+        }
+        residual(&lv.a, b, &x, &mut t);
+        let mut bc = vec![0f64; lv.r.rows * self.bs];
+        lv.r.matvec(&t, &mut bc);
+        let xc = self.vcycle_at(l + 1, &bc);
+        lv.p.matvec(&xc, &mut t);
+        for (a, b) in x.iter_mut().zip(&t) {
+            *a += b;
+        }
+        for _ in 0..self.opts.sweeps {
+            residual(&lv.a, b, &x, &mut t);
+            jacobi(lv, &t, &mut x, true);
+        }
+        x
+    }
+}
+
+/// `t = b - A x`.
+fn residual(a: &Bsr, b: &[f64], x: &[f64], t: &mut [f64]) {
+    a.matvec(x, t);
+    t.par_iter_mut().zip(b).for_each(|(t, b)| *t = b - *t);
+}
+
+/// `x = w D^-1 t` (`add`: `x += w D^-1 t`).
+fn jacobi(lv: &Level, t: &[f64], x: &mut [f64], add: bool) {
+    let bs = lv.a.bs;
+    let bb = bs * bs;
+    x.par_chunks_mut(bs).enumerate().for_each(|(i, out)| {
+        let m = &lv.dinv[i * bb..(i + 1) * bb];
+        for q in 0..bs {
+            let s: f64 = (0..bs).map(|u| m[q * bs + u] * t[i * bs + u]).sum();
+            if add {
+                out[q] += lv.omega * s;
+            } else {
+                out[q] = lv.omega * s;
+            }
+        }
+    });
+}
+
+/// Plain f64 PCG with preconditioner `prec` (for the tests): iterations to
+/// `||r|| <= tol ||b||`, or `None` past `max_iters`.
+pub fn pcg(
+    a: &Bsr,
+    b: &[f64],
+    tol: f64,
+    max_iters: usize,
+    prec: impl Fn(&[f64]) -> Vec<f64>,
+) -> Option<(Vec<f64>, usize)> {
+    let dot = |u: &[f64], v: &[f64]| u.iter().zip(v).map(|(a, b)| a * b).sum::<f64>();
+    let n = b.len();
+    let mut x = vec![0f64; n];
+    let mut r = b.to_vec();
+    let bn = dot(b, b).sqrt();
+    let mut z = prec(&r);
+    let mut p = z.clone();
+    let mut rz = dot(&r, &z);
+    let mut ap = vec![0f64; n];
+    for it in 1..=max_iters {
+        a.matvec(&p, &mut ap);
+        let alpha = rz / dot(&p, &ap);
+        for i in 0..n {
+            x[i] += alpha * p[i];
+            r[i] -= alpha * ap[i];
+        }
+        if dot(&r, &r).sqrt() <= tol * bn {
+            return Some((x, it));
+        }
+        z = prec(&r);
+        let rz1 = dot(&r, &z);
+        let beta = rz1 / rz;
+        rz = rz1;
+        for i in 0..n {
+            p[i] = z[i] + beta * p[i];
+        }
+    }
+    None
+}
+
+/// Block-Jacobi preconditioner of `a` (for comparisons in the tests).
+pub fn block_jacobi(a: &Bsr) -> impl Fn(&[f64]) -> Vec<f64> + '_ {
+    let dinv = a.inverse_diagonal().expect("SPD diagonal blocks");
+    let bs = a.bs;
+    move |r: &[f64]| {
+        let mut z = vec![0f64; r.len()];
+        for i in 0..a.rows {
+            let m = &dinv[i * bs * bs..(i + 1) * bs * bs];
+            for q in 0..bs {
+                z[i * bs + q] = (0..bs).map(|u| m[q * bs + u] * r[i * bs + u]).sum();
+            }
+        }
+        z
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// 2-D grid Laplacian (x) I_bs on nx x ny (5-point, plus one diagonal),
+    /// weights varying smoothly, with weak random-ish 3x3 couplings, a small
+    /// mass term, and every `held`-th node an identity row.
+    pub(crate) fn grid(nx: usize, ny: usize, bs: usize, held: usize) -> Bsr {
+        let n = nx * ny;
+        let id = |i: usize, j: usize| j * nx + i;
+        let mut nbrs: Vec<Vec<(usize, f64)>> = vec![Vec::new(); n];
+        for j in 0..ny {
+            for i in 0..nx {
+                let mut link = |a: usize, b: usize, w: f64| {
+                    nbrs[a].push((b, w));
+                    nbrs[b].push((a, w));
+                };
+                let w = 1.0 + 0.5 * ((i as f64 * 0.37).sin() * (j as f64 * 0.23).cos());
+                if i + 1 < nx {
+                    link(id(i, j), id(i + 1, j), w);
+                }
+                if j + 1 < ny {
+                    // Anisotropic: the vertical couplings are weaker.
+                    link(id(i, j), id(i, j + 1), 0.3 * w);
+                }
+                if i + 1 < nx && j + 1 < ny {
+                    link(id(i, j), id(i + 1, j + 1), 0.02 * w);
+                }
+            }
+        }
+        let is_held = |v: usize| held > 0 && v % held == 7;
+        let bb = bs * bs;
+        let mut parts = Vec::new();
+        for (v, nb) in nbrs.iter_mut().enumerate() {
+            nb.sort_by_key(|e| e.0);
+            let mut cols = Vec::new();
+            let mut vals = Vec::new();
+            let mut diag = 0.0;
+            for &(_, w) in nb.iter() {
+                diag += w;
+            }
+            let mut entries: Vec<(usize, Vec<f64>)> = Vec::new();
+            for &(u, w) in nb.iter() {
+                let mut b = vec![0f64; bb];
+                for q in 0..bs {
+                    b[q * bs + q] = -w;
+                }
+                if bs == 3 {
+                    // Weak coupling between components: L (x) K, K SPD.
+                    b[1] = -0.05 * w;
+                    b[3] = -0.05 * w;
+                }
+                if is_held(v) || is_held(u) {
+                    b.fill(0.0);
+                }
+                entries.push((u, b));
+            }
+            let mut d = vec![0f64; bb];
+            for q in 0..bs {
+                d[q * bs + q] = if is_held(v) { 1.0 } else { diag + 1e-3 };
+            }
+            if bs == 3 && !is_held(v) {
+                d[1] = 0.05 * diag;
+                d[3] = 0.05 * diag;
+            }
+            entries.push((v, d));
+            entries.sort_by_key(|e| e.0);
+            for (u, b) in entries {
+                cols.push(u as u32);
+                vals.extend(b);
+            }
+            parts.push((cols, vals));
+        }
+        assemble(bs, n, n, parts)
+    }
+
+    fn rhs(n: usize) -> Vec<f64> {
+        (0..n)
+            .map(|i| ((i as f64) * 0.731).sin() + 0.3 * ((i * i % 17) as f64 - 8.0) / 8.0)
+            .collect()
+    }
+
+    #[test]
+    fn transpose_and_product_match_dense() {
+        let a = grid(7, 5, 3, 11);
+        let (agg, naggs) = aggregate(&a, 0.08);
+        let dinv = a.inverse_diagonal().unwrap();
+        let p = smoothed_prolongator(&a, &dinv, &agg, naggs, 0.5);
+        let r = p.transpose();
+        let ac = r.mul(&a.mul(&p));
+        let n = a.rows * 3;
+        let nc = naggs * 3;
+        let x: Vec<f64> = rhs(nc);
+        // Ac x == R (A (P x))
+        let mut px = vec![0.0; n];
+        p.matvec(&x, &mut px);
+        let mut apx = vec![0.0; n];
+        a.matvec(&px, &mut apx);
+        let mut want = vec![0.0; nc];
+        r.matvec(&apx, &mut want);
+        let mut got = vec![0.0; nc];
+        ac.matvec(&x, &mut got);
+        for (g, w) in got.iter().zip(&want) {
+            assert!((g - w).abs() < 1e-12 * (1.0 + w.abs()), "{g} vs {w}");
+        }
+        // R == P^T entrywise: x . (P y) == (R x) . y
+        let y = rhs(n);
+        let mut ry = vec![0.0; nc];
+        r.matvec(&y, &mut ry);
+        let lhs: f64 = y.iter().zip(&px).map(|(a, b)| a * b).sum();
+        let rhs_: f64 = ry.iter().zip(&x).map(|(a, b)| a * b).sum();
+        assert!((lhs - rhs_).abs() < 1e-10 * lhs.abs().max(1.0));
+    }
+
+    #[test]
+    fn aggregation_covers_connected_rows_and_skips_held_ones() {
+        let a = grid(30, 20, 1, 13);
+        let (agg, naggs) = aggregate(&a, 0.08);
+        assert!(naggs > 0 && naggs < a.rows / 3, "{naggs} aggregates");
+        for (v, &g) in agg.iter().enumerate() {
+            if v % 13 == 7 {
+                assert_eq!(g, u32::MAX);
+            } else {
+                assert!((g as usize) < naggs);
+            }
+        }
+    }
+
+    #[test]
+    fn dense_inverse() {
+        let a = grid(6, 5, 3, 0);
+        let n = a.rows * 3;
+        let d = a.dense_symmetric();
+        let inv = dense_spd_inverse(&d, n).unwrap();
+        for r in 0..n {
+            for c in 0..n {
+                let s: f64 = (0..n).map(|k| d[r * n + k] * inv[k * n + c]).sum();
+                assert!((s - if r == c { 1.0 } else { 0.0 }).abs() < 1e-10);
+            }
+        }
+    }
+
+    #[test]
+    fn vcycle_is_symmetric() {
+        let a = grid(40, 30, 3, 17);
+        let h = Hierarchy::build(
+            a,
+            &AmgOptions {
+                max_coarse: 60,
+                ..Default::default()
+            },
+            None,
+        )
+        .unwrap();
+        assert!(h.levels.len() >= 2, "{:?}", h.sizes());
+        let n = h.n();
+        let u = rhs(n);
+        let v: Vec<f64> = (0..n).map(|i| ((i as f64) * 1.3).cos()).collect();
+        let (mu, mv) = (h.vcycle(&u), h.vcycle(&v));
+        let a1: f64 = v.iter().zip(&mu).map(|(a, b)| a * b).sum();
+        let a2: f64 = u.iter().zip(&mv).map(|(a, b)| a * b).sum();
+        assert!((a1 - a2).abs() < 1e-10 * a1.abs(), "{a1} vs {a2}");
+        let pos: f64 = u.iter().zip(&mu).map(|(a, b)| a * b).sum();
+        assert!(pos > 0.0);
+    }
+
+    #[test]
+    fn amg_pcg_needs_far_fewer_iterations_than_block_jacobi() {
+        for bs in [3, 1] {
+            let a = grid(120, 100, bs, 97);
+            let b = rhs(a.rows * bs);
+            let t = std::time::Instant::now();
+            let h = Hierarchy::build(a.clone(), &AmgOptions::default(), None).unwrap();
+            let setup = t.elapsed();
+            let (xa, ia) = pcg(&a, &b, 1e-8, 2000, |r| h.vcycle(r)).unwrap();
+            let (xj, ij) = pcg(&a, &b, 1e-8, 5000, block_jacobi(&a)).unwrap();
+            eprintln!(
+                "bs {bs}: {} unknowns, levels {:?}, complexity {:.2}, setup {setup:?}: \
+                 AMG {ia} iterations, block Jacobi {ij}",
+                a.rows * bs,
+                h.sizes(),
+                h.operator_complexity()
+            );
+            let e: f64 = xa
+                .iter()
+                .zip(&xj)
+                .map(|(a, b)| (a - b).powi(2))
+                .sum::<f64>()
+                .sqrt()
+                / xj.iter().map(|v| v * v).sum::<f64>().sqrt();
+            assert!(e < 1e-6, "{e}");
+            assert!(ia * 5 < ij, "AMG {ia} vs Jacobi {ij}");
+            // Same pattern: the aggregates are reused and the patterns repeat.
+            let h2 = Hierarchy::build(a.clone(), &AmgOptions::default(), Some(&h)).unwrap();
+            assert_eq!(h2.sizes(), h.sizes());
+            for (l1, l2) in h.levels.iter().zip(&h2.levels) {
+                assert!(l1.p.same_pattern(&l2.p) && l1.a.same_pattern(&l2.a));
+            }
+        }
+    }
+}
