@@ -78,6 +78,18 @@ impl BlockSym3 {
         }
     }
 
+    /// Checks that `fixed` has one flag per block row (the `prepare_blocks` contract).
+    pub fn check_fixed(&self, fixed: &[bool]) -> Result<(), crate::SolverError> {
+        if fixed.len() == self.n {
+            return Ok(());
+        }
+        Err(crate::SolverError::DimensionMismatch(format!(
+            "{} fixed flags for {} block rows",
+            fixed.len(),
+            self.n
+        )))
+    }
+
     pub fn clear(&mut self) {
         self.blocks.iter_mut().for_each(|b| *b = [0.0; 9]);
     }

@@ -94,13 +94,7 @@ impl SpdSolver for CholeskySolver {
     }
 
     fn prepare_blocks(&mut self, a: &BlockSym3, fixed: &[bool]) -> Result<(), SolverError> {
-        if fixed.len() != a.n {
-            return Err(SolverError::DimensionMismatch(format!(
-                "{} fixed flags for {} block rows",
-                fixed.len(),
-                a.n
-            )));
-        }
+        a.check_fixed(fixed)?;
         let same =
             matches!(&self.block_scalar, Some((cp, ri, _)) if *cp == a.col_ptr && *ri == a.row_idx);
         if !same {

@@ -136,13 +136,7 @@ impl SpdSolver for BlockPcgSolver {
     }
 
     fn prepare_blocks(&mut self, a: &BlockSym3, fixed: &[bool]) -> Result<(), SolverError> {
-        if fixed.len() != a.n {
-            return Err(SolverError::DimensionMismatch(format!(
-                "{} fixed flags for {} block rows",
-                fixed.len(),
-                a.n
-            )));
-        }
+        a.check_fixed(fixed)?;
         let n = a.n;
         let mut refactor = self.scalar_mode
             || self.factored_trace == 0.0
