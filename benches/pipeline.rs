@@ -4,6 +4,9 @@
 //! `cargo bench --bench pipeline` (add `-- --quick` to skip the largest mesh).
 //! Each row runs in a fresh child process so that peak memory is per run.
 
+#[path = "../tests/common/mod.rs"]
+mod common;
+
 use metricdeform::deform::{deform, max_error, Options, Problem};
 use metricdeform::job::{Job, JobFormat};
 use metricdeform::report::peak_memory_mb;
@@ -22,35 +25,6 @@ region = { sphere = { center = [0.0, 0.55, -0.4], radius = 0.35 } }
 scale = 1.3
 [[constraint]]
 kind = "volume"
-"#;
-
-const FANDISK_JOB: &str = r#"
-mesh = "fandisk.obj"
-[[constraint]]
-kind = "area"
-region = { box = { min = [-100.0, 16.0, -100.0], max = [100.0, 100.0, 100.0] } }
-scale = 2.0
-[[constraint]]
-kind = "area"
-region = { box = { min = [-100.0, -100.0, -100.0], max = [100.0, 14.0, 100.0] } }
-"#;
-
-const HOMER_JOB: &str = r#"
-mesh = "homer.obj"
-[[constraint]]
-kind = "length"
-curve = { plane = { origin = [0.5, 0.5, 0.49], normal = [0.0, 1.0, 0.0] } }
-scale = 1.2
-[[constraint]]
-kind = "length"
-curve = { plane = { origin = [0.5, 0.85, 0.49], normal = [0.0, 1.0, 0.0] } }
-[[constraint]]
-kind = "area"
-region = { box = { min = [-10.0, 0.6, -10.0], max = [10.0, 10.0, 10.0] } }
-scale = 1.2
-[[constraint]]
-kind = "volume"
-scale = 1.1
 "#;
 
 fn row(name: &str, job_text: &str, subdivisions: usize, multipliers: &str) {
@@ -88,10 +62,10 @@ fn main() {
         let (name, mult) = (&args[i + 1], &args[i + 2]);
         match name.as_str() {
             "spot" => row("spot", SPOT_JOB, 0, mult),
-            "fandisk" => row("fandisk", FANDISK_JOB, 0, mult),
-            "homer" => row("homer", HOMER_JOB, 0, mult),
+            "fandisk" => row("fandisk", &common::fig9_fandisk(2.0), 0, mult),
+            "homer" => row("homer", common::TABLE1_HOMER, 0, mult),
             "spot-x16" => row("spot-x16", SPOT_JOB, 2, mult),
-            "homer-x16" => row("homer-x16", HOMER_JOB, 2, mult),
+            "homer-x16" => row("homer-x16", common::TABLE1_HOMER, 2, mult),
             "spot-x64" => row("spot-x64", SPOT_JOB, 3, mult),
             "spot-x256" => row("spot-x256", SPOT_JOB, 4, mult),
             _ => panic!("unknown row {name}"),
