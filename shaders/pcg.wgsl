@@ -11,6 +11,8 @@
 //   finish_beta  rz' = sum slot 0, rr = sum slot 1; beta = rz' / rz; rz = rz';
 //                done when rr <= thr                                (1 workgroup)
 //   direction    p = z + beta p
+// With the AMG preconditioner, `update` is replaced by `update_amg` (no z, no
+// r . z), the V-cycle (amg.wgsl) writes z = M^-1 r, and `dot_rz` adds r . z.
 // Start: x = p = Ap = 0, r = b, alpha = rz = 0; then update, finish_beta and
 // direction give z = M^-1 b, p = z, rz = b . z.
 //
@@ -141,6 +143,98 @@ fn update(
         for (var c = 0u; c < ncols; c++) {
             partials[c * P.groups + g] = red[c * WG];
             partials[(ncols + c) * P.groups + g] = red[(CMAX + c) * WG];
+        }
+    }
+}
+
+// `update` without the preconditioner, for the AMG V-cycle (amg.wgsl), which
+// runs between this kernel and `dot_rz`: x += alpha p, r -= alpha Ap, partials
+// slot 1 = r . r (slot 0 is left to dot_rz).
+@compute @workgroup_size(128)
+fn update_amg(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let g = wid.x + wid.y * nwg.x;
+    if g >= P.groups {
+        return;
+    }
+    let ncols = NCOLS;
+    let bs = min(P.bs, 3u);
+    let row = g * WG + lid;
+    var rr: array<f32, 8>;
+    if row < P.rows {
+        for (var c = 0u; c < ncols; c++) {
+            let alpha = cols[c].alpha;
+            let o = c * P.n + row * bs;
+            for (var q = 0u; q < bs; q++) {
+                let i = o + q;
+                x[i] += alpha * p[i];
+                let rn = r[i] - alpha * ap[i];
+                r[i] = rn;
+                rr[c] += rn * rn;
+            }
+        }
+    }
+    for (var c = 0u; c < ncols; c++) {
+        red[(CMAX + c) * WG + lid] = rr[c];
+    }
+    workgroupBarrier();
+    for (var s = WG / 2u; s > 0u; s >>= 1u) {
+        if lid < s {
+            for (var c = 0u; c < ncols; c++) {
+                red[(CMAX + c) * WG + lid] += red[(CMAX + c) * WG + lid + s];
+            }
+        }
+        workgroupBarrier();
+    }
+    if lid == 0u {
+        for (var c = 0u; c < ncols; c++) {
+            partials[(ncols + c) * P.groups + g] = red[(CMAX + c) * WG];
+        }
+    }
+}
+
+// Partials slot 0 = r . z after the AMG V-cycle has written z (pairs with
+// update_amg).
+@compute @workgroup_size(128)
+fn dot_rz(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let g = wid.x + wid.y * nwg.x;
+    if g >= P.groups {
+        return;
+    }
+    let ncols = NCOLS;
+    let bs = min(P.bs, 3u);
+    let row = g * WG + lid;
+    var rz: array<f32, 8>;
+    if row < P.rows {
+        for (var c = 0u; c < ncols; c++) {
+            let o = c * P.n + row * bs;
+            for (var q = 0u; q < bs; q++) {
+                rz[c] += r[o + q] * z[o + q];
+            }
+        }
+    }
+    for (var c = 0u; c < ncols; c++) {
+        red[c * WG + lid] = rz[c];
+    }
+    workgroupBarrier();
+    for (var s = WG / 2u; s > 0u; s >>= 1u) {
+        if lid < s {
+            for (var c = 0u; c < ncols; c++) {
+                red[c * WG + lid] += red[c * WG + lid + s];
+            }
+        }
+        workgroupBarrier();
+    }
+    if lid == 0u {
+        for (var c = 0u; c < ncols; c++) {
+            partials[c * P.groups + g] = red[c * WG];
         }
     }
 }

@@ -395,8 +395,8 @@ pub fn aggregate(a: &Bsr, theta: f64) -> (Vec<u32>, usize) {
     }
     // Pass 2: join the pass-1 aggregate of the strongest aggregated neighbour.
     let pass1 = agg.clone();
-    for i in 0..n {
-        if agg[i] != FREE {
+    for (i, slot) in agg.iter_mut().enumerate() {
+        if *slot != FREE {
             continue;
         }
         let mut best = (0.0, FREE);
@@ -406,7 +406,7 @@ pub fn aggregate(a: &Bsr, theta: f64) -> (Vec<u32>, usize) {
                 best = (sv[k], g);
             }
         }
-        agg[i] = best.1;
+        *slot = best.1;
     }
     // Pass 3: leftovers with strong neighbours form aggregates with their free
     // strong neighbours.

@@ -235,9 +235,18 @@ impl Context {
     }
 
     pub fn uniform(&self, what: &str, p: &Params) -> Result<wgpu::Buffer, GpuError> {
+        self.uniform_of(what, p)
+    }
+
+    /// A uniform buffer holding `p` (any parameter struct).
+    pub fn uniform_of<T: bytemuck::Pod>(
+        &self,
+        what: &str,
+        p: &T,
+    ) -> Result<wgpu::Buffer, GpuError> {
         let b = self.create(&wgpu::BufferDescriptor {
             label: Some(what),
-            size: std::mem::size_of::<Params>() as u64,
+            size: std::mem::size_of::<T>() as u64,
             usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         })?;
@@ -518,16 +527,29 @@ pub(crate) struct Kernel {
     entry: &'static str,
     module: wgpu::ShaderModule,
     pipeline_layout: wgpu::PipelineLayout,
+    /// Further pipeline-overridable constants (besides `NCOLS`).
+    consts: Vec<(&'static str, f64)>,
     variants: Mutex<Vec<Option<wgpu::ComputePipeline>>>,
 }
 
 impl Kernel {
     pub fn new(shader: &Shader, label: &'static str, entry: &'static str) -> Kernel {
+        Kernel::with_constants(shader, label, entry, &[])
+    }
+
+    /// A kernel whose pipelines also set the overridable constants `consts`.
+    pub fn with_constants(
+        shader: &Shader,
+        label: &'static str,
+        entry: &'static str,
+        consts: &[(&'static str, f64)],
+    ) -> Kernel {
         Kernel {
             label,
             entry,
             module: shader.module.clone(),
             pipeline_layout: shader.pipeline_layout.clone(),
+            consts: consts.to_vec(),
             variants: Mutex::new(vec![None; crate::CMAX]),
         }
     }
@@ -539,6 +561,8 @@ impl Kernel {
         if let Some(p) = &v[ncols - 1] {
             return Ok(p.clone());
         }
+        let mut constants = vec![("NCOLS", ncols as f64)];
+        constants.extend_from_slice(&self.consts);
         let scope = ctx.device.push_error_scope(wgpu::ErrorFilter::Validation);
         let p = ctx
             .device
@@ -548,7 +572,7 @@ impl Kernel {
                 module: &self.module,
                 entry_point: Some(self.entry),
                 compilation_options: wgpu::PipelineCompilationOptions {
-                    constants: &[("NCOLS", ncols as f64)],
+                    constants: &constants,
                     // Every workgroup-memory slot is written before it is read.
                     zero_initialize_workgroup_memory: false,
                 },

@@ -154,6 +154,34 @@ pub fn block_jacobi(s: &GpuSolver, r: &[f32], ncols: usize) -> Result<Vec<f32>, 
     ctx.read(&z, r.len(), &mut None, Some(enc))
 }
 
+/// `z = M^-1 r`: one AMG V-cycle on the GPU with the prepared matrix's
+/// hierarchy (AMG must be the active preconditioner). `z` and every level vector
+/// are poisoned with NaN first.
+pub fn amg_vcycle(s: &mut GpuSolver, r: &[f32], ncols: usize) -> Result<Vec<f32>, GpuError> {
+    check_cols(s, r.len(), ncols)?;
+    if s.amg_gpu.is_none() {
+        return Err(GpuError::Backend(
+            "AMG is not the active preconditioner".into(),
+        ));
+    }
+    s.workspace(ncols)?;
+    let ctx = &s.ctx;
+    let ws = s.ws.as_ref().unwrap();
+    let v = ws.amg.as_ref().unwrap();
+    ctx.queue.write_buffer(&ws.r, 0, bytemuck::cast_slice(r));
+    for b in v.vectors.iter().chain([&ws.z]) {
+        let nan = vec![f32::NAN; (b.size() / 4) as usize];
+        ctx.queue.write_buffer(b, 0, bytemuck::cast_slice(&nan));
+    }
+    let pipelines = v.pipelines(ctx, &s.k.amg, ncols)?;
+    let mut enc = ctx.encoder("amg vcycle");
+    {
+        let mut pass = enc.begin_compute_pass(&Default::default());
+        v.record(&mut pass, &pipelines);
+    }
+    ctx.read(&ws.z, r.len(), &mut None, Some(enc))
+}
+
 /// Result of one f32 PCG run ([`pcg`]).
 #[derive(Debug, Clone)]
 pub struct PcgOutput {
@@ -209,6 +237,7 @@ pub fn pcg(
         max_iters,
         s.check_every,
         rel_tol == 0.0,
+        Some(&s.k.amg),
     )?;
     let x = s.k.pcg.read_x(&s.ctx, ws, ncols)?;
     Ok(PcgOutput {

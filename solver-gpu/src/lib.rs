@@ -39,6 +39,7 @@
 //! number of columns seen and reused.
 
 pub mod amg;
+pub mod amg_gpu;
 pub mod block_jacobi;
 pub mod bsr_spmv;
 pub mod csr_spmv;
@@ -59,6 +60,32 @@ use solver_cpu::{BlockSym3, SolveInfo, SolverError, SpdSolver, SymCsc};
 
 /// Most right-hand sides one PCG batch carries (more are solved in batches).
 pub const CMAX: usize = 8;
+
+/// The preconditioner of the f32 PCG.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Preconditioner {
+    /// `M = blockdiag(A)` (3x3 blocks, or plain Jacobi for the scalar system).
+    BlockJacobi,
+    /// One smoothed-aggregation AMG V-cycle ([`amg`], [`amg_gpu`]); the default.
+    #[default]
+    Amg,
+}
+
+impl Preconditioner {
+    /// From `METRICDEFORM_GPU_PRECONDITIONER` (`jacobi` or `amg`), else the default.
+    pub fn from_env() -> Preconditioner {
+        match std::env::var("METRICDEFORM_GPU_PRECONDITIONER")
+            .unwrap_or_default()
+            .to_lowercase()
+            .as_str()
+        {
+            "jacobi" | "block-jacobi" | "block_jacobi" | "blockjacobi" => {
+                Preconditioner::BlockJacobi
+            }
+            _ => Preconditioner::Amg,
+        }
+    }
+}
 
 /// Errors of the GPU backend.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -137,6 +164,7 @@ pub fn open_with(opts: OpenOptions) -> Result<GpuSolver, GpuError> {
         dot: dot::Dot::new(&ctx)?,
         jacobi: block_jacobi::BlockJacobi::new(&ctx)?,
         pcg: pcg::Pcg::new(&ctx)?,
+        amg: amg_gpu::AmgKernels::new(&ctx)?,
     };
     ctx.check()?;
     Ok(GpuSolver {
@@ -153,6 +181,11 @@ pub fn open_with(opts: OpenOptions) -> Result<GpuSolver, GpuError> {
         stats: SolveStats::default(),
         pattern_uploads: 0,
         value_uploads: 0,
+        preconditioner: Preconditioner::from_env(),
+        amg_opts: amg::AmgOptions::default(),
+        amg_host: None,
+        amg_gpu: None,
+        amg_setup_seconds: 0.0,
     })
 }
 
@@ -162,6 +195,7 @@ pub(crate) struct Kernels {
     pub dot: dot::Dot,
     pub jacobi: block_jacobi::BlockJacobi,
     pub pcg: pcg::Pcg,
+    pub amg: amg_gpu::AmgKernels,
 }
 
 /// Counters of the last solve.
@@ -192,6 +226,12 @@ pub struct GpuSolver {
     pub pattern_uploads: usize,
     /// How many times only the values were rewritten.
     pub value_uploads: usize,
+    preconditioner: Preconditioner,
+    amg_opts: amg::AmgOptions,
+    /// The AMG hierarchy of the prepared matrix (`None`: block Jacobi in use).
+    amg_host: Option<amg::Hierarchy>,
+    amg_gpu: Option<amg_gpu::GpuHierarchy>,
+    amg_setup_seconds: f64,
 }
 
 impl GpuSolver {
@@ -243,6 +283,102 @@ impl GpuSolver {
         self.stats
     }
 
+    /// Choose the preconditioner (default [`Preconditioner::Amg`], or
+    /// `METRICDEFORM_GPU_PRECONDITIONER=jacobi|amg`); a prepared matrix gets
+    /// the new one at once.
+    pub fn set_preconditioner(&mut self, p: Preconditioner) -> Result<(), GpuError> {
+        if p == self.preconditioner {
+            return Ok(());
+        }
+        self.preconditioner = p;
+        self.ws = None;
+        self.amg_host = None;
+        self.amg_gpu = None;
+        if self.host.is_some() {
+            self.setup_amg()?;
+        }
+        Ok(())
+    }
+
+    /// The preconditioner asked for.
+    pub fn preconditioner(&self) -> Preconditioner {
+        self.preconditioner
+    }
+
+    /// The preconditioner of the prepared matrix: block Jacobi when AMG was not
+    /// asked for or its setup failed (coarsening stalled).
+    pub fn active_preconditioner(&self) -> Preconditioner {
+        if self.amg_gpu.is_some() {
+            Preconditioner::Amg
+        } else {
+            Preconditioner::BlockJacobi
+        }
+    }
+
+    /// Tuning of the AMG hierarchy (applies from the next prepare).
+    pub fn set_amg_options(&mut self, o: amg::AmgOptions) {
+        self.amg_opts = o;
+    }
+
+    /// The AMG hierarchy of the prepared matrix, if AMG is in use.
+    pub fn amg_hierarchy(&self) -> Option<&amg::Hierarchy> {
+        self.amg_host.as_ref()
+    }
+
+    /// Seconds the last AMG setup took on the CPU (hierarchy and upload).
+    pub fn amg_setup_seconds(&self) -> f64 {
+        self.amg_setup_seconds
+    }
+
+    /// Build (or refresh) the AMG hierarchy of the prepared host matrix.
+    fn setup_amg(&mut self) -> Result<(), GpuError> {
+        if self.preconditioner != Preconditioner::Amg {
+            self.amg_host = None;
+            self.amg_gpu = None;
+            return Ok(());
+        }
+        let t = std::time::Instant::now();
+        let h = self.host.as_ref().unwrap();
+        let fine = amg::Bsr {
+            bs: h.bs,
+            rows: h.rows,
+            cols: h.rows,
+            row_ptr: h.row_ptr.clone(),
+            col_idx: h.col_idx.clone(),
+            vals: h.vals.clone(),
+        };
+        let prev = self.amg_host.take();
+        let built = amg::Hierarchy::build(fine, &self.amg_opts, prev.as_ref());
+        let hier = match built {
+            Ok(hier) => hier,
+            Err(e) => {
+                log::warn!("AMG setup failed ({e}); block Jacobi instead");
+                self.amg_gpu = None;
+                self.ws = None;
+                return Ok(());
+            }
+        };
+        match (&self.amg_gpu, &prev) {
+            (Some(g), Some(p)) if amg_gpu::same_patterns(p, &hier) => {
+                g.write_values(&self.ctx, &hier);
+            }
+            _ => {
+                self.ws = None;
+                self.amg_gpu = None;
+                self.amg_gpu = Some(amg_gpu::GpuHierarchy::upload(&self.ctx, &hier)?);
+            }
+        }
+        log::debug!(
+            "AMG: levels {:?}, operator complexity {:.2}, setup {:.3} s",
+            hier.sizes(),
+            hier.operator_complexity(),
+            t.elapsed().as_secs_f64()
+        );
+        self.amg_host = Some(hier);
+        self.amg_setup_seconds = t.elapsed().as_secs_f64();
+        Ok(())
+    }
+
     fn spmv(&self) -> Spmv<'_> {
         match self.host.as_ref().map(|h| h.bs) {
             Some(1) => Spmv::Scalar(&self.k.csr),
@@ -269,6 +405,7 @@ impl GpuSolver {
             }
         }
         self.host = Some(h);
+        self.setup_amg()?;
         self.ctx.check()
     }
 
@@ -288,6 +425,17 @@ impl GpuSolver {
             h.bs,
             want,
         )?;
+        let mut ws = ws;
+        if let Some(g) = &self.amg_gpu {
+            ws.amg = Some(amg_gpu::VcycleWorkspace::new(
+                &self.ctx,
+                &self.k.amg,
+                g,
+                &ws.r,
+                &ws.z,
+                ws.cmax,
+            )?);
+        }
         self.ws = Some(ws);
         Ok(())
     }
@@ -376,6 +524,7 @@ impl GpuSolver {
                 self.max_iterations - total,
                 self.check_every,
                 false,
+                Some(&self.k.amg),
             )?;
             total += run.iterations();
             self.stats.rounds += 1;

@@ -24,6 +24,7 @@
 //! one bind group through one explicit layout serves them all. Every pipeline is
 //! specialised for the number of columns (`NCOLS` override, compiled on first use).
 
+use crate::amg_gpu::{AmgKernels, VcycleWorkspace};
 use crate::bsr_spmv::BsrSpmv;
 use crate::csr_spmv::CsrSpmv;
 use crate::device::{dispatch, Bind, Context, Kernel, Params, Shader, FLAT_WG, ROW_WG};
@@ -70,6 +71,8 @@ pub(crate) struct Pcg {
     pub finish_alpha: Kernel,
     pub finish_beta: Kernel,
     pub direction: Kernel,
+    pub update_amg: Kernel,
+    pub dot_rz: Kernel,
 }
 
 /// The SpMV kernel of the prepared matrix (block or scalar).
@@ -126,6 +129,9 @@ pub(crate) struct Workspace {
     row_dims: (u32, u32),
     pub staging_cols: Option<wgpu::Buffer>,
     pub staging_x: Option<wgpu::Buffer>,
+    /// The AMG V-cycle (z = M^-1 r) when the preconditioner is AMG, else the
+    /// block Jacobi fused into `update`.
+    pub amg: Option<VcycleWorkspace>,
 }
 
 impl Workspace {
@@ -179,6 +185,8 @@ impl Pcg {
             finish_alpha: Kernel::new(&shader, "pcg_finish_alpha", "finish_alpha"),
             finish_beta: Kernel::new(&shader, "pcg_finish_beta", "finish_beta"),
             direction: Kernel::new(&shader, "pcg_direction", "direction"),
+            update_amg: Kernel::new(&shader, "pcg_update_amg", "update_amg"),
+            dot_rz: Kernel::new(&shader, "pcg_dot_rz", "dot_rz"),
             shader,
         })
     }
@@ -252,6 +260,7 @@ impl Pcg {
             row_dims,
             staging_cols: None,
             staging_x: None,
+            amg: None,
         })
     }
 
@@ -271,6 +280,7 @@ impl Pcg {
         max_iters: usize,
         check_every: usize,
         fixed_batches: bool,
+        amg: Option<&AmgKernels>,
     ) -> Result<PcgRun, GpuError> {
         assert!(ncols >= 1 && ncols <= ws.cmax && thr.len() == ncols);
         let n = ws.n();
@@ -292,7 +302,23 @@ impl Pcg {
         let used = (n * ncols * 4) as u64;
         let k_spmv = spmv.kernel().pipeline(ctx, ncols)?;
         let k_alpha = self.finish_alpha.pipeline(ctx, ncols)?;
-        let k_update = self.update.pipeline(ctx, ncols)?;
+        // With AMG: update_amg, the V-cycle, dot_rz in place of update.
+        let vcycle = match (&ws.amg, amg) {
+            (Some(v), Some(k)) => Some((v, v.pipelines(ctx, k, ncols)?)),
+            _ => None,
+        };
+        let k_update = if vcycle.is_some() {
+            self.update_amg.pipeline(ctx, ncols)?
+        } else {
+            self.update.pipeline(ctx, ncols)?
+        };
+        let k_rz = self.dot_rz.pipeline(ctx, ncols)?;
+        let precondition = |pass: &mut wgpu::ComputePass| {
+            if let Some((v, pipes)) = &vcycle {
+                v.record(pass, pipes);
+                dispatch(pass, &k_rz, &ws.bg_pcg, ws.row_dims);
+            }
+        };
         let k_beta = self.finish_beta.pipeline(ctx, ncols)?;
         let k_dir = self.direction.pipeline(ctx, ncols)?;
         let mut enc = ctx.encoder("pcg init");
@@ -305,6 +331,7 @@ impl Pcg {
                 timestamp_writes: None,
             });
             dispatch(&mut pass, &k_update, &ws.bg_pcg, ws.row_dims);
+            precondition(&mut pass);
             dispatch(&mut pass, &k_beta, &ws.bg_pcg, (1, 1));
             dispatch(&mut pass, &k_dir, &ws.bg_pcg, flat_dims);
         }
@@ -328,6 +355,7 @@ impl Pcg {
                     dispatch(&mut pass, &k_spmv, &ws.bg_spmv, ws.row_dims);
                     dispatch(&mut pass, &k_alpha, &ws.bg_pcg, (1, 1));
                     dispatch(&mut pass, &k_update, &ws.bg_pcg, ws.row_dims);
+                    precondition(&mut pass);
                     dispatch(&mut pass, &k_beta, &ws.bg_pcg, (1, 1));
                     dispatch(&mut pass, &k_dir, &ws.bg_pcg, flat_dims);
                 }

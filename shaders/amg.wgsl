@@ -1,0 +1,178 @@
+// Smoothed-aggregation AMG V-cycle, the PCG preconditioner z = M^-1 r: the
+// per-level kernels. The hierarchy (A_l, P_l, R_l = P_l^T, inverted diagonal
+// blocks, the dense inverse of the coarsest matrix) is built on the CPU in f64
+// (solver-gpu/src/amg.rs) and uploaded as f32.
+//
+// Driven by solver-gpu/src/amg_gpu.rs, which records one V-cycle as a fixed
+// sequence of dispatches, each with its own bind group and parameters:
+//   jacobi  mode 0        x_l = w D_l^-1 b_l                    (first pre-sweep)
+//   spmv    mode 1        t_l = b_l - A_l x_l                   (residual)
+//   jacobi  mode 1        x_l += w D_l^-1 t_l                   (further sweeps)
+//   spmv    mode 0        b_l+1 = R_l t_l                       (restriction)
+//   dense                 x_L = C^-1 b_L                        (coarsest level)
+//   spmv    mode 2        x_l += P_l x_l+1                      (prolongation)
+//
+// Bindings (group 0), shared by every entry point:
+//   0  P        uniform   rows = output rows (block rows; scalar rows for
+//                         `dense`), n = column stride of y and b, nx = column
+//                         stride of x, groups = ceil(rows / WG) (2-D dispatch,
+//                         linear workgroup index wid.x + wid.y * nwg.x, rows
+//                         past `rows` do nothing), mode (see above), omega =
+//                         Jacobi weight.
+//   1  row_ptr  read      rows + 1 offsets (block units) of the BSR matrix.
+//   2  col_idx  read      block column of each stored block.
+//   3  vals     read      BS * BS f32 per block, row-major (A_l, P_l or R_l;
+//                         rectangular for P and R); for `dense`, the row-major
+//                         rows x rows inverse of the coarsest matrix.
+//   4  x        read      NCOLS input columns, column-major, stride nx.
+//   5  b        read      right-hand side (spmv mode 1) or residual (jacobi),
+//                         stride n.
+//   6  y        rw        output, stride n (read too by the accumulating modes).
+//   7  dinv     read      inverted diagonal blocks, BS * BS f32 per block row.
+// Unused bindings hold a small dummy buffer.
+
+struct AmgParams {
+    rows: u32,
+    n: u32,
+    nx: u32,
+    groups: u32,
+    mode: u32,
+    omega: f32,
+    pad0: u32,
+    pad1: u32,
+}
+
+const WG: u32 = 128u;
+// Columns handled by this pipeline (1..=8) and the block size (3 or 1), fixed
+// when the pipeline is created: the loops unroll.
+override NCOLS: u32 = 1u;
+override BS: u32 = 3u;
+
+@group(0) @binding(0) var<uniform> P: AmgParams;
+@group(0) @binding(1) var<storage, read> row_ptr: array<u32>;
+@group(0) @binding(2) var<storage, read> col_idx: array<u32>;
+@group(0) @binding(3) var<storage, read> vals: array<f32>;
+@group(0) @binding(4) var<storage, read> x: array<f32>;
+@group(0) @binding(5) var<storage, read> b: array<f32>;
+@group(0) @binding(6) var<storage, read_write> y: array<f32>;
+@group(0) @binding(7) var<storage, read> dinv: array<f32>;
+
+fn row_of(wid: vec3<u32>, nwg: vec3<u32>, lid: u32) -> u32 {
+    let g = wid.x + wid.y * nwg.x;
+    if g >= P.groups {
+        return 0xffffffffu;
+    }
+    return g * WG + lid;
+}
+
+// y = A x (mode 0), y = b - A x (mode 1), y += A x (mode 2).
+@compute @workgroup_size(128)
+fn spmv(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let row = row_of(wid, nwg, lid);
+    if row >= P.rows {
+        return;
+    }
+    let bs = min(BS, 3u);
+    var acc: array<f32, 24>; // NCOLS * BS <= 8 * 3
+    let k0 = row_ptr[row];
+    let k1 = row_ptr[row + 1u];
+    for (var k = k0; k < k1; k++) {
+        let j = col_idx[k];
+        var m: array<f32, 9>;
+        for (var q = 0u; q < bs * bs; q++) {
+            m[q] = vals[bs * bs * k + q];
+        }
+        for (var c = 0u; c < NCOLS; c++) {
+            let o = c * P.nx + j * bs;
+            var xv: array<f32, 3>;
+            for (var t = 0u; t < bs; t++) {
+                xv[t] = x[o + t];
+            }
+            for (var q = 0u; q < bs; q++) {
+                var s = 0.0;
+                for (var t = 0u; t < bs; t++) {
+                    s += m[q * bs + t] * xv[t];
+                }
+                acc[c * bs + q] += s;
+            }
+        }
+    }
+    for (var c = 0u; c < NCOLS; c++) {
+        for (var q = 0u; q < bs; q++) {
+            let i = c * P.n + row * bs + q;
+            let v = acc[c * bs + q];
+            if P.mode == 0u {
+                y[i] = v;
+            } else if P.mode == 1u {
+                y[i] = b[i] - v;
+            } else {
+                y[i] += v;
+            }
+        }
+    }
+}
+
+// y = omega D^-1 b (mode 0), y += omega D^-1 b (mode 1).
+@compute @workgroup_size(128)
+fn jacobi(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let row = row_of(wid, nwg, lid);
+    if row >= P.rows {
+        return;
+    }
+    let bs = min(BS, 3u);
+    var m: array<f32, 9>;
+    for (var q = 0u; q < bs * bs; q++) {
+        m[q] = P.omega * dinv[row * bs * bs + q];
+    }
+    for (var c = 0u; c < NCOLS; c++) {
+        let o = c * P.n + row * bs;
+        var rv: array<f32, 3>;
+        for (var t = 0u; t < bs; t++) {
+            rv[t] = b[o + t];
+        }
+        for (var q = 0u; q < bs; q++) {
+            var s = 0.0;
+            for (var t = 0u; t < bs; t++) {
+                s += m[q * bs + t] * rv[t];
+            }
+            if P.mode == 0u {
+                y[o + q] = s;
+            } else {
+                y[o + q] += s;
+            }
+        }
+    }
+}
+
+// y = C^-1 x on the coarsest level: one invocation per (scalar) row of the dense
+// rows x rows inverse.
+@compute @workgroup_size(128)
+fn dense(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let row = row_of(wid, nwg, lid);
+    if row >= P.rows {
+        return;
+    }
+    let nr = P.rows;
+    var acc: array<f32, 8>;
+    for (var j = 0u; j < nr; j++) {
+        let a = vals[row * nr + j];
+        for (var c = 0u; c < NCOLS; c++) {
+            acc[c] += a * x[c * P.nx + j];
+        }
+    }
+    for (var c = 0u; c < NCOLS; c++) {
+        y[c * P.n + row] = acc[c];
+    }
+}
