@@ -9,6 +9,10 @@
 //! 4. `finish_beta` (1 workgroup): `beta = rz' / rz`, convergence flag `rr <= thr`;
 //! 5. `direction`: `p = z + beta p`.
 //!
+//! With the AMG preconditioner, step 3 is `update_amg` (no `z`, partials of
+//! `r . r` only), then the recorded V-cycle ([`crate::amg_gpu`], reading `r`,
+//! writing `z`), then `dot_rz` (partials of `r . z`).
+//!
 //! The host reads the 32-byte [`ColState`] of each column back after each batch
 //! of iterations (one submission) and stops when every column is done (converged
 //! or broken down) or the iteration budget is spent. Batch sizes adapt: the first
