@@ -145,7 +145,8 @@ fn row(label: &str, mesh: &Mesh, quick_direct: bool) {
                     let t_solve = t.elapsed().as_secs_f64();
                     let st = gpu.last_stats();
                     println!(
-                        "| {label} | {nf} | gpu ({name}; f32 PCG, block Jacobi, {} f64 refinement rounds) | {:.3} | {:.3} | {} | {:.2} | {:.2} | {:.1e} |",
+                        "| {label} | {nf} | gpu ({name}; f32 PCG, {:?} preconditioner, {} f64 refinement rounds) | {:.3} | {:.3} | {} | {:.2} | {:.2} | {:.1e} |",
+                        gpu.active_preconditioner(),
                         st.rounds,
                         t_prep,
                         t_solve,
