@@ -280,7 +280,7 @@ impl SpdSolver for BlockPcgSolver {
                 let s = m * c..m * (c + 1);
                 self.mul_vec(&p[s.clone()], &mut q[s.clone()]);
                 let pq = dot(&p[s.clone()], &q[s.clone()]);
-                if !(pq > 0.0) {
+                if pq.is_nan() || pq <= 0.0 {
                     return Err(SolverError::NotPositiveDefinite);
                 }
                 let alpha = rz[c] / pq;
