@@ -18,7 +18,7 @@ use crate::GpuError;
 
 pub(crate) const SOURCE: &str = include_str!("../../shaders/bsr_spmv.wgsl");
 
-/// Layout of `bsr_spmv.wgsl` (group 0).
+/// Layout of `bsr_spmv.wgsl` and `csr_spmv.wgsl` (group 0): the same bindings.
 const BINDINGS: [(u32, Bind); 7] = [
     (0, Bind::Uniform),
     (1, Bind::Read),
@@ -29,16 +29,29 @@ const BINDINGS: [(u32, Bind); 7] = [
     (6, Bind::ReadWrite),
 ];
 
-pub(crate) struct BsrSpmv {
+/// A compiled SpMV shader (block or scalar: both share the bindings above).
+pub(crate) struct SpmvKernel {
     shader: Shader,
     pub kernel: Kernel,
 }
 
-impl BsrSpmv {
-    pub fn new(ctx: &Context) -> Result<Self, GpuError> {
-        let shader = Shader::new(ctx, "bsr_spmv.wgsl", SOURCE, &BINDINGS)?;
-        let kernel = Kernel::new(&shader, "bsr_spmv", "main");
-        Ok(BsrSpmv { shader, kernel })
+pub(crate) type BsrSpmv = SpmvKernel;
+
+/// Compile `bsr_spmv.wgsl`.
+pub(crate) fn new(ctx: &Context) -> Result<BsrSpmv, GpuError> {
+    SpmvKernel::load(ctx, "bsr_spmv.wgsl", SOURCE, "bsr_spmv")
+}
+
+impl SpmvKernel {
+    pub(crate) fn load(
+        ctx: &Context,
+        file: &'static str,
+        source: &'static str,
+        label: &'static str,
+    ) -> Result<Self, GpuError> {
+        let shader = Shader::new(ctx, file, source, &BINDINGS)?;
+        let kernel = Kernel::new(&shader, label, "main");
+        Ok(SpmvKernel { shader, kernel })
     }
 
     pub fn bind(

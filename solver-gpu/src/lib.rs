@@ -165,8 +165,8 @@ pub fn open() -> Result<GpuSolver, GpuError> {
 pub fn open_with(opts: OpenOptions) -> Result<GpuSolver, GpuError> {
     let ctx = Context::open(&opts)?;
     let kernels = Kernels {
-        bsr: bsr_spmv::BsrSpmv::new(&ctx)?,
-        csr: csr_spmv::CsrSpmv::new(&ctx)?,
+        bsr: bsr_spmv::new(&ctx)?,
+        csr: csr_spmv::new(&ctx)?,
         dot: dot::Dot::new(&ctx)?,
         jacobi: block_jacobi::BlockJacobi::new(&ctx)?,
         pcg: pcg::Pcg::new(&ctx)?,
