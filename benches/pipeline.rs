@@ -68,6 +68,9 @@ fn main() {
             "homer-x16" => row("homer-x16", common::TABLE1_HOMER, 2, mult),
             "spot-x64" => row("spot-x64", SPOT_JOB, 3, mult),
             "spot-x256" => row("spot-x256", SPOT_JOB, 4, mult),
+            "girths-homer-x16" => row("girths-homer-x16", common::GIRTHS_HOMER, 2, mult),
+            "girths-homer-x64" => row("girths-homer-x64", common::GIRTHS_HOMER, 3, mult),
+            "girths-homer-x256" => row("girths-homer-x256", common::GIRTHS_HOMER, 4, mult),
             _ => panic!("unknown row {name}"),
         }
         return;

@@ -25,7 +25,7 @@
 
 use crate::mesh::Mesh;
 use crate::topology::Topology;
-use crate::Result;
+use crate::{Error, Result};
 use glam::DVec3;
 use solver_cpu::{BlockPcgSolver, BlockRows, BlockSym3, SpdSolver};
 
@@ -177,10 +177,12 @@ pub struct ShapeModel {
     face_weight: Vec<f64>,
     total_area: f64,
     mean_edge: f64,
-    /// Unscaled Hessian of E_m (constant: input cotangent weights).
-    hm: BlockSym3,
-    /// Working matrix (pattern of the 2-ring).
-    h: BlockSym3,
+    /// Unscaled Hessian of E_m (constant: input cotangent weights), isotropic:
+    /// one scalar per block slot of `h`.
+    hm: Vec<f64>,
+    /// Working matrix (pattern of the 2-ring) while the model holds it; after
+    /// an assembly the solver may keep it instead (see [`ShapeModel::matrix`]).
+    h: Option<BlockSym3>,
     /// Row index of `h` for the parallel product.
     h_rows: BlockRows,
     /// Block slots of each face's corner pairs (k, l), l <= k, in the order
@@ -228,34 +230,24 @@ impl ShapeModel {
                 / topo.edges.len() as f64
         };
 
-        // 2-ring block pattern: every pair within a closed 1-ring.
-        let mut pairs: Vec<(usize, usize)> = Vec::new();
+        let t_setup = std::time::Instant::now();
+        let h = two_ring_pattern(&cot);
+        // E_m's Hessian is isotropic ((c c^T) (x) I3): one scalar per block slot.
+        let mut hm = vec![0.0; h.row_idx.len()];
         for i in 0..n {
-            let ring: Vec<usize> = cot.row(i).map(|(j, _)| j).collect();
-            for (a, &p) in ring.iter().enumerate() {
-                for &q in &ring[..=a] {
-                    pairs.push((p, q));
-                }
-            }
-        }
-        let mut h = BlockSym3::from_pattern(n, pairs);
-        let mut hm = h.clone();
-        hm.clear();
-        for i in 0..n {
-            let m = 1.0 / (4.0 * vertex_area[i].max(1e-300));
             if vertex_area[i] <= 0.0 {
                 continue;
             }
-            let row: Vec<(usize, f64)> = cot.row(i).collect();
-            for &(a, ca) in &row {
-                for &(b, cb) in &row {
+            let m = 1.0 / (4.0 * vertex_area[i]);
+            for (a, ca) in cot.row(i) {
+                for (b, cb) in cot.row(i) {
                     if a >= b {
-                        hm.add_scalar(a, b, 2.0 * m * ca * cb);
+                        let (k, _) = h.slot(a, b).expect("pair inside the 2-ring pattern");
+                        hm[k] += 2.0 * m * ca * cb;
                     }
                 }
             }
         }
-        h.clear();
         let slot = |a: u32, b: u32| -> u32 {
             h.slot(a as usize, b as usize)
                 .expect("pair inside the 2-ring pattern")
@@ -289,6 +281,13 @@ impl ShapeModel {
             mv_slot_ptr.push(mv_slots.len());
         }
         let h_rows = h.row_index();
+        log::debug!(
+            "shape model: {} vertices, {} blocks, set up in {:.3} s, resident {:.0} MiB",
+            n,
+            h.row_idx.len(),
+            t_setup.elapsed().as_secs_f64(),
+            crate::report::resident_memory_mb()
+        );
 
         // Held vertices: unreferenced ones, and one per component without handles.
         let mut referenced = vec![false; n];
@@ -325,7 +324,7 @@ impl ShapeModel {
             total_area,
             mean_edge,
             hm,
-            h,
+            h: Some(h),
             h_rows,
             face_slots,
             mv_slot_ptr,
@@ -361,11 +360,16 @@ impl ShapeModel {
     ) -> Result<()> {
         let n = self.n;
         let t0 = std::time::Instant::now();
-        let h = &mut self.h;
-        for (o, m) in h.blocks.iter_mut().zip(&self.hm.blocks) {
-            for q in 0..9 {
-                o[q] = w.k_m * m[q];
-            }
+        let mut h_owned = match self.h.take() {
+            Some(h) => h,
+            None => self.solver.take_blocks().ok_or_else(|| {
+                Error::Internal("the shape matrix was not handed back by the solver".into())
+            })?,
+        };
+        let h = &mut h_owned;
+        for (o, &m) in h.blocks.iter_mut().zip(&self.hm) {
+            let v = w.k_m * m;
+            *o = [v, 0.0, 0.0, 0.0, v, 0.0, 0.0, 0.0, v];
         }
         let grad = &mut self.grad;
         grad.iter_mut().for_each(|g| *g = 0.0);
@@ -486,7 +490,7 @@ impl ShapeModel {
             }
         }
         let t1 = std::time::Instant::now();
-        self.solver.prepare_blocks(&self.h, &self.fixed)?;
+        self.h = self.solver.prepare_blocks_owned(h_owned, &self.fixed)?;
         log::debug!(
             "shape system: assembly {:.3} s, {} {:.3} s",
             (t1 - t0).as_secs_f64(),
@@ -499,7 +503,15 @@ impl ShapeModel {
     /// The assembled Hessian of the last assembly and the held vertices (for
     /// benchmarks and solver tests on the real shape system).
     pub fn system(&self) -> (&BlockSym3, &[bool]) {
-        (&self.h, &self.fixed)
+        (self.matrix(), &self.fixed)
+    }
+
+    /// The assembled Hessian, wherever it is kept.
+    fn matrix(&self) -> &BlockSym3 {
+        self.h
+            .as_ref()
+            .or_else(|| self.solver.blocks())
+            .expect("the shape matrix is held by the model or its solver")
     }
 
     /// Gradient of the energy at the reference positions of the last assembly.
@@ -510,7 +522,7 @@ impl ShapeModel {
     /// Energy (up to a constant) at `xref + dx`: `1/2 dx^T H dx + g0 . dx`.
     pub fn energy(&self, dx: &[f64]) -> f64 {
         let mut hd = vec![0.0; dx.len()];
-        self.h.mul_vec_rows(&self.h_rows, dx, &mut hd);
+        self.matrix().mul_vec_rows(&self.h_rows, dx, &mut hd);
         let mut e = 0.0;
         for i in 0..dx.len() {
             let v = i / 3;
@@ -525,7 +537,7 @@ impl ShapeModel {
     /// Gradient at `xref + dx`: `H dx + g0` (held dofs zero).
     pub fn gradient_at(&self, dx: &[f64]) -> Vec<f64> {
         let mut g = vec![0.0; dx.len()];
-        self.h.mul_vec_rows(&self.h_rows, dx, &mut g);
+        self.matrix().mul_vec_rows(&self.h_rows, dx, &mut g);
         for i in 0..dx.len() {
             g[i] = if self.fixed[i / 3] {
                 0.0
@@ -575,6 +587,39 @@ impl ShapeModel {
 }
 
 /// Connected components of faces through shared vertices: (label per vertex, count).
+/// Lower block pattern of the 2-ring: (i, j) for every pair inside one closed
+/// 1-ring of `ring` (whose rows list the closed 1-rings), built column by column
+/// in parallel.
+fn two_ring_pattern(ring: &Laplacian) -> BlockSym3 {
+    use rayon::prelude::*;
+    let n = ring.diag.len();
+    let cols: Vec<Vec<usize>> = (0..n)
+        .into_par_iter()
+        .map(|j| {
+            let mut rows: Vec<usize> = vec![j];
+            for (p, _) in ring.row(j) {
+                rows.extend(ring.row(p).map(|(q, _)| q).filter(|&q| q >= j));
+            }
+            rows.sort_unstable();
+            rows.dedup();
+            rows
+        })
+        .collect();
+    let mut col_ptr = Vec::with_capacity(n + 1);
+    col_ptr.push(0);
+    for c in &cols {
+        col_ptr.push(col_ptr.last().unwrap() + c.len());
+    }
+    let row_idx: Vec<usize> = cols.concat();
+    let nnz = row_idx.len();
+    BlockSym3 {
+        n,
+        col_ptr,
+        row_idx,
+        blocks: vec![[0.0; 9]; nnz],
+    }
+}
+
 pub fn components(mesh: &Mesh, n: usize) -> (Vec<u32>, usize) {
     let mut parent: Vec<u32> = (0..n as u32).collect();
     fn find(p: &mut [u32], mut a: u32) -> u32 {

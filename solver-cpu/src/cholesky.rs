@@ -4,20 +4,110 @@
 //! computed once per sparsity pattern and reused for every new set of values;
 //! the numeric factor's storage and the scratch memory are reused too, so a
 //! refactorization allocates nothing.
+//!
+//! [`CholeskySolver::single_precision`] stores the numeric factor in f32 (half the
+//! memory and half the memory traffic of a solve). Such a factor is a
+//! preconditioner, not a solver: its solves carry f32 rounding amplified by the
+//! condition number, so it is used inside the f64 PCG of [`crate::BlockPcgSolver`].
 
 use crate::{BlockSym3, SolveInfo, SolverError, SpdSolver, SymCsc};
 use faer::dyn_stack::{MemBuffer, MemStack};
-use faer::sparse::linalg::cholesky::{factorize_symbolic_cholesky, LltRef, SymbolicCholesky};
+use faer::sparse::linalg::cholesky::{
+    factorize_symbolic_cholesky, LltRef, SymbolicCholesky, SymmetricOrdering,
+};
 use faer::sparse::{SparseColMatRef, SymbolicSparseColMatRef};
 use faer::{get_global_parallelism, Conj, MatMut, Side};
+
+/// Fill-reducing ordering of the symbolic analysis.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum FillOrdering {
+    /// Nested dissection from [`NESTED_DISSECTION_FROM`] unknowns on, AMD below.
+    #[default]
+    Auto,
+    /// faer's approximate minimum degree.
+    Amd,
+    /// METIS nested dissection (`METIS_NodeND`).
+    NestedDissection,
+}
+
+/// Size from which [`FillOrdering::Auto`] uses nested dissection: on mesh-like
+/// graphs its factors grow as `n log n` where minimum degree's grow faster.
+pub const NESTED_DISSECTION_FROM: usize = 50_000;
+
+/// METIS nested-dissection permutation of the graph of `a` (diagonal ignored):
+/// `(forward, inverse)` with `forward[new] = old`; `None` if METIS fails.
+pub fn nested_dissection(a: &SymCsc) -> Option<(Vec<usize>, Vec<usize>)> {
+    let n = a.n;
+    if n == 0 || a.row_idx.len() > i32::MAX as usize / 2 {
+        return None;
+    }
+    let mut degree = vec![0i32; n + 1];
+    for c in 0..n {
+        for &r in &a.row_idx[a.col_ptr[c]..a.col_ptr[c + 1]] {
+            if r != c {
+                degree[r + 1] += 1;
+                degree[c + 1] += 1;
+            }
+        }
+    }
+    for i in 0..n {
+        degree[i + 1] += degree[i];
+    }
+    let mut xadj = degree.clone();
+    let mut adjncy = vec![0i32; xadj[n] as usize];
+    for c in 0..n {
+        for &r in &a.row_idx[a.col_ptr[c]..a.col_ptr[c + 1]] {
+            if r != c {
+                adjncy[degree[r] as usize] = c as i32;
+                degree[r] += 1;
+                adjncy[degree[c] as usize] = r as i32;
+                degree[c] += 1;
+            }
+        }
+    }
+    let mut nvtxs = n as i32;
+    let mut options = [0i32; metis_sys::METIS_NOPTIONS as usize];
+    let mut perm = vec![0i32; n];
+    let mut iperm = vec![0i32; n];
+    // SAFETY: every array has the length METIS_NodeND documents (xadj n + 1,
+    // adjncy xadj[n], options METIS_NOPTIONS, perm and iperm n), all live for
+    // the call; a null vwgt means unit weights.
+    let status = unsafe {
+        metis_sys::METIS_SetDefaultOptions(options.as_mut_ptr());
+        metis_sys::METIS_NodeND(
+            &mut nvtxs,
+            xadj.as_mut_ptr(),
+            adjncy.as_mut_ptr(),
+            std::ptr::null_mut(),
+            options.as_mut_ptr(),
+            perm.as_mut_ptr(),
+            iperm.as_mut_ptr(),
+        )
+    };
+    if status != metis_sys::rstatus_et_METIS_OK {
+        return None;
+    }
+    // METIS: row i of the permuted matrix is row perm[i] of the original.
+    let forward: Vec<usize> = perm.iter().map(|&p| p as usize).collect();
+    let inverse: Vec<usize> = iperm.iter().map(|&p| p as usize).collect();
+    Some((forward, inverse))
+}
 
 /// faer sparse Cholesky with the symbolic factorization reused across matrices
 /// of the same pattern.
 #[derive(Default)]
 pub struct CholeskySolver {
+    /// Ordering used by the next symbolic analysis.
+    pub ordering: FillOrdering,
     pattern: Option<(Vec<usize>, Vec<usize>)>,
     symbolic: Option<SymbolicCholesky<usize>>,
     numeric: Vec<f64>,
+    /// The factor in f32 when `single` (then `numeric` stays empty).
+    numeric32: Vec<f32>,
+    /// Factor and solve in f32 (see module docs).
+    single: bool,
+    /// Solve buffer in f32 (single precision only).
+    buf32: Vec<f32>,
     factored: bool,
     scratch: Option<MemBuffer>,
     n: usize,
@@ -27,6 +117,8 @@ pub struct CholeskySolver {
     pub symbolic_count: usize,
     /// How many numeric factorizations were made.
     pub numeric_count: usize,
+    /// Seconds of the last numeric factorization.
+    pub numeric_seconds: f64,
 }
 
 impl CholeskySolver {
@@ -34,10 +126,76 @@ impl CholeskySolver {
         Self::default()
     }
 
+    /// A solver whose numeric factor is f32 (a preconditioner; see module docs).
+    pub fn single_precision() -> Self {
+        CholeskySolver {
+            single: true,
+            ..Self::default()
+        }
+    }
+
+    /// Whether the numeric factor is f32.
+    pub fn is_single_precision(&self) -> bool {
+        self.single
+    }
+
     /// Stored entries of the factor L.
     pub fn factor_nnz(&self) -> usize {
         self.symbolic.as_ref().map_or(0, |s| s.len_val())
     }
+
+    /// Bytes held by the numeric factor.
+    pub fn factor_bytes(&self) -> usize {
+        self.numeric.len() * 8 + self.numeric32.len() * 4
+    }
+}
+
+/// Sequential triangular solves `L L^T X = B` in place for the columns of `chunk`.
+fn solve_columns<T: faer::traits::ComplexField<Real = T> + Copy>(
+    sym: &SymbolicCholesky<usize>,
+    numeric: &[T],
+    chunk: &mut [T],
+    n: usize,
+) -> bool {
+    let cols = chunk.len() / n;
+    let par = faer::Par::Seq;
+    let Ok(mut buf) = MemBuffer::try_new(sym.solve_in_place_scratch::<T>(cols, par)) else {
+        return false;
+    };
+    let m = MatMut::from_column_major_slice_mut(chunk, n, cols);
+    LltRef::<'_, usize, T>::new(sym, numeric).solve_in_place_with_conj(
+        Conj::No,
+        m,
+        par,
+        MemStack::new(&mut buf),
+    );
+    true
+}
+
+/// Solves the columns of `rhs` with the columns split among rayon threads, each
+/// solve sequential: the triangular solves are memory-bound, and faer's own
+/// parallel split is slower here. False when scratch memory was not available.
+fn solve_split<T: faer::traits::ComplexField<Real = T> + Copy + Send + Sync>(
+    sym: &SymbolicCholesky<usize>,
+    numeric: &[T],
+    rhs: &mut [T],
+    n: usize,
+    ncols: usize,
+) -> bool {
+    let threads = rayon::current_num_threads().max(1);
+    let per = ncols.div_ceil(threads).max(1);
+    let failed = std::sync::atomic::AtomicBool::new(false);
+    rayon::scope(|scope| {
+        for chunk in rhs.chunks_mut(n * per) {
+            let failed = &failed;
+            scope.spawn(move |_| {
+                if !solve_columns(sym, numeric, chunk, n) {
+                    failed.store(true, std::sync::atomic::Ordering::Relaxed);
+                }
+            });
+        }
+    });
+    !failed.into_inner()
 }
 
 impl SpdSolver for CholeskySolver {
@@ -45,48 +203,101 @@ impl SpdSolver for CholeskySolver {
         let same = matches!(&self.pattern, Some((cp, ri)) if *cp == a.col_ptr && *ri == a.row_idx);
         let sym_ref = SymbolicSparseColMatRef::new_checked(a.n, a.n, &a.col_ptr, None, &a.row_idx);
         if !same || self.symbolic.is_none() {
-            let sym = factorize_symbolic_cholesky(
-                sym_ref,
-                Side::Lower,
-                Default::default(),
-                Default::default(),
-            )
-            .map_err(|e| SolverError::Backend(format!("symbolic Cholesky: {e:?}")))?;
+            let t0 = std::time::Instant::now();
+            let nd = match self.ordering {
+                FillOrdering::Amd => false,
+                FillOrdering::NestedDissection => true,
+                FillOrdering::Auto => a.n >= NESTED_DISSECTION_FROM,
+            };
+            let perm = if nd { nested_dissection(a) } else { None };
+            let ordering = match &perm {
+                Some((fwd, inv)) => {
+                    SymmetricOrdering::Custom(faer::perm::PermRef::new_checked(fwd, inv, a.n))
+                }
+                None => SymmetricOrdering::Amd,
+            };
+            let sym =
+                factorize_symbolic_cholesky(sym_ref, Side::Lower, ordering, Default::default())
+                    .map_err(|e| SolverError::Backend(format!("symbolic Cholesky: {e:?}")))?;
             self.numeric = Vec::new();
-            self.numeric
-                .try_reserve_exact(sym.len_val())
-                .map_err(|_| SolverError::OutOfMemory)?;
-            self.numeric.resize(sym.len_val(), 0.0);
+            self.numeric32 = Vec::new();
+            if self.single {
+                self.numeric32
+                    .try_reserve_exact(sym.len_val())
+                    .map_err(|_| SolverError::OutOfMemory)?;
+                self.numeric32.resize(sym.len_val(), 0.0);
+            } else {
+                self.numeric
+                    .try_reserve_exact(sym.len_val())
+                    .map_err(|_| SolverError::OutOfMemory)?;
+                self.numeric.resize(sym.len_val(), 0.0);
+            }
             self.symbolic = Some(sym);
             self.pattern = Some((a.col_ptr.clone(), a.row_idx.clone()));
             self.scratch = None;
             self.symbolic_count += 1;
             log::debug!(
-                "Cholesky symbolic analysis: n {}, nnz(A) {}, nnz(L) {}",
+                "Cholesky symbolic analysis: n {}, nnz(A) {}, nnz(L) {} ({}, {}), {:.3} s",
                 a.n,
                 a.row_idx.len(),
-                self.numeric.len()
+                self.numeric.len() + self.numeric32.len(),
+                if self.single { "f32" } else { "f64" },
+                if perm.is_some() {
+                    "nested dissection"
+                } else {
+                    "AMD"
+                },
+                t0.elapsed().as_secs_f64()
             );
         }
         let sym = self.symbolic.as_ref().unwrap();
         let par = get_global_parallelism();
         if self.scratch.is_none() {
-            let req = sym.factorize_numeric_llt_scratch::<f64>(par, Default::default());
-            let req = req.or(sym.solve_in_place_scratch::<f64>(8, par));
+            let req = if self.single {
+                sym.factorize_numeric_llt_scratch::<f32>(par, Default::default())
+            } else {
+                sym.factorize_numeric_llt_scratch::<f64>(par, Default::default())
+            };
+            log::debug!(
+                "Cholesky numeric scratch: {:.1} MiB (factor {:.1} MiB)",
+                req.size_bytes() as f64 / 1048576.0,
+                self.factor_bytes() as f64 / 1048576.0
+            );
             self.scratch = Some(MemBuffer::try_new(req).map_err(|_| SolverError::OutOfMemory)?);
         }
-        let mat = SparseColMatRef::new(sym_ref, &a.values);
         self.factored = false;
-        sym.factorize_numeric_llt::<f64>(
-            &mut self.numeric,
-            mat,
-            Side::Lower,
-            Default::default(),
-            par,
-            MemStack::new(self.scratch.as_mut().unwrap()),
-            Default::default(),
-        )
-        .map_err(|_| SolverError::NotPositiveDefinite)?;
+        let t_numeric = std::time::Instant::now();
+        let stack = MemStack::new(self.scratch.as_mut().unwrap());
+        let factored = if self.single {
+            let values: Vec<f32> = a.values.iter().map(|&v| v as f32).collect();
+            let mat = SparseColMatRef::new(sym_ref, &values);
+            sym.factorize_numeric_llt::<f32>(
+                &mut self.numeric32,
+                mat,
+                Side::Lower,
+                Default::default(),
+                par,
+                stack,
+                Default::default(),
+            )
+            .is_ok()
+        } else {
+            let mat = SparseColMatRef::new(sym_ref, &a.values);
+            sym.factorize_numeric_llt::<f64>(
+                &mut self.numeric,
+                mat,
+                Side::Lower,
+                Default::default(),
+                par,
+                stack,
+                Default::default(),
+            )
+            .is_ok()
+        };
+        if !factored {
+            return Err(SolverError::NotPositiveDefinite);
+        }
+        self.numeric_seconds = t_numeric.elapsed().as_secs_f64();
         self.factored = true;
         self.n = a.n;
         self.numeric_count += 1;
@@ -119,37 +330,20 @@ impl SpdSolver for CholeskySolver {
                 ncols
             )));
         }
-        // The triangular solves are memory-bound: faer's own parallel split is
-        // slower here than sequential solves of the columns split among threads.
         let sym = self.symbolic.as_ref().unwrap();
-        let numeric = &self.numeric;
         let n = self.n;
-        let threads = rayon::current_num_threads().max(1);
-        let per = ncols.div_ceil(threads).max(1);
-        let failed = std::sync::atomic::AtomicBool::new(false);
-        rayon::scope(|scope| {
-            for chunk in rhs.chunks_mut(n * per) {
-                let failed = &failed;
-                scope.spawn(move |_| {
-                    let cols = chunk.len() / n;
-                    let par = faer::Par::Seq;
-                    let Ok(mut buf) =
-                        MemBuffer::try_new(sym.solve_in_place_scratch::<f64>(cols, par))
-                    else {
-                        failed.store(true, std::sync::atomic::Ordering::Relaxed);
-                        return;
-                    };
-                    let m = MatMut::from_column_major_slice_mut(chunk, n, cols);
-                    LltRef::<'_, usize, f64>::new(sym, numeric).solve_in_place_with_conj(
-                        Conj::No,
-                        m,
-                        par,
-                        MemStack::new(&mut buf),
-                    );
-                });
+        let solved = if self.single {
+            self.buf32.clear();
+            self.buf32.extend(rhs.iter().map(|&v| v as f32));
+            let ok = solve_split(sym, &self.numeric32, &mut self.buf32, n, ncols);
+            for (o, &v) in rhs.iter_mut().zip(&self.buf32) {
+                *o = v as f64;
             }
-        });
-        if failed.into_inner() {
+            ok
+        } else {
+            solve_split(sym, &self.numeric, rhs, n, ncols)
+        };
+        if !solved {
             return Err(SolverError::OutOfMemory);
         }
         if rhs.iter().any(|v| !v.is_finite()) {

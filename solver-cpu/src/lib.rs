@@ -11,7 +11,7 @@ pub mod cholesky;
 pub mod pcg;
 
 pub use block::{BlockRows, BlockSym3};
-pub use cholesky::CholeskySolver;
+pub use cholesky::{CholeskySolver, FillOrdering};
 pub use pcg::{BlockPcgParams, BlockPcgSolver};
 
 /// Failure of a linear solve.
@@ -117,6 +117,24 @@ pub trait SpdSolver {
     /// their rows and columns become the identity (zero increment for a zero
     /// right-hand side there).
     fn prepare_blocks(&mut self, a: &BlockSym3, fixed: &[bool]) -> Result<(), SolverError>;
+    /// As `prepare_blocks`, for a matrix the caller hands over. A solver that
+    /// needs the matrix during its solves keeps it instead of copying it (read
+    /// it with `blocks`, take it back with `take_blocks`); others hand it back.
+    fn prepare_blocks_owned(
+        &mut self,
+        a: BlockSym3,
+        fixed: &[bool],
+    ) -> Result<Option<BlockSym3>, SolverError> {
+        self.prepare_blocks(&a, fixed).map(|()| Some(a))
+    }
+    /// The matrix kept by `prepare_blocks_owned`, as it was handed over.
+    fn blocks(&self) -> Option<&BlockSym3> {
+        None
+    }
+    /// Takes back the matrix kept by `prepare_blocks_owned`.
+    fn take_blocks(&mut self) -> Option<BlockSym3> {
+        None
+    }
     /// Solve `A X = B` in place; `rhs` holds `ncols` columns of length `n`, column-major.
     fn solve_in_place(&mut self, rhs: &mut [f64], ncols: usize) -> Result<SolveInfo, SolverError>;
     /// Solve `A X = B` with `x` holding an initial guess on entry (iterative
@@ -313,5 +331,145 @@ mod tests {
             Err(SolverError::NoConvergence { iterations, .. }) => assert_eq!(iterations, 1),
             other => panic!("expected NoConvergence, got {other:?}"),
         }
+    }
+
+    /// Scalar 5-point Laplacian of a w x w grid plus `shift` on the diagonal.
+    fn grid_laplacian(w: usize, shift: f64) -> SymCsc {
+        let n = w * w;
+        let mut pairs = Vec::new();
+        for y in 0..w {
+            for x in 0..w {
+                let v = y * w + x;
+                if x + 1 < w {
+                    pairs.push((v, v + 1));
+                }
+                if y + 1 < w {
+                    pairs.push((v, v + w));
+                }
+            }
+        }
+        let mut s = SymCsc::from_pattern(n, pairs.clone());
+        for v in 0..n {
+            let k = s.slot(v, v).unwrap();
+            s.values[k] += shift * (1.0 + 0.5 * (v as f64 * 0.3).sin());
+        }
+        for &(p, q) in &pairs {
+            let (kp, kq, kpq) = (
+                s.slot(p, p).unwrap(),
+                s.slot(q, q).unwrap(),
+                s.slot(p, q).unwrap(),
+            );
+            s.values[kp] += 1.0;
+            s.values[kq] += 1.0;
+            s.values[kpq] -= 1.0;
+        }
+        s
+    }
+
+    #[test]
+    fn nested_dissection_solves_like_amd_with_less_fill_on_a_grid() {
+        let a = grid_laplacian(120, 1e-3);
+        let (fwd, inv) = crate::cholesky::nested_dissection(&a).expect("METIS ordering");
+        for (new, &old) in fwd.iter().enumerate() {
+            assert_eq!(inv[old], new, "inverse permutation");
+        }
+        let b: Vec<f64> = (0..a.n).map(|i| (i as f64 * 0.7).sin()).collect();
+        let mut solutions = Vec::new();
+        let mut fill = Vec::new();
+        for ordering in [FillOrdering::Amd, FillOrdering::NestedDissection] {
+            let mut chol = CholeskySolver::new();
+            chol.ordering = ordering;
+            chol.prepare(&a).unwrap();
+            let mut x = b.clone();
+            chol.solve_in_place(&mut x, 1).unwrap();
+            let mut ax = vec![0.0; a.n];
+            a.mul_vec(&x, &mut ax);
+            let res = ax
+                .iter()
+                .zip(&b)
+                .map(|(p, q)| (p - q).powi(2))
+                .sum::<f64>()
+                .sqrt();
+            assert!(res <= 1e-10 * b.iter().map(|v| v * v).sum::<f64>().sqrt());
+            fill.push(chol.factor_nnz());
+            solutions.push(x);
+        }
+        let scale = solutions[0].iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        for (p, q) in solutions[0].iter().zip(&solutions[1]) {
+            assert!((p - q).abs() <= 1e-9 * scale);
+        }
+        assert!(
+            fill[1] < fill[0],
+            "nnz(L): AMD {} nested dissection {}",
+            fill[0],
+            fill[1]
+        );
+    }
+
+    #[test]
+    fn single_precision_factor_preconditions_f64_pcg_to_full_accuracy() {
+        let a = grid_laplacian(60, 0.05);
+        let mut pcg = BlockPcgSolver::with_params(BlockPcgParams {
+            single_precision_factor: true,
+            ..BlockPcgParams::default()
+        });
+        pcg.prepare(&a).unwrap();
+        let (bytes, nnz) = pcg.factor_size();
+        assert!(
+            nnz > a.n && bytes == 4 * nnz,
+            "f32 factor: {bytes} bytes, {nnz} entries"
+        );
+        let mut direct = CholeskySolver::new();
+        direct.prepare(&a).unwrap();
+        let b: Vec<f64> = (0..2 * a.n)
+            .map(|i| (i as f64 * 0.29).cos() + 0.2)
+            .collect();
+        let mut xd = b.clone();
+        direct.solve_in_place(&mut xd, 2).unwrap();
+        let mut xp = b.clone();
+        let info = pcg.solve_in_place(&mut xp, 2).unwrap();
+        assert!(info.iterations >= 1 && info.residual <= 1e-10, "{info:?}");
+        let scale = xd.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        for (p, q) in xd.iter().zip(&xp) {
+            assert!((p - q).abs() <= 1e-8 * scale, "direct {p} pcg {q}");
+        }
+    }
+
+    #[test]
+    fn block_pcg_keeps_an_owned_matrix_unchanged_and_honours_held_right_hand_sides() {
+        let a = grid_spd(14);
+        let n = a.n;
+        let mut fixed = vec![false; n];
+        fixed[3] = true;
+        fixed[n - 5] = true;
+        let mut direct = CholeskySolver::new();
+        direct.prepare_blocks(&a, &fixed).unwrap();
+        let mut pcg = BlockPcgSolver::new();
+        let back = pcg.prepare_blocks_owned(a.clone(), &fixed).unwrap();
+        assert!(back.is_none(), "the PCG solver keeps the matrix");
+        assert_eq!(
+            pcg.blocks().unwrap().blocks,
+            a.blocks,
+            "kept as handed over"
+        );
+        // Non-zero right-hand side at held dofs: identity rows, x_v = b_v.
+        let b: Vec<f64> = (0..3 * n).map(|i| (i as f64 * 0.53).sin() + 0.3).collect();
+        let mut xd = b.clone();
+        direct.solve_in_place(&mut xd, 1).unwrap();
+        let mut xp = vec![0.0; 3 * n];
+        pcg.solve_with_guess(&b, &mut xp, 1).unwrap();
+        let scale = xd.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        for i in 0..3 * n {
+            assert!(
+                (xd[i] - xp[i]).abs() <= 1e-8 * scale,
+                "dof {i}: {} vs {}",
+                xd[i],
+                xp[i]
+            );
+        }
+        assert_eq!(&xp[9..12], &b[9..12]);
+        let taken = pcg.take_blocks().unwrap();
+        assert_eq!(taken.blocks, a.blocks);
+        assert!(pcg.blocks().is_none() || pcg.blocks().unwrap().n == 0);
     }
 }

@@ -11,6 +11,16 @@
 //! (Eq. 6) is approximated, so PCG needs few iterations while the factor of `K`
 //! has one ninth of the entries of a factor of `A` and costs about 1/27 of it.
 //!
+//! The factor of `K` is stored in f32 by default (`single_precision_factor`):
+//! half the memory and half the traffic per application, at the price of an
+//! iteration or two; an f32 factorization that breaks down falls back to f64.
+//! Scalar matrices (`prepare`) are solved directly by an f64 factor, or, with the
+//! f32 factor, by the same PCG preconditioned with it.
+//!
+//! Held vertices (`fixed`) are identity rows with no coupling: `x_v = b_v`, and
+//! the other rows see `x_v = 0`. The matrix itself is kept as handed over (the
+//! masking happens in the products), so `prepare_blocks_owned` needs no copy.
+//!
 //! Every column stops when `||b - A x|| <= tolerance ||b||` (recurrence residual).
 
 use crate::cholesky::CholeskySolver;
@@ -25,11 +35,15 @@ pub struct BlockPcgParams {
     /// Iteration cap; reaching it is [`SolverError::NoConvergence`].
     pub max_iterations: usize,
     /// A new matrix of the same pattern keeps the previous preconditioner factor
-    /// unless the last solve needed more than this many iterations or the trace
-    /// of `K` moved by more than `refactor_trace_change` (relative). 0 refactors
-    /// every time.
+    /// unless the iterations the last solve needed beyond those of the first
+    /// solve after the factorization have cost more than a factorization, the
+    /// last solve needed more than this many iterations, or the trace of `K`
+    /// moved by more than `refactor_trace_change` (relative). 0 refactors every
+    /// time.
     pub refactor_iterations: usize,
     pub refactor_trace_change: f64,
+    /// Store the preconditioner factor in f32 (see module docs).
+    pub single_precision_factor: bool,
 }
 
 impl Default for BlockPcgParams {
@@ -37,30 +51,50 @@ impl Default for BlockPcgParams {
         BlockPcgParams {
             tolerance: 1e-10,
             max_iterations: 2000,
-            refactor_iterations: 6,
+            refactor_iterations: 12,
             refactor_trace_change: 0.05,
+            single_precision_factor: false,
         }
     }
 }
 
+/// What the last `prepare` handed over.
+#[derive(Default, Clone, Copy, PartialEq, Eq)]
+enum Mode {
+    #[default]
+    None,
+    Blocks,
+    /// Scalar matrix solved directly by the (f64) factor.
+    ScalarDirect,
+    /// Scalar matrix solved by PCG with the (f32) factor.
+    ScalarPcg,
+}
+
 /// Block-sparse PCG with the isotropic Cholesky preconditioner (see module docs).
-/// Scalar matrices (`prepare`) are solved directly by the inner Cholesky solver.
 #[derive(Default)]
 pub struct BlockPcgSolver {
     pub params: BlockPcgParams,
-    /// The prepared block matrix, with held vertices replaced by identity rows.
+    /// The prepared block matrix, as handed over.
     a: BlockSym3,
+    /// Held vertices of the prepared block matrix.
+    fixed: Vec<bool>,
     /// Strictly lower blocks by block row.
     rows: BlockRows,
-    /// Isotropic part `K` (same pattern as the blocks).
+    /// Isotropic part `K` (same pattern as the blocks), held rows identity.
     k: SymCsc,
+    /// The prepared scalar matrix (scalar PCG mode).
+    scalar: SymCsc,
     precond: CholeskySolver,
-    /// True when the last `prepare` was a scalar matrix (direct solve).
-    scalar_mode: bool,
+    mode: Mode,
     /// Trace of the `K` that was last factored (0: none factored).
     factored_trace: f64,
     /// Iterations of the last block solve (its slowest column).
     last_iterations: usize,
+    /// Iterations of the first block solve after the last factorization.
+    base_iterations: Option<usize>,
+    /// Seconds of the last factorization and per iteration of the last solve.
+    factor_seconds: f64,
+    iteration_seconds: f64,
     /// PCG iterations summed over all solves (for tests and benchmarks).
     pub total_iterations: usize,
     pub solves: usize,
@@ -68,13 +102,22 @@ pub struct BlockPcgSolver {
 
 impl BlockPcgSolver {
     pub fn new() -> Self {
-        Self::default()
+        Self::with_params(BlockPcgParams::default())
     }
 
     pub fn with_params(params: BlockPcgParams) -> Self {
         BlockPcgSolver {
             params,
+            precond: Self::factor_for(params.single_precision_factor),
             ..Self::default()
+        }
+    }
+
+    fn factor_for(single: bool) -> CholeskySolver {
+        if single {
+            CholeskySolver::single_precision()
+        } else {
+            CholeskySolver::new()
         }
     }
 
@@ -83,12 +126,50 @@ impl BlockPcgSolver {
         self.precond.numeric_count
     }
 
-    /// `y = A x` for one column of length `3 n` (parallel over block rows).
-    pub fn mul_vec(&self, x: &[f64], y: &mut [f64]) {
-        self.a.mul_vec_rows(&self.rows, x, y);
+    /// Bytes held by the preconditioner's numeric factor, and its entries.
+    pub fn factor_size(&self) -> (usize, usize) {
+        (self.precond.factor_bytes(), self.precond.factor_nnz())
     }
 
-    /// `z = M^-1 r` for `ncols` columns of length `3 n`.
+    /// `y = A x` for one column of length `3 n` (parallel over block rows), held
+    /// rows identity and held columns ignored.
+    pub fn mul_vec(&self, x: &[f64], y: &mut [f64]) {
+        if self.fixed.iter().any(|&f| f) {
+            let mut xm = x.to_vec();
+            self.mask(&mut xm);
+            self.a.mul_vec_rows(&self.rows, &xm, y);
+            for (v, &f) in self.fixed.iter().enumerate() {
+                if f {
+                    y[3 * v..3 * v + 3].copy_from_slice(&x[3 * v..3 * v + 3]);
+                }
+            }
+        } else {
+            self.a.mul_vec_rows(&self.rows, x, y);
+        }
+    }
+
+    /// Zero the held dofs of one column.
+    fn mask(&self, x: &mut [f64]) {
+        for (v, &f) in self.fixed.iter().enumerate() {
+            if f {
+                x[3 * v..3 * v + 3].fill(0.0);
+            }
+        }
+    }
+
+    /// Product inside the iteration: the direction is zero at held dofs, so the
+    /// product only needs its held rows cleared.
+    fn mul_direction(&self, p: &[f64], q: &mut [f64]) {
+        match self.mode {
+            Mode::Blocks => {
+                self.a.mul_vec_rows(&self.rows, p, q);
+                self.mask(q);
+            }
+            _ => self.scalar.mul_vec(p, q),
+        }
+    }
+
+    /// `z = M^-1 r` for `ncols` columns.
     fn precondition(
         &mut self,
         r: &[f64],
@@ -96,6 +177,11 @@ impl BlockPcgSolver {
         ncols: usize,
         buf: &mut Vec<f64>,
     ) -> Result<(), SolverError> {
+        if self.mode == Mode::ScalarPcg {
+            z.copy_from_slice(r);
+            self.precond.solve_in_place(z, ncols)?;
+            return Ok(());
+        }
         let n = self.a.n;
         buf.resize(3 * n * ncols, 0.0);
         for c in 0..ncols {
@@ -121,7 +207,80 @@ impl BlockPcgSolver {
     }
 
     fn same_pattern(&self, a: &BlockSym3) -> bool {
-        self.a.n == a.n && self.a.col_ptr == a.col_ptr && self.a.row_idx == a.row_idx
+        self.k.n == a.n && self.k.col_ptr == a.col_ptr && self.k.row_idx == a.row_idx
+    }
+
+    /// Factor `m` into the preconditioner; an f32 factorization that breaks down
+    /// is retried in f64 (kept for the rest of the run).
+    fn factor(&mut self, m: &SymCsc) -> Result<(), SolverError> {
+        match self.precond.prepare(m) {
+            Err(SolverError::NotPositiveDefinite) if self.precond.is_single_precision() => {
+                log::info!("f32 preconditioner factor broke down; refactoring in f64");
+                self.params.single_precision_factor = false;
+                self.precond = CholeskySolver::new();
+                self.precond.prepare(m)
+            }
+            r => r,
+        }
+    }
+
+    /// Store `a` and its isotropic part; factor it when due.
+    fn take_matrix(&mut self, a: BlockSym3, fixed: &[bool]) -> Result<(), SolverError> {
+        a.check_fixed(fixed)?;
+        let n = a.n;
+        let extra =
+            self.last_iterations - self.base_iterations.unwrap_or(0).min(self.last_iterations);
+        let mut refactor = self.mode != Mode::Blocks
+            || self.factored_trace == 0.0
+            || self.last_iterations > self.params.refactor_iterations
+            || extra as f64 * self.iteration_seconds > self.factor_seconds;
+        self.mode = Mode::Blocks;
+        if !self.same_pattern(&a) {
+            refactor = true;
+            self.rows = a.row_index();
+            self.k = SymCsc {
+                n,
+                col_ptr: a.col_ptr.clone(),
+                row_idx: a.row_idx.clone(),
+                values: vec![0.0; a.row_idx.len()],
+            };
+        }
+        self.a = a;
+        self.fixed.clear();
+        self.fixed.extend_from_slice(fixed);
+        // Held vertices: identity diagonal, no coupling (as BlockSym3::fill_scalar).
+        let (col_ptr, row_idx, blocks) = (&self.a.col_ptr, &self.a.row_idx, &self.a.blocks);
+        let kv = &mut self.k.values;
+        for j in 0..n {
+            for k in col_ptr[j]..col_ptr[j + 1] {
+                let i = row_idx[k];
+                kv[k] = if fixed[i] || fixed[j] {
+                    if i == j {
+                        1.0
+                    } else {
+                        0.0
+                    }
+                } else {
+                    let b = &blocks[k];
+                    (b[0] + b[4] + b[8]) / 3.0
+                };
+            }
+        }
+        let trace: f64 = (0..n).map(|j| kv[col_ptr[j]]).sum();
+        if (trace - self.factored_trace).abs() > self.params.refactor_trace_change * trace.abs() {
+            refactor = true;
+        }
+        if refactor || self.params.refactor_iterations == 0 {
+            self.factored_trace = 0.0;
+            let k = std::mem::take(&mut self.k);
+            let r = self.factor(&k);
+            self.k = k;
+            r?;
+            self.factor_seconds = self.precond.numeric_seconds;
+            self.factored_trace = trace;
+            self.base_iterations = None;
+        }
+        Ok(())
     }
 }
 
@@ -131,63 +290,40 @@ fn dot(a: &[f64], b: &[f64]) -> f64 {
 
 impl SpdSolver for BlockPcgSolver {
     fn prepare(&mut self, a: &SymCsc) -> Result<(), SolverError> {
-        self.scalar_mode = true;
-        self.precond.prepare(a)
-    }
-
-    fn prepare_blocks(&mut self, a: &BlockSym3, fixed: &[bool]) -> Result<(), SolverError> {
-        a.check_fixed(fixed)?;
-        let n = a.n;
-        let mut refactor = self.scalar_mode
-            || self.factored_trace == 0.0
-            || self.last_iterations > self.params.refactor_iterations;
-        self.scalar_mode = false;
-        if !self.same_pattern(a) {
-            refactor = true;
-            self.a = a.clone();
-            self.rows = a.row_index();
-            self.k = SymCsc {
-                n,
-                col_ptr: a.col_ptr.clone(),
-                row_idx: a.row_idx.clone(),
-                values: vec![0.0; a.row_idx.len()],
-            };
+        self.factored_trace = 0.0;
+        self.factor(a)?;
+        if self.precond.is_single_precision() {
+            self.mode = Mode::ScalarPcg;
+            self.scalar = a.clone();
         } else {
-            self.a.blocks.copy_from_slice(&a.blocks);
-        }
-        // Held vertices: identity diagonal block, no coupling (as BlockSym3::fill_scalar).
-        let col_ptr = &self.a.col_ptr;
-        let row_idx = &self.a.row_idx;
-        let blocks = &mut self.a.blocks;
-        let kv = &mut self.k.values;
-        for j in 0..n {
-            for k in col_ptr[j]..col_ptr[j + 1] {
-                let i = row_idx[k];
-                if fixed[i] || fixed[j] {
-                    blocks[k] = if i == j {
-                        [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
-                    } else {
-                        [0.0; 9]
-                    };
-                }
-                let b = &blocks[k];
-                kv[k] = (b[0] + b[4] + b[8]) / 3.0;
-            }
-        }
-        let trace: f64 = (0..n).map(|j| kv[col_ptr[j]]).sum();
-        if (trace - self.factored_trace).abs() > self.params.refactor_trace_change * trace.abs() {
-            refactor = true;
-        }
-        if refactor || self.params.refactor_iterations == 0 {
-            self.factored_trace = 0.0;
-            self.precond.prepare(&self.k)?;
-            self.factored_trace = trace;
+            self.mode = Mode::ScalarDirect;
+            self.scalar = SymCsc::default();
         }
         Ok(())
     }
 
+    fn prepare_blocks(&mut self, a: &BlockSym3, fixed: &[bool]) -> Result<(), SolverError> {
+        self.take_matrix(a.clone(), fixed)
+    }
+
+    fn prepare_blocks_owned(
+        &mut self,
+        a: BlockSym3,
+        fixed: &[bool],
+    ) -> Result<Option<BlockSym3>, SolverError> {
+        self.take_matrix(a, fixed).map(|()| None)
+    }
+
+    fn blocks(&self) -> Option<&BlockSym3> {
+        (self.mode == Mode::Blocks).then_some(&self.a)
+    }
+
+    fn take_blocks(&mut self) -> Option<BlockSym3> {
+        (self.mode == Mode::Blocks && self.a.n > 0).then(|| std::mem::take(&mut self.a))
+    }
+
     fn solve_in_place(&mut self, rhs: &mut [f64], ncols: usize) -> Result<SolveInfo, SolverError> {
-        if self.scalar_mode {
+        if self.mode == Mode::ScalarDirect {
             return self.precond.solve_in_place(rhs, ncols);
         }
         let b = rhs.to_vec();
@@ -201,11 +337,15 @@ impl SpdSolver for BlockPcgSolver {
         x: &mut [f64],
         ncols: usize,
     ) -> Result<SolveInfo, SolverError> {
-        if self.scalar_mode {
-            x.copy_from_slice(b);
-            return self.precond.solve_in_place(x, ncols);
-        }
-        let m = 3 * self.a.n;
+        let m = match self.mode {
+            Mode::None => return Err(SolverError::NotPrepared),
+            Mode::ScalarDirect => {
+                x.copy_from_slice(b);
+                return self.precond.solve_in_place(x, ncols);
+            }
+            Mode::ScalarPcg => self.scalar.n,
+            Mode::Blocks => 3 * self.a.n,
+        };
         if m == 0 {
             return Err(SolverError::NotPrepared);
         }
@@ -218,11 +358,23 @@ impl SpdSolver for BlockPcgSolver {
         }
         self.solves += 1;
         let tol = self.params.tolerance;
+        let blocks = self.mode == Mode::Blocks;
         let mut r = vec![0.0; m * ncols];
         for c in 0..ncols {
-            let (xc, rc) = (&x[m * c..m * (c + 1)], &mut r[m * c..m * (c + 1)]);
-            self.mul_vec(xc, rc);
-            for (ri, bi) in rc.iter_mut().zip(&b[m * c..m * (c + 1)]) {
+            let s = m * c..m * (c + 1);
+            if blocks {
+                // Held dofs take their right-hand side; the rest see them as zero.
+                let (xc, bc) = (&mut x[s.clone()], &b[s.clone()]);
+                for (v, &f) in self.fixed.iter().enumerate() {
+                    if f {
+                        xc[3 * v..3 * v + 3].copy_from_slice(&bc[3 * v..3 * v + 3]);
+                    }
+                }
+                self.mul_vec(xc, &mut r[s.clone()]);
+            } else {
+                self.scalar.mul_vec(&x[s.clone()], &mut r[s.clone()]);
+            }
+            for (ri, bi) in r[s.clone()].iter_mut().zip(&b[s]) {
                 *ri = bi - *ri;
             }
         }
@@ -278,7 +430,7 @@ impl SpdSolver for BlockPcgSolver {
                     continue;
                 }
                 let s = m * c..m * (c + 1);
-                self.mul_vec(&p[s.clone()], &mut q[s.clone()]);
+                self.mul_direction(&p[s.clone()], &mut q[s.clone()]);
                 let pq = dot(&p[s.clone()], &q[s.clone()]);
                 if pq.is_nan() || pq <= 0.0 {
                     return Err(SolverError::NotPositiveDefinite);
@@ -312,9 +464,14 @@ impl SpdSolver for BlockPcgSolver {
             it += 1;
         }
         self.total_iterations += it;
-        self.last_iterations = it;
+        if blocks {
+            self.last_iterations = it;
+            self.base_iterations.get_or_insert(it);
+            self.iteration_seconds = t_start.elapsed().as_secs_f64() / it.max(1) as f64;
+        }
         log::debug!(
-            "block PCG: {ncols} column(s), {it} iterations, residual {worst:.2e}, {:.3} s ({:.3} s preconditioning)",
+            "{} PCG: {ncols} column(s), {it} iterations, residual {worst:.2e}, {:.3} s ({:.3} s preconditioning)",
+            if blocks { "block" } else { "scalar" },
             t_start.elapsed().as_secs_f64(),
             t_precond.as_secs_f64()
         );

@@ -56,6 +56,22 @@ kind = "volume"
 scale = 1.1
 "#;
 
+/// The million-face issue's job on homer: a girth +15 %, another girth and the volume kept.
+pub const GIRTHS_HOMER: &str = r#"
+mesh = "homer.obj"
+[[constraint]]
+kind = "length"
+name = "waist"
+curve = { plane = { origin = [0.5, 0.5, 0.49], normal = [0.0, 1.0, 0.0] } }
+scale = 1.15
+[[constraint]]
+kind = "length"
+name = "head girth"
+curve = { plane = { origin = [0.5, 0.85, 0.49], normal = [0.0, 1.0, 0.0] } }
+[[constraint]]
+kind = "volume"
+"#;
+
 /// Paper Fig. 9: fandisk top area times `scale`, the bottom area kept.
 pub fn fig9_fandisk(scale: f64) -> String {
     format!(
