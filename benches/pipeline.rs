@@ -55,8 +55,38 @@ fn row(name: &str, job_text: &str, subdivisions: usize, multipliers: &str) {
     );
 }
 
+/// Mesh I/O at scale: homer subdivided `subdivisions` times, written and read
+/// back as OBJ and PLY (`--io N`).
+fn io_row(subdivisions: usize) {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/meshes/homer.obj");
+    let mut mesh = metricdeform::io::read_mesh(&path).unwrap();
+    for _ in 0..subdivisions {
+        mesh = mesh.subdivide_midpoint();
+    }
+    let dir = tempfile::tempdir().unwrap();
+    for ext in ["obj", "ply"] {
+        let out = dir.path().join(format!("big.{ext}"));
+        let t0 = Instant::now();
+        metricdeform::io::write_mesh(&out, &mesh, &mesh.positions, None).unwrap();
+        let write = t0.elapsed().as_secs_f64();
+        let t1 = Instant::now();
+        let back = metricdeform::io::read_mesh(&out).unwrap();
+        let read = t1.elapsed().as_secs_f64();
+        assert_eq!(back.num_faces(), mesh.num_faces());
+        println!(
+            "| {ext} | {} | {:.0} MB | write {write:.3} s | read {read:.3} s |",
+            mesh.num_faces(),
+            std::fs::metadata(&out).unwrap().len() as f64 / 1e6
+        );
+    }
+}
+
 fn main() {
     let args: Vec<String> = std::env::args().collect();
+    if let Some(i) = args.iter().position(|a| a == "--io") {
+        io_row(args[i + 1].parse().unwrap());
+        return;
+    }
     if let Some(i) = args.iter().position(|a| a == "--row") {
         let _ = env_logger::builder().format_timestamp_millis().try_init();
         let (name, mult) = (&args[i + 1], &args[i + 2]);
