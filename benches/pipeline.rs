@@ -27,14 +27,28 @@ scale = 1.3
 kind = "volume"
 "#;
 
-fn row(name: &str, job_text: &str, subdivisions: usize, multipliers: &str) {
+/// How a row refines its mesh.
+#[derive(Clone, Copy)]
+enum Refine {
+    /// `k` times 1-to-4 midpoint subdivision (x 4^k faces).
+    Midpoint(usize),
+    /// Every edge cut in `n` (x n^2 faces).
+    Uniform(usize),
+}
+
+fn row(name: &str, job_text: &str, refine: Refine, multipliers: &str) {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/meshes");
     let text = format!("{job_text}\n[solver]\nmultipliers = \"{multipliers}\"\n");
     let job = Job::from_str(&text, JobFormat::Toml, &dir, name).unwrap();
     let t0 = Instant::now();
     let mut mesh = metricdeform::io::read_mesh(&job.mesh_path()).unwrap();
-    for _ in 0..subdivisions {
-        mesh = mesh.subdivide_midpoint();
+    match refine {
+        Refine::Midpoint(k) => {
+            for _ in 0..k {
+                mesh = mesh.subdivide_midpoint();
+            }
+        }
+        Refine::Uniform(n) => mesh = mesh.subdivide_uniform(n),
     }
     let problem = Problem::build(&job, mesh, &job.mesh_path()).unwrap();
     let load = t0.elapsed().as_secs_f64();
@@ -91,16 +105,55 @@ fn main() {
         let _ = env_logger::builder().format_timestamp_millis().try_init();
         let (name, mult) = (&args[i + 1], &args[i + 2]);
         match name.as_str() {
-            "spot" => row("spot", SPOT_JOB, 0, mult),
-            "fandisk" => row("fandisk", &common::fig9_fandisk(2.0), 0, mult),
-            "homer" => row("homer", common::TABLE1_HOMER, 0, mult),
-            "spot-x16" => row("spot-x16", SPOT_JOB, 2, mult),
-            "homer-x16" => row("homer-x16", common::TABLE1_HOMER, 2, mult),
-            "spot-x64" => row("spot-x64", SPOT_JOB, 3, mult),
-            "spot-x256" => row("spot-x256", SPOT_JOB, 4, mult),
-            "girths-homer-x16" => row("girths-homer-x16", common::GIRTHS_HOMER, 2, mult),
-            "girths-homer-x64" => row("girths-homer-x64", common::GIRTHS_HOMER, 3, mult),
-            "girths-homer-x256" => row("girths-homer-x256", common::GIRTHS_HOMER, 4, mult),
+            "spot" => row("spot", SPOT_JOB, Refine::Midpoint(0), mult),
+            "fandisk" => row(
+                "fandisk",
+                &common::fig9_fandisk(2.0),
+                Refine::Midpoint(0),
+                mult,
+            ),
+            "homer" => row("homer", common::TABLE1_HOMER, Refine::Midpoint(0), mult),
+            "spot-x16" => row("spot-x16", SPOT_JOB, Refine::Midpoint(2), mult),
+            "homer-x16" => row("homer-x16", common::TABLE1_HOMER, Refine::Midpoint(2), mult),
+            "spot-x64" => row("spot-x64", SPOT_JOB, Refine::Midpoint(3), mult),
+            "spot-x256" => row("spot-x256", SPOT_JOB, Refine::Midpoint(4), mult),
+            "girths-homer-x16" => row(
+                "girths-homer-x16",
+                common::GIRTHS_HOMER,
+                Refine::Midpoint(2),
+                mult,
+            ),
+            "girths-homer-x64" => row(
+                "girths-homer-x64",
+                common::GIRTHS_HOMER,
+                Refine::Midpoint(3),
+                mult,
+            ),
+            "girths-homer-x256" => row(
+                "girths-homer-x256",
+                common::GIRTHS_HOMER,
+                Refine::Midpoint(4),
+                mult,
+            ),
+            // The issue's sizes: about 100k, 1M and 4M faces (homer's 12k faces x n^2).
+            "girths-homer-100k" => row(
+                "girths-homer-100k",
+                common::GIRTHS_HOMER,
+                Refine::Uniform(3),
+                mult,
+            ),
+            "girths-homer-1m" => row(
+                "girths-homer-1m",
+                common::GIRTHS_HOMER,
+                Refine::Uniform(10),
+                mult,
+            ),
+            "girths-homer-4m" => row(
+                "girths-homer-4m",
+                common::GIRTHS_HOMER,
+                Refine::Uniform(19),
+                mult,
+            ),
             _ => panic!("unknown row {name}"),
         }
         return;

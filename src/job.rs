@@ -188,6 +188,9 @@ pub struct SolverSpec {
     /// `area` | `tetrahedra`.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub volume_share: Option<String>,
+    /// `auto` | `anderson` | `none` (the scale-driven iteration as in the paper).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub acceleration: Option<String>,
 }
 
 /// Energy weights (all >= 0).
@@ -214,6 +217,7 @@ pub const MULTIPLIERS: &[&str] = &["per_kind", "per_constraint"];
 pub const REGULARISERS: &[&str] = &["area", "uniform"];
 pub const CURVATURE_TARGETS: &[&str] = &["scaled", "literal"];
 pub const VOLUME_SHARES: &[&str] = &["area", "tetrahedra"];
+pub const ACCELERATIONS: &[&str] = &["auto", "anderson", "none"];
 
 /// Syntax of a job text.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -591,6 +595,7 @@ impl SolverSpec {
             CURVATURE_TARGETS,
         )?;
         check_choice("volume_share", &self.volume_share, VOLUME_SHARES)?;
+        check_choice("acceleration", &self.acceleration, ACCELERATIONS)?;
         if let Some(t) = self.tolerance {
             if !(t.is_finite() && t > 0.0) {
                 return Err(format!(

@@ -11,6 +11,7 @@ pub mod topology;
 pub mod validate;
 
 pub use error::{Error, Result};
+pub mod anderson;
 pub use mesh::Mesh;
 pub mod deform;
 pub mod distortion;

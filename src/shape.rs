@@ -27,7 +27,7 @@ use crate::mesh::Mesh;
 use crate::topology::Topology;
 use crate::{Error, Result};
 use glam::DVec3;
-use solver_cpu::{BlockPcgSolver, BlockRows, BlockSym3, SpdSolver};
+use solver_cpu::{BlockPcgSolver, BlockSym3, SpdSolver};
 
 /// Weights of Eq. 7 / Eq. 19.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -183,8 +183,6 @@ pub struct ShapeModel {
     /// Working matrix (pattern of the 2-ring) while the model holds it; after
     /// an assembly the solver may keep it instead (see [`ShapeModel::matrix`]).
     h: Option<BlockSym3>,
-    /// Row index of `h` for the parallel product.
-    h_rows: BlockRows,
     /// Block slots of each face's corner pairs (k, l), l <= k, in the order
     /// (0,0) (1,0) (1,1) (2,0) (2,1) (2,2) (E_f assembly without searching).
     face_slots: Vec<[u32; 6]>,
@@ -280,7 +278,6 @@ impl ShapeModel {
             }
             mv_slot_ptr.push(mv_slots.len());
         }
-        let h_rows = h.row_index();
         log::debug!(
             "shape model: {} vertices, {} blocks, set up in {:.3} s, resident {:.0} MiB",
             n,
@@ -325,7 +322,6 @@ impl ShapeModel {
             mean_edge,
             hm,
             h: Some(h),
-            h_rows,
             face_slots,
             mv_slot_ptr,
             mv_slots,
@@ -507,7 +503,7 @@ impl ShapeModel {
     }
 
     /// The assembled Hessian, wherever it is kept.
-    fn matrix(&self) -> &BlockSym3 {
+    pub fn matrix(&self) -> &BlockSym3 {
         self.h
             .as_ref()
             .or_else(|| self.solver.blocks())
@@ -522,7 +518,9 @@ impl ShapeModel {
     /// Energy (up to a constant) at `xref + dx`: `1/2 dx^T H dx + g0 . dx`.
     pub fn energy(&self, dx: &[f64]) -> f64 {
         let mut hd = vec![0.0; dx.len()];
-        self.matrix().mul_vec_rows(&self.h_rows, dx, &mut hd);
+        // Sequential product: a few per Newton step; the solver keeps the row
+        // index of its parallel product, the model does not repeat it.
+        self.matrix().mul_vec(dx, &mut hd);
         let mut e = 0.0;
         for i in 0..dx.len() {
             let v = i / 3;
@@ -537,7 +535,7 @@ impl ShapeModel {
     /// Gradient at `xref + dx`: `H dx + g0` (held dofs zero).
     pub fn gradient_at(&self, dx: &[f64]) -> Vec<f64> {
         let mut g = vec![0.0; dx.len()];
-        self.matrix().mul_vec_rows(&self.h_rows, dx, &mut g);
+        self.matrix().mul_vec(dx, &mut g);
         for i in 0..dx.len() {
             g[i] = if self.fixed[i / 3] {
                 0.0

@@ -1,9 +1,10 @@
 //! Reference backend: sparse Cholesky `A = L L^T` with faer.
 //!
 //! Symbolic/numeric split: the ordering, elimination tree and supernodes are
-//! computed once per sparsity pattern and reused for every new set of values;
-//! the numeric factor's storage and the scratch memory are reused too, so a
-//! refactorization allocates nothing.
+//! computed once per sparsity pattern (recognised by a fingerprint, not a copy)
+//! and reused for every new set of values; the numeric factor's storage is
+//! reused too. The factorization's scratch is allocated per factorization and
+//! freed after it, so it is not resident beside the factor.
 //!
 //! [`CholeskySolver::single_precision`] stores the numeric factor in f32 (half the
 //! memory and half the memory traffic of a solve). Such a factor is a
@@ -19,7 +20,7 @@ use faer::sparse::{SparseColMatRef, SymbolicSparseColMatRef};
 use faer::{get_global_parallelism, Conj, MatMut, Side};
 
 /// Fill-reducing ordering of the symbolic analysis.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[derive(Debug, Clone, PartialEq, Eq, Default)]
 pub enum FillOrdering {
     /// Nested dissection from [`NESTED_DISSECTION_FROM`] unknowns on, AMD below.
     #[default]
@@ -28,6 +29,11 @@ pub enum FillOrdering {
     Amd,
     /// METIS nested dissection (`METIS_NodeND`).
     NestedDissection,
+    /// A permutation computed beforehand (`forward[new] = old`), e.g. by
+    /// [`nested_dissection_of_pattern`] on another thread; for a 3x3-block matrix,
+    /// a permutation of its block rows. One that is not a permutation of the
+    /// matrix's size is ignored (with a warning) for `Auto`.
+    Given(std::sync::Arc<[usize]>),
 }
 
 /// Size from which [`FillOrdering::Auto`] uses nested dissection: on mesh-like
@@ -37,13 +43,22 @@ pub const NESTED_DISSECTION_FROM: usize = 50_000;
 /// METIS nested-dissection permutation of the graph of `a` (diagonal ignored):
 /// `(forward, inverse)` with `forward[new] = old`; `None` if METIS fails.
 pub fn nested_dissection(a: &SymCsc) -> Option<(Vec<usize>, Vec<usize>)> {
-    let n = a.n;
-    if n == 0 || a.row_idx.len() > i32::MAX as usize / 2 {
+    nested_dissection_of_pattern(a.n, &a.col_ptr, &a.row_idx)
+}
+
+/// As [`nested_dissection`], for the lower-triangular pattern `(col_ptr, row_idx)`
+/// of an `n x n` symmetric matrix (scalar or block).
+pub fn nested_dissection_of_pattern(
+    n: usize,
+    col_ptr: &[usize],
+    row_idx: &[usize],
+) -> Option<(Vec<usize>, Vec<usize>)> {
+    if n == 0 || row_idx.len() > i32::MAX as usize / 2 {
         return None;
     }
     let mut degree = vec![0i32; n + 1];
     for c in 0..n {
-        for &r in &a.row_idx[a.col_ptr[c]..a.col_ptr[c + 1]] {
+        for &r in &row_idx[col_ptr[c]..col_ptr[c + 1]] {
             if r != c {
                 degree[r + 1] += 1;
                 degree[c + 1] += 1;
@@ -56,7 +71,7 @@ pub fn nested_dissection(a: &SymCsc) -> Option<(Vec<usize>, Vec<usize>)> {
     let mut xadj = degree.clone();
     let mut adjncy = vec![0i32; xadj[n] as usize];
     for c in 0..n {
-        for &r in &a.row_idx[a.col_ptr[c]..a.col_ptr[c + 1]] {
+        for &r in &row_idx[col_ptr[c]..col_ptr[c + 1]] {
             if r != c {
                 adjncy[degree[r] as usize] = c as i32;
                 degree[r] += 1;
@@ -93,13 +108,60 @@ pub fn nested_dissection(a: &SymCsc) -> Option<(Vec<usize>, Vec<usize>)> {
     Some((forward, inverse))
 }
 
+/// Fingerprint of a sparsity pattern: its sizes and a 64-bit hash of its
+/// indices. Kept instead of a copy of the pattern (tens of MiB at a million
+/// faces) to decide whether the symbolic analysis can be reused; two different
+/// patterns of equal sizes collide with probability about 2^-64.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct PatternKey {
+    n: usize,
+    nnz: usize,
+    hash: u64,
+}
+
+impl PatternKey {
+    fn of(col_ptr: &[usize], row_idx: &[usize]) -> PatternKey {
+        // FNV-1a over 64-bit words, then a final avalanche (splitmix64).
+        let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+        for &v in col_ptr.iter().chain(row_idx) {
+            h = (h ^ v as u64).wrapping_mul(0x0100_0000_01b3);
+        }
+        h ^= h >> 30;
+        h = h.wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        h ^= h >> 27;
+        h = h.wrapping_mul(0x94d0_49bb_1331_11eb);
+        h ^= h >> 31;
+        PatternKey {
+            n: col_ptr.len(),
+            nnz: row_idx.len(),
+            hash: h,
+        }
+    }
+}
+
+/// The inverse of `forward` when it is a permutation of `0..n`.
+fn inverse_permutation(forward: &[usize], n: usize) -> Option<Vec<usize>> {
+    if forward.len() != n {
+        return None;
+    }
+    let mut inverse = vec![usize::MAX; n];
+    for (new, &old) in forward.iter().enumerate() {
+        if old >= n || inverse[old] != usize::MAX {
+            return None;
+        }
+        inverse[old] = new;
+    }
+    Some(inverse)
+}
+
 /// faer sparse Cholesky with the symbolic factorization reused across matrices
 /// of the same pattern.
 #[derive(Default)]
 pub struct CholeskySolver {
     /// Ordering used by the next symbolic analysis.
     pub ordering: FillOrdering,
-    pattern: Option<(Vec<usize>, Vec<usize>)>,
+    /// Fingerprint of the analysed pattern (see [`PatternKey`]).
+    pattern: Option<PatternKey>,
     symbolic: Option<SymbolicCholesky<usize>>,
     numeric: Vec<f64>,
     /// The factor in f32 when `single` (then `numeric` stays empty).
@@ -109,10 +171,9 @@ pub struct CholeskySolver {
     /// Solve buffer in f32 (single precision only).
     buf32: Vec<f32>,
     factored: bool,
-    scratch: Option<MemBuffer>,
     n: usize,
     /// Scalar copy of the last block matrix (pattern kept while unchanged).
-    block_scalar: Option<(Vec<usize>, Vec<usize>, SymCsc)>,
+    block_scalar: Option<(PatternKey, SymCsc)>,
     /// How many symbolic analyses were made (for tests and benchmarks).
     pub symbolic_count: usize,
     /// How many numeric factorizations were made.
@@ -199,17 +260,53 @@ fn solve_split<T: faer::traits::ComplexField<Real = T> + Copy + Send + Sync>(
 }
 
 impl SpdSolver for CholeskySolver {
+    fn set_fill_ordering(&mut self, ordering: FillOrdering) {
+        if ordering != self.ordering {
+            self.ordering = ordering;
+            self.symbolic = None;
+        }
+    }
+
     fn prepare(&mut self, a: &SymCsc) -> Result<(), SolverError> {
-        let same = matches!(&self.pattern, Some((cp, ri)) if *cp == a.col_ptr && *ri == a.row_idx);
+        let key = PatternKey::of(&a.col_ptr, &a.row_idx);
+        let same = self.pattern == Some(key);
         let sym_ref = SymbolicSparseColMatRef::new_checked(a.n, a.n, &a.col_ptr, None, &a.row_idx);
         if !same || self.symbolic.is_none() {
             let t0 = std::time::Instant::now();
-            let nd = match self.ordering {
+            let given = match &self.ordering {
+                FillOrdering::Given(fwd) => {
+                    // A block-row ordering of a 3x3-block matrix's scalar form.
+                    let fwd: Vec<usize> = if fwd.len() * 3 == a.n {
+                        fwd.iter()
+                            .flat_map(|&v| [3 * v, 3 * v + 1, 3 * v + 2])
+                            .collect()
+                    } else {
+                        fwd.to_vec()
+                    };
+                    let inv = inverse_permutation(&fwd, a.n);
+                    if inv.is_none() {
+                        log::warn!(
+                            "given fill ordering is not a permutation of {} unknowns; ignored",
+                            a.n
+                        );
+                    }
+                    inv.map(|inv| (fwd, inv))
+                }
+                _ => None,
+            };
+            let nd = match &self.ordering {
                 FillOrdering::Amd => false,
                 FillOrdering::NestedDissection => true,
-                FillOrdering::Auto => a.n >= NESTED_DISSECTION_FROM,
+                FillOrdering::Auto | FillOrdering::Given(_) => a.n >= NESTED_DISSECTION_FROM,
             };
-            let perm = if nd { nested_dissection(a) } else { None };
+            let perm = if given.is_some() {
+                given
+            } else if nd {
+                nested_dissection(a)
+            } else {
+                None
+            };
+            let ordering_seconds = t0.elapsed().as_secs_f64();
             let ordering = match &perm {
                 Some((fwd, inv)) => {
                     SymmetricOrdering::Custom(faer::perm::PermRef::new_checked(fwd, inv, a.n))
@@ -233,41 +330,43 @@ impl SpdSolver for CholeskySolver {
                 self.numeric.resize(sym.len_val(), 0.0);
             }
             self.symbolic = Some(sym);
-            self.pattern = Some((a.col_ptr.clone(), a.row_idx.clone()));
-            self.scratch = None;
+            self.pattern = Some(key);
             self.symbolic_count += 1;
             log::debug!(
-                "Cholesky symbolic analysis: n {}, nnz(A) {}, nnz(L) {} ({}, {}), {:.3} s",
+                "Cholesky symbolic analysis: n {}, nnz(A) {}, nnz(L) {} ({}, {}), {:.3} s (ordering {:.3} s)",
                 a.n,
                 a.row_idx.len(),
                 self.numeric.len() + self.numeric32.len(),
                 if self.single { "f32" } else { "f64" },
-                if perm.is_some() {
-                    "nested dissection"
-                } else {
-                    "AMD"
+                match (&self.ordering, &perm) {
+                    (_, None) => "AMD",
+                    (FillOrdering::Given(_), Some(_)) => "given",
+                    (_, Some(_)) => "nested dissection",
                 },
-                t0.elapsed().as_secs_f64()
+                t0.elapsed().as_secs_f64(),
+                ordering_seconds
             );
         }
         let sym = self.symbolic.as_ref().unwrap();
         let par = get_global_parallelism();
-        if self.scratch.is_none() {
-            let req = if self.single {
-                sym.factorize_numeric_llt_scratch::<f32>(par, Default::default())
-            } else {
-                sym.factorize_numeric_llt_scratch::<f64>(par, Default::default())
-            };
+        // Scratch for this factorization only: at a million faces it is tens of
+        // MiB that would otherwise stay resident beside the factor.
+        let req = if self.single {
+            sym.factorize_numeric_llt_scratch::<f32>(par, Default::default())
+        } else {
+            sym.factorize_numeric_llt_scratch::<f64>(par, Default::default())
+        };
+        if self.numeric_count == 0 {
             log::debug!(
                 "Cholesky numeric scratch: {:.1} MiB (factor {:.1} MiB)",
                 req.size_bytes() as f64 / 1048576.0,
                 self.factor_bytes() as f64 / 1048576.0
             );
-            self.scratch = Some(MemBuffer::try_new(req).map_err(|_| SolverError::OutOfMemory)?);
         }
+        let mut scratch = MemBuffer::try_new(req).map_err(|_| SolverError::OutOfMemory)?;
         self.factored = false;
         let t_numeric = std::time::Instant::now();
-        let stack = MemStack::new(self.scratch.as_mut().unwrap());
+        let stack = MemStack::new(&mut scratch);
         let factored = if self.single {
             let values: Vec<f32> = a.values.iter().map(|&v| v as f32).collect();
             let mat = SparseColMatRef::new(sym_ref, &values);
@@ -306,15 +405,14 @@ impl SpdSolver for CholeskySolver {
 
     fn prepare_blocks(&mut self, a: &BlockSym3, fixed: &[bool]) -> Result<(), SolverError> {
         a.check_fixed(fixed)?;
-        let same =
-            matches!(&self.block_scalar, Some((cp, ri, _)) if *cp == a.col_ptr && *ri == a.row_idx);
-        if !same {
-            self.block_scalar = Some((a.col_ptr.clone(), a.row_idx.clone(), a.scalar_pattern()));
+        let key = PatternKey::of(&a.col_ptr, &a.row_idx);
+        if !matches!(&self.block_scalar, Some((k, _)) if *k == key) {
+            self.block_scalar = Some((key, a.scalar_pattern()));
         }
-        let mut scalar = std::mem::take(&mut self.block_scalar.as_mut().unwrap().2);
+        let mut scalar = std::mem::take(&mut self.block_scalar.as_mut().unwrap().1);
         a.fill_scalar(&mut scalar, fixed);
         let r = self.prepare(&scalar);
-        self.block_scalar.as_mut().unwrap().2 = scalar;
+        self.block_scalar.as_mut().unwrap().1 = scalar;
         r
     }
 

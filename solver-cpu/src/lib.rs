@@ -11,7 +11,7 @@ pub mod cholesky;
 pub mod pcg;
 
 pub use block::{BlockRows, BlockSym3};
-pub use cholesky::{CholeskySolver, FillOrdering};
+pub use cholesky::{nested_dissection_of_pattern, CholeskySolver, FillOrdering};
 pub use pcg::{BlockPcgParams, BlockPcgSolver};
 
 /// Failure of a linear solve.
@@ -151,6 +151,10 @@ pub trait SpdSolver {
     /// Relative residual `||A x - b|| / ||b||` an iterative backend must reach
     /// (ignored by direct solvers).
     fn set_tolerance(&mut self, _relative_residual: f64) {}
+    /// Fill-reducing ordering of the next symbolic analysis, for backends that
+    /// factor (of the scalar unknowns, or of the block rows of a block matrix);
+    /// ignored by the others.
+    fn set_fill_ordering(&mut self, _ordering: FillOrdering) {}
     /// Short name for reports ("cpu", "gpu").
     fn name(&self) -> &str;
 }

@@ -23,7 +23,7 @@
 //!
 //! Every column stops when `||b - A x|| <= tolerance ||b||` (recurrence residual).
 
-use crate::cholesky::CholeskySolver;
+use crate::cholesky::{CholeskySolver, FillOrdering};
 use crate::{BlockRows, BlockSym3, SolveInfo, SolverError, SpdSolver, SymCsc};
 use rayon::prelude::*;
 
@@ -217,7 +217,9 @@ impl BlockPcgSolver {
             Err(SolverError::NotPositiveDefinite) if self.precond.is_single_precision() => {
                 log::info!("f32 preconditioner factor broke down; refactoring in f64");
                 self.params.single_precision_factor = false;
+                let ordering = self.precond.ordering.clone();
                 self.precond = CholeskySolver::new();
+                self.precond.ordering = ordering;
                 self.precond.prepare(m)
             }
             r => r,
@@ -289,6 +291,10 @@ fn dot(a: &[f64], b: &[f64]) -> f64 {
 }
 
 impl SpdSolver for BlockPcgSolver {
+    fn set_fill_ordering(&mut self, ordering: FillOrdering) {
+        self.precond.set_fill_ordering(ordering);
+    }
+
     fn prepare(&mut self, a: &SymCsc) -> Result<(), SolverError> {
         self.factored_trace = 0.0;
         self.factor(a)?;
