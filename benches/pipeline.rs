@@ -104,58 +104,26 @@ fn main() {
     if let Some(i) = args.iter().position(|a| a == "--row") {
         let _ = env_logger::builder().format_timestamp_millis().try_init();
         let (name, mult) = (&args[i + 1], &args[i + 2]);
-        match name.as_str() {
-            "spot" => row("spot", SPOT_JOB, Refine::Midpoint(0), mult),
-            "fandisk" => row(
-                "fandisk",
-                &common::fig9_fandisk(2.0),
-                Refine::Midpoint(0),
-                mult,
-            ),
-            "homer" => row("homer", common::TABLE1_HOMER, Refine::Midpoint(0), mult),
-            "spot-x16" => row("spot-x16", SPOT_JOB, Refine::Midpoint(2), mult),
-            "homer-x16" => row("homer-x16", common::TABLE1_HOMER, Refine::Midpoint(2), mult),
-            "spot-x64" => row("spot-x64", SPOT_JOB, Refine::Midpoint(3), mult),
-            "spot-x256" => row("spot-x256", SPOT_JOB, Refine::Midpoint(4), mult),
-            "girths-homer-x16" => row(
-                "girths-homer-x16",
-                common::GIRTHS_HOMER,
-                Refine::Midpoint(2),
-                mult,
-            ),
-            "girths-homer-x64" => row(
-                "girths-homer-x64",
-                common::GIRTHS_HOMER,
-                Refine::Midpoint(3),
-                mult,
-            ),
-            "girths-homer-x256" => row(
-                "girths-homer-x256",
-                common::GIRTHS_HOMER,
-                Refine::Midpoint(4),
-                mult,
-            ),
-            // The sizes: about 100k, 1M and 4M faces (homer's 12k faces x n^2).
-            "girths-homer-100k" => row(
-                "girths-homer-100k",
-                common::GIRTHS_HOMER,
-                Refine::Uniform(3),
-                mult,
-            ),
-            "girths-homer-1m" => row(
-                "girths-homer-1m",
-                common::GIRTHS_HOMER,
-                Refine::Uniform(10),
-                mult,
-            ),
-            "girths-homer-4m" => row(
-                "girths-homer-4m",
-                common::GIRTHS_HOMER,
-                Refine::Uniform(19),
-                mult,
-            ),
+        let job: String = match name.split_once('-').map_or(name.as_str(), |(m, _)| m) {
+            "spot" => SPOT_JOB.into(),
+            "fandisk" => common::fig9_fandisk(2.0),
+            "homer" => common::TABLE1_HOMER.into(),
+            "girths" => common::GIRTHS_HOMER.into(),
             _ => panic!("unknown row {name}"),
-        }
+        };
+        // Suffix: -xN (N = 4^k, midpoint subdivision) or the sizes, about
+        // 100k, 1M and 4M faces (homer's 12k faces x n^2, every edge cut in n).
+        let refine = match name.rsplit_once('-').map(|(_, r)| r) {
+            None => Refine::Midpoint(0),
+            Some("x16") => Refine::Midpoint(2),
+            Some("x64") => Refine::Midpoint(3),
+            Some("x256") => Refine::Midpoint(4),
+            Some("100k") => Refine::Uniform(3),
+            Some("1m") => Refine::Uniform(10),
+            Some("4m") => Refine::Uniform(19),
+            Some(_) => panic!("unknown row {name}"),
+        };
+        row(name, &job, refine, mult);
         return;
     }
     let quick = args.iter().any(|a| a == "--quick");
