@@ -1,7 +1,8 @@
 //! Pipeline benchmark: full runs to 0.001 % on the CPU backend, printed as a table
 //! (mesh, faces, iterations, seconds per phase, max metric error, peak memory).
 //!
-//! `cargo bench --bench pipeline` (add `-- --quick` to skip the largest mesh).
+//! `cargo bench --bench pipeline` (add `-- --quick` to skip the largest mesh);
+//! one row: `-- --row NAME MULTIPLIERS [--preview N]`.
 //! Each row runs in a fresh child process so that peak memory is per run.
 
 #[path = "../tests/common/mod.rs"]
@@ -36,7 +37,7 @@ enum Refine {
     Uniform(usize),
 }
 
-fn row(name: &str, job_text: &str, refine: Refine, multipliers: &str) {
+fn row(name: &str, job_text: &str, refine: Refine, multipliers: &str, preview: Option<usize>) {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/meshes");
     let text = format!("{job_text}\n[solver]\nmultipliers = \"{multipliers}\"\n");
     let job = Job::from_str(&text, JobFormat::Toml, &dir, name).unwrap();
@@ -52,11 +53,13 @@ fn row(name: &str, job_text: &str, refine: Refine, multipliers: &str) {
     }
     let problem = Problem::build(&job, mesh, &job.mesh_path()).unwrap();
     let load = t0.elapsed().as_secs_f64();
-    let options = Options::from_spec(&job.spec.solver);
+    let mut options = Options::from_spec(&job.spec.solver);
+    options.preview = preview;
     let out = deform(&problem, &options, &mut |_| {}).unwrap();
     let total = t0.elapsed().as_secs_f64();
     println!(
-        "| {name} | {} | {multipliers} | {} + {} | {:.3} | {:.3} | {:.3} | {:.3} | {:.2e} | {:.0} |",
+        "| {name}{} | {} | {multipliers} | {} + {} | {:.3} | {:.3} | {:.3} | {:.3} | {:.2e} | {:.0} |",
+        preview.map_or(String::new(), |n| format!(" (preview {n})")),
         problem.mesh.num_faces(),
         out.scale_driven_iterations,
         out.fine_tune_iterations,
@@ -111,8 +114,9 @@ fn main() {
             "girths" => common::GIRTHS_HOMER.into(),
             _ => panic!("unknown row {name}"),
         };
-        // Suffix: -xN (N = 4^k, midpoint subdivision) or the sizes, about
-        // 100k, 1M and 4M faces (homer's 12k faces x n^2, every edge cut in n).
+        // Suffix: -xN (N = 4^k, midpoint subdivision), the sizes, about
+        // 100k, 1M and 4M faces (homer's 12k faces x n^2, every edge cut in n), or
+        // -uN (every edge cut in N).
         let refine = match name.rsplit_once('-').map(|(_, r)| r) {
             None => Refine::Midpoint(0),
             Some("x16") => Refine::Midpoint(2),
@@ -121,9 +125,18 @@ fn main() {
             Some("100k") => Refine::Uniform(3),
             Some("1m") => Refine::Uniform(10),
             Some("4m") => Refine::Uniform(19),
+            // -uN: every edge cut in N (e.g. -u9: 972,000 faces, just under 1M).
+            Some(s) if s.starts_with('u') && s[1..].parse::<usize>().is_ok() => {
+                Refine::Uniform(s[1..].parse().unwrap())
+            }
             Some(_) => panic!("unknown row {name}"),
         };
-        row(name, &job, refine, mult);
+        // `--preview N`: the CLI's preview (N scale-driven steps, no fine-tune).
+        let preview = args
+            .iter()
+            .position(|a| a == "--preview")
+            .map(|j| args[j + 1].parse().expect("--preview N"));
+        row(name, &job, refine, mult, preview);
         return;
     }
     let quick = args.iter().any(|a| a == "--quick");

@@ -437,6 +437,7 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
     let mut model =
         ShapeModel::with_solver(mesh, &p.topo, p.handles.clone(), o.backend.shape_solver()?)?;
     let face_ordering = fill_orderings(p, o, &mut model);
+    crate::report::release_free_memory();
     model
         .solver()
         .set_tolerance(SCALE_DRIVEN_TOLERANCE.max(o.backend.fine_tune_tolerance()));
@@ -474,6 +475,7 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
                 },
             )?)
         };
+        crate::report::release_free_memory();
         stop_reason = "iteration cap".into();
         let mut anderson = Anderson::new(if nf >= o.anderson_from_faces {
             o.anderson_depth
@@ -656,7 +658,7 @@ fn fill_orderings(p: &Problem, o: &Options, model: &mut ShapeModel) -> Option<Ve
             );
             nested_dissection_of_pattern(nf, &graph.col_ptr, &graph.row_idx)
         });
-        let vertices = nested_dissection_of_pattern(h.n, &h.col_ptr, &h.row_idx);
+        let vertices = nested_dissection_of_pattern(h.n(), &h.iso.col_ptr, &h.iso.row_idx);
         (faces.join().ok().flatten(), vertices)
     });
     log::debug!(
@@ -697,6 +699,7 @@ fn fine_tune(
     let ones_f = vec![1.0; nf];
     let ones_v = vec![1.0; n];
     // One factorization for the whole fine-tune (symbolic analysis reused).
+    crate::report::release_free_memory();
     model.assemble_and_factor(mesh, xstart, &ones_f, &ones_v, &o.fine_tune)?;
     let goal = 0.01 * o.tolerance;
     let mut dx = vec![0.0; 3 * n];
@@ -748,7 +751,7 @@ fn fine_tune(
         if o.multipliers == Multipliers::PerKind {
             lin = lin.grouped(groups);
         }
-        let step = constrained_step_warm(model.solver(), &neg, &lin, &mut warm)?;
+        let step = constrained_step_warm(model.solver(), neg, lin, &mut warm)?;
         let lam_max = match o.multipliers {
             Multipliers::PerConstraint => step.lambda.iter().fold(0.0f64, |m, l| m.max(l.abs())),
             Multipliers::PerKind => groups

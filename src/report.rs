@@ -132,6 +132,22 @@ pub fn resident_memory_mb() -> f64 {
     proc_status_mb("VmRSS:")
 }
 
+/// Hands the allocator's free memory back to the system (glibc keeps freed
+/// blocks of its per-thread arenas resident; a large set-up step leaves hundreds
+/// of MiB of them at a million faces). A no-op elsewhere.
+pub fn release_free_memory() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    {
+        extern "C" {
+            fn malloc_trim(pad: usize) -> std::ffi::c_int;
+        }
+        // SAFETY: malloc_trim only returns free pages of glibc's own arenas.
+        unsafe {
+            malloc_trim(0);
+        }
+    }
+}
+
 fn proc_status_mb(field: &str) -> f64 {
     std::fs::read_to_string("/proc/self/status")
         .ok()

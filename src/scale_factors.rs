@@ -166,7 +166,7 @@ impl ScaleFactorSystem {
             if mode == Multipliers::PerKind {
                 lin = lin.grouped(&groups);
             }
-            let step = constrained_step_warm(self.solver.as_mut(), &neg, &lin, &mut self.warm)?;
+            let step = constrained_step_warm(self.solver.as_mut(), neg, lin, &mut self.warm)?;
             // Keep every scale factor positive (a face cannot be scaled through zero).
             let mut alpha: f64 = 1.0;
             for i in 0..n {

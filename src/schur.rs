@@ -56,34 +56,37 @@ pub struct Step {
 /// Solve Eqs. 16-18 with the prepared solver. `neg_grad` is `-grad E` at the current point.
 pub fn constrained_step(
     solver: &mut dyn SpdSolver,
-    neg_grad: &[f64],
-    lin: &Linearized,
+    neg_grad: Vec<f64>,
+    lin: Linearized,
 ) -> Result<Step> {
     constrained_step_warm(solver, neg_grad, lin, &mut Vec::new())
 }
 
 /// [`constrained_step`] with the k+1 solutions `[y | Y]` of the previous step in
 /// `warm` as the initial guess of an iterative solver (unused when its size does
-/// not match); `warm` receives this step's solutions.
+/// not match); `warm` receives this step's solutions. The gradient and the
+/// Jacobian rows are moved into the right-hand side (one copy of each at a time:
+/// at a million vertices every column is tens of MiB).
 pub fn constrained_step_warm(
     solver: &mut dyn SpdSolver,
-    neg_grad: &[f64],
-    lin: &Linearized,
+    neg_grad: Vec<f64>,
+    lin: Linearized,
     warm: &mut Vec<f64>,
 ) -> Result<Step> {
     let n = neg_grad.len();
     let k = lin.values.len();
     let mut rhs = Vec::with_capacity(n * (k + 1));
-    rhs.extend_from_slice(neg_grad);
-    for r in &lin.rows {
-        rhs.extend_from_slice(r);
+    rhs.extend_from_slice(&neg_grad);
+    drop(neg_grad);
+    for r in lin.rows {
+        rhs.extend_from_slice(&r);
     }
-    if warm.len() == rhs.len() {
-        solver.solve_with_guess(&rhs, warm, k + 1)?;
-    } else {
-        solver.solve_in_place(&mut rhs, k + 1)?;
-        *warm = rhs;
+    if warm.len() != rhs.len() {
+        warm.clear();
+        warm.resize(rhs.len(), 0.0);
     }
+    solver.solve_with_guess(&rhs, warm, k + 1)?;
+    let rows: Vec<&[f64]> = rhs[n..].chunks(n.max(1)).collect();
     let (y, ycols) = warm.split_at(n);
     if k == 0 {
         return Ok(Step {
@@ -95,9 +98,9 @@ pub fn constrained_step_warm(
     let mut s = Mat::<f64>::zeros(k, k);
     let mut r = vec![0.0; k];
     for i in 0..k {
-        r[i] = dot(&lin.rows[i], y) + lin.values[i];
+        r[i] = dot(rows[i], y) + lin.values[i];
         for j in 0..k {
-            s[(i, j)] = dot(&lin.rows[i], &ycols[j * n..(j + 1) * n]);
+            s[(i, j)] = dot(rows[i], &ycols[j * n..(j + 1) * n]);
         }
     }
     let lambda = pinv_solve(&s, &r)?;

@@ -180,7 +180,7 @@ fn plane_section(plane: &PlaneSpec, mesh: &Mesh, topo: &Topology, what: &str) ->
     };
     // Next face across edge e from face f; None at a boundary.
     let across = |f: u32, e: u32| -> Result<Option<u32>> {
-        let fs = &topo.edge_faces[e as usize];
+        let fs = topo.edge_faces(e as usize);
         match fs.len() {
             0 | 1 => Ok(None),
             2 => Ok(Some(if fs[0] == f { fs[1] } else { fs[0] })),
@@ -430,7 +430,7 @@ fn edge_path(
             v = p;
         }
         for &(a, b, e) in steps.iter().rev() {
-            let face = topo.edge_faces[e as usize][0];
+            let face = topo.edge_faces(e as usize)[0];
             let tri = mesh.faces[face as usize];
             let mut wa = [0.0; 3];
             let mut wb = [0.0; 3];
@@ -478,7 +478,7 @@ impl VertexWeights {
                     2
                 };
                 let e = topo.face_edges[self.face as usize][k];
-                topo.edge_faces[e as usize].clone()
+                topo.edge_faces(e as usize).to_vec()
             }
             _ => vec![self.face],
         }

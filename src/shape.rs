@@ -1,8 +1,11 @@
 //! Shape optimisation (paper Sec. 2.3, Eqs. 4-7, with handles Eq. 19 and curvature
 //! scaling Eq. 21).
 //!
-//! Unknowns are vertex positions, dof `3 v + r`; the system matrix has one 3x3
-//! block per vertex pair of the 2-ring. Terms (all dimensionless, so the weights
+//! Unknowns are vertex positions, dof `3 v + r`; the system matrix couples the
+//! vertex pairs of the 2-ring. It is kept as `K (x) I3 + sum_i L_i^T C_i L_i`
+//! ([`IsoRingSym3`]): every term's Hessian is isotropic except E_l's, whose
+//! anisotropic part is one traceless 3x3 `C_i` per mean-value Laplacian row `L_i`.
+//! Terms (all dimensionless, so the weights
 //! do not depend on the model's size or resolution):
 //!
 //! * `E_f` (Eq. 4) in the deformation-transfer form `||V (V^c)^-1 - s I||_F^2` that
@@ -27,7 +30,8 @@ use crate::mesh::Mesh;
 use crate::topology::Topology;
 use crate::{Error, Result};
 use glam::DVec3;
-use solver_cpu::{BlockPcgSolver, BlockSym3, SpdSolver};
+use solver_cpu::{BlockPcgSolver, IsoRingSym3, SparseRows, SpdSolver};
+use std::sync::Arc;
 
 /// Weights of Eq. 7 / Eq. 19.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -39,72 +43,7 @@ pub struct ShapeWeights {
 }
 
 /// Sparse rows `delta_i = diag_i x_i - sum_j w_ij x_j`.
-#[derive(Debug, Clone, Default)]
-pub struct Laplacian {
-    pub start: Vec<usize>,
-    pub idx: Vec<u32>,
-    pub w: Vec<f64>,
-    pub diag: Vec<f64>,
-}
-
-impl Laplacian {
-    fn from_triplets(n: usize, mut t: Vec<(u32, u32, f64)>, normalise: bool) -> Laplacian {
-        t.sort_unstable_by_key(|e| (e.0, e.1));
-        let mut start = vec![0usize; n + 1];
-        let mut idx = Vec::with_capacity(t.len());
-        let mut w: Vec<f64> = Vec::with_capacity(t.len());
-        let mut last: Option<(u32, u32)> = None;
-        for (i, j, v) in t {
-            if last == Some((i, j)) {
-                *w.last_mut().unwrap() += v;
-            } else {
-                idx.push(j);
-                w.push(v);
-                start[i as usize + 1] += 1;
-                last = Some((i, j));
-            }
-        }
-        for i in 0..n {
-            start[i + 1] += start[i];
-        }
-        let mut diag = vec![0.0; n];
-        for i in 0..n {
-            let r = start[i]..start[i + 1];
-            let sum: f64 = w[r.clone()].iter().sum();
-            if normalise {
-                if sum > 0.0 {
-                    w[r].iter_mut().for_each(|v| *v /= sum);
-                    diag[i] = 1.0;
-                }
-            } else {
-                diag[i] = sum;
-            }
-        }
-        Laplacian {
-            start,
-            idx,
-            w,
-            diag,
-        }
-    }
-
-    /// Row i as (vertex, coefficient) including the diagonal.
-    #[inline]
-    pub fn row(&self, i: usize) -> impl Iterator<Item = (usize, f64)> + '_ {
-        std::iter::once((i, self.diag[i])).chain(
-            (self.start[i]..self.start[i + 1]).map(move |k| (self.idx[k] as usize, -self.w[k])),
-        )
-    }
-
-    #[inline]
-    pub fn apply(&self, x: &[DVec3], i: usize) -> DVec3 {
-        self.row(i).fold(DVec3::ZERO, |acc, (j, c)| acc + c * x[j])
-    }
-
-    pub fn apply_all(&self, x: &[DVec3]) -> Vec<DVec3> {
-        (0..self.diag.len()).map(|i| self.apply(x, i)).collect()
-    }
-}
+pub type Laplacian = SparseRows;
 
 /// Cotangent Laplacian (weights `(cot a + cot b) / 2`) of positions `x`.
 pub fn cotangent_laplacian(mesh: &Mesh, x: &[DVec3]) -> Laplacian {
@@ -172,17 +111,20 @@ pub struct HandleTarget {
 pub struct ShapeModel {
     pub n: usize,
     cot: Laplacian,
-    mv: Laplacian,
+    /// Mean-value Laplacian of the input: E_l's rows, shared with the matrix.
+    mv: Arc<Laplacian>,
     vertex_area: Vec<f64>,
     face_weight: Vec<f64>,
     total_area: f64,
     mean_edge: f64,
     /// Unscaled Hessian of E_m (constant: input cotangent weights), isotropic:
-    /// one scalar per block slot of `h`.
+    /// one scalar per entry of `K`. Empty when the cotangent and mean-value rows
+    /// have the same columns (every mesh without zero-length edges): then each
+    /// assembly adds it through `mv_slots` instead of keeping a copy.
     hm: Vec<f64>,
     /// Working matrix (pattern of the 2-ring) while the model holds it; after
     /// an assembly the solver may keep it instead (see [`ShapeModel::matrix`]).
-    h: Option<BlockSym3>,
+    h: Option<IsoRingSym3>,
     /// Block slots of each face's corner pairs (k, l), l <= k, in the order
     /// (0,0) (1,0) (1,1) (2,0) (2,1) (2,2) (E_f assembly without searching).
     face_slots: Vec<[u32; 6]>,
@@ -213,7 +155,7 @@ impl ShapeModel {
         let x = &mesh.positions;
         let n = x.len();
         let cot = cotangent_laplacian(mesh, x);
-        let mv = mean_value_laplacian(mesh, x);
+        let mv = Arc::new(mean_value_laplacian(mesh, x));
         let vertex_area = vertex_areas(mesh, x);
         let areas = mesh.face_areas(x);
         let total_area: f64 = areas.iter().sum();
@@ -229,27 +171,19 @@ impl ShapeModel {
         };
 
         let t_setup = std::time::Instant::now();
-        let h = two_ring_pattern(&cot);
+        let (col_ptr, row_idx) = two_ring_pattern(&cot);
+        let h = IsoRingSym3::new(n, col_ptr, row_idx, mv.clone());
         // E_m's Hessian is isotropic ((c c^T) (x) I3): one scalar per block slot.
-        let mut hm = vec![0.0; h.row_idx.len()];
-        for i in 0..n {
-            if vertex_area[i] <= 0.0 {
-                continue;
-            }
-            let m = 1.0 / (4.0 * vertex_area[i]);
-            for (a, ca) in cot.row(i) {
-                for (b, cb) in cot.row(i) {
-                    if a >= b {
-                        let (k, _) = h.slot(a, b).expect("pair inside the 2-ring pattern");
-                        hm[k] += 2.0 * m * ca * cb;
-                    }
-                }
-            }
-        }
+        let same_rings = cot.start == mv.start && cot.idx == mv.idx;
+        let hm = if same_rings {
+            Vec::new()
+        } else {
+            em_hessian(&cot, &vertex_area, &h)
+        };
         let slot = |a: u32, b: u32| -> u32 {
-            h.slot(a as usize, b as usize)
-                .expect("pair inside the 2-ring pattern")
-                .0 as u32
+            h.iso
+                .slot(a as usize, b as usize)
+                .expect("pair inside the 2-ring pattern") as u32
         };
         let face_slots: Vec<[u32; 6]> = mesh
             .faces
@@ -266,7 +200,13 @@ impl ShapeModel {
             })
             .collect();
         let mut mv_slot_ptr = Vec::with_capacity(n + 1);
-        let mut mv_slots = Vec::new();
+        let pairs: usize = (0..n)
+            .map(|i| {
+                let d = mv.start[i + 1] - mv.start[i] + 1;
+                d * (d + 1) / 2
+            })
+            .sum();
+        let mut mv_slots = Vec::with_capacity(pairs);
         mv_slot_ptr.push(0);
         for i in 0..n {
             for (p, _) in mv.row(i) {
@@ -281,7 +221,7 @@ impl ShapeModel {
         log::debug!(
             "shape model: {} vertices, {} blocks, set up in {:.3} s, resident {:.0} MiB",
             n,
-            h.row_idx.len(),
+            h.iso.row_idx.len(),
             t_setup.elapsed().as_secs_f64(),
             crate::report::resident_memory_mb()
         );
@@ -358,15 +298,36 @@ impl ShapeModel {
         let t0 = std::time::Instant::now();
         let mut h_owned = match self.h.take() {
             Some(h) => h,
-            None => self.solver.take_blocks().ok_or_else(|| {
+            None => self.solver.take_shape_matrix().ok_or_else(|| {
                 Error::Internal("the shape matrix was not handed back by the solver".into())
             })?,
         };
         let h = &mut h_owned;
-        for (o, &m) in h.blocks.iter_mut().zip(&self.hm) {
-            let v = w.k_m * m;
-            *o = [v, 0.0, 0.0, 0.0, v, 0.0, 0.0, 0.0, v];
+        if self.hm.is_empty() {
+            h.iso.values.iter_mut().for_each(|v| *v = 0.0);
+            // E_m's Hessian sum_i 2 m_i delta_i^T delta_i, on mv's pair slots.
+            if w.k_m > 0.0 {
+                for i in 0..n {
+                    if self.vertex_area[i] <= 0.0 {
+                        continue;
+                    }
+                    let m = 2.0 * w.k_m / (4.0 * self.vertex_area[i]);
+                    let mut slots = self.mv_slots[self.mv_slot_ptr[i]..].iter();
+                    for (a, ca) in self.cot.row(i) {
+                        for (b, cb) in self.cot.row(i) {
+                            if a >= b {
+                                h.iso.values[*slots.next().unwrap() as usize] += m * ca * cb;
+                            }
+                        }
+                    }
+                }
+            }
+        } else {
+            for (o, &m) in h.iso.values.iter_mut().zip(&self.hm) {
+                *o = w.k_m * m;
+            }
         }
+        h.ring_c.iter_mut().for_each(|c| *c = [0.0; 6]);
         let grad = &mut self.grad;
         grad.iter_mut().for_each(|g| *g = 0.0);
 
@@ -390,10 +351,7 @@ impl ShapeModel {
                     if a == b && k != l {
                         v *= 2.0;
                     }
-                    let blk = &mut h.blocks[slots[k * (k + 1) / 2 + l] as usize];
-                    blk[0] += v;
-                    blk[4] += v;
-                    blk[8] += v;
+                    h.iso.values[slots[k * (k + 1) / 2 + l] as usize] += v;
                 }
                 let gk = wf * (1.0 - s[f]) * g[k];
                 let i = 3 * t[k] as usize;
@@ -423,7 +381,9 @@ impl ShapeModel {
             }
         }
 
-        // E_l (Eq. 6): zero gradient at xc, Hessian sum_i 2 a_i L_i^T ([d]x^T [d]x) L_i.
+        // E_l (Eq. 6): zero gradient at xc, Hessian sum_i 2 a_i L_i^T ([d]x^T [d]x) L_i
+        // with [d]x^T [d]x = |d|^2 I - d d^T = (2/3)|d|^2 I + ((1/3)|d|^2 I - d d^T):
+        // the isotropic part goes to K, the traceless rest is the ring's C_i.
         if w.k_l > 0.0 {
             let d = self.mv.apply_all(xc);
             let ms: f64 = (0..n)
@@ -440,26 +400,21 @@ impl ShapeModel {
                     }
                     let di = d[i];
                     let dd = di.length_squared();
-                    let k = [
-                        dd - di.x * di.x,
-                        -di.x * di.y,
-                        -di.x * di.z,
-                        -di.y * di.x,
-                        dd - di.y * di.y,
-                        -di.y * di.z,
-                        -di.z * di.x,
-                        -di.z * di.y,
-                        dd - di.z * di.z,
+                    let third = dd / 3.0;
+                    h.ring_c[i] = [
+                        a * (third - di.x * di.x),
+                        a * (third - di.y * di.y),
+                        a * (third - di.z * di.z),
+                        -a * di.x * di.y,
+                        -a * di.x * di.z,
+                        -a * di.y * di.z,
                     ];
+                    let iso = a * 2.0 * third;
                     let mut slots = self.mv_slots[self.mv_slot_ptr[i]..].iter();
                     for (p, cp) in self.mv.row(i) {
                         for (q, cq) in self.mv.row(i) {
                             if p >= q {
-                                let s = a * cp * cq;
-                                let blk = &mut h.blocks[*slots.next().unwrap() as usize];
-                                for e in 0..9 {
-                                    blk[e] += s * k[e];
-                                }
+                                h.iso.values[*slots.next().unwrap() as usize] += iso * cp * cq;
                             }
                         }
                     }
@@ -472,7 +427,8 @@ impl ShapeModel {
             let beta = 2.0 * w.k_p / (self.mean_edge * self.mean_edge * self.handles.len() as f64);
             for hd in &self.handles {
                 let v = hd.vertex as usize;
-                h.add_scalar(v, v, beta);
+                let sv = h.diagonal_slot(v);
+                h.iso.values[sv] += beta;
                 let g = beta * (xc[v] - hd.target);
                 grad[3 * v] += g.x;
                 grad[3 * v + 1] += g.y;
@@ -486,7 +442,7 @@ impl ShapeModel {
             }
         }
         let t1 = std::time::Instant::now();
-        self.h = self.solver.prepare_blocks_owned(h_owned, &self.fixed)?;
+        self.h = self.solver.prepare_shape_owned(h_owned, &self.fixed)?;
         log::debug!(
             "shape system: assembly {:.3} s, {} {:.3} s",
             (t1 - t0).as_secs_f64(),
@@ -498,15 +454,15 @@ impl ShapeModel {
 
     /// The assembled Hessian of the last assembly and the held vertices (for
     /// benchmarks and solver tests on the real shape system).
-    pub fn system(&self) -> (&BlockSym3, &[bool]) {
+    pub fn system(&self) -> (&IsoRingSym3, &[bool]) {
         (self.matrix(), &self.fixed)
     }
 
     /// The assembled Hessian, wherever it is kept.
-    pub fn matrix(&self) -> &BlockSym3 {
+    pub fn matrix(&self) -> &IsoRingSym3 {
         self.h
             .as_ref()
-            .or_else(|| self.solver.blocks())
+            .or_else(|| self.solver.shape_matrix())
             .expect("the shape matrix is held by the model or its solver")
     }
 
@@ -588,7 +544,30 @@ impl ShapeModel {
 /// Lower block pattern of the 2-ring: (i, j) for every pair inside one closed
 /// 1-ring of `ring` (whose rows list the closed 1-rings), built column by column
 /// in parallel.
-fn two_ring_pattern(ring: &Laplacian) -> BlockSym3 {
+/// E_m's unscaled Hessian `sum_i 2 delta_i^T delta_i / (4 A_i)`, one value per
+/// entry of `h`'s `K`.
+fn em_hessian(cot: &Laplacian, vertex_area: &[f64], h: &IsoRingSym3) -> Vec<f64> {
+    let mut hm = vec![0.0; h.iso.row_idx.len()];
+    for i in 0..cot.len() {
+        if vertex_area[i] <= 0.0 {
+            continue;
+        }
+        let m = 1.0 / (4.0 * vertex_area[i]);
+        for (a, ca) in cot.row(i) {
+            for (b, cb) in cot.row(i) {
+                if a >= b {
+                    let k = h.iso.slot(a, b).expect("pair inside the 2-ring pattern");
+                    hm[k] += 2.0 * m * ca * cb;
+                }
+            }
+        }
+    }
+    hm
+}
+
+/// Lower-triangular pattern `(col_ptr, row_idx)` of the vertex pairs within two
+/// rings of each other, diagonal first in every column.
+fn two_ring_pattern(ring: &Laplacian) -> (Vec<usize>, Vec<usize>) {
     use rayon::prelude::*;
     let n = ring.diag.len();
     let cols: Vec<Vec<usize>> = (0..n)
@@ -609,13 +588,7 @@ fn two_ring_pattern(ring: &Laplacian) -> BlockSym3 {
         col_ptr.push(col_ptr.last().unwrap() + c.len());
     }
     let row_idx: Vec<usize> = cols.concat();
-    let nnz = row_idx.len();
-    BlockSym3 {
-        n,
-        col_ptr,
-        row_idx,
-        blocks: vec![[0.0; 9]; nnz],
-    }
+    (col_ptr, row_idx)
 }
 
 pub fn components(mesh: &Mesh, n: usize) -> (Vec<u32>, usize) {
@@ -650,4 +623,120 @@ pub fn components(mesh: &Mesh, n: usize) -> (Vec<u32>, usize) {
         out[v] = label[r];
     }
     (out, count)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The E_m Hessian added on the fly through the mean-value pair slots equals
+    /// the stored one (the path of meshes whose Laplacians differ in pattern).
+    #[test]
+    fn em_hessian_on_the_fly_equals_the_stored_one() {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("data/meshes/spot.obj");
+        let mesh = crate::io::read_mesh(&path).unwrap();
+        let topo = Topology::build(&mesh);
+        let mut model = ShapeModel::new(&mesh, &topo, Vec::new()).unwrap();
+        assert!(model.hm.is_empty(), "spot's Laplacians share their pattern");
+        let nf = mesh.num_faces();
+        let n = mesh.num_vertices();
+        let s: Vec<f64> = (0..nf)
+            .map(|f| 1.0 + 0.1 * (f as f64 * 0.3).sin())
+            .collect();
+        let c = vec![1.05; n];
+        let w = ShapeWeights {
+            k_f: 10.0,
+            k_m: 3.0,
+            k_l: 2.0,
+            k_p: 0.0,
+        };
+        model
+            .assemble_and_factor(&mesh, &mesh.positions, &s, &c, &w)
+            .unwrap();
+        let on_the_fly = model.matrix().clone();
+        model.hm = em_hessian(&model.cot, &model.vertex_area, &on_the_fly);
+        model
+            .assemble_and_factor(&mesh, &mesh.positions, &s, &c, &w)
+            .unwrap();
+        let stored = model.matrix();
+        let scale = stored.iso.values.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        assert!(scale > 0.0);
+        for (a, b) in on_the_fly.iso.values.iter().zip(&stored.iso.values) {
+            assert!((a - b).abs() <= 1e-12 * scale, "{a} vs {b}");
+        }
+        assert_eq!(on_the_fly.ring_c, stored.ring_c);
+        assert!(
+            stored.ring_c.iter().any(|c| c[3] != 0.0),
+            "E_l is anisotropic"
+        );
+    }
+
+    /// Eq. 4 with the fourth frame vertex (Sec. 2.1) kept as an unknown and
+    /// minimised out, face by face, equals the model's eliminated frame energy:
+    /// the closed-form elimination changes no result.
+    #[test]
+    fn eliminated_fourth_vertex_is_the_minimum_of_the_four_vertex_energy() {
+        use glam::DMat3;
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("data/meshes/spot.obj");
+        let mesh = crate::io::read_mesh(&path).unwrap();
+        let topo = Topology::build(&mesh);
+        let mut model = ShapeModel::new(&mesh, &topo, Vec::new()).unwrap();
+        let (nf, n) = (mesh.num_faces(), mesh.num_vertices());
+        let xc = &mesh.positions;
+        let s: Vec<f64> = (0..nf)
+            .map(|f| 1.0 + 0.2 * (f as f64 * 0.7).sin())
+            .collect();
+        let w = ShapeWeights {
+            k_f: 1.0,
+            k_m: 0.0,
+            k_l: 0.0,
+            k_p: 0.0,
+        };
+        model
+            .assemble_and_factor(&mesh, xc, &s, &vec![1.0; n], &w)
+            .unwrap();
+        let scale = model.mean_edge();
+        let dx: Vec<f64> = (0..3 * n)
+            .map(|i| {
+                if model.fixed[i / 3] {
+                    0.0
+                } else {
+                    0.3 * scale * (i as f64 * 1.37).sin()
+                }
+            })
+            .collect();
+        let x: Vec<DVec3> = (0..n)
+            .map(|v| xc[v] + DVec3::new(dx[3 * v], dx[3 * v + 1], dx[3 * v + 2]))
+            .collect();
+        // Per face: V^c = [e1, e2, n / sqrt|n|] (deformation transfer's fourth
+        // vertex), V(u) = [e1', e2', u]; min over u of ||V(u) (V^c)^-1 - s I||_F^2
+        // is linear least squares in u.
+        let four_vertex = |p: &[DVec3], f: usize| -> f64 {
+            let t = mesh.faces[f];
+            let (a, b, c) = (xc[t[0] as usize], xc[t[1] as usize], xc[t[2] as usize]);
+            let nrm = (b - a).cross(c - a);
+            let m = DMat3::from_cols(b - a, c - a, nrm / nrm.length().sqrt()).inverse();
+            let (pa, pb, pc) = (p[t[0] as usize], p[t[1] as usize], p[t[2] as usize]);
+            let rows = [m.row(0), m.row(1), m.row(2)];
+            let outer = |u: DVec3, r: DVec3| DMat3::from_cols(u * r.x, u * r.y, u * r.z);
+            let base = outer(pb - pa, rows[0]) + outer(pc - pa, rows[1])
+                - DMat3::from_diagonal(DVec3::splat(s[f]));
+            let m3 = rows[2];
+            let u = -(base * m3) / m3.length_squared();
+            let r = base + outer(u, m3);
+            r.x_axis.length_squared() + r.y_axis.length_squared() + r.z_axis.length_squared()
+        };
+        let want: f64 = (0..nf)
+            .map(|f| model.face_weight[f] * (four_vertex(&x, f) - four_vertex(xc, f)))
+            .sum();
+        let got = model.energy(&dx);
+        assert!(
+            want.abs() > 1e-3,
+            "the displacement changes the frame energy ({want})"
+        );
+        assert!(
+            (got - want).abs() <= 1e-9 * want.abs(),
+            "eliminated {got} vs four-vertex minimum {want}"
+        );
+    }
 }

@@ -8,8 +8,11 @@ use std::collections::HashMap;
 pub struct Topology {
     /// Unique undirected edges `[a, b]` with `a < b`.
     pub edges: Vec<[u32; 2]>,
-    /// For each edge, the faces that use it (1 = boundary, 2 = interior, >2 = non-manifold).
-    pub edge_faces: Vec<Vec<u32>>,
+    /// Faces of each edge, CSR (1 = boundary, 2 = interior, >2 = non-manifold):
+    /// read them with [`Topology::edge_faces`]. Flat, not a `Vec` per edge: at a
+    /// million faces that is ~70 MB less.
+    edge_face_start: Vec<usize>,
+    edge_face_index: Vec<u32>,
     /// For each face, the edge index of each side: side k joins corners k and k+1.
     pub face_edges: Vec<[u32; 3]>,
     /// Pairs of faces sharing a manifold interior edge (the set Q of Eq. 2).
@@ -29,27 +32,45 @@ impl Topology {
         let nv = mesh.positions.len();
         let mut map: HashMap<(u32, u32), u32> = HashMap::with_capacity(nf * 3 / 2 + 16);
         let mut edges = Vec::with_capacity(nf * 3 / 2 + 16);
-        let mut edge_faces: Vec<Vec<u32>> = Vec::with_capacity(nf * 3 / 2 + 16);
         let mut face_edges = Vec::with_capacity(nf);
-        for (f, t) in mesh.faces.iter().enumerate() {
+        for t in &mesh.faces {
             let mut fe = [0u32; 3];
             for k in 0..3 {
                 let (a, b) = (t[k], t[(k + 1) % 3]);
                 let key = (a.min(b), a.max(b));
                 let e = *map.entry(key).or_insert_with(|| {
                     edges.push([key.0, key.1]);
-                    edge_faces.push(Vec::with_capacity(2));
                     (edges.len() - 1) as u32
                 });
-                edge_faces[e as usize].push(f as u32);
                 fe[k] = e;
             }
             face_edges.push(fe);
         }
+        drop(map);
+        let ne = edges.len();
+        let mut edge_face_start = vec![0usize; ne + 1];
+        for fe in &face_edges {
+            for &e in fe {
+                edge_face_start[e as usize + 1] += 1;
+            }
+        }
+        for e in 0..ne {
+            edge_face_start[e + 1] += edge_face_start[e];
+        }
+        let mut fill = edge_face_start.clone();
+        let mut edge_face_index = vec![0u32; edge_face_start[ne]];
+        for (f, fe) in face_edges.iter().enumerate() {
+            for &e in fe {
+                edge_face_index[fill[e as usize]] = f as u32;
+                fill[e as usize] += 1;
+            }
+        }
+        drop(fill);
         let mut face_pairs = Vec::new();
         let mut boundary_edges = Vec::new();
         let mut non_manifold_edges = Vec::new();
-        for (e, fs) in edge_faces.iter().enumerate() {
+        for e in 0..ne {
+            let fs = &edge_face_index[edge_face_start[e]..edge_face_start[e + 1]];
             match fs.len() {
                 1 => boundary_edges.push(e),
                 2 => {
@@ -83,7 +104,8 @@ impl Topology {
         }
         Topology {
             edges,
-            edge_faces,
+            edge_face_start,
+            edge_face_index,
             face_edges,
             face_pairs,
             boundary_edges,
@@ -91,6 +113,12 @@ impl Topology {
             vf_start,
             vf_index,
         }
+    }
+
+    /// Faces using edge `e`, in face order.
+    #[inline]
+    pub fn edge_faces(&self, e: usize) -> &[u32] {
+        &self.edge_face_index[self.edge_face_start[e]..self.edge_face_start[e + 1]]
     }
 
     /// Faces around vertex `v`.

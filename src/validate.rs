@@ -162,7 +162,7 @@ pub fn validate(mesh: &Mesh, topo: &Topology, file: &Path) -> Result<MeshCheck> 
             .iter()
             .map(|&e| {
                 let [a, b] = topo.edges[e];
-                format!("edge ({a}, {b}) has {} faces", topo.edge_faces[e].len())
+                format!("edge ({a}, {b}) has {} faces", topo.edge_faces(e).len())
             })
             .collect();
         return Err(Error::bad(format!(
@@ -246,7 +246,7 @@ fn non_manifold_vertices(mesh: &Mesh, topo: &Topology) -> Vec<usize> {
                     continue;
                 }
                 let e = topo.face_edges[f as usize][k] as usize;
-                for &g in &topo.edge_faces[e] {
+                for &g in topo.edge_faces(e) {
                     if g != f {
                         if let Some(j) = fs.iter().position(|&h| h == g) {
                             union(&mut local, i as u32, j as u32);

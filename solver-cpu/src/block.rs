@@ -12,6 +12,35 @@ pub struct BlockRows {
     pub entries: Vec<(u32, u32)>,
 }
 
+impl BlockRows {
+    /// Index of the strictly lower entries of the lower pattern `(col_ptr, row_idx)`.
+    pub fn of_pattern(n: usize, col_ptr: &[usize], row_idx: &[usize]) -> BlockRows {
+        let mut row_ptr = vec![0usize; n + 1];
+        for j in 0..n {
+            for &i in &row_idx[col_ptr[j]..col_ptr[j + 1]] {
+                if i != j {
+                    row_ptr[i + 1] += 1;
+                }
+            }
+        }
+        for i in 0..n {
+            row_ptr[i + 1] += row_ptr[i];
+        }
+        let mut next = row_ptr.clone();
+        let mut entries = vec![(0u32, 0u32); row_ptr[n]];
+        for j in 0..n {
+            let range = col_ptr[j]..col_ptr[j + 1];
+            for (k, &i) in range.clone().zip(&row_idx[range]) {
+                if i != j {
+                    entries[next[i]] = (k as u32, j as u32);
+                    next[i] += 1;
+                }
+            }
+        }
+        BlockRows { row_ptr, entries }
+    }
+}
+
 /// Lower-triangular block pattern (block row >= block column), each block a
 /// row-major 3x3 matrix. Diagonal blocks are stored whole (symmetric).
 #[derive(Debug, Clone, Default)]
@@ -153,30 +182,7 @@ impl BlockSym3 {
 
     /// Row-wise index of the strictly lower blocks (for [`BlockSym3::mul_vec_rows`]).
     pub fn row_index(&self) -> BlockRows {
-        let n = self.n;
-        let mut row_ptr = vec![0usize; n + 1];
-        for j in 0..n {
-            for k in self.col_ptr[j]..self.col_ptr[j + 1] {
-                if self.row_idx[k] != j {
-                    row_ptr[self.row_idx[k] + 1] += 1;
-                }
-            }
-        }
-        for i in 0..n {
-            row_ptr[i + 1] += row_ptr[i];
-        }
-        let mut next = row_ptr.clone();
-        let mut entries = vec![(0u32, 0u32); row_ptr[n]];
-        for j in 0..n {
-            for k in self.col_ptr[j]..self.col_ptr[j + 1] {
-                let i = self.row_idx[k];
-                if i != j {
-                    entries[next[i]] = (k as u32, j as u32);
-                    next[i] += 1;
-                }
-            }
-        }
-        BlockRows { row_ptr, entries }
+        BlockRows::of_pattern(self.n, &self.col_ptr, &self.row_idx)
     }
 
     /// y = A x, parallel over block rows; `rows` is this pattern's [`BlockSym3::row_index`].

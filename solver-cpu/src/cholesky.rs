@@ -32,7 +32,8 @@ pub enum FillOrdering {
     /// A permutation computed beforehand (`forward[new] = old`), e.g. by
     /// [`nested_dissection_of_pattern`] on another thread; for a 3x3-block matrix,
     /// a permutation of its block rows. One that is not a permutation of the
-    /// matrix's size is ignored (with a warning) for `Auto`.
+    /// matrix's size is ignored (with a warning) for `Auto`. It is used by the
+    /// next symbolic analysis only, then released (the solver reverts to `Auto`).
     Given(std::sync::Arc<[usize]>),
 }
 
@@ -113,14 +114,14 @@ pub fn nested_dissection_of_pattern(
 /// faces) to decide whether the symbolic analysis can be reused; two different
 /// patterns of equal sizes collide with probability about 2^-64.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-struct PatternKey {
+pub(crate) struct PatternKey {
     n: usize,
     nnz: usize,
     hash: u64,
 }
 
 impl PatternKey {
-    fn of(col_ptr: &[usize], row_idx: &[usize]) -> PatternKey {
+    pub(crate) fn of(col_ptr: &[usize], row_idx: &[usize]) -> PatternKey {
         // FNV-1a over 64-bit words, then a final avalanche (splitmix64).
         let mut h: u64 = 0xcbf2_9ce4_8422_2325;
         for &v in col_ptr.iter().chain(row_idx) {
@@ -162,7 +163,7 @@ pub struct CholeskySolver {
     pub ordering: FillOrdering,
     /// Fingerprint of the analysed pattern (see [`PatternKey`]).
     pattern: Option<PatternKey>,
-    symbolic: Option<SymbolicCholesky<usize>>,
+    symbolic: Option<SymbolicCholesky<u32>>,
     numeric: Vec<f64>,
     /// The factor in f32 when `single` (then `numeric` stays empty).
     numeric32: Vec<f32>,
@@ -211,9 +212,24 @@ impl CholeskySolver {
     }
 }
 
+/// The pattern of `a` with u32 indices, or an error naming the limit.
+fn pattern_u32(a: &SymCsc) -> Result<(Vec<u32>, Vec<u32>), SolverError> {
+    if a.row_idx.len() > u32::MAX as usize || a.n > u32::MAX as usize {
+        return Err(SolverError::Backend(format!(
+            "matrix of {} unknowns and {} stored entries exceeds the Cholesky's 32-bit indices",
+            a.n,
+            a.row_idx.len()
+        )));
+    }
+    Ok((
+        a.col_ptr.iter().map(|&v| v as u32).collect(),
+        a.row_idx.iter().map(|&v| v as u32).collect(),
+    ))
+}
+
 /// Sequential triangular solves `L L^T X = B` in place for the columns of `chunk`.
 fn solve_columns<T: faer::traits::ComplexField<Real = T> + Copy>(
-    sym: &SymbolicCholesky<usize>,
+    sym: &SymbolicCholesky<u32>,
     numeric: &[T],
     chunk: &mut [T],
     n: usize,
@@ -224,7 +240,7 @@ fn solve_columns<T: faer::traits::ComplexField<Real = T> + Copy>(
         return false;
     };
     let m = MatMut::from_column_major_slice_mut(chunk, n, cols);
-    LltRef::<'_, usize, T>::new(sym, numeric).solve_in_place_with_conj(
+    LltRef::<'_, u32, T>::new(sym, numeric).solve_in_place_with_conj(
         Conj::No,
         m,
         par,
@@ -237,7 +253,7 @@ fn solve_columns<T: faer::traits::ComplexField<Real = T> + Copy>(
 /// solve sequential: the triangular solves are memory-bound, and faer's own
 /// parallel split is slower here. False when scratch memory was not available.
 fn solve_split<T: faer::traits::ComplexField<Real = T> + Copy + Send + Sync>(
-    sym: &SymbolicCholesky<usize>,
+    sym: &SymbolicCholesky<u32>,
     numeric: &[T],
     rhs: &mut [T],
     n: usize,
@@ -270,7 +286,11 @@ impl SpdSolver for CholeskySolver {
     fn prepare(&mut self, a: &SymCsc) -> Result<(), SolverError> {
         let key = PatternKey::of(&a.col_ptr, &a.row_idx);
         let same = self.pattern == Some(key);
-        let sym_ref = SymbolicSparseColMatRef::new_checked(a.n, a.n, &a.col_ptr, None, &a.row_idx);
+        // faer works on u32 indices here: its symbolic factor (supernode row
+        // patterns, permutation, update lists) then takes half the memory; the
+        // u32 copy of the pattern lives for this call only.
+        let (col_ptr32, row_idx32) = pattern_u32(a)?;
+        let sym_ref = SymbolicSparseColMatRef::new_checked(a.n, a.n, &col_ptr32, None, &row_idx32);
         if !same || self.symbolic.is_none() {
             let t0 = std::time::Instant::now();
             let given = match &self.ordering {
@@ -307,7 +327,13 @@ impl SpdSolver for CholeskySolver {
                 None
             };
             let ordering_seconds = t0.elapsed().as_secs_f64();
-            let ordering = match &perm {
+            let perm32: Option<(Vec<u32>, Vec<u32>)> = perm.map(|(fwd, inv)| {
+                (
+                    fwd.iter().map(|&v| v as u32).collect(),
+                    inv.iter().map(|&v| v as u32).collect(),
+                )
+            });
+            let ordering = match &perm32 {
                 Some((fwd, inv)) => {
                     SymmetricOrdering::Custom(faer::perm::PermRef::new_checked(fwd, inv, a.n))
                 }
@@ -315,7 +341,13 @@ impl SpdSolver for CholeskySolver {
             };
             let sym =
                 factorize_symbolic_cholesky(sym_ref, Side::Lower, ordering, Default::default())
-                    .map_err(|e| SolverError::Backend(format!("symbolic Cholesky: {e:?}")))?;
+                    .map_err(|e| {
+                        SolverError::Backend(format!(
+                            "symbolic Cholesky of {} unknowns: {e:?} (the factor's entries must be \
+                             indexable by 32-bit integers)",
+                            a.n
+                        ))
+                    })?;
             self.numeric = Vec::new();
             self.numeric32 = Vec::new();
             if self.single {
@@ -338,7 +370,7 @@ impl SpdSolver for CholeskySolver {
                 a.row_idx.len(),
                 self.numeric.len() + self.numeric32.len(),
                 if self.single { "f32" } else { "f64" },
-                match (&self.ordering, &perm) {
+                match (&self.ordering, &perm32) {
                     (_, None) => "AMD",
                     (FillOrdering::Given(_), Some(_)) => "given",
                     (_, Some(_)) => "nested dissection",
@@ -346,6 +378,12 @@ impl SpdSolver for CholeskySolver {
                 t0.elapsed().as_secs_f64(),
                 ordering_seconds
             );
+            // A given ordering has served (the symbolic factor keeps its own copy
+            // of the permutation): release it, 8 bytes per unknown; a later
+            // pattern gets the `Auto` choice.
+            if matches!(self.ordering, FillOrdering::Given(_)) {
+                self.ordering = FillOrdering::Auto;
+            }
         }
         let sym = self.symbolic.as_ref().unwrap();
         let par = get_global_parallelism();

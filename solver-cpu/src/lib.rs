@@ -8,10 +8,12 @@
 
 pub mod block;
 pub mod cholesky;
+pub mod iso_ring;
 pub mod pcg;
 
 pub use block::{BlockRows, BlockSym3};
 pub use cholesky::{nested_dissection_of_pattern, CholeskySolver, FillOrdering};
+pub use iso_ring::{IsoRingSym3, SparseRows};
 pub use pcg::{BlockPcgParams, BlockPcgSolver};
 
 /// Failure of a linear solve.
@@ -135,6 +137,25 @@ pub trait SpdSolver {
     fn take_blocks(&mut self) -> Option<BlockSym3> {
         None
     }
+    /// As `prepare_blocks_owned`, for a shape matrix in isotropic-plus-ring form.
+    /// Solvers that work on that form keep it (read it with `shape_matrix`, take it
+    /// back with `take_shape_matrix`); the others get its explicit blocks and hand
+    /// it back.
+    fn prepare_shape_owned(
+        &mut self,
+        a: IsoRingSym3,
+        fixed: &[bool],
+    ) -> Result<Option<IsoRingSym3>, SolverError> {
+        self.prepare_blocks(&a.to_blocks(), fixed).map(|()| Some(a))
+    }
+    /// The matrix kept by `prepare_shape_owned`.
+    fn shape_matrix(&self) -> Option<&IsoRingSym3> {
+        None
+    }
+    /// Takes back the matrix kept by `prepare_shape_owned`.
+    fn take_shape_matrix(&mut self) -> Option<IsoRingSym3> {
+        None
+    }
     /// Solve `A X = B` in place; `rhs` holds `ncols` columns of length `n`, column-major.
     fn solve_in_place(&mut self, rhs: &mut [f64], ncols: usize) -> Result<SolveInfo, SolverError>;
     /// Solve `A X = B` with `x` holding an initial guess on entry (iterative
@@ -177,6 +198,40 @@ mod tests {
         }
         a.add_block(0, 0, &[2.0, 0.5, 0.0, 0.5, 2.0, 0.0, 0.0, 0.0, 2.0]);
         a
+    }
+
+    #[test]
+    fn given_fill_ordering_is_used_once_then_released() {
+        let n = 50;
+        let a = spd(n);
+        let fixed = vec![false; n];
+        let x: Vec<f64> = (0..3 * n).map(|i| (i as f64 * 0.3).sin() + 0.5).collect();
+        let mut b = vec![0.0; 3 * n];
+        a.mul_vec(&x, &mut b);
+        let solve_with = |order: Vec<usize>| -> (usize, FillOrdering) {
+            let mut solver = CholeskySolver::new();
+            solver.set_fill_ordering(FillOrdering::Given(order.into()));
+            solver.prepare_blocks(&a, &fixed).unwrap();
+            let mut y = b.clone();
+            solver.solve_in_place(&mut y, 1).unwrap();
+            for i in 0..3 * n {
+                assert!((y[i] - x[i]).abs() < 1e-9, "{i}");
+            }
+            (solver.factor_nnz(), solver.ordering.clone())
+        };
+        // A path of blocks: its own order fills nothing; eliminating every other
+        // vertex first joins their neighbours.
+        let (natural, after) = solve_with((0..n).collect());
+        assert_eq!(after, FillOrdering::Auto, "the given ordering is released");
+        let odd_first: Vec<usize> = (1..n).step_by(2).chain((0..n).step_by(2)).collect();
+        let (odd, _) = solve_with(odd_first);
+        assert!(
+            odd > natural,
+            "the given ordering was applied ({odd} vs {natural})"
+        );
+        // Not a permutation of the block rows: ignored, the solve still right.
+        let (_, after) = solve_with(vec![0, 0, 1]);
+        assert_eq!(after, FillOrdering::Auto);
     }
 
     #[test]

@@ -23,8 +23,8 @@
 //!
 //! Every column stops when `||b - A x|| <= tolerance ||b||` (recurrence residual).
 
-use crate::cholesky::{CholeskySolver, FillOrdering};
-use crate::{BlockRows, BlockSym3, SolveInfo, SolverError, SpdSolver, SymCsc};
+use crate::cholesky::{CholeskySolver, FillOrdering, PatternKey};
+use crate::{BlockRows, BlockSym3, IsoRingSym3, SolveInfo, SolverError, SpdSolver, SymCsc};
 use rayon::prelude::*;
 
 /// Settings of [`BlockPcgSolver`].
@@ -64,6 +64,9 @@ enum Mode {
     #[default]
     None,
     Blocks,
+    /// Shape matrix in isotropic-plus-ring form: its `K` is the preconditioner's
+    /// matrix, factored in place (held rows masked for the factorization only).
+    Iso,
     /// Scalar matrix solved directly by the (f64) factor.
     ScalarDirect,
     /// Scalar matrix solved by PCG with the (f32) factor.
@@ -78,7 +81,11 @@ pub struct BlockPcgSolver {
     a: BlockSym3,
     /// Held vertices of the prepared block matrix.
     fixed: Vec<bool>,
-    /// Strictly lower blocks by block row.
+    /// The prepared isotropic-plus-ring matrix, as handed over.
+    iso: IsoRingSym3,
+    /// Pattern of the last isotropic-plus-ring matrix (`rows` belongs to it).
+    iso_key: Option<PatternKey>,
+    /// Strictly lower blocks (or entries of `K`) by block row.
     rows: BlockRows,
     /// Isotropic part `K` (same pattern as the blocks), held rows identity.
     k: SymCsc,
@@ -137,14 +144,14 @@ impl BlockPcgSolver {
         if self.fixed.iter().any(|&f| f) {
             let mut xm = x.to_vec();
             self.mask(&mut xm);
-            self.a.mul_vec_rows(&self.rows, &xm, y);
+            self.product(&xm, y);
             for (v, &f) in self.fixed.iter().enumerate() {
                 if f {
                     y[3 * v..3 * v + 3].copy_from_slice(&x[3 * v..3 * v + 3]);
                 }
             }
         } else {
-            self.a.mul_vec_rows(&self.rows, x, y);
+            self.product(x, y);
         }
     }
 
@@ -161,8 +168,8 @@ impl BlockPcgSolver {
     /// product only needs its held rows cleared.
     fn mul_direction(&self, p: &[f64], q: &mut [f64]) {
         match self.mode {
-            Mode::Blocks => {
-                self.a.mul_vec_rows(&self.rows, p, q);
+            Mode::Blocks | Mode::Iso => {
+                self.product(p, q);
                 self.mask(q);
             }
             _ => self.scalar.mul_vec(p, q),
@@ -182,22 +189,27 @@ impl BlockPcgSolver {
             self.precond.solve_in_place(z, ncols)?;
             return Ok(());
         }
-        let n = self.a.n;
-        buf.resize(3 * n * ncols, 0.0);
+        let n = self.block_rows();
+        // Column by column through `z`: r's x, y, z parts gathered into z's
+        // column, solved in place as three scalar columns, then interleaved back
+        // through `buf` (one column of scratch, not ncols).
+        buf.resize(3 * n, 0.0);
         for c in 0..ncols {
             let rc = &r[3 * n * c..3 * n * (c + 1)];
+            let zc = &mut z[3 * n * c..3 * n * (c + 1)];
             for d in 0..3 {
-                let dst = &mut buf[n * (3 * c + d)..n * (3 * c + d + 1)];
+                let dst = &mut zc[n * d..n * (d + 1)];
                 for v in 0..n {
                     dst[v] = rc[3 * v + d];
                 }
             }
         }
-        self.precond.solve_in_place(buf, 3 * ncols)?;
+        self.precond.solve_in_place(z, 3 * ncols)?;
         for c in 0..ncols {
             let zc = &mut z[3 * n * c..3 * n * (c + 1)];
+            buf.copy_from_slice(zc);
             for d in 0..3 {
-                let src = &buf[n * (3 * c + d)..n * (3 * c + d + 1)];
+                let src = &buf[n * d..n * (d + 1)];
                 for v in 0..n {
                     zc[3 * v + d] = src[v];
                 }
@@ -226,17 +238,101 @@ impl BlockPcgSolver {
         }
     }
 
+    /// Whether a new matrix (of mode `mode`) must be factored regardless of its
+    /// trace: see [`BlockPcgParams::refactor_iterations`].
+    fn refactor_due(&self, mode: Mode) -> bool {
+        let extra =
+            self.last_iterations - self.base_iterations.unwrap_or(0).min(self.last_iterations);
+        self.mode != mode
+            || self.factored_trace == 0.0
+            || self.last_iterations > self.params.refactor_iterations
+            || extra as f64 * self.iteration_seconds > self.factor_seconds
+    }
+
+    /// Factor the preconditioner if `refactor`, or if `trace` moved too far
+    /// from the factored one.
+    fn factor_if_due(&mut self, m: &SymCsc, trace: f64, refactor: bool) -> Result<(), SolverError> {
+        let moved =
+            (trace - self.factored_trace).abs() > self.params.refactor_trace_change * trace.abs();
+        if refactor || moved || self.params.refactor_iterations == 0 {
+            self.factored_trace = 0.0;
+            self.factor(m)?;
+            self.factor_seconds = self.precond.numeric_seconds;
+            self.factored_trace = trace;
+            self.base_iterations = None;
+        }
+        Ok(())
+    }
+
+    /// Store `a` (isotropic-plus-ring form); factor its `K` when due, with the
+    /// held rows and columns made identity for the factorization only.
+    fn take_iso(&mut self, a: IsoRingSym3, fixed: &[bool]) -> Result<(), SolverError> {
+        let n = a.n();
+        if fixed.len() != n {
+            return Err(SolverError::DimensionMismatch(format!(
+                "{} fixed flags for {n} block rows",
+                fixed.len()
+            )));
+        }
+        let mut refactor = self.refactor_due(Mode::Iso);
+        self.mode = Mode::Iso;
+        let key = PatternKey::of(&a.iso.col_ptr, &a.iso.row_idx);
+        if self.iso_key != Some(key) {
+            refactor = true;
+            self.rows = a.row_index();
+            self.iso_key = Some(key);
+            self.a = BlockSym3::default();
+            self.k = SymCsc::default();
+        }
+        self.iso = a;
+        self.fixed.clear();
+        self.fixed.extend_from_slice(fixed);
+        let mut k = std::mem::take(&mut self.iso.iso);
+        let mut saved = Vec::new();
+        for (v, _) in fixed.iter().enumerate().filter(|(_, &f)| f) {
+            for s in k.col_ptr[v]..k.col_ptr[v + 1] {
+                saved.push((s, k.values[s]));
+                k.values[s] = if k.row_idx[s] == v { 1.0 } else { 0.0 };
+            }
+            for &(s, _) in &self.rows.entries[self.rows.row_ptr[v]..self.rows.row_ptr[v + 1]] {
+                saved.push((s as usize, k.values[s as usize]));
+                k.values[s as usize] = 0.0;
+            }
+        }
+        let trace: f64 = (0..n).map(|j| k.values[k.col_ptr[j]]).sum();
+        let r = self.factor_if_due(&k, trace, refactor);
+        // Last saved first: an entry saved twice gets its original value back.
+        for (s, v) in saved.into_iter().rev() {
+            k.values[s] = v;
+        }
+        self.iso.iso = k;
+        r
+    }
+
+    /// Block rows of the prepared block or isotropic-plus-ring matrix.
+    fn block_rows(&self) -> usize {
+        match self.mode {
+            Mode::Iso => self.iso.n(),
+            _ => self.a.n,
+        }
+    }
+
+    /// `y = A x` for the prepared block or isotropic-plus-ring matrix (unmasked).
+    fn product(&self, x: &[f64], y: &mut [f64]) {
+        match self.mode {
+            Mode::Iso => self.iso.mul_vec_rows(&self.rows, x, y),
+            _ => self.a.mul_vec_rows(&self.rows, x, y),
+        }
+    }
+
     /// Store `a` and its isotropic part; factor it when due.
     fn take_matrix(&mut self, a: BlockSym3, fixed: &[bool]) -> Result<(), SolverError> {
         a.check_fixed(fixed)?;
         let n = a.n;
-        let extra =
-            self.last_iterations - self.base_iterations.unwrap_or(0).min(self.last_iterations);
-        let mut refactor = self.mode != Mode::Blocks
-            || self.factored_trace == 0.0
-            || self.last_iterations > self.params.refactor_iterations
-            || extra as f64 * self.iteration_seconds > self.factor_seconds;
+        let mut refactor = self.refactor_due(Mode::Blocks);
         self.mode = Mode::Blocks;
+        self.iso_key = None;
+        self.iso = IsoRingSym3::default();
         if !self.same_pattern(&a) {
             refactor = true;
             self.rows = a.row_index();
@@ -269,20 +365,10 @@ impl BlockPcgSolver {
             }
         }
         let trace: f64 = (0..n).map(|j| kv[col_ptr[j]]).sum();
-        if (trace - self.factored_trace).abs() > self.params.refactor_trace_change * trace.abs() {
-            refactor = true;
-        }
-        if refactor || self.params.refactor_iterations == 0 {
-            self.factored_trace = 0.0;
-            let k = std::mem::take(&mut self.k);
-            let r = self.factor(&k);
-            self.k = k;
-            r?;
-            self.factor_seconds = self.precond.numeric_seconds;
-            self.factored_trace = trace;
-            self.base_iterations = None;
-        }
-        Ok(())
+        let k = std::mem::take(&mut self.k);
+        let r = self.factor_if_due(&k, trace, refactor);
+        self.k = k;
+        r
     }
 }
 
@@ -328,6 +414,22 @@ impl SpdSolver for BlockPcgSolver {
         (self.mode == Mode::Blocks && self.a.n > 0).then(|| std::mem::take(&mut self.a))
     }
 
+    fn prepare_shape_owned(
+        &mut self,
+        a: IsoRingSym3,
+        fixed: &[bool],
+    ) -> Result<Option<IsoRingSym3>, SolverError> {
+        self.take_iso(a, fixed).map(|()| None)
+    }
+
+    fn shape_matrix(&self) -> Option<&IsoRingSym3> {
+        (self.mode == Mode::Iso).then_some(&self.iso)
+    }
+
+    fn take_shape_matrix(&mut self) -> Option<IsoRingSym3> {
+        (self.mode == Mode::Iso && self.iso.n() > 0).then(|| std::mem::take(&mut self.iso))
+    }
+
     fn solve_in_place(&mut self, rhs: &mut [f64], ncols: usize) -> Result<SolveInfo, SolverError> {
         if self.mode == Mode::ScalarDirect {
             return self.precond.solve_in_place(rhs, ncols);
@@ -350,7 +452,7 @@ impl SpdSolver for BlockPcgSolver {
                 return self.precond.solve_in_place(x, ncols);
             }
             Mode::ScalarPcg => self.scalar.n,
-            Mode::Blocks => 3 * self.a.n,
+            Mode::Blocks | Mode::Iso => 3 * self.block_rows(),
         };
         if m == 0 {
             return Err(SolverError::NotPrepared);
@@ -364,7 +466,7 @@ impl SpdSolver for BlockPcgSolver {
         }
         self.solves += 1;
         let tol = self.params.tolerance;
-        let blocks = self.mode == Mode::Blocks;
+        let blocks = matches!(self.mode, Mode::Blocks | Mode::Iso);
         let mut r = vec![0.0; m * ncols];
         for c in 0..ncols {
             let s = m * c..m * (c + 1);
@@ -393,14 +495,16 @@ impl SpdSolver for BlockPcgSolver {
                 x[m * c..m * (c + 1)].iter_mut().for_each(|v| *v = 0.0);
             }
         }
-        let mut z = vec![0.0; m * ncols];
+        // `z` (M^-1 r) and `q` (A p) share one buffer: q is used up by the x and
+        // r updates before the next z is written, and z by p's update before
+        // the next q.
+        let mut zq = vec![0.0; m * ncols];
         let mut buf = Vec::new();
-        self.precondition(&r, &mut z, ncols, &mut buf)?;
-        let mut p = z.clone();
+        self.precondition(&r, &mut zq, ncols, &mut buf)?;
+        let mut p = zq.clone();
         let mut rz: Vec<f64> = (0..ncols)
-            .map(|c| dot(&r[m * c..m * (c + 1)], &z[m * c..m * (c + 1)]))
+            .map(|c| dot(&r[m * c..m * (c + 1)], &zq[m * c..m * (c + 1)]))
             .collect();
-        let mut q = vec![0.0; m * ncols];
         let mut worst;
         let mut it = 0;
         let t_start = std::time::Instant::now();
@@ -436,8 +540,9 @@ impl SpdSolver for BlockPcgSolver {
                     continue;
                 }
                 let s = m * c..m * (c + 1);
-                self.mul_direction(&p[s.clone()], &mut q[s.clone()]);
-                let pq = dot(&p[s.clone()], &q[s.clone()]);
+                let q = &mut zq[s.clone()];
+                self.mul_direction(&p[s.clone()], q);
+                let pq = dot(&p[s.clone()], q);
                 if pq.is_nan() || pq <= 0.0 {
                     return Err(SolverError::NotPositiveDefinite);
                 }
@@ -448,23 +553,23 @@ impl SpdSolver for BlockPcgSolver {
                     .for_each(|(xi, pi)| *xi += alpha * pi);
                 r[s.clone()]
                     .par_iter_mut()
-                    .zip(&q[s.clone()])
+                    .zip(&zq[s.clone()])
                     .for_each(|(ri, qi)| *ri -= alpha * qi);
             }
             let tp = std::time::Instant::now();
-            self.precondition(&r, &mut z, ncols, &mut buf)?;
+            self.precondition(&r, &mut zq, ncols, &mut buf)?;
             t_precond += tp.elapsed();
             for c in 0..ncols {
                 if !active[c] {
                     continue;
                 }
                 let s = m * c..m * (c + 1);
-                let rz_new = dot(&r[s.clone()], &z[s.clone()]);
+                let rz_new = dot(&r[s.clone()], &zq[s.clone()]);
                 let beta = rz_new / rz[c];
                 rz[c] = rz_new;
                 p[s.clone()]
                     .par_iter_mut()
-                    .zip(&z[s.clone()])
+                    .zip(&zq[s.clone()])
                     .for_each(|(pi, zi)| *pi = zi + beta * *pi);
             }
             it += 1;

@@ -1,0 +1,486 @@
+//! Shape matrices in isotropic-plus-ring form: `A = K (x) I3 + sum_i R_i^T C_i R_i`.
+//!
+//! Every term of the shape energy but one has an isotropic Hessian
+//! `(c c^T) (x) I3` (the frame, curvature and handle terms, paper Eqs. 4, 5 and
+//! 19). The exception, the direction term of Eq. 6, is a sum over vertices of
+//! `R_i^T C_i R_i`, with `R_i` the vertex's Laplacian row (its 1-ring) acting on
+//! x, y and z alike and `C_i` a symmetric 3x3 matrix. [`IsoRingSym3`] stores the
+//! scalar `K` (one value per 2-ring vertex pair) and the six entries of each
+//! `C_i`, instead of the nine of every 3x3 block of `A`: about a seventh of the
+//! memory. A product is one scalar product with `K` on three interleaved columns
+//! and two passes over the rings.
+//!
+//! When every `C_i` is traceless (as the shape model builds them), `K` is the
+//! isotropic part of `A` (`K_pq = tr(A_pq) / 3`), which is what the PCG of
+//! [`crate::BlockPcgSolver`] factors as its preconditioner; it then needs no copy.
+
+use crate::{BlockRows, BlockSym3, SymCsc};
+use glam::DVec3;
+use rayon::prelude::*;
+use std::sync::Arc;
+
+/// Sparse rows in a graph Laplacian's layout:
+/// `(R y)_i = diag_i y_i - sum_k w_k y_{idx_k}` over `k` in `start[i]..start[i + 1]`
+/// (column indices sorted within a row, the diagonal kept apart).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct SparseRows {
+    pub start: Vec<usize>,
+    pub idx: Vec<u32>,
+    pub w: Vec<f64>,
+    pub diag: Vec<f64>,
+}
+
+impl SparseRows {
+    /// Rows from `(row, column, weight)` triplets (duplicates summed, the diagonal
+    /// given by `diag`). With `normalise`, each row's weights are scaled to sum 1
+    /// and its diagonal is 1 (0 for an empty row); otherwise the diagonal is the
+    /// row's weight sum (a Laplacian: rows sum to zero).
+    pub fn from_triplets(n: usize, mut t: Vec<(u32, u32, f64)>, normalise: bool) -> SparseRows {
+        t.sort_unstable_by_key(|e| (e.0, e.1));
+        let mut start = vec![0usize; n + 1];
+        let mut idx = Vec::with_capacity(t.len());
+        let mut w: Vec<f64> = Vec::with_capacity(t.len());
+        let mut last: Option<(u32, u32)> = None;
+        for (i, j, v) in t {
+            if last == Some((i, j)) {
+                *w.last_mut().unwrap() += v;
+            } else {
+                idx.push(j);
+                w.push(v);
+                start[i as usize + 1] += 1;
+                last = Some((i, j));
+            }
+        }
+        for i in 0..n {
+            start[i + 1] += start[i];
+        }
+        let mut diag = vec![0.0; n];
+        for i in 0..n {
+            let r = start[i]..start[i + 1];
+            let sum: f64 = w[r.clone()].iter().sum();
+            if normalise {
+                if sum > 0.0 {
+                    w[r].iter_mut().for_each(|v| *v /= sum);
+                    diag[i] = 1.0;
+                }
+            } else {
+                diag[i] = sum;
+            }
+        }
+        idx.shrink_to_fit();
+        w.shrink_to_fit();
+        SparseRows {
+            start,
+            idx,
+            w,
+            diag,
+        }
+    }
+
+    /// Number of rows.
+    pub fn len(&self) -> usize {
+        self.diag.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.diag.is_empty()
+    }
+
+    /// Row `i` as (column, coefficient), the diagonal first.
+    #[inline]
+    pub fn row(&self, i: usize) -> impl Iterator<Item = (usize, f64)> + '_ {
+        std::iter::once((i, self.diag[i])).chain(
+            (self.start[i]..self.start[i + 1]).map(move |k| (self.idx[k] as usize, -self.w[k])),
+        )
+    }
+
+    /// Coefficient `R_ij` (0 when `j` is not in row `i`).
+    #[inline]
+    pub fn coefficient(&self, i: usize, j: usize) -> f64 {
+        if i == j {
+            return self.diag[i];
+        }
+        let r = &self.idx[self.start[i]..self.start[i + 1]];
+        match r.binary_search(&(j as u32)) {
+            Ok(k) => -self.w[self.start[i] + k],
+            Err(_) => 0.0,
+        }
+    }
+
+    #[inline]
+    pub fn apply(&self, x: &[DVec3], i: usize) -> DVec3 {
+        self.row(i).fold(DVec3::ZERO, |acc, (j, c)| acc + c * x[j])
+    }
+
+    pub fn apply_all(&self, x: &[DVec3]) -> Vec<DVec3> {
+        (0..self.len()).map(|i| self.apply(x, i)).collect()
+    }
+
+    /// Whether `j` is in row `i` exactly when `i` is in row `j` (as for the
+    /// Laplacian of a mesh): then `R^T` can be gathered row by row.
+    pub fn pattern_is_symmetric(&self) -> bool {
+        (0..self.len()).into_par_iter().all(|i| {
+            self.idx[self.start[i]..self.start[i + 1]].iter().all(|&j| {
+                let j = j as usize;
+                j < self.len()
+                    && self.idx[self.start[j]..self.start[j + 1]]
+                        .binary_search(&(i as u32))
+                        .is_ok()
+            })
+        })
+    }
+}
+
+/// `C x` for a symmetric 3x3 `C` stored as (xx, yy, zz, xy, xz, yz).
+#[inline]
+fn sym3_mul(c: &[f64; 6], x: [f64; 3]) -> [f64; 3] {
+    [
+        c[0] * x[0] + c[3] * x[1] + c[4] * x[2],
+        c[3] * x[0] + c[1] * x[1] + c[5] * x[2],
+        c[4] * x[0] + c[5] * x[1] + c[2] * x[2],
+    ]
+}
+
+/// A symmetric `3n x 3n` matrix `K (x) I3 + sum_i R_i^T C_i R_i` (see module docs).
+#[derive(Debug, Clone, Default)]
+pub struct IsoRingSym3 {
+    /// `K`: lower-triangular CSC on the vertex pattern, diagonal first in each column.
+    pub iso: SymCsc,
+    /// The rows `R_i`; their pairs `(p, q)` must lie in the pattern of `iso`.
+    pub rings: Arc<SparseRows>,
+    /// `C_i` as (xx, yy, zz, xy, xz, yz), one per row of `rings`.
+    pub ring_c: Vec<[f64; 6]>,
+    /// When the rings' pattern is symmetric: `R_ip` for the `k`-th off-diagonal
+    /// entry `i = idx[k]` of row `p` (the transpose's weights in `rings`' layout),
+    /// for a gather-only parallel `R^T t`. Empty otherwise (sequential scatter).
+    ring_t: Vec<f64>,
+}
+
+impl IsoRingSym3 {
+    /// Zero matrix on the lower pattern `(col_ptr, row_idx)` (diagonal first in
+    /// every column) with the rows `rings`.
+    pub fn new(n: usize, col_ptr: Vec<usize>, row_idx: Vec<usize>, rings: Arc<SparseRows>) -> Self {
+        assert_eq!(rings.len(), n, "one ring per vertex");
+        let nnz = row_idx.len();
+        let ring_t = if rings.pattern_is_symmetric() {
+            (0..rings.len())
+                .into_par_iter()
+                .flat_map_iter(|p| {
+                    let rings = &rings;
+                    (rings.start[p]..rings.start[p + 1])
+                        .map(move |k| rings.coefficient(rings.idx[k] as usize, p))
+                })
+                .collect()
+        } else {
+            Vec::new()
+        };
+        IsoRingSym3 {
+            iso: SymCsc {
+                n,
+                col_ptr,
+                row_idx,
+                values: vec![0.0; nnz],
+            },
+            ring_c: vec![[0.0; 6]; n],
+            rings,
+            ring_t,
+        }
+    }
+
+    /// Block rows (vertices).
+    pub fn n(&self) -> usize {
+        self.iso.n
+    }
+
+    pub fn clear(&mut self) {
+        self.iso.values.iter_mut().for_each(|v| *v = 0.0);
+        self.ring_c.iter_mut().for_each(|c| *c = [0.0; 6]);
+    }
+
+    /// Slot of the diagonal entry of vertex `v` in `iso.values`.
+    #[inline]
+    pub fn diagonal_slot(&self, v: usize) -> usize {
+        self.iso.col_ptr[v]
+    }
+
+    /// Row-wise index of the strictly lower entries of `K` (as [`BlockSym3::row_index`]).
+    pub fn row_index(&self) -> BlockRows {
+        BlockRows::of_pattern(self.iso.n, &self.iso.col_ptr, &self.iso.row_idx)
+    }
+
+    /// `t_i = C_i (R_i x)` for every ring.
+    fn ring_terms(&self, x: &[f64]) -> Vec<[f64; 3]> {
+        (0..self.n())
+            .into_par_iter()
+            .map(|i| {
+                let c = &self.ring_c[i];
+                if *c == [0.0; 6] {
+                    return [0.0; 3];
+                }
+                let mut r = [0.0; 3];
+                for (q, w) in self.rings.row(i) {
+                    r[0] += w * x[3 * q];
+                    r[1] += w * x[3 * q + 1];
+                    r[2] += w * x[3 * q + 2];
+                }
+                sym3_mul(c, r)
+            })
+            .collect()
+    }
+
+    /// `y = A x`, parallel over vertices; `rows` is this pattern's [`Self::row_index`].
+    pub fn mul_vec_rows(&self, rows: &BlockRows, x: &[f64], y: &mut [f64]) {
+        let (col_ptr, row_idx, k) = (&self.iso.col_ptr, &self.iso.row_idx, &self.iso.values);
+        y.par_chunks_mut(3).enumerate().for_each(|(v, out)| {
+            let mut acc = [0.0f64; 3];
+            for s in col_ptr[v]..col_ptr[v + 1] {
+                let i = row_idx[s];
+                for c in 0..3 {
+                    acc[c] += k[s] * x[3 * i + c];
+                }
+            }
+            for &(s, j) in &rows.entries[rows.row_ptr[v]..rows.row_ptr[v + 1]] {
+                let (kv, j) = (k[s as usize], j as usize);
+                for c in 0..3 {
+                    acc[c] += kv * x[3 * j + c];
+                }
+            }
+            out.copy_from_slice(&acc);
+        });
+        let t = self.ring_terms(x);
+        if !self.ring_t.is_empty() || self.rings.idx.is_empty() {
+            // (R^T t)_p = sum over the rings i containing p, i.e. over row p's own
+            // columns (symmetric pattern), of R_ip t_i.
+            let r = &*self.rings;
+            y.par_chunks_mut(3).enumerate().for_each(|(p, out)| {
+                let d = r.diag[p];
+                for c in 0..3 {
+                    out[c] += d * t[p][c];
+                }
+                for k in r.start[p]..r.start[p + 1] {
+                    let (i, w) = (r.idx[k] as usize, self.ring_t[k]);
+                    for c in 0..3 {
+                        out[c] += w * t[i][c];
+                    }
+                }
+            });
+        } else {
+            self.scatter_rings(&t, y);
+        }
+    }
+
+    fn scatter_rings(&self, t: &[[f64; 3]], y: &mut [f64]) {
+        for (i, ti) in t.iter().enumerate() {
+            if *ti == [0.0; 3] {
+                continue;
+            }
+            for (p, w) in self.rings.row(i) {
+                for c in 0..3 {
+                    y[3 * p + c] += w * ti[c];
+                }
+            }
+        }
+    }
+
+    /// `y = A x`, sequential and without a row index (for occasional products).
+    pub fn mul_vec(&self, x: &[f64], y: &mut [f64]) {
+        y.iter_mut().for_each(|v| *v = 0.0);
+        let (col_ptr, row_idx, k) = (&self.iso.col_ptr, &self.iso.row_idx, &self.iso.values);
+        for j in 0..self.n() {
+            for s in col_ptr[j]..col_ptr[j + 1] {
+                let i = row_idx[s];
+                for c in 0..3 {
+                    y[3 * i + c] += k[s] * x[3 * j + c];
+                    if i != j {
+                        y[3 * j + c] += k[s] * x[3 * i + c];
+                    }
+                }
+            }
+        }
+        let t = self.ring_terms(x);
+        self.scatter_rings(&t, y);
+    }
+
+    /// The same matrix as explicit 3x3 blocks (for backends that take blocks).
+    /// Panics if a ring pair lies outside the pattern of `K`.
+    pub fn to_blocks(&self) -> BlockSym3 {
+        let mut b = BlockSym3 {
+            n: self.n(),
+            col_ptr: self.iso.col_ptr.clone(),
+            row_idx: self.iso.row_idx.clone(),
+            blocks: self
+                .iso
+                .values
+                .iter()
+                .map(|&v| [v, 0.0, 0.0, 0.0, v, 0.0, 0.0, 0.0, v])
+                .collect(),
+        };
+        for (i, c) in self.ring_c.iter().enumerate() {
+            if *c == [0.0; 6] {
+                continue;
+            }
+            let m = [c[0], c[3], c[4], c[3], c[1], c[5], c[4], c[5], c[2]];
+            for (p, wp) in self.rings.row(i) {
+                for (q, wq) in self.rings.row(i) {
+                    if p >= q {
+                        let (s, _) = b.slot(p, q).expect("ring pair inside the pattern");
+                        let f = wp * wq;
+                        for (o, me) in b.blocks[s].iter_mut().zip(&m) {
+                            *o += f * me;
+                        }
+                    }
+                }
+            }
+        }
+        b
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    impl IsoRingSym3 {
+        fn with_values_of(mut self, other: &IsoRingSym3) -> Self {
+            self.iso.values = other.iso.values.clone();
+            self.ring_c = other.ring_c.clone();
+            self
+        }
+    }
+
+    /// Rings of a cycle of `n` vertices (each with its two neighbours), and a
+    /// random-ish matrix on their 2-ring pattern.
+    fn sample(n: usize) -> IsoRingSym3 {
+        let mut t = Vec::new();
+        for i in 0..n {
+            let (a, b) = ((i + 1) % n, (i + n - 1) % n);
+            t.push((i as u32, a as u32, 1.0 + 0.3 * (i as f64).sin().abs()));
+            t.push((i as u32, b as u32, 0.5 + 0.2 * (i as f64 * 1.7).cos().abs()));
+        }
+        let rings = Arc::new(SparseRows::from_triplets(n, t, true));
+        let pairs = (0..n).flat_map(|i| [(i, (i + 1) % n), (i, (i + 2) % n)]);
+        let pat = SymCsc::from_pattern(n, pairs);
+        let mut a = IsoRingSym3::new(n, pat.col_ptr, pat.row_idx, rings);
+        for j in 0..n {
+            for s in a.iso.col_ptr[j]..a.iso.col_ptr[j + 1] {
+                let i = a.iso.row_idx[s];
+                a.iso.values[s] = if i == j {
+                    4.0 + (j as f64).cos()
+                } else {
+                    -0.3 - 0.1 * (s as f64 * 0.9).sin()
+                };
+            }
+        }
+        for (i, c) in a.ring_c.iter_mut().enumerate() {
+            let d = [(i as f64).sin(), (i as f64 * 0.3).cos(), 0.5];
+            let dd = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+            *c = [
+                dd / 3.0 - d[0] * d[0],
+                dd / 3.0 - d[1] * d[1],
+                dd / 3.0 - d[2] * d[2],
+                -d[0] * d[1],
+                -d[0] * d[2],
+                -d[1] * d[2],
+            ];
+        }
+        a
+    }
+
+    #[test]
+    fn products_agree_with_the_explicit_blocks() {
+        let a = sample(40);
+        let b = a.to_blocks();
+        let x: Vec<f64> = (0..120).map(|i| (i as f64 * 0.37).sin() + 0.1).collect();
+        let mut want = vec![0.0; 120];
+        b.mul_vec(&x, &mut want);
+        let mut seq = vec![f64::NAN; 120];
+        a.mul_vec(&x, &mut seq);
+        let mut par = vec![f64::NAN; 120];
+        a.mul_vec_rows(&a.row_index(), &x, &mut par);
+        let scale = want.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        assert!(scale > 0.1);
+        for i in 0..120 {
+            assert!((seq[i] - want[i]).abs() < 1e-12 * scale, "sequential {i}");
+            assert!((par[i] - want[i]).abs() < 1e-12 * scale, "parallel {i}");
+        }
+        // The ring terms are traceless, so K is the blocks' isotropic part.
+        for (s, blk) in b.blocks.iter().enumerate() {
+            let tr = (blk[0] + blk[4] + blk[8]) / 3.0;
+            assert!((tr - a.iso.values[s]).abs() < 1e-12);
+        }
+        // Off-diagonal ring coupling is present (the blocks are not isotropic).
+        assert!(b.blocks.iter().any(|blk| blk[1].abs() > 1e-3));
+    }
+
+    #[test]
+    fn unsymmetric_ring_patterns_fall_back_to_the_scatter() {
+        let mut a = sample(12);
+        // Drop one neighbour from one row: the pattern is no longer symmetric.
+        let mut rings = (*a.rings).clone();
+        rings.idx.remove(0);
+        rings.w.remove(0);
+        for s in rings.start.iter_mut().skip(1) {
+            *s -= 1;
+        }
+        assert!(!rings.pattern_is_symmetric());
+        a = IsoRingSym3::new(
+            a.n(),
+            a.iso.col_ptr.clone(),
+            a.iso.row_idx.clone(),
+            Arc::new(rings),
+        )
+        .with_values_of(&a);
+        assert!(a.ring_t.is_empty());
+        let b = a.to_blocks();
+        let x: Vec<f64> = (0..36).map(|i| (i as f64 * 0.61).cos()).collect();
+        let (mut want, mut got) = (vec![0.0; 36], vec![0.0; 36]);
+        b.mul_vec(&x, &mut want);
+        a.mul_vec_rows(&a.row_index(), &x, &mut got);
+        for i in 0..36 {
+            assert!((got[i] - want[i]).abs() < 1e-12, "{i}");
+        }
+    }
+
+    #[test]
+    fn pcg_on_the_iso_ring_form_matches_the_direct_solve_of_its_blocks() {
+        use crate::{BlockPcgSolver, CholeskySolver, SpdSolver};
+        let n = 60;
+        let mut a = sample(n);
+        for j in 0..n {
+            let s = a.diagonal_slot(j);
+            a.iso.values[s] += 4.0;
+        }
+        let mut fixed = vec![false; n];
+        fixed[7] = true;
+        fixed[8] = true;
+        let b: Vec<f64> = (0..3 * n).map(|i| (i as f64 * 0.53).sin() + 0.2).collect();
+        let mut direct = CholeskySolver::new();
+        direct.prepare_blocks(&a.to_blocks(), &fixed).unwrap();
+        let mut want = b.clone();
+        direct.solve_in_place(&mut want, 1).unwrap();
+        let mut pcg = BlockPcgSolver::new();
+        let before = a.iso.values.clone();
+        assert!(pcg.prepare_shape_owned(a, &fixed).unwrap().is_none());
+        // Kept as handed over: the held rows are masked for the factor only.
+        assert_eq!(pcg.shape_matrix().unwrap().iso.values, before);
+        let mut got = b.clone();
+        let info = pcg.solve_in_place(&mut got, 1).unwrap();
+        assert!(
+            info.iterations > 1,
+            "the ring terms are not in the preconditioner"
+        );
+        for i in 0..3 * n {
+            assert!(
+                (got[i] - want[i]).abs() < 1e-8,
+                "{i}: {} vs {}",
+                got[i],
+                want[i]
+            );
+        }
+        // Held vertices take their right-hand side.
+        assert_eq!(&got[21..27], &b[21..27]);
+        let back = pcg.take_shape_matrix().unwrap();
+        assert_eq!(back.iso.values, before);
+        assert!(pcg.take_shape_matrix().is_none());
+    }
+}
