@@ -434,9 +434,9 @@ impl SpdSolver for BlockPcgSolver {
         if self.mode == Mode::ScalarDirect {
             return self.precond.solve_in_place(rhs, ncols);
         }
-        let b = rhs.to_vec();
-        rhs.iter_mut().for_each(|v| *v = 0.0);
-        self.solve_with_guess(&b, rhs, ncols)
+        // Zero initial guess: the residual is the right-hand side itself, so it
+        // is formed without keeping a copy of b (one column of 3n values less).
+        self.run(None, rhs, ncols)
     }
 
     fn solve_with_guess(
@@ -445,10 +445,33 @@ impl SpdSolver for BlockPcgSolver {
         x: &mut [f64],
         ncols: usize,
     ) -> Result<SolveInfo, SolverError> {
+        self.run(Some(b), x, ncols)
+    }
+
+    fn set_tolerance(&mut self, relative_residual: f64) {
+        self.params.tolerance = relative_residual;
+    }
+
+    fn name(&self) -> &str {
+        "cpu"
+    }
+}
+
+impl BlockPcgSolver {
+    /// PCG from the guess in `x` for right-hand sides `b`; with `b = None`, `x`
+    /// holds the right-hand sides on entry and the guess is zero.
+    fn run(
+        &mut self,
+        b: Option<&[f64]>,
+        x: &mut [f64],
+        ncols: usize,
+    ) -> Result<SolveInfo, SolverError> {
         let m = match self.mode {
             Mode::None => return Err(SolverError::NotPrepared),
             Mode::ScalarDirect => {
-                x.copy_from_slice(b);
+                if let Some(b) = b {
+                    x.copy_from_slice(b);
+                }
                 return self.precond.solve_in_place(x, ncols);
             }
             Mode::ScalarPcg => self.scalar.n,
@@ -457,38 +480,67 @@ impl SpdSolver for BlockPcgSolver {
         if m == 0 {
             return Err(SolverError::NotPrepared);
         }
-        if b.len() != m * ncols || x.len() != m * ncols {
+        let blen = b.map_or(x.len(), |b| b.len());
+        if blen != m * ncols || x.len() != m * ncols {
             return Err(SolverError::DimensionMismatch(format!(
-                "right-hand side has {} entries, guess {}, expected {m} x {ncols}",
-                b.len(),
+                "right-hand side has {blen} entries, guess {}, expected {m} x {ncols}",
                 x.len()
             )));
         }
         self.solves += 1;
         let tol = self.params.tolerance;
         let blocks = matches!(self.mode, Mode::Blocks | Mode::Iso);
-        let mut r = vec![0.0; m * ncols];
-        for c in 0..ncols {
-            let s = m * c..m * (c + 1);
-            if blocks {
-                // Held dofs take their right-hand side; the rest see them as zero.
-                let (xc, bc) = (&mut x[s.clone()], &b[s.clone()]);
-                for (v, &f) in self.fixed.iter().enumerate() {
-                    if f {
-                        xc[3 * v..3 * v + 3].copy_from_slice(&bc[3 * v..3 * v + 3]);
+        let (mut r, bnorm) = match b {
+            Some(b) => {
+                let mut r = vec![0.0; m * ncols];
+                for c in 0..ncols {
+                    let s = m * c..m * (c + 1);
+                    if blocks {
+                        // Held dofs take their right-hand side; the rest see them as zero.
+                        let (xc, bc) = (&mut x[s.clone()], &b[s.clone()]);
+                        for (v, &f) in self.fixed.iter().enumerate() {
+                            if f {
+                                xc[3 * v..3 * v + 3].copy_from_slice(&bc[3 * v..3 * v + 3]);
+                            }
+                        }
+                        self.mul_vec(xc, &mut r[s.clone()]);
+                    } else {
+                        self.scalar.mul_vec(&x[s.clone()], &mut r[s.clone()]);
+                    }
+                    for (ri, bi) in r[s.clone()].iter_mut().zip(&b[s]) {
+                        *ri = bi - *ri;
                     }
                 }
-                self.mul_vec(xc, &mut r[s.clone()]);
-            } else {
-                self.scalar.mul_vec(&x[s.clone()], &mut r[s.clone()]);
+                let bnorm: Vec<f64> = (0..ncols)
+                    .map(|c| dot(&b[m * c..m * (c + 1)], &b[m * c..m * (c + 1)]).sqrt())
+                    .collect();
+                (r, bnorm)
             }
-            for (ri, bi) in r[s.clone()].iter_mut().zip(&b[s]) {
-                *ri = bi - *ri;
+            None => {
+                // x = 0 but held dofs, which keep their right-hand side: r = b
+                // with the held rows zero.
+                let bnorm: Vec<f64> = (0..ncols)
+                    .map(|c| dot(&x[m * c..m * (c + 1)], &x[m * c..m * (c + 1)]).sqrt())
+                    .collect();
+                let mut r = x.to_vec();
+                for c in 0..ncols {
+                    let (xc, rc) = (&mut x[m * c..m * (c + 1)], &mut r[m * c..m * (c + 1)]);
+                    if blocks {
+                        for (v, &f) in self.fixed.iter().enumerate() {
+                            let d = 3 * v..3 * v + 3;
+                            if f {
+                                rc[d].fill(0.0);
+                            } else {
+                                xc[d].fill(0.0);
+                            }
+                        }
+                    } else {
+                        xc.fill(0.0);
+                    }
+                }
+                (r, bnorm)
             }
-        }
-        let bnorm: Vec<f64> = (0..ncols)
-            .map(|c| dot(&b[m * c..m * (c + 1)], &b[m * c..m * (c + 1)]).sqrt())
-            .collect();
+        };
         let mut active: Vec<bool> = (0..ncols).map(|c| bnorm[c] > 0.0).collect();
         for c in 0..ncols {
             if !active[c] {
@@ -590,13 +642,5 @@ impl SpdSolver for BlockPcgSolver {
             iterations: it,
             residual: worst,
         })
-    }
-
-    fn set_tolerance(&mut self, relative_residual: f64) {
-        self.params.tolerance = relative_residual;
-    }
-
-    fn name(&self) -> &str {
-        "cpu"
     }
 }
