@@ -629,14 +629,20 @@ pub fn components(mesh: &Mesh, n: usize) -> (Vec<u32>, usize) {
 mod tests {
     use super::*;
 
+    /// spot (in the repository) and its shape model.
+    fn spot_model() -> (Mesh, ShapeModel) {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("data/meshes/spot.obj");
+        let mesh = crate::io::read_mesh(&path).unwrap();
+        let topo = Topology::build(&mesh);
+        let model = ShapeModel::new(&mesh, &topo, Vec::new()).unwrap();
+        (mesh, model)
+    }
+
     /// The E_m Hessian added on the fly through the mean-value pair slots equals
     /// the stored one (the path of meshes whose Laplacians differ in pattern).
     #[test]
     fn em_hessian_on_the_fly_equals_the_stored_one() {
-        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("data/meshes/spot.obj");
-        let mesh = crate::io::read_mesh(&path).unwrap();
-        let topo = Topology::build(&mesh);
-        let mut model = ShapeModel::new(&mesh, &topo, Vec::new()).unwrap();
+        let (mesh, mut model) = spot_model();
         assert!(model.hm.is_empty(), "spot's Laplacians share their pattern");
         let nf = mesh.num_faces();
         let n = mesh.num_vertices();
@@ -677,10 +683,7 @@ mod tests {
     #[test]
     fn eliminated_fourth_vertex_is_the_minimum_of_the_four_vertex_energy() {
         use glam::DMat3;
-        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("data/meshes/spot.obj");
-        let mesh = crate::io::read_mesh(&path).unwrap();
-        let topo = Topology::build(&mesh);
-        let mut model = ShapeModel::new(&mesh, &topo, Vec::new()).unwrap();
+        let (mesh, mut model) = spot_model();
         let (nf, n) = (mesh.num_faces(), mesh.num_vertices());
         let xc = &mesh.positions;
         let s: Vec<f64> = (0..nf)

@@ -227,6 +227,28 @@ fn pattern_u32(a: &SymCsc) -> Result<(Vec<u32>, Vec<u32>), SolverError> {
     ))
 }
 
+/// Numeric LL^T factorization of the lower triangle `(pattern, values)` into
+/// `out`; false when the matrix is not positive definite (in precision `T`).
+fn factor_numeric<T: faer::traits::RealField + Copy>(
+    sym: &SymbolicCholesky<u32>,
+    out: &mut [T],
+    pattern: SymbolicSparseColMatRef<'_, u32>,
+    values: &[T],
+    par: faer::Par,
+    stack: &mut MemStack,
+) -> bool {
+    sym.factorize_numeric_llt::<T>(
+        out,
+        SparseColMatRef::new(pattern, values),
+        Side::Lower,
+        Default::default(),
+        par,
+        stack,
+        Default::default(),
+    )
+    .is_ok()
+}
+
 /// Sequential triangular solves `L L^T X = B` in place for the columns of `chunk`.
 fn solve_columns<T: faer::traits::ComplexField<Real = T> + Copy>(
     sym: &SymbolicCholesky<u32>,
@@ -407,29 +429,9 @@ impl SpdSolver for CholeskySolver {
         let stack = MemStack::new(&mut scratch);
         let factored = if self.single {
             let values: Vec<f32> = a.values.iter().map(|&v| v as f32).collect();
-            let mat = SparseColMatRef::new(sym_ref, &values);
-            sym.factorize_numeric_llt::<f32>(
-                &mut self.numeric32,
-                mat,
-                Side::Lower,
-                Default::default(),
-                par,
-                stack,
-                Default::default(),
-            )
-            .is_ok()
+            factor_numeric(sym, &mut self.numeric32, sym_ref, &values, par, stack)
         } else {
-            let mat = SparseColMatRef::new(sym_ref, &a.values);
-            sym.factorize_numeric_llt::<f64>(
-                &mut self.numeric,
-                mat,
-                Side::Lower,
-                Default::default(),
-                par,
-                stack,
-                Default::default(),
-            )
-            .is_ok()
+            factor_numeric(sym, &mut self.numeric, sym_ref, &a.values, par, stack)
         };
         if !factored {
             return Err(SolverError::NotPositiveDefinite);

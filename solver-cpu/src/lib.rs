@@ -285,10 +285,9 @@ mod tests {
         assert_eq!(r, Err(SolverError::NotPositiveDefinite));
     }
 
-    /// A 2D grid graph (mesh-like, every vertex coupled to up to 8 neighbours)
-    /// with anisotropic random 3x3 couplings: SPD, not a Kronecker product.
-    fn grid_spd(w: usize) -> BlockSym3 {
-        let n = w * w;
+    /// Vertex pairs of a w x w grid: right and down neighbours, and with
+    /// `diagonal` the down-right one too.
+    fn grid_pairs(w: usize, diagonal: bool) -> Vec<(usize, usize)> {
         let mut pairs = Vec::new();
         for y in 0..w {
             for x in 0..w {
@@ -298,12 +297,20 @@ mod tests {
                 }
                 if y + 1 < w {
                     pairs.push((v, v + w));
-                    if x + 1 < w {
+                    if diagonal && x + 1 < w {
                         pairs.push((v, v + w + 1));
                     }
                 }
             }
         }
+        pairs
+    }
+
+    /// A 2D grid graph (mesh-like, every vertex coupled to up to 8 neighbours)
+    /// with anisotropic random 3x3 couplings: SPD, not a Kronecker product.
+    fn grid_spd(w: usize) -> BlockSym3 {
+        let n = w * w;
+        let pairs = grid_pairs(w, true);
         let mut a = BlockSym3::from_pattern(n, pairs.clone());
         for (k, &(p, q)) in pairs.iter().enumerate() {
             let w = 1.0 + 0.5 * (k as f64 * 0.61).sin();
@@ -395,18 +402,7 @@ mod tests {
     /// Scalar 5-point Laplacian of a w x w grid plus `shift` on the diagonal.
     fn grid_laplacian(w: usize, shift: f64) -> SymCsc {
         let n = w * w;
-        let mut pairs = Vec::new();
-        for y in 0..w {
-            for x in 0..w {
-                let v = y * w + x;
-                if x + 1 < w {
-                    pairs.push((v, v + 1));
-                }
-                if y + 1 < w {
-                    pairs.push((v, v + w));
-                }
-            }
-        }
+        let pairs = grid_pairs(w, false);
         let mut s = SymCsc::from_pattern(n, pairs.clone());
         for v in 0..n {
             let k = s.slot(v, v).unwrap();
