@@ -80,18 +80,25 @@ fn main(
     for (var c = 0u; c < ncols; c++) {
         red[c * WG + lid] = acc[c];
     }
+    // Two-level sum (two barriers; see bsr_spmv.wgsl).
     workgroupBarrier();
-    for (var s = WG / 2u; s > 0u; s >>= 1u) {
-        if lid < s {
-            for (var c = 0u; c < ncols; c++) {
-                red[c * WG + lid] += red[c * WG + lid + s];
+    if lid < 16u {
+        for (var c = 0u; c < ncols; c++) {
+            var s = 0.0;
+            for (var q = 0u; q < WG; q += 16u) {
+                s += red[c * WG + lid + q];
             }
+            red[c * WG + lid] = s;
         }
-        workgroupBarrier();
     }
+    workgroupBarrier();
     if lid == 0u {
         for (var c = 0u; c < ncols; c++) {
-            partials[c * P.groups + g] = red[c * WG];
+            var s = 0.0;
+            for (var q = 0u; q < 16u; q++) {
+                s += red[c * WG + q];
+            }
+            partials[c * P.groups + g] = s;
         }
     }
 }

@@ -83,6 +83,27 @@ const HUGE: f32 = 1e37;
 var<workgroup> red: array<f32, 2048>; // 2 * CMAX * WG
 var<workgroup> fred: array<f32, 512>; // 2 * FWG
 
+// Workgroup sums of `red` in two levels, between barriers the caller places:
+// fold16 (invocations 0..16) leaves red[base + i] = sum over q of
+// red[base + i + 16 q]; sum16 then adds those 16. Two barriers instead of the
+// seven of a tree: on llvmpipe every barrier suspends and resumes each SIMD
+// slice of the workgroup.
+fn fold16(lid: u32, base: u32) {
+    var s = 0.0;
+    for (var q = 0u; q < WG; q += 16u) {
+        s += red[base + lid + q];
+    }
+    red[base + lid] = s;
+}
+
+fn sum16(base: u32) -> f32 {
+    var s = 0.0;
+    for (var q = 0u; q < 16u; q++) {
+        s += red[base + q];
+    }
+    return s;
+}
+
 @compute @workgroup_size(128)
 fn update(
     @builtin(workgroup_id) wid: vec3<u32>,
@@ -130,19 +151,17 @@ fn update(
         red[(CMAX + c) * WG + lid] = rr[c];
     }
     workgroupBarrier();
-    for (var s = WG / 2u; s > 0u; s >>= 1u) {
-        if lid < s {
-            for (var c = 0u; c < ncols; c++) {
-                red[c * WG + lid] += red[c * WG + lid + s];
-                red[(CMAX + c) * WG + lid] += red[(CMAX + c) * WG + lid + s];
-            }
+    if lid < 16u {
+        for (var c = 0u; c < ncols; c++) {
+            fold16(lid, c * WG);
+            fold16(lid, (CMAX + c) * WG);
         }
-        workgroupBarrier();
     }
+    workgroupBarrier();
     if lid == 0u {
         for (var c = 0u; c < ncols; c++) {
-            partials[c * P.groups + g] = red[c * WG];
-            partials[(ncols + c) * P.groups + g] = red[(CMAX + c) * WG];
+            partials[c * P.groups + g] = sum16(c * WG);
+            partials[(ncols + c) * P.groups + g] = sum16((CMAX + c) * WG);
         }
     }
 }
@@ -181,17 +200,15 @@ fn update_amg(
         red[(CMAX + c) * WG + lid] = rr[c];
     }
     workgroupBarrier();
-    for (var s = WG / 2u; s > 0u; s >>= 1u) {
-        if lid < s {
-            for (var c = 0u; c < ncols; c++) {
-                red[(CMAX + c) * WG + lid] += red[(CMAX + c) * WG + lid + s];
-            }
+    if lid < 16u {
+        for (var c = 0u; c < ncols; c++) {
+            fold16(lid, (CMAX + c) * WG);
         }
-        workgroupBarrier();
     }
+    workgroupBarrier();
     if lid == 0u {
         for (var c = 0u; c < ncols; c++) {
-            partials[(ncols + c) * P.groups + g] = red[(CMAX + c) * WG];
+            partials[(ncols + c) * P.groups + g] = sum16((CMAX + c) * WG);
         }
     }
 }
@@ -224,17 +241,15 @@ fn dot_rz(
         red[c * WG + lid] = rz[c];
     }
     workgroupBarrier();
-    for (var s = WG / 2u; s > 0u; s >>= 1u) {
-        if lid < s {
-            for (var c = 0u; c < ncols; c++) {
-                red[c * WG + lid] += red[c * WG + lid + s];
-            }
+    if lid < 16u {
+        for (var c = 0u; c < ncols; c++) {
+            fold16(lid, c * WG);
         }
-        workgroupBarrier();
     }
+    workgroupBarrier();
     if lid == 0u {
         for (var c = 0u; c < ncols; c++) {
-            partials[c * P.groups + g] = red[c * WG];
+            partials[c * P.groups + g] = sum16(c * WG);
         }
     }
 }

@@ -5,21 +5,31 @@
 //! Bindings (group 0), as the shader's header describes:
 //! - 0 `P` uniform [`Params`](crate::device::Params): rows = block rows, ncols,
 //!   n = 3 rows, groups = ceil(rows / 128);
-//! - 1 `row_ptr`, 2 `col_idx`, 3 `vals` (9 f32 per block): the matrix
-//!   ([`GpuMatrix`]);
+//! - 1 `row_ptr` (buffer) and 3 `blocks` (RGBA32F texture, three texels per
+//!   block holding its 9 values and its column): the matrix ([`GpuMatrix`]);
 //! - 4 `x` (read), 5 `y` (written), column-major, stride n;
 //! - 6 `partials` (written): `partials[c * groups + g]`.
 //!
 //! Dispatch: `groups` workgroups of 128 invocations, 2-D (see `Context::dims`).
 
 use crate::device::{Bind, Context, Kernel, Shader};
-use crate::matrix::GpuMatrix;
+use crate::matrix::{GpuMatrix, MatrixStorage};
 use crate::GpuError;
 
 pub(crate) const SOURCE: &str = include_str!("../../shaders/bsr_spmv.wgsl");
 
-/// Layout of `bsr_spmv.wgsl` and `csr_spmv.wgsl` (group 0): the same bindings.
-const BINDINGS: [(u32, Bind); 7] = [
+/// Layout of `bsr_spmv.wgsl` (group 0).
+const BLOCK_BINDINGS: [(u32, Bind); 6] = [
+    (0, Bind::Uniform),
+    (1, Bind::Read),
+    (3, Bind::Texture),
+    (4, Bind::Read),
+    (5, Bind::ReadWrite),
+    (6, Bind::ReadWrite),
+];
+
+/// Layout of `csr_spmv.wgsl` (group 0).
+const SCALAR_BINDINGS: [(u32, Bind); 7] = [
     (0, Bind::Uniform),
     (1, Bind::Read),
     (2, Bind::Read),
@@ -29,7 +39,9 @@ const BINDINGS: [(u32, Bind); 7] = [
     (6, Bind::ReadWrite),
 ];
 
-/// A compiled SpMV shader (block or scalar: both share the bindings above).
+/// A compiled SpMV shader (block or scalar: bindings 0, 1 and 4-6 are shared;
+/// the entries are two buffers (2, 3) for the scalar product, one texture (3)
+/// for the block product).
 pub(crate) struct SpmvKernel {
     shader: Shader,
     pub kernel: Kernel,
@@ -37,19 +49,23 @@ pub(crate) struct SpmvKernel {
 
 pub(crate) type BsrSpmv = SpmvKernel;
 
-/// Compile `bsr_spmv.wgsl`.
+/// Compile `bsr_spmv.wgsl`, its texture width fixed from the device limits.
 pub(crate) fn new(ctx: &Context) -> Result<BsrSpmv, GpuError> {
-    SpmvKernel::load(ctx, "bsr_spmv.wgsl", SOURCE, "bsr_spmv")
+    let shader = Shader::new(ctx, "bsr_spmv.wgsl", SOURCE, &BLOCK_BINDINGS)?;
+    let tw = ctx.texture_width() as f64;
+    let kernel = Kernel::with_constants(&shader, "bsr_spmv", "main", &[("TW", tw)]);
+    Ok(SpmvKernel { shader, kernel })
 }
 
 impl SpmvKernel {
-    pub(crate) fn load(
+    /// A scalar (CSR) SpMV shader.
+    pub(crate) fn load_scalar(
         ctx: &Context,
         file: &'static str,
         source: &'static str,
         label: &'static str,
     ) -> Result<Self, GpuError> {
-        let shader = Shader::new(ctx, file, source, &BINDINGS)?;
+        let shader = Shader::new(ctx, file, source, &SCALAR_BINDINGS)?;
         let kernel = Kernel::new(&shader, label, "main");
         Ok(SpmvKernel { shader, kernel })
     }
@@ -63,17 +79,17 @@ impl SpmvKernel {
         y: &wgpu::Buffer,
         partials: &wgpu::Buffer,
     ) -> Result<wgpu::BindGroup, GpuError> {
-        self.shader.bind(
-            ctx,
-            &[
-                (0, params),
-                (1, &m.row_ptr),
-                (2, &m.col_idx),
-                (3, &m.vals),
-                (4, x),
-                (5, y),
-                (6, partials),
-            ],
-        )
+        let shared = [(0, params), (1, &m.row_ptr), (4, x), (5, y), (6, partials)];
+        match &m.storage {
+            MatrixStorage::Csr { col_idx, vals } => {
+                let mut b = shared.to_vec();
+                b.push((2, col_idx));
+                b.push((3, vals));
+                self.shader.bind(ctx, &b)
+            }
+            MatrixStorage::BlockTexture { view, .. } => {
+                self.shader.bind_with_views(ctx, &shared, &[(3, view)])
+            }
+        }
     }
 }

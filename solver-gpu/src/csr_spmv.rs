@@ -18,10 +18,10 @@ use crate::GpuError;
 
 pub(crate) const SOURCE: &str = include_str!("../../shaders/csr_spmv.wgsl");
 
-/// Same bindings and driver as the block product ([`SpmvKernel`]).
+/// Same driver as the block product ([`SpmvKernel`]); the matrix in buffers.
 pub(crate) type CsrSpmv = SpmvKernel;
 
 /// Compile `csr_spmv.wgsl`.
 pub(crate) fn new(ctx: &Context) -> Result<CsrSpmv, GpuError> {
-    SpmvKernel::load(ctx, "csr_spmv.wgsl", SOURCE, "csr_spmv")
+    SpmvKernel::load_scalar(ctx, "csr_spmv.wgsl", SOURCE, "csr_spmv")
 }

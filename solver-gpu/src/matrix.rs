@@ -195,41 +195,88 @@ impl HostMatrix {
 /// The f32 copy on the GPU.
 pub(crate) struct GpuMatrix {
     pub row_ptr: wgpu::Buffer,
-    pub col_idx: wgpu::Buffer,
-    pub vals: wgpu::Buffer,
+    pub storage: MatrixStorage,
     pub minv: wgpu::Buffer,
+}
+
+/// Where the stored entries live.
+pub(crate) enum MatrixStorage {
+    /// Scalar matrices (`bs` = 1): column indices and values in two buffers.
+    Csr {
+        col_idx: wgpu::Buffer,
+        vals: wgpu::Buffer,
+    },
+    /// 3x3 blocks: three RGBA32F texels per block, `(m00 m01 m02 j)`,
+    /// `(m10 m11 m12 0)`, `(m20 m21 m22 0)` with the block column `j` stored as
+    /// the bits of an f32 (see `bsr_spmv.wgsl`). A texture is not bound by the
+    /// storage-buffer binding limit (128 MiB on lavapipe), and llvmpipe reads it
+    /// with vector gathers where a storage buffer costs one checked scalar load
+    /// per invocation and component.
+    BlockTexture {
+        texture: wgpu::Texture,
+        view: wgpu::TextureView,
+    },
+}
+
+/// Texel `t` (`q = t % 3` of block `t / 3`) of the block texture.
+fn block_texel(h: &HostMatrix, t: usize, out: &mut [f32]) {
+    let (k, q) = (t / 3, t % 3);
+    let b = &h.vals[9 * k + 3 * q..9 * k + 3 * q + 3];
+    out[0] = b[0] as f32;
+    out[1] = b[1] as f32;
+    out[2] = b[2] as f32;
+    out[3] = if q == 0 {
+        f32::from_bits(h.col_idx[k])
+    } else {
+        0.0
+    };
 }
 
 impl GpuMatrix {
     pub fn upload(ctx: &Context, h: &HostMatrix, minv: &[f32]) -> Result<GpuMatrix, GpuError> {
-        let what = if h.bs == 3 { "block" } else { "scalar" };
-        // Check every size first so the error names the first buffer over a limit.
-        ctx.check_storage(
-            &format!(
-                "{what} matrix values ({} blocks of {} f32)",
-                h.nnz_blocks(),
-                h.bs * h.bs
-            ),
-            (h.vals.len() * 4) as u64,
-        )?;
-        ctx.check_storage(
-            &format!("{what} matrix column indices"),
-            (h.col_idx.len() * 4) as u64,
-        )?;
-        let vals32: Vec<f32> = h.vals.iter().map(|&v| v as f32).collect();
+        let storage = if h.bs == 3 {
+            let texels = 3 * h.nnz_blocks();
+            let texture = ctx.data_texture(
+                &format!("block matrix ({} blocks of 3 texels)", h.nnz_blocks()),
+                texels as u64,
+            )?;
+            ctx.write_data_texture(&texture, texels, |t, out| block_texel(h, t, out));
+            let view = texture.create_view(&Default::default());
+            MatrixStorage::BlockTexture { texture, view }
+        } else {
+            // Check every size first so the error names the first buffer over a limit.
+            ctx.check_storage(
+                &format!("scalar matrix values ({} entries of f32)", h.nnz_blocks()),
+                (h.vals.len() * 4) as u64,
+            )?;
+            ctx.check_storage("scalar matrix column indices", (h.col_idx.len() * 4) as u64)?;
+            let vals32: Vec<f32> = h.vals.iter().map(|&v| v as f32).collect();
+            MatrixStorage::Csr {
+                col_idx: ctx.storage_init("matrix column indices", &h.col_idx)?,
+                vals: ctx.storage_init("matrix values", &vals32)?,
+            }
+        };
         Ok(GpuMatrix {
             row_ptr: ctx.storage_init("matrix row pointers", &h.row_ptr)?,
-            col_idx: ctx.storage_init("matrix column indices", &h.col_idx)?,
-            vals: ctx.storage_init("matrix values", &vals32)?,
+            storage,
             minv: ctx.storage_init("inverted diagonal blocks", minv)?,
         })
     }
 
     /// New values, same pattern.
     pub fn write_values(&self, ctx: &Context, h: &HostMatrix, minv: &[f32]) {
-        let vals32: Vec<f32> = h.vals.iter().map(|&v| v as f32).collect();
-        ctx.queue
-            .write_buffer(&self.vals, 0, bytemuck::cast_slice(&vals32));
+        match &self.storage {
+            MatrixStorage::Csr { vals, .. } => {
+                let vals32: Vec<f32> = h.vals.iter().map(|&v| v as f32).collect();
+                ctx.queue
+                    .write_buffer(vals, 0, bytemuck::cast_slice(&vals32));
+            }
+            MatrixStorage::BlockTexture { texture, .. } => {
+                ctx.write_data_texture(texture, 3 * h.nnz_blocks(), |t, out| {
+                    block_texel(h, t, out)
+                });
+            }
+        }
         ctx.queue
             .write_buffer(&self.minv, 0, bytemuck::cast_slice(minv));
     }

@@ -157,18 +157,14 @@ fn f32s(v: &[f64]) -> Vec<f32> {
     v.iter().map(|&x| x as f32).collect()
 }
 
-#[test]
-fn block_spmv_matches_cpu_for_1_to_8_columns() {
-    let Some(mut s) = gpu() else { return };
-    let mut rng = Rng(1);
-    let a = spd_blocks(23, 17, 0.1, &mut rng);
-    let fixed = fixed_every(a.n, 11);
-    s.prepare_blocks(&a, &fixed).unwrap();
-    let cpu = scalar_of(&a, &fixed);
+/// The GPU block SpMV of `a` (held rows `fixed`, already prepared on `s`)
+/// against the CPU product, for 1 to 8 columns.
+fn check_block_spmv(s: &GpuSolver, a: &BlockSym3, fixed: &[bool], rng: &mut Rng) {
+    let cpu = scalar_of(a, fixed);
     let n = 3 * a.n;
     for ncols in [1, 2, 5, 8] {
         let x = f32s(&rng.vec(n * ncols));
-        let (y, dots) = kernels::spmv(&s, &x, ncols).unwrap();
+        let (y, dots) = kernels::spmv(s, &x, ncols).unwrap();
         for c in 0..ncols {
             let xc: Vec<f64> = x[c * n..(c + 1) * n].iter().map(|&v| v as f64).collect();
             let mut yc = vec![0.0; n];
@@ -185,6 +181,48 @@ fn block_spmv_matches_cpu_for_1_to_8_columns() {
             );
         }
     }
+}
+
+#[test]
+fn block_spmv_matches_cpu_for_1_to_8_columns() {
+    let Some(mut s) = gpu() else { return };
+    let mut rng = Rng(1);
+    let a = spd_blocks(23, 17, 0.1, &mut rng);
+    let fixed = fixed_every(a.n, 11);
+    s.prepare_blocks(&a, &fixed).unwrap();
+    check_block_spmv(&s, &a, &fixed, &mut rng);
+}
+
+#[test]
+fn block_spmv_on_a_narrow_texture_wraps_rows_and_takes_new_values() {
+    // At most 128 texels per texture row: the ~7.7k texels of this matrix span
+    // about 60 rows, so every block column and value passes through the
+    // row-wrapping address arithmetic of the shader and the upload.
+    let opts = OpenOptions {
+        adjust_limits: Some(Box::new(|l: &mut solver_gpu::wgpu::Limits| {
+            l.max_texture_dimension_2d = 128;
+        })),
+        ..Default::default()
+    };
+    let Some(mut s) = solver_gpu::open_with(opts).map_or_else(skip_or_fail, Some) else {
+        return;
+    };
+    let mut rng = Rng(12);
+    let mut a = spd_blocks(23, 17, 0.1, &mut rng);
+    let nnz = 2 * a.row_idx.len() - a.n;
+    assert!(3 * nnz > 40 * 128, "{nnz} blocks fit in too few rows");
+    let fixed = fixed_every(a.n, 13);
+    s.prepare_blocks(&a, &fixed).unwrap();
+    check_block_spmv(&s, &a, &fixed, &mut rng);
+    // Same pattern, new values: written into the same texture.
+    for b in a.blocks.iter_mut() {
+        for v in b.iter_mut() {
+            *v *= 1.5;
+        }
+    }
+    a.add_scalar(5, 5, 2.0);
+    s.prepare_blocks(&a, &fixed).unwrap();
+    check_block_spmv(&s, &a, &fixed, &mut rng);
 }
 
 #[test]
@@ -434,8 +472,10 @@ fn buffer_over_the_binding_limit_is_a_typed_error() {
     };
     assert_eq!(s.limits().max_storage_buffer_binding_size, 4096);
     let mut rng = Rng(10);
-    let a = spd_blocks(20, 20, 0.1, &mut rng);
-    let err = s.prepare_blocks(&a, &vec![false; a.n]).unwrap_err();
+    // A scalar matrix keeps its values in a storage buffer: 5000 rows are
+    // well over 4096 bytes.
+    let a = spd_scalar(5000, &mut rng);
+    let err = s.prepare(&a).unwrap_err();
     match &err {
         SolverError::Backend(msg) => assert!(
             msg.contains("max_storage_buffer_binding_size") && msg.contains("matrix values"),
@@ -443,8 +483,41 @@ fn buffer_over_the_binding_limit_is_a_typed_error() {
         ),
         other => panic!("expected a limit error, got {other:?}"),
     }
+    let mut x = vec![1.0; a.n];
+    assert_eq!(s.solve_in_place(&mut x, 1), Err(SolverError::NotPrepared));
+}
+
+#[test]
+fn block_matrix_over_the_texture_limit_is_a_typed_error() {
+    // The 3x3 blocks live in a texture of 3 texels per block: with at most 64
+    // texels per side, 4096 texels hold 1365 blocks, and a 20 x 20 grid of
+    // vertices with its 2-ring has several thousand.
+    let opts = OpenOptions {
+        adjust_limits: Some(Box::new(|l: &mut solver_gpu::wgpu::Limits| {
+            l.max_texture_dimension_2d = 64;
+        })),
+        ..Default::default()
+    };
+    let Some(mut s) = solver_gpu::open_with(opts).map_or_else(skip_or_fail, Some) else {
+        return;
+    };
+    let mut rng = Rng(11);
+    let a = spd_blocks(20, 20, 0.1, &mut rng);
+    let err = s.prepare_blocks(&a, &vec![false; a.n]).unwrap_err();
+    match &err {
+        SolverError::Backend(msg) => assert!(
+            msg.contains("max_texture_dimension_2d") && msg.contains("block matrix"),
+            "{msg}"
+        ),
+        other => panic!("expected a limit error, got {other:?}"),
+    }
     let mut x = vec![1.0; 3 * a.n];
     assert_eq!(s.solve_in_place(&mut x, 1), Err(SolverError::NotPrepared));
+    // A matrix that fits is solved by the same device.
+    let small = spd_blocks(4, 4, 0.1, &mut rng);
+    s.prepare_blocks(&small, &vec![false; small.n]).unwrap();
+    let mut x = rng.vec(3 * small.n);
+    s.solve_in_place(&mut x, 1).unwrap();
 }
 
 #[test]
