@@ -256,30 +256,22 @@ impl Context {
                 limit,
             });
         }
-        let oom = self.device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
-        let val = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
-        let t = self.device.create_texture(&wgpu::TextureDescriptor {
-            label: Some(what),
-            size: wgpu::Extent3d {
-                width: w as u32,
-                height: h as u32,
-                depth_or_array_layers: 1,
-            },
-            mip_level_count: 1,
-            sample_count: 1,
-            dimension: wgpu::TextureDimension::D2,
-            format: wgpu::TextureFormat::Rgba32Float,
-            usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
-            view_formats: &[],
-        });
-        if let Some(e) = pollster::block_on(val.pop()) {
-            drop(oom);
-            return Err(from_wgpu(e));
-        }
-        if let Some(e) = pollster::block_on(oom.pop()) {
-            return Err(from_wgpu(e));
-        }
-        Ok(t)
+        self.allocate(|| {
+            self.device.create_texture(&wgpu::TextureDescriptor {
+                label: Some(what),
+                size: wgpu::Extent3d {
+                    width: w as u32,
+                    height: h as u32,
+                    depth_or_array_layers: 1,
+                },
+                mip_level_count: 1,
+                sample_count: 1,
+                dimension: wgpu::TextureDimension::D2,
+                format: wgpu::TextureFormat::Rgba32Float,
+                usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
+                view_formats: &[],
+            })
+        })
     }
 
     /// Write `texels` (4 f32 each, in texel order) into a data texture from
@@ -355,9 +347,15 @@ impl Context {
     }
 
     fn create(&self, desc: &wgpu::BufferDescriptor) -> Result<wgpu::Buffer, GpuError> {
+        self.allocate(|| self.device.create_buffer(desc))
+    }
+
+    /// Run one allocation inside out-of-memory and validation error scopes:
+    /// either failure becomes a typed error instead of an uncaptured one.
+    fn allocate<T>(&self, make: impl FnOnce() -> T) -> Result<T, GpuError> {
         let oom = self.device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
         let val = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
-        let b = self.device.create_buffer(desc);
+        let made = make();
         if let Some(e) = pollster::block_on(val.pop()) {
             drop(oom);
             return Err(from_wgpu(e));
@@ -365,7 +363,7 @@ impl Context {
         if let Some(e) = pollster::block_on(oom.pop()) {
             return Err(from_wgpu(e));
         }
-        Ok(b)
+        Ok(made)
     }
 
     pub fn shader(&self, label: &str, source: &str) -> Result<wgpu::ShaderModule, GpuError> {
