@@ -20,16 +20,23 @@
 //                         past `rows` do nothing), mode (see above), omega =
 //                         Jacobi weight.
 //   1  row_ptr  read      rows + 1 offsets (block units) of the BSR matrix.
-//   2  col_idx  read      block column of each stored block.
-//   3  vals     read      BS * BS f32 per block, row-major (A_l, P_l or R_l;
-//                         rectangular for P and R); for `dense`, the row-major
-//                         rows x rows inverse of the coarsest matrix.
+//   2  dense_inv read     the row-major rows x rows inverse of the coarsest
+//                         matrix (`dense` only).
+//   3  blocks   texture   RGBA32F, TW texels per texture row: the blocks of the
+//                         step's matrix (A_l, P_l or R_l; rectangular for P and
+//                         R), BS texels per block: texel BS k + q holds row q of
+//                         block k in .xyz (BS values) and, in the .w of its first
+//                         texel, the block column as the bits of an f32. (The
+//                         layout of the PCG's block matrix, bsr_spmv.wgsl.) A
+//                         texel fetch is a vector gather on llvmpipe, and a
+//                         texture is not bound by the storage-buffer binding
+//                         limit.
 //   4  x        read      NCOLS input columns, column-major, stride nx.
 //   5  b        read      right-hand side (spmv mode 1) or residual (jacobi),
 //                         stride n.
 //   6  y        rw        output, stride n (read too by the accumulating modes).
 //   7  dinv     read      inverted diagonal blocks, BS * BS f32 per block row.
-// Unused bindings hold a small dummy buffer.
+// Unused bindings hold a small placeholder buffer or a 1x1 texture.
 
 struct AmgParams {
     rows: u32,
@@ -47,11 +54,14 @@ const WG: u32 = 128u;
 // when the pipeline is created: the loops unroll.
 override NCOLS: u32 = 1u;
 override BS: u32 = 3u;
+// Texels per row of `blocks`: a power of two set by the host from the device's
+// max_texture_dimension_2d.
+override TW: u32 = 4096u;
 
 @group(0) @binding(0) var<uniform> P: AmgParams;
 @group(0) @binding(1) var<storage, read> row_ptr: array<u32>;
-@group(0) @binding(2) var<storage, read> col_idx: array<u32>;
-@group(0) @binding(3) var<storage, read> vals: array<f32>;
+@group(0) @binding(2) var<storage, read> dense_inv: array<f32>;
+@group(0) @binding(3) var blocks: texture_2d<f32>;
 @group(0) @binding(4) var<storage, read> x: array<f32>;
 @group(0) @binding(5) var<storage, read> b: array<f32>;
 @group(0) @binding(6) var<storage, read_write> y: array<f32>;
@@ -81,10 +91,17 @@ fn spmv(
     let k0 = row_ptr[row];
     let k1 = row_ptr[row + 1u];
     for (var k = k0; k < k1; k++) {
-        let j = col_idx[k];
         var m: array<f32, 9>;
-        for (var q = 0u; q < bs * bs; q++) {
-            m[q] = vals[bs * bs * k + q];
+        var j = 0u;
+        for (var q = 0u; q < bs; q++) {
+            let t = bs * k + q;
+            let v = textureLoad(blocks, vec2<u32>(t % TW, t / TW), 0);
+            if q == 0u {
+                j = bitcast<u32>(v.w);
+            }
+            for (var u = 0u; u < bs; u++) {
+                m[q * bs + u] = v[u];
+            }
         }
         for (var c = 0u; c < NCOLS; c++) {
             let o = c * P.nx + j * bs;
@@ -167,7 +184,7 @@ fn dense(
     let nr = P.rows;
     var acc: array<f32, 8>;
     for (var j = 0u; j < nr; j++) {
-        let a = vals[row * nr + j];
+        let a = dense_inv[row * nr + j];
         for (var c = 0u; c < NCOLS; c++) {
             acc[c] += a * x[c * P.nx + j];
         }

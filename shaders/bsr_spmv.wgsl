@@ -17,8 +17,10 @@
 //                         Both triangles are stored (the lower CSC is expanded
 //                         on upload); rows/columns of fixed vertices are already
 //                         the identity.
-//   4  x        read      ncols columns of length n, column-major (the search
-//                         direction p in PCG).
+//   4  x        texture   RGBA32F, TW texels per row: column c, vertex j at
+//                         texel t = c * rows + j holding (x_3j, x_3j+1, x_3j+2,
+//                         .) (the search direction p in PCG, stored there by
+//                         pcg.wgsl's direction_tex).
 //   5  y        write     y = A x, same layout (Ap in PCG). Every entry of the
 //                         first ncols columns is written.
 //   6  partials write     partials[c * groups + g] = sum over the rows of
@@ -32,7 +34,8 @@
 // storage-buffer load with a per-invocation address is a loop over the lanes
 // with a bounds check per component (1.7-2x slower SpMV at 50k block rows in a
 // side-by-side test of the two layouts); and a texture is not bound by the
-// storage-buffer binding limit.
+// storage-buffer binding limit. The gathered x is read from a texture too, for
+// the same reason.
 
 struct Params {
     rows: u32,
@@ -58,7 +61,7 @@ override TW: u32 = 4096u;
 @group(0) @binding(0) var<uniform> P: Params;
 @group(0) @binding(1) var<storage, read> row_ptr: array<u32>;
 @group(0) @binding(3) var blocks: texture_2d<f32>;
-@group(0) @binding(4) var<storage, read> x: array<f32>;
+@group(0) @binding(4) var xt: texture_2d<f32>;
 @group(0) @binding(5) var<storage, read_write> y: array<f32>;
 @group(0) @binding(6) var<storage, read_write> partials: array<f32>;
 
@@ -69,8 +72,8 @@ fn texel(t: u32) -> vec4<f32> {
 }
 
 fn xv(c: u32, j: u32) -> vec3<f32> {
-    let o = c * P.n + 3u * j;
-    return vec3<f32>(x[o], x[o + 1u], x[o + 2u]);
+    let t = c * P.rows + j;
+    return textureLoad(xt, vec2<u32>(t % TW, t / TW), 0).xyz;
 }
 
 @compute @workgroup_size(128)

@@ -84,7 +84,7 @@ fn main(
     workgroupBarrier();
     if lid < 16u {
         for (var c = 0u; c < ncols; c++) {
-            var s = 0.0;
+            var s: f32 = 0.0;
             for (var q = 0u; q < WG; q += 16u) {
                 s += red[c * WG + lid + q];
             }
@@ -94,7 +94,7 @@ fn main(
     workgroupBarrier();
     if lid == 0u {
         for (var c = 0u; c < ncols; c++) {
-            var s = 0.0;
+            var s: f32 = 0.0;
             for (var q = 0u; q < 16u; q++) {
                 s += red[c * WG + q];
             }

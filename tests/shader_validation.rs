@@ -3,6 +3,28 @@
 
 use solver_gpu::naga;
 
+/// Shaders that also compile in f64 (solver_gpu::precision).
+const F64_VARIANTS: [&str; 2] = ["pcg.wgsl", "csr_spmv.wgsl"];
+
+/// The f64 variant parses, validates with the FLOAT64 capability, and has no
+/// f32 left.
+fn validate_f64(name: &str, source: &str) {
+    let f64_source = solver_gpu::precision::f64_source(source);
+    assert!(!f64_source.contains("f32"), "{name} (f64) still has f32");
+    let module = naga::front::wgsl::parse_str(&f64_source)
+        .unwrap_or_else(|e| panic!("{name} (f64): {}", e.emit_to_string(&f64_source)));
+    naga::valid::Validator::new(
+        naga::valid::ValidationFlags::all(),
+        naga::valid::Capabilities::FLOAT64,
+    )
+    .validate(&module)
+    .unwrap_or_else(|e| panic!("{name} (f64): {}", e.emit_to_string(&f64_source)));
+    assert!(
+        !module.entry_points.is_empty(),
+        "{name} (f64): no entry point"
+    );
+}
+
 #[test]
 fn every_shader_parses_and_validates() {
     let dir = concat!(env!("CARGO_MANIFEST_DIR"), "/shaders");
@@ -24,6 +46,9 @@ fn every_shader_parses_and_validates() {
             .validate(&module)
             .unwrap_or_else(|e| panic!("{name}: {}", e.emit_to_string(&source)));
         assert!(!module.entry_points.is_empty(), "{name}: no entry point");
+        if F64_VARIANTS.contains(&name.as_str()) {
+            validate_f64(&name, &source);
+        }
         names.push(name);
     }
     names.sort();

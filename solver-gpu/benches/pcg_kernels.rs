@@ -9,9 +9,15 @@
 //! the single-thread CPU SpMV bandwidth. The adapter is named: on a software
 //! rasterizer (lavapipe/llvmpipe) the "GPU" numbers are CPU numbers.
 //!
+//! A second table compares precisions where the adapter has `SHADER_F64`: the
+//! same kernels (`csr_spmv.wgsl`, `pcg.wgsl`) in f32 and in f64 on the scalar
+//! expansion of the matrix (9 entries per block, scalar Jacobi), per-iteration
+//! time and iterations to 1e-6 and 1e-10.
+//!
 //! `cargo bench -p solver-gpu --bench pcg_kernels [-- 6500 50000]` (sizes optional).
 
 use solver_cpu::{BlockSym3, SpdSolver};
+use solver_gpu::kernels::Precision;
 use solver_gpu::{block_jacobi::invert_spd3, kernels, GpuSolver};
 use std::time::Instant;
 
@@ -305,6 +311,7 @@ fn main() {
     println!();
     println!("| block rows | blocks/row | {wg} ms/iter (1 rhs) | {wg} GB/s | {wg} ms/iter (4 rhs) | {wg} f32 PCG its to 1e-6 | solver 1e-6 cold its (ms) | solver 1e-6 warm its (ms) | cpu f32 ms/iter | cpu f32 its | cpu f64 ms/iter | cpu f64 its | cpu SpMV f32 GB/s | cpu SpMV f64 GB/s |");
     println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+    let mut precision_rows = Vec::new();
     for &rows in &sizes {
         let mut rng = Rng(rows as u64);
         let (mut a, fixed) = synthetic(rows, 1e-3, &mut rng);
@@ -325,6 +332,13 @@ fn main() {
             match gpu_run(g, &mut a, &fixed, &b, &b32, matrix_bytes, &vec_bytes) {
                 Ok(c) => gpu_cells = c,
                 Err(e) => gpu_cells[0] = format!("error: {e}"),
+            }
+            if g.adapter().shader_f64 {
+                let cells = match precision_run(g, &a, &fixed, &b, nnzb) {
+                    Ok(c) => c,
+                    Err(e) => vec![format!("error: {e}")],
+                };
+                precision_rows.push(format!("| {} | {} |", a.n, cells.join(" | ")));
             }
         }
         cells.extend(gpu_cells);
@@ -359,6 +373,64 @@ fn main() {
         std::hint::black_box((&y32, &y64));
         println!("| {} |", cells.join(" | "));
     }
+    if !precision_rows.is_empty() {
+        println!();
+        println!("precision, same kernels on the scalar expansion (9 entries per block, scalar Jacobi); \
+                  bytes per iteration: entries (value + 4 B column), 12 vector passes, inverse diagonal");
+        println!();
+        println!("| block rows | {wg} f32 ms/iter | {wg} f32 GB/s | {wg} f64 ms/iter | {wg} f64 GB/s | f32 its to 1e-6 | f64 its to 1e-6 | f64 its to 1e-10 (ms) |");
+        println!("|---|---|---|---|---|---|---|---|");
+        for r in precision_rows {
+            println!("{r}");
+        }
+    }
+}
+
+/// f32 and f64 kernels on the scalar expansion of the prepared matrix:
+/// per-iteration time (difference of a 16- and an 80-iteration run, so the
+/// setup cancels), effective bandwidth, iterations to 1e-6 and 1e-10.
+fn precision_run(
+    g: &mut GpuSolver,
+    a: &BlockSym3,
+    fixed: &[bool],
+    b: &[f64],
+    nnzb: usize,
+) -> Result<Vec<String>, String> {
+    g.prepare_blocks(a, fixed).map_err(|e| e.to_string())?;
+    let n = b.len();
+    let mut cells = Vec::new();
+    let mut its = Vec::new();
+    for p in [Precision::F32, Precision::F64] {
+        let fp = p.bytes() as f64;
+        let mut run = |tol: f64, iters: usize| {
+            let t = Instant::now();
+            let out = kernels::scalar_pcg(g, p, b, 1, tol, iters).map_err(|e| e.to_string())?;
+            Ok::<_, String>((out, t.elapsed().as_secs_f64()))
+        };
+        let (short, t16) = run(0.0, 16)?;
+        let (long, t80) = run(0.0, 80)?;
+        let per_iter = (t80 - t16) / (long.dispatched - short.dispatched) as f64;
+        let bytes = 9.0 * nnzb as f64 * (fp + 4.0) + (n as f64 + 1.0) * 4.0 + n as f64 * fp * 13.0;
+        cells.push(format!("{:.2}", 1e3 * per_iter));
+        cells.push(format!("{:.2}", gb(bytes, per_iter)));
+        let (to6, _) = run(1e-6, 20_000)?;
+        its.push(converged(&to6));
+        if p == Precision::F64 {
+            let (to10, t) = run(1e-10, 20_000)?;
+            its.push(format!("{} ({:.0})", converged(&to10), 1e3 * t));
+        }
+    }
+    cells.extend(its);
+    Ok(cells)
+}
+
+fn converged(out: &kernels::PcgOutput) -> String {
+    let mark = if out.status[0] == 1 {
+        ""
+    } else {
+        " (not converged)"
+    };
+    format!("{}{mark}", out.iterations[0])
 }
 
 fn gpu_run(
@@ -403,15 +475,7 @@ fn gpu_run(
     cells.push(format!("{:.2}", 1e3 * per_iter[1]));
     // Plain f32 PCG to 1e-6.
     let out = kernels::pcg(g, b32, 1, 1e-6, 5000).map_err(|e| e.to_string())?;
-    cells.push(format!(
-        "{}{}",
-        out.iterations[0],
-        if out.status[0] == 1 {
-            ""
-        } else {
-            " (not converged)"
-        }
-    ));
+    cells.push(converged(&out));
     // The refined solver to 1e-6: previous outer iteration, then perturbed values.
     g.set_tolerance(1e-6);
     let mut prev = vec![0.0; n];

@@ -12,12 +12,14 @@
 //! (the sequence is in the shader's header). Every dispatch is one invocation per
 //! (block) row, 2-D.
 //!
-//! Bindings of `amg.wgsl` (group 0): 0 `P` uniform [`AmgParams`]; 1 `row_ptr`,
-//! 2 `col_idx`, 3 `vals` (the matrix of the step, or the dense coarse inverse);
-//! 4 `x` (read); 5 `b` (read); 6 `y` (written); 7 `dinv`.
+//! Bindings of `amg.wgsl` (group 0): 0 `P` uniform [`AmgParams`]; 1 `row_ptr`
+//! and 3 `blocks` (RGBA32F texture, `bs` texels per block, the layout of
+//! [`crate::matrix::block_texel`]): the matrix of the step; 2 `dense_inv` (the
+//! dense coarse inverse); 4 `x` (read); 5 `b` (read); 6 `y` (written); 7 `dinv`.
 
 use crate::amg::{Bsr, Hierarchy};
 use crate::device::{dispatch, Bind, Context, Kernel, Shader, ROW_WG};
+use crate::matrix::{block_texel, GpuMatrix, MatrixStorage};
 use crate::{GpuError, CMAX};
 
 pub(crate) const SOURCE: &str = include_str!("../../shaders/amg.wgsl");
@@ -26,7 +28,7 @@ const BINDINGS: [(u32, Bind); 8] = [
     (0, Bind::Uniform),
     (1, Bind::Read),
     (2, Bind::Read),
-    (3, Bind::Read),
+    (3, Bind::Texture),
     (4, Bind::Read),
     (5, Bind::Read),
     (6, Bind::ReadWrite),
@@ -63,8 +65,10 @@ enum Op {
 impl AmgKernels {
     pub fn new(ctx: &Context) -> Result<Self, GpuError> {
         let shader = Shader::new(ctx, "amg.wgsl", SOURCE, &BINDINGS)?;
-        let k =
-            |label, entry, bs: f64| Kernel::with_constants(&shader, label, entry, &[("BS", bs)]);
+        let tw = ctx.texture_width() as f64;
+        let k = |label, entry, bs: f64| {
+            Kernel::with_constants(&shader, label, entry, &[("BS", bs), ("TW", tw)])
+        };
         Ok(AmgKernels {
             spmv: [
                 k("amg_spmv_bs3", "spmv", 3.0),
@@ -89,11 +93,14 @@ impl AmgKernels {
     }
 }
 
-/// One block-CSR matrix on the GPU (f32 values).
+/// One block-CSR matrix on the GPU: row pointers in a buffer, blocks (f32) and
+/// block columns in a texture.
 struct GpuBsr {
     row_ptr: wgpu::Buffer,
-    col_idx: wgpu::Buffer,
-    vals: wgpu::Buffer,
+    /// `None`: the PCG's own matrix ([`GpuMatrix`], same layout), whose values
+    /// are written with it.
+    texture: Option<wgpu::Texture>,
+    view: wgpu::TextureView,
     rows: usize,
 }
 
@@ -103,18 +110,41 @@ fn f32s(v: &[f64]) -> Vec<f32> {
 
 impl GpuBsr {
     fn upload(ctx: &Context, what: &str, m: &Bsr) -> Result<GpuBsr, GpuError> {
-        ctx.check_storage(&format!("AMG {what} values"), (m.vals.len() * 4) as u64)?;
-        Ok(GpuBsr {
+        let texels = m.bs * m.nnz_blocks();
+        let texture = ctx.data_texture(
+            &format!("AMG {what} ({} blocks of {} texels)", m.nnz_blocks(), m.bs),
+            texels as u64,
+            false,
+        )?;
+        let g = GpuBsr {
             row_ptr: ctx.storage_init(&format!("AMG {what} row pointers"), &m.row_ptr)?,
-            col_idx: ctx.storage_init(&format!("AMG {what} column indices"), &m.col_idx)?,
-            vals: ctx.storage_init(&format!("AMG {what} values"), &f32s(&m.vals))?,
+            view: texture.create_view(&Default::default()),
+            texture: Some(texture),
             rows: m.rows,
-        })
+        };
+        g.write(ctx, m);
+        Ok(g)
+    }
+
+    /// The PCG's block matrix as the finest `A` (no second copy on the GPU).
+    fn shared(m: &GpuMatrix, rows: usize) -> Option<GpuBsr> {
+        match &m.storage {
+            MatrixStorage::BlockTexture { view, .. } => Some(GpuBsr {
+                row_ptr: m.row_ptr.clone(),
+                texture: None,
+                view: view.clone(),
+                rows,
+            }),
+            MatrixStorage::Csr { .. } => None,
+        }
     }
 
     fn write(&self, ctx: &Context, m: &Bsr) {
-        ctx.queue
-            .write_buffer(&self.vals, 0, bytemuck::cast_slice(&f32s(&m.vals)));
+        if let Some(t) = &self.texture {
+            ctx.write_data_texture(t, m.bs * m.nnz_blocks(), |t, out| {
+                block_texel(m.bs, &m.col_idx, &m.vals, t, out)
+            });
+        }
     }
 }
 
@@ -139,6 +169,9 @@ pub(crate) struct GpuHierarchy {
     sizes: Vec<usize>,
     sweeps: usize,
     dummy: wgpu::Buffer,
+    #[allow(dead_code)]
+    dummy_texture: wgpu::Texture,
+    dummy_view: wgpu::TextureView,
 }
 
 /// Whether two hierarchies have the same level patterns (values-only upload).
@@ -153,16 +186,31 @@ pub(crate) fn same_patterns(a: &Hierarchy, b: &Hierarchy) -> bool {
 }
 
 impl GpuHierarchy {
-    pub fn upload(ctx: &Context, h: &Hierarchy) -> Result<GpuHierarchy, GpuError> {
+    /// Upload `h`. `fine`: the PCG's matrix on the GPU, the same as the finest
+    /// `A`; a block matrix (texture) is used in place of a second copy.
+    pub fn upload(
+        ctx: &Context,
+        h: &Hierarchy,
+        fine: Option<&GpuMatrix>,
+    ) -> Result<GpuHierarchy, GpuError> {
         let mut levels = Vec::with_capacity(h.levels.len());
         for (l, lv) in h.levels.iter().enumerate() {
+            let shared = match fine {
+                Some(m) if l == 0 && h.bs == 3 => GpuBsr::shared(m, lv.a.rows),
+                _ => None,
+            };
+            let a = match shared {
+                Some(a) => a,
+                None => GpuBsr::upload(ctx, &format!("A_{l}"), &lv.a)?,
+            };
             levels.push(GpuLevel {
-                a: GpuBsr::upload(ctx, &format!("A_{l}"), &lv.a)?,
+                a,
                 p: GpuBsr::upload(ctx, &format!("P_{l}"), &lv.p)?,
                 r: GpuBsr::upload(ctx, &format!("R_{l}"), &lv.r)?,
                 dinv: ctx.storage_init(&format!("AMG w D_{l}^-1"), &scaled_dinv(lv))?,
             });
         }
+        let dummy_texture = ctx.data_texture("AMG unused texture binding", 1, false)?;
         Ok(GpuHierarchy {
             bs: h.bs,
             levels,
@@ -170,10 +218,13 @@ impl GpuHierarchy {
             sizes: h.sizes(),
             sweeps: h.opts.sweeps.max(1),
             dummy: ctx.storage("AMG unused binding", 16)?,
+            dummy_view: dummy_texture.create_view(&Default::default()),
+            dummy_texture,
         })
     }
 
-    /// New values, same patterns (checked by [`same_patterns`]).
+    /// New values, same patterns (checked by [`same_patterns`]); a finest `A`
+    /// shared with the PCG's matrix has been written with that.
     pub fn write_values(&self, ctx: &Context, h: &Hierarchy) {
         for (g, lv) in self.levels.iter().zip(&h.levels) {
             g.a.write(ctx, &lv.a);
@@ -287,18 +338,18 @@ impl VcycleWorkspace {
                 },
             )?;
             let d = &h.dummy;
-            let bg = k.shader.bind(
+            let bg = k.shader.bind_with_views(
                 ctx,
                 &[
                     (0, &params),
                     (1, m.map_or(d, |m| &m.row_ptr)),
-                    (2, m.map_or(d, |m| &m.col_idx)),
-                    (3, m.map(|m| &m.vals).or(vals).unwrap_or(d)),
+                    (2, vals.unwrap_or(d)),
                     (4, x.unwrap_or(d)),
                     (5, b.unwrap_or(d)),
                     (6, y),
                     (7, dinv.unwrap_or(d)),
                 ],
+                &[(3, m.map_or(&h.dummy_view, |m| &m.view))],
             )?;
             steps.push(Step {
                 op,

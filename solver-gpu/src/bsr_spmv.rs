@@ -7,7 +7,8 @@
 //!   n = 3 rows, groups = ceil(rows / 128);
 //! - 1 `row_ptr` (buffer) and 3 `blocks` (RGBA32F texture, three texels per
 //!   block holding its 9 values and its column): the matrix ([`GpuMatrix`]);
-//! - 4 `x` (read), 5 `y` (written), column-major, stride n;
+//! - 4 `x` (RGBA32F texture: column c, vertex j at texel `c rows + j`, written
+//!   by `pcg.wgsl`'s `direction_tex`), 5 `y` (written, column-major, stride n);
 //! - 6 `partials` (written): `partials[c * groups + g]`.
 //!
 //! Dispatch: `groups` workgroups of 128 invocations, 2-D (see `Context::dims`).
@@ -23,7 +24,7 @@ const BLOCK_BINDINGS: [(u32, Bind); 6] = [
     (0, Bind::Uniform),
     (1, Bind::Read),
     (3, Bind::Texture),
-    (4, Bind::Read),
+    (4, Bind::Texture),
     (5, Bind::ReadWrite),
     (6, Bind::ReadWrite),
 ];
@@ -39,9 +40,9 @@ const SCALAR_BINDINGS: [(u32, Bind); 7] = [
     (6, Bind::ReadWrite),
 ];
 
-/// A compiled SpMV shader (block or scalar: bindings 0, 1 and 4-6 are shared;
-/// the entries are two buffers (2, 3) for the scalar product, one texture (3)
-/// for the block product).
+/// A compiled SpMV shader (block or scalar: bindings 0, 1, 5 and 6 are shared;
+/// the scalar product reads the entries from two buffers (2, 3) and `x` from a
+/// buffer (4), the block product both from textures (3, 4)).
 pub(crate) struct SpmvKernel {
     shader: Shader,
     pub kernel: Kernel,
@@ -62,7 +63,7 @@ impl SpmvKernel {
     pub(crate) fn load_scalar(
         ctx: &Context,
         file: &'static str,
-        source: &'static str,
+        source: &str,
         label: &'static str,
     ) -> Result<Self, GpuError> {
         let shader = Shader::new(ctx, file, source, &SCALAR_BINDINGS)?;
@@ -70,25 +71,31 @@ impl SpmvKernel {
         Ok(SpmvKernel { shader, kernel })
     }
 
+    /// `x` is read from the buffer by the scalar product, from the texture
+    /// `x_tex` (same values, 4 f32 per vertex) by the block product.
+    #[allow(clippy::too_many_arguments)]
     pub fn bind(
         &self,
         ctx: &Context,
         params: &wgpu::Buffer,
         m: &GpuMatrix,
         x: &wgpu::Buffer,
+        x_tex: &wgpu::TextureView,
         y: &wgpu::Buffer,
         partials: &wgpu::Buffer,
     ) -> Result<wgpu::BindGroup, GpuError> {
-        let shared = [(0, params), (1, &m.row_ptr), (4, x), (5, y), (6, partials)];
+        let shared = [(0, params), (1, &m.row_ptr), (5, y), (6, partials)];
         match &m.storage {
             MatrixStorage::Csr { col_idx, vals } => {
                 let mut b = shared.to_vec();
                 b.push((2, col_idx));
                 b.push((3, vals));
+                b.push((4, x));
                 self.shader.bind(ctx, &b)
             }
             MatrixStorage::BlockTexture { view, .. } => {
-                self.shader.bind_with_views(ctx, &shared, &[(3, view)])
+                self.shader
+                    .bind_with_views(ctx, &shared, &[(3, view), (4, x_tex)])
             }
         }
     }

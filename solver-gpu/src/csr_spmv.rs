@@ -14,6 +14,7 @@
 
 use crate::bsr_spmv::SpmvKernel;
 use crate::device::Context;
+use crate::precision::Precision;
 use crate::GpuError;
 
 pub(crate) const SOURCE: &str = include_str!("../../shaders/csr_spmv.wgsl");
@@ -23,5 +24,14 @@ pub(crate) type CsrSpmv = SpmvKernel;
 
 /// Compile `csr_spmv.wgsl`.
 pub(crate) fn new(ctx: &Context) -> Result<CsrSpmv, GpuError> {
-    SpmvKernel::load_scalar(ctx, "csr_spmv.wgsl", SOURCE, "csr_spmv")
+    new_in(ctx, Precision::F32)
+}
+
+/// Compile `csr_spmv.wgsl` in `precision` (f64: see [`crate::precision`]).
+pub(crate) fn new_in(ctx: &Context, precision: Precision) -> Result<CsrSpmv, GpuError> {
+    let (file, label) = match precision {
+        Precision::F32 => ("csr_spmv.wgsl", "csr_spmv"),
+        Precision::F64 => ("csr_spmv.wgsl (f64)", "csr_spmv_f64"),
+    };
+    SpmvKernel::load_scalar(ctx, file, &precision.source(SOURCE), label)
 }

@@ -37,7 +37,8 @@ pub struct AdapterSummary {
     pub device_type: String,
     pub driver: String,
     pub driver_info: String,
-    /// Whether the adapter offers `SHADER_F64` (the kernels do not need it).
+    /// Whether the adapter offers `SHADER_F64` (the solver's kernels do not
+    /// need it; the f64 variants of the precision comparison do).
     pub shader_f64: bool,
 }
 
@@ -59,6 +60,9 @@ pub(crate) struct Context {
     pub queue: wgpu::Queue,
     pub info: wgpu::AdapterInfo,
     pub limits: wgpu::Limits,
+    /// `SHADER_F64` was requested (the adapter has it): the f64 kernel
+    /// variants of [`crate::precision`] compile.
+    pub shader_f64: bool,
     /// First uncaptured device error since the last check.
     errors: Arc<Mutex<Option<GpuError>>>,
     /// Set by the device-lost callback.
@@ -135,9 +139,10 @@ impl Context {
             f(&mut limits);
         }
         check_min(&limits)?;
+        let f64_feature = adapter.features() & wgpu::Features::SHADER_F64;
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
             label: Some("metricdeform pcg"),
-            required_features: wgpu::Features::empty(),
+            required_features: f64_feature,
             required_limits: limits.clone(),
             memory_hints: wgpu::MemoryHints::Performance,
             ..Default::default()
@@ -168,6 +173,7 @@ impl Context {
             queue,
             info,
             limits,
+            shader_f64: !f64_feature.is_empty(),
             errors,
             lost,
         })
@@ -243,8 +249,14 @@ impl Context {
 
     /// An RGBA32F texture (`texture_width()` texels wide) with room for
     /// `texels` texels, checked against `max_texture_dimension_2d`; allocation
-    /// failures become typed errors.
-    pub fn data_texture(&self, what: &str, texels: u64) -> Result<wgpu::Texture, GpuError> {
+    /// failures become typed errors. `writable`: shaders may also write it
+    /// (storage texture).
+    pub fn data_texture(
+        &self,
+        what: &str,
+        texels: u64,
+        writable: bool,
+    ) -> Result<wgpu::Texture, GpuError> {
         let w = self.texture_width() as u64;
         let h = texels.div_ceil(w).max(1);
         let limit = self.limits.max_texture_dimension_2d as u64;
@@ -268,7 +280,13 @@ impl Context {
                 sample_count: 1,
                 dimension: wgpu::TextureDimension::D2,
                 format: wgpu::TextureFormat::Rgba32Float,
-                usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
+                usage: if writable {
+                    wgpu::TextureUsages::TEXTURE_BINDING
+                        | wgpu::TextureUsages::COPY_DST
+                        | wgpu::TextureUsages::STORAGE_BINDING
+                } else {
+                    wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST
+                },
                 view_formats: &[],
             })
         })
@@ -523,7 +541,7 @@ impl Context {
 
 /// Limits every kernel relies on, checked before the device is requested.
 fn check_min(l: &wgpu::Limits) -> Result<(), GpuError> {
-    let need: [(&'static str, u64, u64); 4] = [
+    let need: [(&'static str, u64, u64); 5] = [
         (
             "max_storage_buffers_per_shader_stage",
             8,
@@ -543,6 +561,11 @@ fn check_min(l: &wgpu::Limits) -> Result<(), GpuError> {
             "max_compute_workgroup_storage_size",
             8192,
             l.max_compute_workgroup_storage_size as u64,
+        ),
+        (
+            "max_storage_textures_per_shader_stage",
+            1,
+            l.max_storage_textures_per_shader_stage as u64,
         ),
     ];
     for (name, needed, limit) in need {
@@ -573,6 +596,8 @@ pub(crate) enum Bind {
     ReadWrite,
     /// `texture_2d<f32>` read with `textureLoad` (unfilterable float).
     Texture,
+    /// `texture_storage_2d<rgba32float, write>` written with `textureStore`.
+    StorageTexture,
 }
 
 /// A shader module with the explicit bind group layout (group 0) that all its
@@ -603,6 +628,11 @@ impl Shader {
                         sample_type: wgpu::TextureSampleType::Float { filterable: false },
                         view_dimension: wgpu::TextureViewDimension::D2,
                         multisampled: false,
+                    },
+                    Bind::StorageTexture => wgpu::BindingType::StorageTexture {
+                        access: wgpu::StorageTextureAccess::WriteOnly,
+                        format: wgpu::TextureFormat::Rgba32Float,
+                        view_dimension: wgpu::TextureViewDimension::D2,
                     },
                     _ => wgpu::BindingType::Buffer {
                         ty: match kind {

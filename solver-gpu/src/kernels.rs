@@ -2,8 +2,11 @@
 //! (not needed to use the solver). Every output buffer is poisoned with NaN
 //! before the kernel runs, so a kernel that writes nothing is caught.
 
+use crate::csr_spmv;
 use crate::device::{dispatch, Params, ROW_WG};
-use crate::pcg::Spmv;
+use crate::matrix::{GpuMatrix, HostMatrix, MatrixStorage};
+use crate::pcg::{vector_texture, Pcg, PcgRun, Spmv};
+pub use crate::precision::Precision;
 use crate::{GpuError, GpuSolver, CMAX};
 
 /// The prepared matrix as the GPU sees it: full (both triangles) block-CSR,
@@ -63,10 +66,25 @@ pub fn spmv(s: &GpuSolver, x: &[f32], ncols: usize) -> Result<(Vec<f32>, Vec<f64
         },
     )?;
     let xb = ctx.storage_init("x", x)?;
+    let (xt, xv) = vector_texture(ctx, "x texture", rows, bs, ncols)?;
+    if bs == 3 {
+        ctx.write_data_texture(&xt, rows * ncols, |t, out| {
+            let o = (t / rows) * n + 3 * (t % rows);
+            out[..3].copy_from_slice(&x[o..o + 3]);
+        });
+    }
     let y = poisoned(s, "y", x.len())?;
     let partials = poisoned(s, "partials", ncols * groups as usize)?;
     let spmv = s.spmv();
-    let bg = spmv.bind(ctx, &params, s.gpu.as_ref().unwrap(), &xb, &y, &partials)?;
+    let bg = spmv.bind(
+        ctx,
+        &params,
+        s.gpu.as_ref().unwrap(),
+        &xb,
+        &xv,
+        &y,
+        &partials,
+    )?;
     let dims = ctx.dims("spmv", groups)?;
     let pipeline = spmv.kernel().pipeline(ctx, ncols)?;
     let mut enc = ctx.encoder("spmv");
@@ -185,8 +203,8 @@ pub fn amg_vcycle(s: &mut GpuSolver, r: &[f32], ncols: usize) -> Result<Vec<f32>
 /// Result of one f32 PCG run ([`pcg`]).
 #[derive(Debug, Clone)]
 pub struct PcgOutput {
-    /// Solution, column-major.
-    pub x: Vec<f32>,
+    /// Solution, column-major (f32 kernels: their f32 values).
+    pub x: Vec<f64>,
     /// Iterations per column.
     pub iterations: Vec<u32>,
     /// Final recurrence residual `||r|| / ||b||` per column.
@@ -218,10 +236,7 @@ pub fn pcg(
                 .sum()
         })
         .collect();
-    let thr: Vec<f32> = bb
-        .iter()
-        .map(|&v| (v * (rel_tol as f64).powi(2)) as f32)
-        .collect();
+    let thr: Vec<f64> = bb.iter().map(|&v| v * (rel_tol as f64).powi(2)).collect();
     let ws = s.ws.as_mut().unwrap();
     s.ctx.queue.write_buffer(&ws.r, 0, bytemuck::cast_slice(b));
     let spmv = match s.host.as_ref().unwrap().bs {
@@ -240,18 +255,119 @@ pub fn pcg(
         Some(&s.k.amg),
     )?;
     let x = s.k.pcg.read_x(&s.ctx, ws, ncols)?;
-    Ok(PcgOutput {
-        x,
-        iterations: run.cols.iter().map(|c| c.iters).collect(),
-        residual: run
-            .cols
-            .iter()
-            .zip(&bb)
-            .map(|(c, &b2)| ((c.rr as f64) / b2.max(f64::MIN_POSITIVE)).sqrt() as f32)
-            .collect(),
-        status: run.cols.iter().map(|c| c.done).collect(),
-        dispatched: run.dispatched,
-    })
+    Ok(PcgOutput::new(x, &run, &bb))
+}
+
+impl PcgOutput {
+    fn new(x: Vec<f64>, run: &PcgRun, bb: &[f64]) -> PcgOutput {
+        PcgOutput {
+            x,
+            iterations: run.cols.iter().map(|c| c.iters).collect(),
+            residual: run
+                .cols
+                .iter()
+                .zip(bb)
+                .map(|(c, &b2)| ((c.rr as f64) / b2.max(f64::MIN_POSITIVE)).sqrt() as f32)
+                .collect(),
+            status: run.cols.iter().map(|c| c.done).collect(),
+            dispatched: run.dispatched,
+        }
+    }
+}
+
+/// The prepared matrix with each `bs x bs` block expanded into scalar entries
+/// (CSR, `bs` rows per block row), and its inverted diagonal.
+fn scalar_expansion(h: &HostMatrix) -> (Vec<u32>, Vec<u32>, Vec<f64>, Vec<f64>) {
+    let bs = h.bs;
+    let mut row_ptr = Vec::with_capacity(h.rows * bs + 1);
+    let mut col_idx = Vec::with_capacity(h.vals.len());
+    let mut vals = Vec::with_capacity(h.vals.len());
+    let mut dinv = Vec::with_capacity(h.rows * bs);
+    row_ptr.push(0u32);
+    for i in 0..h.rows {
+        let blocks = h.row_ptr[i] as usize..h.row_ptr[i + 1] as usize;
+        for q in 0..bs {
+            for k in blocks.clone() {
+                let j = h.col_idx[k] as usize;
+                for t in 0..bs {
+                    col_idx.push((j * bs + t) as u32);
+                    vals.push(h.vals[k * bs * bs + q * bs + t]);
+                }
+            }
+            let d = h.diag[i] as usize * bs * bs + q * bs + q;
+            dinv.push(1.0 / h.vals[d]);
+            row_ptr.push(col_idx.len() as u32);
+        }
+    }
+    (row_ptr, col_idx, vals, dinv)
+}
+
+/// One plain PCG solve, as [`pcg`], on the scalar expansion of the prepared
+/// matrix (CSR, every 3x3 block as 9 entries; scalar Jacobi) in `precision`:
+/// the same kernels (`csr_spmv.wgsl`, `pcg.wgsl`) in f32 or, where the adapter
+/// has `SHADER_F64`, in f64 (see [`crate::precision`]). For the precision
+/// comparison of the benchmark: everything but the floating-point type is the
+/// same between the two runs.
+pub fn scalar_pcg(
+    s: &mut GpuSolver,
+    precision: Precision,
+    b: &[f64],
+    ncols: usize,
+    rel_tol: f64,
+    max_iters: usize,
+) -> Result<PcgOutput, GpuError> {
+    check_cols(s, b.len(), ncols)?;
+    let ctx = &s.ctx;
+    if precision == Precision::F64 && !ctx.shader_f64 {
+        return Err(GpuError::Backend(format!(
+            "f64 kernels need the adapter feature SHADER_F64, which {} lacks",
+            ctx.info.name
+        )));
+    }
+    let h = s.host.as_ref().unwrap();
+    let (row_ptr, col_idx, vals, dinv) = scalar_expansion(h);
+    let n = h.n();
+    let fp = precision.bytes();
+    ctx.check_storage(
+        &format!(
+            "scalar matrix values ({} entries of {precision:?})",
+            vals.len()
+        ),
+        vals.len() as u64 * fp,
+    )?;
+    ctx.check_storage("scalar matrix column indices", col_idx.len() as u64 * 4)?;
+    let m = GpuMatrix {
+        row_ptr: ctx.storage_init("scalar expansion row pointers", &row_ptr)?,
+        storage: MatrixStorage::Csr {
+            col_idx: ctx.storage_init("scalar expansion column indices", &col_idx)?,
+            vals: ctx.storage_init("scalar expansion values", &precision.encode(&vals))?,
+        },
+        minv: ctx.storage_init(
+            "scalar expansion inverse diagonal",
+            &precision.encode(&dinv),
+        )?,
+    };
+    let pcg = Pcg::new(ctx, precision)?;
+    let csr = csr_spmv::new_in(ctx, precision)?;
+    let spmv = Spmv::Scalar(&csr);
+    let mut ws = pcg.workspace(ctx, &spmv, &m, n, 1, ncols)?;
+    let bb: Vec<f64> = b.chunks(n).map(|c| c.iter().map(|v| v * v).sum()).collect();
+    let thr: Vec<f64> = bb.iter().map(|&v| v * rel_tol * rel_tol).collect();
+    ctx.queue.write_buffer(&ws.r, 0, &precision.encode(b));
+    let run = pcg.run(
+        ctx,
+        &spmv,
+        &mut ws,
+        ncols,
+        &thr,
+        max_iters,
+        s.check_every,
+        rel_tol == 0.0,
+        None,
+    )?;
+    let x = pcg.read_x(ctx, &mut ws, ncols)?;
+    ctx.check()?;
+    Ok(PcgOutput::new(x, &run, &bb))
 }
 
 /// Seconds per dispatch of each kernel of one PCG iteration on the prepared

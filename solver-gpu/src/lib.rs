@@ -54,6 +54,7 @@ pub mod dot;
 pub mod kernels;
 mod matrix;
 pub mod pcg;
+pub mod precision;
 
 pub use device::{AdapterSummary, OpenOptions};
 pub use wgpu;
@@ -169,7 +170,7 @@ pub fn open_with(opts: OpenOptions) -> Result<GpuSolver, GpuError> {
         csr: csr_spmv::new(&ctx)?,
         dot: dot::Dot::new(&ctx)?,
         jacobi: block_jacobi::BlockJacobi::new(&ctx)?,
-        pcg: pcg::Pcg::new(&ctx)?,
+        pcg: pcg::Pcg::new(&ctx, precision::Precision::F32)?,
         amg: amg_gpu::AmgKernels::new(&ctx)?,
     };
     ctx.check()?;
@@ -191,6 +192,7 @@ pub fn open_with(opts: OpenOptions) -> Result<GpuSolver, GpuError> {
         amg_opts: amg::AmgOptions::default(),
         amg_host: None,
         amg_gpu: None,
+        amg_fine_upload: 0,
         amg_setup_seconds: 0.0,
     })
 }
@@ -237,6 +239,9 @@ pub struct GpuSolver {
     /// The AMG hierarchy of the prepared matrix (`None`: block Jacobi in use).
     amg_host: Option<amg::Hierarchy>,
     amg_gpu: Option<amg_gpu::GpuHierarchy>,
+    /// `pattern_uploads` when `amg_gpu` was uploaded (its finest `A` is the
+    /// matrix of that upload).
+    amg_fine_upload: usize,
     amg_setup_seconds: f64,
 }
 
@@ -255,7 +260,7 @@ impl GpuSolver {
             device_type: format!("{:?}", i.device_type),
             driver: i.driver.clone(),
             driver_info: i.driver_info.clone(),
-            shader_f64: false,
+            shader_f64: self.ctx.shader_f64,
         }
     }
 
@@ -364,14 +369,22 @@ impl GpuSolver {
                 return Ok(());
             }
         };
+        // The finest A on the GPU is the PCG's matrix itself (block texture):
+        // a new upload of that matrix means a new hierarchy upload too.
+        let fine_current = self.amg_fine_upload == self.pattern_uploads;
         match (&self.amg_gpu, &prev) {
-            (Some(g), Some(p)) if amg_gpu::same_patterns(p, &hier) => {
+            (Some(g), Some(p)) if fine_current && amg_gpu::same_patterns(p, &hier) => {
                 g.write_values(&self.ctx, &hier);
             }
             _ => {
                 self.ws = None;
                 self.amg_gpu = None;
-                self.amg_gpu = Some(amg_gpu::GpuHierarchy::upload(&self.ctx, &hier)?);
+                self.amg_gpu = Some(amg_gpu::GpuHierarchy::upload(
+                    &self.ctx,
+                    &hier,
+                    self.gpu.as_ref(),
+                )?);
+                self.amg_fine_upload = self.pattern_uploads;
             }
         }
         log::debug!(
@@ -496,7 +509,7 @@ impl GpuSolver {
                     residual: worst,
                 });
             }
-            let mut thr = vec![0f32; ncols];
+            let mut thr = vec![0f64; ncols];
             for c in 0..ncols {
                 let active = rel[c] > self.tol;
                 let scale = if active { 1.0 / rnorm[c] } else { 0.0 };
@@ -511,7 +524,7 @@ impl GpuSolver {
                 } else {
                     1.0
                 };
-                thr[c] = (eta * eta) as f32;
+                thr[c] = eta * eta;
             }
             let ws = self.ws.as_mut().unwrap();
             self.ctx
@@ -542,7 +555,7 @@ impl GpuSolver {
                 if rel[c] > self.tol {
                     let s = rnorm[c];
                     for (xi, di) in x[c * n..(c + 1) * n].iter_mut().zip(&d[c * n..(c + 1) * n]) {
-                        *xi += s * *di as f64;
+                        *xi += s * *di;
                     }
                 }
             }

@@ -218,15 +218,19 @@ pub(crate) enum MatrixStorage {
     },
 }
 
-/// Texel `t` (`q = t % 3` of block `t / 3`) of the block texture.
-fn block_texel(h: &HostMatrix, t: usize, out: &mut [f32]) {
-    let (k, q) = (t / 3, t % 3);
-    let b = &h.vals[9 * k + 3 * q..9 * k + 3 * q + 3];
-    out[0] = b[0] as f32;
-    out[1] = b[1] as f32;
-    out[2] = b[2] as f32;
+/// Texel `t` of a block texture (`bs` texels per block, `bs` <= 3): row
+/// `q = t % bs` of block `k = t / bs` in the first `bs` components (zeros after),
+/// and in `.w` of the block's first texel its column as the bits of an f32.
+/// The layout `bsr_spmv.wgsl` and `amg.wgsl` read.
+pub(crate) fn block_texel(bs: usize, col_idx: &[u32], vals: &[f64], t: usize, out: &mut [f32]) {
+    let (k, q) = (t / bs, t % bs);
+    let row = &vals[bs * (bs * k + q)..bs * (bs * k + q + 1)];
+    out[..3].fill(0.0);
+    for (o, &v) in out.iter_mut().zip(row) {
+        *o = v as f32;
+    }
     out[3] = if q == 0 {
-        f32::from_bits(h.col_idx[k])
+        f32::from_bits(col_idx[k])
     } else {
         0.0
     };
@@ -239,8 +243,11 @@ impl GpuMatrix {
             let texture = ctx.data_texture(
                 &format!("block matrix ({} blocks of 3 texels)", h.nnz_blocks()),
                 texels as u64,
+                false,
             )?;
-            ctx.write_data_texture(&texture, texels, |t, out| block_texel(h, t, out));
+            ctx.write_data_texture(&texture, texels, |t, out| {
+                block_texel(3, &h.col_idx, &h.vals, t, out)
+            });
             let view = texture.create_view(&Default::default());
             MatrixStorage::BlockTexture { texture, view }
         } else {
@@ -273,7 +280,7 @@ impl GpuMatrix {
             }
             MatrixStorage::BlockTexture { texture, .. } => {
                 ctx.write_data_texture(texture, 3 * h.nnz_blocks(), |t, out| {
-                    block_texel(h, t, out)
+                    block_texel(3, &h.col_idx, &h.vals, t, out)
                 });
             }
         }

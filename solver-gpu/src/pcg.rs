@@ -7,7 +7,8 @@
 //! 3. `update`: `x += alpha p`, `r -= alpha Ap`, `z = M^-1 r` (block-Jacobi),
 //!    partials of `r . z` and `r . r`;
 //! 4. `finish_beta` (1 workgroup): `beta = rz' / rz`, convergence flag `rr <= thr`;
-//! 5. `direction`: `p = z + beta p`.
+//! 5. `direction`: `p = z + beta p` (for the block matrix `direction_tex`, which
+//!    also stores `p` in the texture `p_tex` the block SpMV gathers from).
 //!
 //! With the AMG preconditioner, step 3 is `update_amg` (no `z`, partials of
 //! `r . r` only), then the recorded V-cycle ([`crate::amg_gpu`], reading `r`,
@@ -23,9 +24,11 @@
 //! Bindings of `pcg.wgsl` (group 0): 0 `P` uniform [`Params`]; 1 `cols`
 //! ([`ColState`] per column); 2 `partials` (slot s, column c, workgroup g at
 //! `(s ncols + c) groups + g`); 3 `minv` (inverted diagonal blocks); 4 `p`;
-//! 5 `ap`; 6 `x`; 7 `r`; 8 `z` (vectors column-major, stride n).
-//! `update` uses all nine, `finish_alpha`/`finish_beta` 0-2, `direction` 0, 1, 4, 8;
-//! one bind group through one explicit layout serves them all. Every pipeline is
+//! 5 `ap`; 6 `x`; 7 `r`; 8 `z` (vectors column-major, stride n); 9 `p_tex`
+//! (RGBA32F storage texture, column c, vertex j at texel `c rows + j`; a 1x1
+//! placeholder for a scalar matrix). `update` uses 0-8, `finish_alpha`/
+//! `finish_beta` 0-2, `direction` 0, 1, 4, 8, `direction_tex` those and 9; one
+//! bind group through one explicit layout serves them all. Every pipeline is
 //! specialised for the number of columns (`NCOLS` override, compiled on first use).
 
 use crate::amg_gpu::{AmgKernels, VcycleWorkspace};
@@ -33,6 +36,7 @@ use crate::bsr_spmv::BsrSpmv;
 use crate::csr_spmv::CsrSpmv;
 use crate::device::{dispatch, Bind, Context, Kernel, Params, Shader, FLAT_WG, ROW_WG};
 use crate::matrix::GpuMatrix;
+use crate::precision::Precision;
 use crate::{GpuError, CMAX};
 
 pub(crate) const SOURCE: &str = include_str!("../../shaders/pcg.wgsl");
@@ -54,10 +58,79 @@ pub(crate) struct ColState {
     pub iters: u32,
 }
 
+/// `ColState` of the f64 kernels (`precision.rs`): the same fields, the
+/// scalars in f64 (56 bytes, 8-aligned).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+struct ColState64 {
+    rz: f64,
+    pap: f64,
+    alpha: f64,
+    beta: f64,
+    rr: f64,
+    thr: f64,
+    done: u32,
+    iters: u32,
+}
+
+impl Precision {
+    /// Bytes of one `ColState` in this precision.
+    fn col_state_bytes(self) -> usize {
+        match self {
+            Precision::F32 => std::mem::size_of::<ColState>(),
+            Precision::F64 => std::mem::size_of::<ColState64>(),
+        }
+    }
+
+    /// Fresh column states with the thresholds `thr`, as bytes.
+    fn col_states(self, thr: &[f64]) -> Vec<u8> {
+        match self {
+            Precision::F32 => bytemuck::cast_slice(
+                &thr.iter()
+                    .map(|&t| ColState {
+                        thr: t as f32,
+                        ..Default::default()
+                    })
+                    .collect::<Vec<_>>(),
+            )
+            .to_vec(),
+            Precision::F64 => bytemuck::cast_slice(
+                &thr.iter()
+                    .map(|&t| ColState64 {
+                        thr: t,
+                        ..Default::default()
+                    })
+                    .collect::<Vec<_>>(),
+            )
+            .to_vec(),
+        }
+    }
+
+    /// Column states read back, the scalars as f32 (the host only tests them).
+    fn read_col_states(self, bytes: &[u8]) -> Vec<ColState> {
+        match self {
+            Precision::F32 => bytemuck::pod_collect_to_vec(bytes),
+            Precision::F64 => bytemuck::pod_collect_to_vec::<u8, ColState64>(bytes)
+                .into_iter()
+                .map(|c| ColState {
+                    rz: c.rz as f32,
+                    pap: c.pap as f32,
+                    alpha: c.alpha as f32,
+                    beta: c.beta as f32,
+                    rr: c.rr as f32,
+                    thr: c.thr as f32,
+                    done: c.done,
+                    iters: c.iters,
+                })
+                .collect(),
+        }
+    }
+}
+
 pub(crate) const DONE_BREAKDOWN: u32 = 2;
 
 /// Layout of `pcg.wgsl` (group 0), shared by its four entry points.
-const BINDINGS: [(u32, Bind); 9] = [
+const BINDINGS: [(u32, Bind); 10] = [
     (0, Bind::Uniform),
     (1, Bind::ReadWrite),
     (2, Bind::ReadWrite),
@@ -67,14 +140,17 @@ const BINDINGS: [(u32, Bind); 9] = [
     (6, Bind::ReadWrite),
     (7, Bind::ReadWrite),
     (8, Bind::ReadWrite),
+    (9, Bind::StorageTexture),
 ];
 
 pub(crate) struct Pcg {
+    pub precision: Precision,
     shader: Shader,
     pub update: Kernel,
     pub finish_alpha: Kernel,
     pub finish_beta: Kernel,
     pub direction: Kernel,
+    pub direction_tex: Kernel,
     pub update_amg: Kernel,
     pub dot_rz: Kernel,
 }
@@ -93,26 +169,49 @@ impl Spmv<'_> {
         }
     }
 
+    #[allow(clippy::too_many_arguments)]
     pub fn bind(
         &self,
         ctx: &Context,
         params: &wgpu::Buffer,
         m: &GpuMatrix,
         x: &wgpu::Buffer,
+        x_tex: &wgpu::TextureView,
         y: &wgpu::Buffer,
         partials: &wgpu::Buffer,
     ) -> Result<wgpu::BindGroup, GpuError> {
         match self {
-            Spmv::Block(k) => k.bind(ctx, params, m, x, y, partials),
-            Spmv::Scalar(k) => k.bind(ctx, params, m, x, y, partials),
+            Spmv::Block(k) => k.bind(ctx, params, m, x, x_tex, y, partials),
+            Spmv::Scalar(k) => k.bind(ctx, params, m, x, x_tex, y, partials),
         }
     }
+}
+
+/// The texture copy of a vector that the block SpMV gathers from: `cmax`
+/// columns of `rows` vertices, one RGBA32F texel per vertex (texel `c rows + j`).
+/// A 1x1 placeholder when `bs` is not 3 (the scalar SpMV reads a buffer).
+pub(crate) fn vector_texture(
+    ctx: &Context,
+    what: &str,
+    rows: usize,
+    bs: usize,
+    cmax: usize,
+) -> Result<(wgpu::Texture, wgpu::TextureView), GpuError> {
+    let texels = if bs == 3 { rows * cmax } else { 1 };
+    let t = ctx.data_texture(
+        &format!("{what} ({rows} vertices x {cmax} columns)"),
+        texels as u64,
+        true,
+    )?;
+    let v = t.create_view(&Default::default());
+    Ok((t, v))
 }
 
 /// Vector buffers and bind groups for one prepared matrix and up to `cmax`
 /// columns; reused by every solve until the pattern changes or more columns
 /// are needed.
 pub(crate) struct Workspace {
+    pub precision: Precision,
     pub cmax: usize,
     pub rows: usize,
     pub bs: usize,
@@ -127,6 +226,9 @@ pub(crate) struct Workspace {
     #[allow(dead_code)]
     pub z: wgpu::Buffer,
     pub p: wgpu::Buffer,
+    /// `p` as the block SpMV reads it (see [`vector_texture`]).
+    #[allow(dead_code)]
+    pub p_tex: (wgpu::Texture, wgpu::TextureView),
     pub ap: wgpu::Buffer,
     bg_spmv: wgpu::BindGroup,
     bg_pcg: wgpu::BindGroup,
@@ -182,13 +284,24 @@ impl PcgRun {
 }
 
 impl Pcg {
-    pub fn new(ctx: &Context) -> Result<Self, GpuError> {
-        let shader = Shader::new(ctx, "pcg.wgsl", SOURCE, &BINDINGS)?;
+    pub fn new(ctx: &Context, precision: Precision) -> Result<Self, GpuError> {
+        let label = match precision {
+            Precision::F32 => "pcg.wgsl",
+            Precision::F64 => "pcg.wgsl (f64)",
+        };
+        let shader = Shader::new(ctx, label, &precision.source(SOURCE), &BINDINGS)?;
         Ok(Pcg {
+            precision,
             update: Kernel::new(&shader, "pcg_update", "update"),
             finish_alpha: Kernel::new(&shader, "pcg_finish_alpha", "finish_alpha"),
             finish_beta: Kernel::new(&shader, "pcg_finish_beta", "finish_beta"),
             direction: Kernel::new(&shader, "pcg_direction", "direction"),
+            direction_tex: Kernel::with_constants(
+                &shader,
+                "pcg_direction_tex",
+                "direction_tex",
+                &[("TW", ctx.texture_width() as f64)],
+            ),
             update_amg: Kernel::new(&shader, "pcg_update_amg", "update_amg"),
             dot_rz: Kernel::new(&shader, "pcg_dot_rz", "dot_rz"),
             shader,
@@ -215,24 +328,27 @@ impl Pcg {
             "element-wise kernels",
             ((n * cmax) as u64).div_ceil(FLAT_WG as u64),
         )?;
-        let vec_bytes = (n * cmax * 4) as u64;
-        let what = |name: &str| format!("PCG vector {name} ({n} x {cmax} f32)");
+        let precision = self.precision;
+        let fp = precision.bytes();
+        let vec_bytes = (n * cmax) as u64 * fp;
+        let what = |name: &str| format!("PCG vector {name} ({n} x {cmax} {precision:?})");
         for name in ["x", "r", "z", "p", "Ap"] {
             ctx.check_storage(&what(name), vec_bytes)?;
         }
         let params = ctx.uniform("pcg params", &Params::default())?;
         let cols = ctx.storage(
             "pcg column scalars",
-            (cmax * std::mem::size_of::<ColState>()) as u64,
+            (cmax * precision.col_state_bytes()) as u64,
         )?;
-        let partials = ctx.storage("pcg partial sums", 2 * cmax as u64 * groups * 4)?;
+        let partials = ctx.storage("pcg partial sums", 2 * cmax as u64 * groups * fp)?;
         let x = ctx.storage(&what("x"), vec_bytes)?;
         let r = ctx.storage(&what("r"), vec_bytes)?;
         let z = ctx.storage(&what("z"), vec_bytes)?;
         let p = ctx.storage(&what("p"), vec_bytes)?;
         let ap = ctx.storage(&what("Ap"), vec_bytes)?;
-        let bg_spmv = spmv.bind(ctx, &params, m, &p, &ap, &partials)?;
-        let bg_pcg = self.shader.bind(
+        let p_tex = vector_texture(ctx, "PCG direction p texture", rows, bs, cmax)?;
+        let bg_spmv = spmv.bind(ctx, &params, m, &p, &p_tex.1, &ap, &partials)?;
+        let bg_pcg = self.shader.bind_with_views(
             ctx,
             &[
                 (0, &params),
@@ -245,8 +361,10 @@ impl Pcg {
                 (7, &r),
                 (8, &z),
             ],
+            &[(9, &p_tex.1)],
         )?;
         Ok(Workspace {
+            precision,
             cmax,
             rows,
             bs,
@@ -258,6 +376,7 @@ impl Pcg {
             r,
             z,
             p,
+            p_tex,
             ap,
             bg_spmv,
             bg_pcg,
@@ -270,7 +389,7 @@ impl Pcg {
 
     /// Run PCG on `ncols` columns whose right-hand sides are already in `ws.r`
     /// (x starts at 0). `thr[c]` is the squared residual norm at which column c
-    /// is done. Stops when every column is done or after `max_iters` iterations;
+    /// is done (rounded to the working precision). Stops when every column is done or after `max_iters` iterations;
     /// batches between read-backs hold at most `check_every` iterations
     /// (`fixed_batches`: exactly `check_every`, for timing).
     #[allow(clippy::too_many_arguments)]
@@ -280,30 +399,24 @@ impl Pcg {
         spmv: &Spmv,
         ws: &mut Workspace,
         ncols: usize,
-        thr: &[f32],
+        thr: &[f64],
         max_iters: usize,
         check_every: usize,
         fixed_batches: bool,
         amg: Option<&AmgKernels>,
     ) -> Result<PcgRun, GpuError> {
         assert!(ncols >= 1 && ncols <= ws.cmax && thr.len() == ncols);
+        assert_eq!(ws.precision, self.precision);
         let n = ws.n();
         ctx.queue
             .write_buffer(&ws.params, 0, bytemuck::bytes_of(&ws.params(ncols)));
-        let init: Vec<ColState> = thr
-            .iter()
-            .map(|&t| ColState {
-                thr: t,
-                ..Default::default()
-            })
-            .collect();
         ctx.queue
-            .write_buffer(&ws.cols, 0, bytemuck::cast_slice(&init));
+            .write_buffer(&ws.cols, 0, &self.precision.col_states(thr));
         let flat_dims = ctx.dims(
             "element-wise kernels",
             ((n * ncols) as u64).div_ceil(FLAT_WG as u64),
         )?;
-        let used = (n * ncols * 4) as u64;
+        let used = (n * ncols) as u64 * self.precision.bytes();
         let k_spmv = spmv.kernel().pipeline(ctx, ncols)?;
         let k_alpha = self.finish_alpha.pipeline(ctx, ncols)?;
         // With AMG: update_amg, the V-cycle, dot_rz in place of update.
@@ -324,7 +437,8 @@ impl Pcg {
             }
         };
         let k_beta = self.finish_beta.pipeline(ctx, ncols)?;
-        let k_dir = self.direction.pipeline(ctx, ncols)?;
+        let (dir, dir_dims) = self.direction_for(ws, flat_dims);
+        let k_dir = dir.pipeline(ctx, ncols)?;
         let mut enc = ctx.encoder("pcg init");
         for b in [&ws.x, &ws.p, &ws.ap] {
             enc.clear_buffer(b, 0, Some(used));
@@ -337,7 +451,7 @@ impl Pcg {
             dispatch(&mut pass, &k_update, &ws.bg_pcg, ws.row_dims);
             precondition(&mut pass);
             dispatch(&mut pass, &k_beta, &ws.bg_pcg, (1, 1));
-            dispatch(&mut pass, &k_dir, &ws.bg_pcg, flat_dims);
+            dispatch(&mut pass, &k_dir, &ws.bg_pcg, dir_dims);
         }
         let check_every = check_every.max(1);
         let mut dispatched = 0;
@@ -361,12 +475,13 @@ impl Pcg {
                     dispatch(&mut pass, &k_update, &ws.bg_pcg, ws.row_dims);
                     precondition(&mut pass);
                     dispatch(&mut pass, &k_beta, &ws.bg_pcg, (1, 1));
-                    dispatch(&mut pass, &k_dir, &ws.bg_pcg, flat_dims);
+                    dispatch(&mut pass, &k_dir, &ws.bg_pcg, dir_dims);
                 }
             }
             dispatched += k;
-            let cols: Vec<ColState> = match ctx.read(&ws.cols, ncols, &mut staging, Some(enc)) {
-                Ok(c) => c,
+            let bytes = ncols * self.precision.col_state_bytes();
+            let cols = match ctx.read::<u8>(&ws.cols, bytes, &mut staging, Some(enc)) {
+                Ok(b) => self.precision.read_col_states(&b),
                 Err(e) => break Err(e),
             };
             let run = PcgRun { dispatched, cols };
@@ -400,12 +515,13 @@ impl Pcg {
             "element-wise kernels",
             ((ws.n() * ncols) as u64).div_ceil(FLAT_WG as u64),
         )?;
+        let dir = self.direction_for(ws, flat_dims);
         let kernels: [(&Kernel, &wgpu::BindGroup, (u32, u32)); 5] = [
             (spmv.kernel(), &ws.bg_spmv, ws.row_dims),
             (&self.finish_alpha, &ws.bg_pcg, (1, 1)),
             (&self.update, &ws.bg_pcg, ws.row_dims),
             (&self.finish_beta, &ws.bg_pcg, (1, 1)),
-            (&self.direction, &ws.bg_pcg, flat_dims),
+            (dir.0, &ws.bg_pcg, dir.1),
         ];
         let mut out = Vec::new();
         for (k, bg, dims) in kernels {
@@ -430,15 +546,31 @@ impl Pcg {
         Ok(out)
     }
 
-    /// Read the first `ncols` columns of `x`.
+    /// The `direction` step and its dispatch: one invocation per vertex storing
+    /// `p` in the texture too for the block matrix, else one per entry.
+    fn direction_for(&self, ws: &Workspace, flat_dims: (u32, u32)) -> (&Kernel, (u32, u32)) {
+        if ws.bs == 3 {
+            (&self.direction_tex, ws.row_dims)
+        } else {
+            (&self.direction, flat_dims)
+        }
+    }
+
+    /// Read the first `ncols` columns of `x` (as f64 whatever the precision).
     pub fn read_x(
         &self,
         ctx: &Context,
         ws: &mut Workspace,
         ncols: usize,
-    ) -> Result<Vec<f32>, GpuError> {
+    ) -> Result<Vec<f64>, GpuError> {
         let mut staging = ws.staging_x.take();
-        let out = ctx.read(&ws.x, ws.n() * ncols, &mut staging, None);
+        let count = ws.n() * ncols;
+        let out = match ws.precision {
+            Precision::F32 => ctx
+                .read::<f32>(&ws.x, count, &mut staging, None)
+                .map(|v| v.into_iter().map(f64::from).collect()),
+            Precision::F64 => ctx.read::<f64>(&ws.x, count, &mut staging, None),
+        };
         ws.staging_x = staging;
         out
     }

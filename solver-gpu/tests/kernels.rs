@@ -488,6 +488,47 @@ fn buffer_over_the_binding_limit_is_a_typed_error() {
 }
 
 #[test]
+fn amg_solves_a_block_matrix_past_the_storage_binding_limit() {
+    // Every matrix of the AMG hierarchy (and the PCG's block matrix, which is
+    // its finest A) lives in a texture, so a binding limit that the matrices'
+    // values pass by far, but the vectors fit in, still gives an AMG solve.
+    let limit = 16 * 1024;
+    let opts = OpenOptions {
+        adjust_limits: Some(Box::new(move |l: &mut solver_gpu::wgpu::Limits| {
+            l.max_storage_buffer_binding_size = limit;
+        })),
+        ..Default::default()
+    };
+    let Some(mut s) = solver_gpu::open_with(opts).map_or_else(skip_or_fail, Some) else {
+        return;
+    };
+    s.set_preconditioner(Preconditioner::Amg).unwrap();
+    s.set_amg_options(solver_gpu::amg::AmgOptions {
+        max_coarse: 60,
+        ..Default::default()
+    });
+    let mut rng = Rng(12);
+    let a = laplacian_blocks(20, 20, &mut rng);
+    let fixed = fixed_every(a.n, 50);
+    s.prepare_blocks(&a, &fixed).unwrap();
+    let h = s.amg_hierarchy().expect("AMG in use").clone();
+    assert!(h.levels.len() >= 2, "levels {:?}", h.sizes());
+    let value_bytes = |m: &solver_gpu::amg::Bsr| m.vals.len() as u64 * 4;
+    let fine = &h.levels[0];
+    assert!(value_bytes(&fine.a) > 4 * limit && value_bytes(&fine.p) > limit);
+    let n = 3 * a.n;
+    let b = rng.vec(n);
+    let mut x = b.clone();
+    s.solve_in_place(&mut x, 1).unwrap();
+    let mut cpu = CholeskySolver::new();
+    cpu.prepare_blocks(&a, &fixed).unwrap();
+    let mut want = b;
+    cpu.solve_in_place(&mut want, 1).unwrap();
+    let e = rel_err(&x, &want);
+    assert!(e < 1e-8, "AMG past the binding limit vs Cholesky: {e:e}");
+}
+
+#[test]
 fn block_matrix_over_the_texture_limit_is_a_typed_error() {
     // The 3x3 blocks live in a texture of 3 texels per block: with at most 64
     // texels per side, 4096 texels hold 1365 blocks, and a 20 x 20 grid of
@@ -559,15 +600,70 @@ fn plain_f32_pcg_converges() {
     // True residual in f64 of the f32 solution.
     let cpu = scalar_of(&a, &fixed);
     for c in 0..2 {
-        let xc: Vec<f64> = out.x[c * n..(c + 1) * n]
-            .iter()
-            .map(|&v| v as f64)
-            .collect();
+        let xc = &out.x[c * n..(c + 1) * n];
         let mut ax = vec![0.0; n];
-        cpu.mul_vec(&xc, &mut ax);
+        cpu.mul_vec(xc, &mut ax);
         let bc: Vec<f64> = b[c * n..(c + 1) * n].iter().map(|&v| v as f64).collect();
         assert!(rel_err(&ax, &bc) < 1e-4);
     }
+}
+
+#[test]
+fn f64_kernels_converge_past_f32_precision() {
+    let Some(mut s) = gpu() else { return };
+    if !s.adapter().shader_f64 {
+        eprintln!("skipped: adapter {} has no SHADER_F64", s.adapter_name());
+        return;
+    }
+    let mut rng = Rng(13);
+    let a = laplacian_blocks(24, 20, &mut rng);
+    let fixed = fixed_every(a.n, 40);
+    s.prepare_blocks(&a, &fixed).unwrap();
+    let n = 3 * a.n;
+    let b = rng.vec(2 * n);
+    let cpu_a = scalar_of(&a, &fixed);
+    let true_residual = |x: &[f64], c: usize| {
+        let mut ax = vec![0.0; n];
+        cpu_a.mul_vec(&x[c * n..(c + 1) * n], &mut ax);
+        rel_err(&ax, &b[c * n..(c + 1) * n])
+    };
+    // f64 kernels straight to 1e-11, far below what f32 vectors can hold.
+    let f64_run =
+        kernels::scalar_pcg(&mut s, kernels::Precision::F64, &b, 2, 1e-11, 20_000).unwrap();
+    assert_eq!(f64_run.status, vec![1, 1]);
+    let mut cpu = CholeskySolver::new();
+    cpu.prepare_blocks(&a, &fixed).unwrap();
+    let mut want = b.clone();
+    cpu.solve_in_place(&mut want, 2).unwrap();
+    for c in 0..2 {
+        let r = true_residual(&f64_run.x, c);
+        assert!(r < 1e-10, "f64 column {c}: true residual {r:e}");
+        let e = rel_err(&f64_run.x[c * n..(c + 1) * n], &want[c * n..(c + 1) * n]);
+        assert!(e < 1e-7, "f64 column {c} vs Cholesky: {e:e}");
+    }
+    // The same kernels in f32 and f64 run the same algorithm: to a tolerance
+    // both reach, their iteration counts agree closely.
+    let mut loose = |p| kernels::scalar_pcg(&mut s, p, &b, 2, 1e-4, 20_000).unwrap();
+    let (r32, r64) = (
+        loose(kernels::Precision::F32),
+        loose(kernels::Precision::F64),
+    );
+    assert_eq!(
+        (r32.status.clone(), r64.status.clone()),
+        (vec![1, 1], vec![1, 1])
+    );
+    for c in 0..2 {
+        let (i32_, i64_) = (r32.iterations[c] as f64, r64.iterations[c] as f64);
+        assert!(
+            (i32_ - i64_).abs() <= 0.05 * i64_ + 2.0,
+            "column {c}: f32 {i32_} vs f64 {i64_} iterations"
+        );
+        assert!(true_residual(&r32.x, c) < 2e-4);
+    }
+    eprintln!(
+        "scalar Jacobi PCG: f64 to 1e-11 in {:?} iterations; to 1e-4 f32 {:?}, f64 {:?}",
+        f64_run.iterations, r32.iterations, r64.iterations
+    );
 }
 
 /// Badly conditioned SPD block matrix like the shape systems: a weighted grid
@@ -625,22 +721,30 @@ fn amg_vcycle_matches_the_cpu_reference() {
     });
     let a = spd_blocks(45, 40, 0.02, &mut rng);
     let fixed = fixed_every(a.n, 40);
-    s.prepare_blocks(&a, &fixed).unwrap();
-    let h = s.amg_hierarchy().unwrap().clone();
-    assert!(h.levels.len() >= 2, "levels {:?}", h.sizes());
     let n = 3 * a.n;
-    for ncols in [1, 3] {
-        let r = rng.vec(n * ncols);
-        let z = kernels::amg_vcycle(&mut s, &f32s(&r), ncols).unwrap();
-        for c in 0..ncols {
-            let want = h.vcycle(&r[c * n..(c + 1) * n]);
-            let got: Vec<f64> = z[c * n..(c + 1) * n].iter().map(|&v| v as f64).collect();
-            let e = rel_err(&got, &want);
-            assert!(
-                e < 1e-4,
-                "bs 3, column {c} of {ncols}: {e:e} (levels {:?})",
-                h.sizes()
-            );
+    // The finest A of the GPU V-cycle is the PCG's own block texture; the
+    // second pass (new values, same pattern: values-only upload) checks that
+    // the V-cycle sees the new values of that shared matrix.
+    let a2 = spd_blocks(45, 40, 0.5, &mut Rng(22));
+    for (pass, m) in [&a, &a2].into_iter().enumerate() {
+        let uploads = s.pattern_uploads;
+        s.prepare_blocks(m, &fixed).unwrap();
+        assert_eq!(s.pattern_uploads, uploads + usize::from(pass == 0));
+        let h = s.amg_hierarchy().unwrap().clone();
+        assert!(h.levels.len() >= 2, "levels {:?}", h.sizes());
+        for ncols in [1, 3] {
+            let r = rng.vec(n * ncols);
+            let z = kernels::amg_vcycle(&mut s, &f32s(&r), ncols).unwrap();
+            for c in 0..ncols {
+                let want = h.vcycle(&r[c * n..(c + 1) * n]);
+                let got: Vec<f64> = z[c * n..(c + 1) * n].iter().map(|&v| v as f64).collect();
+                let e = rel_err(&got, &want);
+                assert!(
+                    e < 1e-4,
+                    "bs 3, pass {pass}, column {c} of {ncols}: {e:e} (levels {:?})",
+                    h.sizes()
+                );
+            }
         }
     }
     // Scalar.
