@@ -2,13 +2,15 @@
 //! (mesh, faces, iterations, seconds per phase, max metric error, peak memory).
 //!
 //! `cargo bench --bench pipeline` (add `-- --quick` to skip the largest mesh);
-//! one row: `-- --row NAME MULTIPLIERS [--preview N]`.
+//! one row: `-- --row NAME MULTIPLIERS [--preview N] [--backend cpu|gpu]`. A GPU
+//! row also runs the CPU backend on the same problem and prints the largest
+//! vertex deviation between the two results, in % of the bbox diagonal.
 //! Each row runs in a fresh child process so that peak memory is per run.
 
 #[path = "../tests/common/mod.rs"]
 mod common;
 
-use metricdeform::deform::{deform, max_error, Options, Problem};
+use metricdeform::deform::{deform, max_error, Options, Problem, SolverBackend};
 use metricdeform::job::{Job, JobFormat};
 use metricdeform::report::peak_memory_mb;
 use std::path::Path;
@@ -37,7 +39,14 @@ enum Refine {
     Uniform(usize),
 }
 
-fn row(name: &str, job_text: &str, refine: Refine, multipliers: &str, preview: Option<usize>) {
+fn row(
+    name: &str,
+    job_text: &str,
+    refine: Refine,
+    multipliers: &str,
+    preview: Option<usize>,
+    backend: SolverBackend,
+) {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/meshes");
     let text = format!("{job_text}\n[solver]\nmultipliers = \"{multipliers}\"\n");
     let job = Job::from_str(&text, JobFormat::Toml, &dir, name).unwrap();
@@ -55,11 +64,18 @@ fn row(name: &str, job_text: &str, refine: Refine, multipliers: &str, preview: O
     let load = t0.elapsed().as_secs_f64();
     let mut options = Options::from_spec(&job.spec.solver);
     options.preview = preview;
+    options.backend = backend;
     let out = deform(&problem, &options, &mut |_| {}).unwrap();
     let total = t0.elapsed().as_secs_f64();
+    let peak = peak_memory_mb();
     println!(
-        "| {name}{} | {} | {multipliers} | {} + {} | {:.3} | {:.3} | {:.3} | {:.3} | {:.2e} | {:.0} |",
+        "| {name}{}{} | {} | {multipliers} | {} + {} | {:.3} | {:.3} | {:.3} | {:.3} | {:.2e} | {:.0} |",
         preview.map_or(String::new(), |n| format!(" (preview {n})")),
+        if backend == SolverBackend::Cpu {
+            String::new()
+        } else {
+            format!(" ({})", backend.name())
+        },
         problem.mesh.num_faces(),
         out.scale_driven_iterations,
         out.fine_tune_iterations,
@@ -68,8 +84,18 @@ fn row(name: &str, job_text: &str, refine: Refine, multipliers: &str, preview: O
         out.seconds_fine_tune,
         total,
         100.0 * max_error(&problem, &out.positions),
-        peak_memory_mb()
+        peak
     );
+    if backend != SolverBackend::Cpu {
+        options.backend = SolverBackend::Cpu;
+        let cpu = deform(&problem, &options, &mut |_| {}).unwrap();
+        let dev = common::max_deviation(&problem.mesh, &cpu.positions, &out.positions);
+        println!(
+            "{name} ({}): largest vertex deviation from the CPU result {:.2e} % of the bbox diagonal",
+            backend.name(),
+            100.0 * dev
+        );
+    }
 }
 
 /// Mesh I/O at scale: homer subdivided `subdivisions` times, written and read
@@ -136,7 +162,15 @@ fn main() {
             .iter()
             .position(|a| a == "--preview")
             .map(|j| args[j + 1].parse().expect("--preview N"));
-        row(name, &job, refine, mult, preview);
+        let backend = match args.iter().position(|a| a == "--backend") {
+            None => SolverBackend::Cpu,
+            Some(j) => match args[j + 1].as_str() {
+                "cpu" => SolverBackend::Cpu,
+                "gpu" => SolverBackend::Gpu,
+                other => panic!("--backend {other}: expected cpu or gpu"),
+            },
+        };
+        row(name, &job, refine, mult, preview, backend);
         return;
     }
     let quick = args.iter().any(|a| a == "--quick");

@@ -26,14 +26,7 @@ fn available(backend: SolverBackend) -> bool {
 
 /// Largest vertex distance between two results, relative to the bbox diagonal.
 fn max_deviation(a: &Run, b: &Run) -> f64 {
-    let diag = a.problem.mesh.bbox_diagonal(&a.written.positions);
-    a.written
-        .positions
-        .iter()
-        .zip(&b.written.positions)
-        .map(|(p, q)| (*p - *q).length())
-        .fold(0.0, f64::max)
-        / diag
+    common::max_deviation(&a.problem.mesh, &a.written.positions, &b.written.positions)
 }
 
 /// Run `text` on `backend`; for a non-reference backend, also on the CPU

@@ -293,14 +293,7 @@ fn anderson_acceleration_reaches_the_plain_iterations_limit_sooner() {
         plain.scale_driven_iterations,
         accelerated.scale_driven_iterations
     );
-    let diag = problem.mesh.bbox_diagonal(&problem.mesh.positions);
-    let deviation = plain
-        .positions
-        .iter()
-        .zip(&accelerated.positions)
-        .map(|(a, b)| (*a - *b).length())
-        .fold(0.0, f64::max)
-        / diag;
+    let deviation = common::max_deviation(&problem.mesh, &plain.positions, &accelerated.positions);
     eprintln!(
         "plain vs Anderson: {:.3} % of the bbox diagonal",
         100.0 * deviation

@@ -191,3 +191,14 @@ pub fn fig3_job(mesh: &str, kind: &str, scale: f64) -> String {
         ),
     }
 }
+
+/// Largest distance between corresponding vertices of `a` and `b` on `mesh`,
+/// relative to the bbox diagonal of `a`.
+pub fn max_deviation(mesh: &Mesh, a: &[DVec3], b: &[DVec3]) -> f64 {
+    let diag = mesh.bbox_diagonal(a);
+    a.iter()
+        .zip(b)
+        .map(|(p, q)| (*p - *q).length())
+        .fold(0.0, f64::max)
+        / diag
+}
