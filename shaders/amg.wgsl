@@ -26,7 +26,7 @@
 //                         step's matrix (A_l, P_l or R_l; rectangular for P and
 //                         R), BS texels per block: texel BS k + q holds row q of
 //                         block k in .xyz (BS values) and, in the .w of its first
-//                         texel, the block column as the bits of an f32. (The
+//                         texel, the block column as an f32 value. (The
 //                         layout of the PCG's block matrix, bsr_spmv.wgsl.) A
 //                         texel fetch is a vector gather on llvmpipe, and a
 //                         texture is not bound by the storage-buffer binding
@@ -97,7 +97,7 @@ fn spmv(
             let t = bs * k + q;
             let v = textureLoad(blocks, vec2<u32>(t % TW, t / TW), 0);
             if q == 0u {
-                j = bitcast<u32>(v.w);
+                j = u32(v.w);
             }
             for (var u = 0u; u < bs; u++) {
                 m[q * bs + u] = v[u];

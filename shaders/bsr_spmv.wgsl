@@ -13,7 +13,9 @@
 //   3  blocks   texture   RGBA32F, TW texels per texture row; block k is texels
 //                         3k, 3k+1, 3k+2 (texel t at (t % TW, t / TW)) holding
 //                         its rows (m_q0, m_q1, m_q2, .) and, in the .w of its
-//                         first texel, its block column as the bits of an f32.
+//                         first texel, its block column as an f32 value (exact:
+//                         columns stay below 2^24; a value, not bit pattern,
+//                         so no driver's denormal flush can touch it).
 //                         Both triangles are stored (the lower CSC is expanded
 //                         on upload); rows/columns of fixed vertices are already
 //                         the identity.
@@ -95,7 +97,7 @@ fn main(
         let k1 = row_ptr[row + 1u];
         for (var k = k0; k < k1; k++) {
             let t0 = texel(3u * k);
-            let j = bitcast<u32>(t0.w);
+            let j = u32(t0.w);
             let m0 = t0.xyz;
             let m1 = texel(3u * k + 1u).xyz;
             let m2 = texel(3u * k + 2u).xyz;

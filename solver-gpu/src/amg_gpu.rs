@@ -19,7 +19,7 @@
 
 use crate::amg::{Bsr, Hierarchy};
 use crate::device::{dispatch, Bind, Context, Kernel, Shader, ROW_WG};
-use crate::matrix::{block_texel, GpuMatrix, MatrixStorage};
+use crate::matrix::{block_texel, check_texture_columns, GpuMatrix, MatrixStorage};
 use crate::{GpuError, CMAX};
 
 pub(crate) const SOURCE: &str = include_str!("../../shaders/amg.wgsl");
@@ -110,6 +110,7 @@ fn f32s(v: &[f64]) -> Vec<f32> {
 
 impl GpuBsr {
     fn upload(ctx: &Context, what: &str, m: &Bsr) -> Result<GpuBsr, GpuError> {
+        check_texture_columns(&format!("AMG {what}"), m.cols)?;
         let texels = m.bs * m.nnz_blocks();
         let texture = ctx.data_texture(
             &format!("AMG {what} ({} blocks of {} texels)", m.nnz_blocks(), m.bs),

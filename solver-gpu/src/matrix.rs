@@ -208,7 +208,7 @@ pub(crate) enum MatrixStorage {
     },
     /// 3x3 blocks: three RGBA32F texels per block, `(m00 m01 m02 j)`,
     /// `(m10 m11 m12 0)`, `(m20 m21 m22 0)` with the block column `j` stored as
-    /// the bits of an f32 (see `bsr_spmv.wgsl`). A texture is not bound by the
+    /// an f32 value (see [`block_texel`], `bsr_spmv.wgsl`). A texture is not bound by the
     /// storage-buffer binding limit (128 MiB on lavapipe), and llvmpipe reads it
     /// with vector gathers where a storage buffer costs one checked scalar load
     /// per invocation and component.
@@ -218,9 +218,27 @@ pub(crate) enum MatrixStorage {
     },
 }
 
+/// Block columns a block texture can name: f32 holds every integer below 2^24
+/// exactly.
+pub(crate) fn check_texture_columns(what: &str, cols: usize) -> Result<(), GpuError> {
+    const EXACT: u64 = 1 << 24;
+    if cols as u64 > EXACT {
+        return Err(GpuError::LimitExceeded {
+            what: format!("{what}: {cols} block columns stored as f32 in a texture"),
+            limit_name: "2^24 (integers exact in f32)",
+            needed: cols as u64,
+            limit: EXACT,
+        });
+    }
+    Ok(())
+}
+
 /// Texel `t` of a block texture (`bs` texels per block, `bs` <= 3): row
 /// `q = t % bs` of block `k = t / bs` in the first `bs` components (zeros after),
-/// and in `.w` of the block's first texel its column as the bits of an f32.
+/// and in `.w` of the block's first texel its column as an f32 value: exact,
+/// since [`check_texture_columns`] keeps columns below 2^24, and a value rather
+/// than a bit pattern (small integers' bits are f32 denormals, which a driver
+/// may flush to zero).
 /// The layout `bsr_spmv.wgsl` and `amg.wgsl` read.
 pub(crate) fn block_texel(bs: usize, col_idx: &[u32], vals: &[f64], t: usize, out: &mut [f32]) {
     let (k, q) = (t / bs, t % bs);
@@ -230,7 +248,7 @@ pub(crate) fn block_texel(bs: usize, col_idx: &[u32], vals: &[f64], t: usize, ou
         *o = v as f32;
     }
     out[3] = if q == 0 {
-        f32::from_bits(col_idx[k])
+        col_idx[k] as f32
     } else {
         0.0
     };
@@ -239,6 +257,7 @@ pub(crate) fn block_texel(bs: usize, col_idx: &[u32], vals: &[f64], t: usize, ou
 impl GpuMatrix {
     pub fn upload(ctx: &Context, h: &HostMatrix, minv: &[f32]) -> Result<GpuMatrix, GpuError> {
         let storage = if h.bs == 3 {
+            check_texture_columns("block matrix", h.rows)?;
             let texels = 3 * h.nnz_blocks();
             let texture = ctx.data_texture(
                 &format!("block matrix ({} blocks of 3 texels)", h.nnz_blocks()),
@@ -286,5 +305,29 @@ impl GpuMatrix {
         }
         ctx.queue
             .write_buffer(&self.minv, 0, bytemuck::cast_slice(minv));
+    }
+}
+
+#[cfg(test)]
+mod texel_tests {
+    use super::*;
+
+    #[test]
+    fn block_texels_hold_rows_and_the_column_as_a_value() {
+        // Two 3x3 blocks, columns 7 and 2^24 (the largest exact one).
+        let vals: Vec<f64> = (0..18).map(|v| v as f64 + 0.5).collect();
+        let cols = [7u32, 1 << 24];
+        let mut out = [f32::NAN; 4];
+        block_texel(3, &cols, &vals, 4, &mut out); // block 1, row 1
+        assert_eq!(out, [12.5, 13.5, 14.5, 0.0]);
+        block_texel(3, &cols, &vals, 3, &mut out); // block 1, row 0
+        assert_eq!(out, [9.5, 10.5, 11.5, (1u32 << 24) as f32]);
+        assert_eq!(out[3] as u32, 1 << 24);
+        // Scalar (bs = 1): one texel per entry.
+        block_texel(1, &cols, &vals[..2], 0, &mut out);
+        assert_eq!(out, [0.5, 0.0, 0.0, 7.0]);
+        assert!(check_texture_columns("m", 1 << 24).is_ok());
+        let e = check_texture_columns("m", (1 << 24) + 1).unwrap_err();
+        assert!(e.to_string().contains("2^24"), "{e}");
     }
 }
