@@ -5,6 +5,8 @@ use solver_gpu::naga;
 
 /// Shaders that also compile in f64 (solver_gpu::precision).
 const F64_VARIANTS: [&str; 2] = ["pcg.wgsl", "csr_spmv.wgsl"];
+/// Shaders written with f64 (they need SHADER_F64, naga's FLOAT64).
+const F64_ONLY: [&str; 1] = ["convert.wgsl"];
 
 /// The f64 variant parses, validates with the FLOAT64 capability, and has no
 /// f32 left.
@@ -38,10 +40,13 @@ fn every_shader_parses_and_validates() {
         let name = path.file_name().unwrap().to_string_lossy().into_owned();
         let module = naga::front::wgsl::parse_str(&source)
             .unwrap_or_else(|e| panic!("{name}: {}", e.emit_to_string(&source)));
-        let mut validator = naga::valid::Validator::new(
-            naga::valid::ValidationFlags::all(),
-            naga::valid::Capabilities::empty(),
-        );
+        let capabilities = if F64_ONLY.contains(&name.as_str()) {
+            naga::valid::Capabilities::FLOAT64
+        } else {
+            naga::valid::Capabilities::empty()
+        };
+        let mut validator =
+            naga::valid::Validator::new(naga::valid::ValidationFlags::all(), capabilities);
         validator
             .validate(&module)
             .unwrap_or_else(|e| panic!("{name}: {}", e.emit_to_string(&source)));
@@ -60,6 +65,7 @@ fn every_shader_parses_and_validates() {
         "dot.wgsl",
         "block_jacobi.wgsl",
         "pcg.wgsl",
+        "convert.wgsl",
     ] {
         assert!(names.iter().any(|n| n == expected), "{expected} missing");
     }

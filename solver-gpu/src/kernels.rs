@@ -4,7 +4,7 @@
 
 use crate::csr_spmv;
 use crate::device::{dispatch, Params, ROW_WG};
-use crate::matrix::{GpuMatrix, HostMatrix, MatrixStorage};
+use crate::matrix::GpuMatrix;
 use crate::pcg::{vector_texture, Pcg, PcgRun, Spmv};
 pub use crate::precision::Precision;
 use crate::{GpuError, GpuSolver, CMAX};
@@ -253,6 +253,7 @@ pub fn pcg(
         s.check_every,
         rel_tol == 0.0,
         Some(&s.k.amg),
+        None,
     )?;
     let x = s.k.pcg.read_x(&s.ctx, ws, ncols)?;
     Ok(PcgOutput::new(x, &run, &bb))
@@ -273,33 +274,6 @@ impl PcgOutput {
             dispatched: run.dispatched,
         }
     }
-}
-
-/// The prepared matrix with each `bs x bs` block expanded into scalar entries
-/// (CSR, `bs` rows per block row), and its inverted diagonal.
-fn scalar_expansion(h: &HostMatrix) -> (Vec<u32>, Vec<u32>, Vec<f64>, Vec<f64>) {
-    let bs = h.bs;
-    let mut row_ptr = Vec::with_capacity(h.rows * bs + 1);
-    let mut col_idx = Vec::with_capacity(h.vals.len());
-    let mut vals = Vec::with_capacity(h.vals.len());
-    let mut dinv = Vec::with_capacity(h.rows * bs);
-    row_ptr.push(0u32);
-    for i in 0..h.rows {
-        let blocks = h.row_ptr[i] as usize..h.row_ptr[i + 1] as usize;
-        for q in 0..bs {
-            for k in blocks.clone() {
-                let j = h.col_idx[k] as usize;
-                for t in 0..bs {
-                    col_idx.push((j * bs + t) as u32);
-                    vals.push(h.vals[k * bs * bs + q * bs + t]);
-                }
-            }
-            let d = h.diag[i] as usize * bs * bs + q * bs + q;
-            dinv.push(1.0 / h.vals[d]);
-            row_ptr.push(col_idx.len() as u32);
-        }
-    }
-    (row_ptr, col_idx, vals, dinv)
 }
 
 /// One plain PCG solve, as [`pcg`], on the scalar expansion of the prepared
@@ -325,28 +299,8 @@ pub fn scalar_pcg(
         )));
     }
     let h = s.host.as_ref().unwrap();
-    let (row_ptr, col_idx, vals, dinv) = scalar_expansion(h);
     let n = h.n();
-    let fp = precision.bytes();
-    ctx.check_storage(
-        &format!(
-            "scalar matrix values ({} entries of {precision:?})",
-            vals.len()
-        ),
-        vals.len() as u64 * fp,
-    )?;
-    ctx.check_storage("scalar matrix column indices", col_idx.len() as u64 * 4)?;
-    let m = GpuMatrix {
-        row_ptr: ctx.storage_init("scalar expansion row pointers", &row_ptr)?,
-        storage: MatrixStorage::Csr {
-            col_idx: ctx.storage_init("scalar expansion column indices", &col_idx)?,
-            vals: ctx.storage_init("scalar expansion values", &precision.encode(&vals))?,
-        },
-        minv: ctx.storage_init(
-            "scalar expansion inverse diagonal",
-            &precision.encode(&dinv),
-        )?,
-    };
+    let m = GpuMatrix::upload_scalar(ctx, h, precision)?;
     let pcg = Pcg::new(ctx, precision)?;
     let csr = csr_spmv::new_in(ctx, precision)?;
     let spmv = Spmv::Scalar(&csr);
@@ -363,6 +317,7 @@ pub fn scalar_pcg(
         max_iters,
         s.check_every,
         rel_tol == 0.0,
+        None,
         None,
     )?;
     let x = pcg.read_x(ctx, &mut ws, ncols)?;

@@ -18,9 +18,15 @@
 //! ```
 //!
 //! The f64 residual makes the result as accurate as a direct f64 solve (to the
-//! tolerance) although the GPU only ever computes in f32; each round gains about
+//! tolerance) although the GPU only computes in f32; each round gains about
 //! `eta` as long as `cond(A) * 2^-24 << 1`. A warm start (`solve_with_guess`)
 //! helps through the first residual: a good guess needs fewer or cheaper rounds.
+//!
+//! Where the rounds stagnate (three without halving the residual) or run out,
+//! and the adapter has `SHADER_F64`, the solve goes on in **mixed precision**
+//! ([`MixedPrecision`]): PCG with f64 vectors, scalars and SpMV (the matrix as
+//! f64 scalar CSR), preconditioned by the same f32 AMG V-cycle on f32 copies of
+//! `r` and `z` (`shaders/convert.wgsl`).
 //!
 //! The PCG itself (`shaders/pcg.wgsl`, see [`pcg`](crate::pcg)) is preconditioned
 //! by one **smoothed-aggregation AMG V-cycle** by default ([`Preconditioner::Amg`]:
@@ -48,6 +54,7 @@ pub mod amg;
 pub mod amg_gpu;
 pub mod block_jacobi;
 pub mod bsr_spmv;
+mod convert;
 pub mod csr_spmv;
 mod device;
 pub mod dot;
@@ -150,6 +157,32 @@ pub fn default_adapter() -> Result<AdapterSummary, GpuError> {
     device::default_adapter()
 }
 
+/// `r = b - A x` (f64, on the host) for `ncols` columns; per column `||r||` and
+/// `||r|| / ||b||` (0 for a zero right-hand side), and the largest of those.
+fn residuals(
+    h: &HostMatrix,
+    b: &[f64],
+    x: &[f64],
+    r: &mut [f64],
+    ncols: usize,
+) -> (Vec<f64>, Vec<f64>, f64) {
+    let n = h.n();
+    h.residual(b, x, r, ncols);
+    let rnorm: Vec<f64> = (0..ncols).map(|c| norm(&r[c * n..(c + 1) * n])).collect();
+    let rel: Vec<f64> = (0..ncols)
+        .map(|c| {
+            let bn = norm(&b[c * n..(c + 1) * n]);
+            if bn == 0.0 {
+                0.0
+            } else {
+                rnorm[c] / bn
+            }
+        })
+        .collect();
+    let worst = rel.iter().cloned().fold(0.0, f64::max);
+    (rnorm, rel, worst)
+}
+
 /// Whether some adapter is available.
 pub fn gpu_available() -> bool {
     default_adapter().is_ok()
@@ -194,6 +227,9 @@ pub fn open_with(opts: OpenOptions) -> Result<GpuSolver, GpuError> {
         amg_gpu: None,
         amg_fine_upload: 0,
         amg_setup_seconds: 0.0,
+        mixed_precision: MixedPrecision::default(),
+        mixed_kernels: None,
+        mixed: None,
     })
 }
 
@@ -215,6 +251,8 @@ pub struct SolveStats {
     pub iterations: usize,
     /// Largest final relative residual (f64).
     pub residual: f64,
+    /// Whether the solve switched to mixed precision (f64 PCG, f32 V-cycle).
+    pub mixed: bool,
 }
 
 /// The GPU PCG solver.
@@ -243,6 +281,43 @@ pub struct GpuSolver {
     /// matrix of that upload).
     amg_fine_upload: usize,
     amg_setup_seconds: f64,
+    mixed_precision: MixedPrecision,
+    /// The f64 kernels of the mixed-precision solve (compiled on first use).
+    mixed_kernels: Option<MixedKernels>,
+    /// Its matrix and workspace, for the stamp's matrix.
+    mixed: Option<MixedData>,
+}
+
+/// When the solver runs the PCG iteration in f64 with the f32 AMG V-cycle as
+/// its preconditioner (needs `SHADER_F64` and the AMG preconditioner).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum MixedPrecision {
+    /// After f32 refinement stagnates (the system is too ill-conditioned for
+    /// f32: `cond(A) 2^-24` near 1), where the adapter has `SHADER_F64`.
+    #[default]
+    Fallback,
+    /// Every solve (where the adapter has `SHADER_F64`).
+    Always,
+    /// Never: stagnation is `NoConvergence`.
+    Never,
+}
+
+/// The f64 kernels of the mixed-precision solve.
+struct MixedKernels {
+    pcg: pcg::Pcg,
+    csr: csr_spmv::CsrSpmv,
+    convert: convert::Convert,
+}
+
+/// The mixed-precision solve's data: the matrix as f64 scalar CSR and a
+/// workspace whose V-cycle runs on f32 copies of r and z.
+struct MixedData {
+    /// `(pattern_uploads, value_uploads)` of the matrix it was built from.
+    stamp: (usize, usize),
+    /// Read through the workspace's bind groups only.
+    #[allow(dead_code)]
+    matrix: GpuMatrix,
+    ws: Workspace,
 }
 
 impl GpuSolver {
@@ -302,13 +377,156 @@ impl GpuSolver {
             return Ok(());
         }
         self.preconditioner = p;
-        self.ws = None;
+        self.drop_workspaces();
         self.amg_host = None;
         self.amg_gpu = None;
         if self.host.is_some() {
             self.setup_amg()?;
         }
         Ok(())
+    }
+
+    /// When to switch to the mixed-precision solve (default: as a fallback).
+    pub fn set_mixed_precision(&mut self, m: MixedPrecision) {
+        self.mixed_precision = m;
+    }
+
+    /// Whether the last solve ran (partly) in mixed precision.
+    pub fn last_solve_mixed(&self) -> bool {
+        self.stats.mixed
+    }
+
+    fn drop_workspaces(&mut self) {
+        self.ws = None;
+        self.mixed = None;
+    }
+
+    /// Whether the mixed-precision solve can run (f64 kernels and AMG).
+    fn mixed_available(&self) -> bool {
+        self.ctx.shader_f64
+            && self.amg_gpu.is_some()
+            && self.mixed_precision != MixedPrecision::Never
+    }
+
+    /// The mixed-precision matrix and workspace for at least `ncols` columns.
+    fn mixed_workspace(&mut self, ncols: usize) -> Result<(), GpuError> {
+        let stamp = (self.pattern_uploads, self.value_uploads);
+        let want = ncols.min(CMAX);
+        if self
+            .mixed
+            .as_ref()
+            .is_some_and(|m| m.stamp == stamp && m.ws.cmax >= want)
+        {
+            return Ok(());
+        }
+        self.mixed = None;
+        if self.mixed_kernels.is_none() {
+            self.mixed_kernels = Some(MixedKernels {
+                pcg: pcg::Pcg::new(&self.ctx, precision::Precision::F64)?,
+                csr: csr_spmv::new_in(&self.ctx, precision::Precision::F64)?,
+                convert: convert::Convert::new(&self.ctx)?,
+            });
+        }
+        let k = self.mixed_kernels.as_ref().unwrap();
+        let h = self.host.as_ref().unwrap();
+        let matrix = GpuMatrix::upload_scalar(&self.ctx, h, precision::Precision::F64)?;
+        let spmv = Spmv::Scalar(&k.csr);
+        let mut ws = k.pcg.workspace(&self.ctx, &spmv, &matrix, h.n(), 1, want)?;
+        let narrow = pcg::Narrow::new(&self.ctx, &k.convert, &ws)?;
+        ws.amg = Some(amg_gpu::VcycleWorkspace::new(
+            &self.ctx,
+            &self.k.amg,
+            self.amg_gpu.as_ref().unwrap(),
+            &narrow.r32,
+            &narrow.z32,
+            ws.cmax,
+        )?);
+        ws.narrow = Some(narrow);
+        self.mixed = Some(MixedData { stamp, matrix, ws });
+        Ok(())
+    }
+
+    /// Solve up to CMAX columns in mixed precision from the start `x`: rounds
+    /// of f64 PCG (f32 V-cycle) on the f64 residual. `total`: PCG iterations
+    /// already spent on these columns.
+    fn solve_batch_mixed(
+        &mut self,
+        b: &[f64],
+        x: &mut [f64],
+        ncols: usize,
+        mut total: usize,
+    ) -> Result<(), GpuError> {
+        log::info!("GPU solve: PCG in f64 with the f32 AMG V-cycle");
+        self.stats.mixed = true;
+        self.mixed_workspace(ncols)?;
+        let h = self.host.as_ref().unwrap();
+        let n = h.n();
+        let mut r = vec![0.0; n * ncols];
+        let mut prev = f64::INFINITY;
+        for round in 0.. {
+            let h = self.host.as_ref().unwrap();
+            let (rnorm, rel, worst) = residuals(h, b, x, &mut r, ncols);
+            self.stats.residual = worst;
+            if worst <= self.tol {
+                return Ok(());
+            }
+            // f64 rounds each gain many digits: two that do not halve the
+            // residual mean the iteration itself stagnates.
+            if !worst.is_finite()
+                || round >= 4
+                || worst > 0.5 * prev
+                || total >= self.max_iterations
+            {
+                return Err(GpuError::NoConvergence {
+                    iterations: total,
+                    residual: worst,
+                });
+            }
+            prev = worst;
+            let mut thr = vec![0f64; ncols];
+            for c in 0..ncols {
+                let cols = c * n..(c + 1) * n;
+                if rel[c] > self.tol {
+                    r[cols].iter_mut().for_each(|v| *v /= rnorm[c]);
+                    thr[c] = (0.5 * self.tol / rel[c]).clamp(1e-13, 0.1).powi(2);
+                } else {
+                    r[cols].fill(0.0);
+                }
+            }
+            let k = self.mixed_kernels.as_ref().unwrap();
+            let ws = &mut self.mixed.as_mut().unwrap().ws;
+            self.ctx
+                .queue
+                .write_buffer(&ws.r, 0, bytemuck::cast_slice(&r));
+            let run = k.pcg.run(
+                &self.ctx,
+                &Spmv::Scalar(&k.csr),
+                ws,
+                ncols,
+                &thr,
+                self.max_iterations - total,
+                self.check_every,
+                false,
+                Some(&self.k.amg),
+                Some(&k.convert),
+            )?;
+            total += run.iterations();
+            self.stats.rounds += 1;
+            self.stats.iterations = total;
+            if run.breakdown() {
+                return Err(GpuError::NotPositiveDefinite);
+            }
+            let d = k.pcg.read_x(&self.ctx, ws, ncols)?;
+            for c in 0..ncols {
+                if rel[c] > self.tol {
+                    let cols = c * n..(c + 1) * n;
+                    for (xi, di) in x[cols.clone()].iter_mut().zip(&d[cols]) {
+                        *xi += rnorm[c] * di;
+                    }
+                }
+            }
+        }
+        unreachable!()
     }
 
     /// The preconditioner asked for.
@@ -365,7 +583,7 @@ impl GpuSolver {
             Err(e) => {
                 log::warn!("AMG setup failed ({e}); block Jacobi instead");
                 self.amg_gpu = None;
-                self.ws = None;
+                self.drop_workspaces();
                 return Ok(());
             }
         };
@@ -377,7 +595,7 @@ impl GpuSolver {
                 g.write_values(&self.ctx, &hier);
             }
             _ => {
-                self.ws = None;
+                self.drop_workspaces();
                 self.amg_gpu = None;
                 self.amg_gpu = Some(amg_gpu::GpuHierarchy::upload(
                     &self.ctx,
@@ -418,7 +636,7 @@ impl GpuSolver {
             }
             _ => {
                 self.gpu = None;
-                self.ws = None;
+                self.drop_workspaces();
                 self.gpu = Some(GpuMatrix::upload(&self.ctx, &h, &minv)?);
                 self.pattern_uploads += 1;
             }
@@ -434,7 +652,7 @@ impl GpuSolver {
         if self.ws.as_ref().is_some_and(|w| w.cmax >= want) {
             return Ok(());
         }
-        self.ws = None;
+        self.drop_workspaces();
         let h = self.host.as_ref().unwrap();
         let ws = self.k.pcg.workspace(
             &self.ctx,
@@ -468,6 +686,9 @@ impl GpuSolver {
                 x[c * n..(c + 1) * n].fill(0.0);
             }
         }
+        if self.mixed_precision == MixedPrecision::Always && self.mixed_available() {
+            return self.solve_batch_mixed(b, x, ncols, 0);
+        }
         self.workspace(ncols)?;
         let mut r = vec![0.0; n * ncols];
         let mut r32 = vec![0f32; n * ncols];
@@ -475,18 +696,7 @@ impl GpuSolver {
         let mut worse = 0;
         let mut prev = f64::INFINITY;
         for round in 0.. {
-            self.host.as_ref().unwrap().residual(b, x, &mut r, ncols);
-            let rnorm: Vec<f64> = (0..ncols).map(|c| norm(&r[c * n..(c + 1) * n])).collect();
-            let rel: Vec<f64> = (0..ncols)
-                .map(|c| {
-                    if bnorm[c] == 0.0 {
-                        0.0
-                    } else {
-                        rnorm[c] / bnorm[c]
-                    }
-                })
-                .collect();
-            let worst = rel.iter().cloned().fold(0.0, f64::max);
+            let (rnorm, rel, worst) = residuals(self.host.as_ref().unwrap(), b, x, &mut r, ncols);
             self.stats.residual = self.stats.residual.max(worst);
             if rel.iter().any(|v| !v.is_finite()) {
                 return Err(GpuError::NotPositiveDefinite);
@@ -503,6 +713,12 @@ impl GpuSolver {
             }
             prev = prev.min(worst);
             if round >= self.max_rounds || total >= self.max_iterations || worse >= 3 {
+                if self.mixed_available() && total < self.max_iterations {
+                    log::info!(
+                        "f32 refinement stagnated at a relative residual of {worst:.2e} after {total} iterations"
+                    );
+                    return self.solve_batch_mixed(b, x, ncols, total);
+                }
                 self.stats.residual = worst;
                 return Err(GpuError::NoConvergence {
                     iterations: total,
@@ -544,6 +760,7 @@ impl GpuSolver {
                 self.check_every,
                 false,
                 Some(&self.k.amg),
+                None,
             )?;
             total += run.iterations();
             self.stats.rounds += 1;
@@ -593,6 +810,7 @@ impl GpuSolver {
                 rounds: before.rounds + self.stats.rounds,
                 iterations,
                 residual: worst,
+                mixed: before.mixed || self.stats.mixed,
             };
             res.map_err(|e| match e {
                 GpuError::NoConvergence { residual, .. } => SolverError::NoConvergence {

@@ -4,6 +4,7 @@
 //! refinement; an f32 copy and the inverted diagonal blocks go to the GPU.
 
 use crate::device::Context;
+use crate::precision::Precision;
 use crate::GpuError;
 use rayon::prelude::*;
 use solver_cpu::{BlockSym3, SolverError, SymCsc};
@@ -26,6 +27,34 @@ pub(crate) struct HostMatrix {
 }
 
 impl HostMatrix {
+    /// The prepared matrix with each `bs x bs` block expanded into scalar entries
+    /// (CSR, `bs` rows per block row), and its inverted diagonal.
+    pub fn scalar_expansion(&self) -> (Vec<u32>, Vec<u32>, Vec<f64>, Vec<f64>) {
+        let h = self;
+        let bs = h.bs;
+        let mut row_ptr = Vec::with_capacity(h.rows * bs + 1);
+        let mut col_idx = Vec::with_capacity(h.vals.len());
+        let mut vals = Vec::with_capacity(h.vals.len());
+        let mut dinv = Vec::with_capacity(h.rows * bs);
+        row_ptr.push(0u32);
+        for i in 0..h.rows {
+            let blocks = h.row_ptr[i] as usize..h.row_ptr[i + 1] as usize;
+            for q in 0..bs {
+                for k in blocks.clone() {
+                    let j = h.col_idx[k] as usize;
+                    for t in 0..bs {
+                        col_idx.push((j * bs + t) as u32);
+                        vals.push(h.vals[k * bs * bs + q * bs + t]);
+                    }
+                }
+                let d = h.diag[i] as usize * bs * bs + q * bs + q;
+                dinv.push(1.0 / h.vals[d]);
+                row_ptr.push(col_idx.len() as u32);
+            }
+        }
+        (row_ptr, col_idx, vals, dinv)
+    }
+
     /// Pattern from a lower-triangle CSC (row >= col, sorted, diagonal present).
     pub fn pattern(
         n: usize,
@@ -247,11 +276,7 @@ pub(crate) fn block_texel(bs: usize, col_idx: &[u32], vals: &[f64], t: usize, ou
     for (o, &v) in out.iter_mut().zip(row) {
         *o = v as f32;
     }
-    out[3] = if q == 0 {
-        col_idx[k] as f32
-    } else {
-        0.0
-    };
+    out[3] = if q == 0 { col_idx[k] as f32 } else { 0.0 };
 }
 
 impl GpuMatrix {
@@ -286,6 +311,37 @@ impl GpuMatrix {
             row_ptr: ctx.storage_init("matrix row pointers", &h.row_ptr)?,
             storage,
             minv: ctx.storage_init("inverted diagonal blocks", minv)?,
+        })
+    }
+
+    /// The host matrix as scalar CSR (every `bs x bs` block as `bs^2` entries)
+    /// with its inverted diagonal, in `precision`: the f64 SpMV of the
+    /// mixed-precision solve and the precision comparison.
+    pub fn upload_scalar(
+        ctx: &Context,
+        h: &HostMatrix,
+        precision: Precision,
+    ) -> Result<GpuMatrix, GpuError> {
+        let (row_ptr, col_idx, vals, dinv) = h.scalar_expansion();
+        let fp = precision.bytes();
+        ctx.check_storage(
+            &format!(
+                "scalar matrix values ({} entries of {precision:?})",
+                vals.len()
+            ),
+            vals.len() as u64 * fp,
+        )?;
+        ctx.check_storage("scalar matrix column indices", col_idx.len() as u64 * 4)?;
+        Ok(GpuMatrix {
+            row_ptr: ctx.storage_init("scalar expansion row pointers", &row_ptr)?,
+            storage: MatrixStorage::Csr {
+                col_idx: ctx.storage_init("scalar expansion column indices", &col_idx)?,
+                vals: ctx.storage_init("scalar expansion values", &precision.encode(&vals))?,
+            },
+            minv: ctx.storage_init(
+                "scalar expansion inverse diagonal",
+                &precision.encode(&dinv),
+            )?,
         })
     }
 

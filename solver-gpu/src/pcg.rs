@@ -33,6 +33,7 @@
 
 use crate::amg_gpu::{AmgKernels, VcycleWorkspace};
 use crate::bsr_spmv::BsrSpmv;
+use crate::convert::{Convert, ConvertParams};
 use crate::csr_spmv::CsrSpmv;
 use crate::device::{dispatch, Bind, Context, Kernel, Params, Shader, FLAT_WG, ROW_WG};
 use crate::matrix::GpuMatrix;
@@ -238,6 +239,49 @@ pub(crate) struct Workspace {
     /// The AMG V-cycle (z = M^-1 r) when the preconditioner is AMG, else the
     /// block Jacobi fused into `update`.
     pub amg: Option<VcycleWorkspace>,
+    /// Mixed precision (an f64 workspace with the f32 V-cycle): the copies the
+    /// V-cycle reads and writes.
+    pub narrow: Option<Narrow>,
+}
+
+/// The f32 side of a mixed-precision workspace: the V-cycle runs from `r32` to
+/// `z32`, which `convert.wgsl` copies from the f64 `r` and into the f64 `z`.
+pub(crate) struct Narrow {
+    pub r32: wgpu::Buffer,
+    pub z32: wgpu::Buffer,
+    #[allow(dead_code)]
+    params: wgpu::Buffer,
+    bg_r: wgpu::BindGroup,
+    bg_z: wgpu::BindGroup,
+    dims: (u32, u32),
+}
+
+impl Narrow {
+    /// f32 copies of `ws.r` and `ws.z` (an f64 workspace) and their bind groups.
+    pub fn new(ctx: &Context, conv: &Convert, ws: &Workspace) -> Result<Narrow, GpuError> {
+        assert_eq!(ws.precision, Precision::F64);
+        let (n, cmax) = (ws.n(), ws.cmax);
+        let bytes = (n * cmax * 4) as u64;
+        let what = |v: &str| format!("mixed-precision f32 copy of {v} ({n} x {cmax})");
+        ctx.check_storage(&what("r"), bytes)?;
+        let r32 = ctx.storage(&what("r"), bytes)?;
+        let z32 = ctx.storage(&what("z"), bytes)?;
+        let params = ctx.uniform_of(
+            "convert params",
+            &ConvertParams {
+                n: n as u32,
+                pad: [0; 3],
+            },
+        )?;
+        Ok(Narrow {
+            bg_r: conv.bind(ctx, &params, &ws.r, &r32)?,
+            bg_z: conv.bind(ctx, &params, &ws.z, &z32)?,
+            dims: ctx.dims("convert kernels", (n as u64).div_ceil(FLAT_WG as u64))?,
+            r32,
+            z32,
+            params,
+        })
+    }
 }
 
 impl Workspace {
@@ -384,6 +428,7 @@ impl Pcg {
             staging_cols: None,
             staging_x: None,
             amg: None,
+            narrow: None,
         })
     }
 
@@ -404,6 +449,7 @@ impl Pcg {
         check_every: usize,
         fixed_batches: bool,
         amg: Option<&AmgKernels>,
+        convert: Option<&Convert>,
     ) -> Result<PcgRun, GpuError> {
         assert!(ncols >= 1 && ncols <= ws.cmax && thr.len() == ncols);
         assert_eq!(ws.precision, self.precision);
@@ -430,9 +476,24 @@ impl Pcg {
             self.update.pipeline(ctx, ncols)?
         };
         let k_rz = self.dot_rz.pipeline(ctx, ncols)?;
+        // Mixed precision: r -> f32 before the V-cycle, z -> f64 after it.
+        let narrow = match (&ws.narrow, convert) {
+            (Some(nw), Some(c)) => Some((
+                nw,
+                c.to_f32.pipeline(ctx, ncols)?,
+                c.to_f64.pipeline(ctx, ncols)?,
+            )),
+            _ => None,
+        };
         let precondition = |pass: &mut wgpu::ComputePass| {
             if let Some((v, pipes)) = &vcycle {
+                if let Some((nw, to32, _)) = &narrow {
+                    dispatch(pass, to32, &nw.bg_r, nw.dims);
+                }
                 v.record(pass, pipes);
+                if let Some((nw, _, to64)) = &narrow {
+                    dispatch(pass, to64, &nw.bg_z, nw.dims);
+                }
                 dispatch(pass, &k_rz, &ws.bg_pcg, ws.row_dims);
             }
         };

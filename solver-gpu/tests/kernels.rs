@@ -3,7 +3,7 @@
 //! unless REQUIRE_GPU=1, where it fails.
 
 use solver_cpu::{BlockSym3, CholeskySolver, SolverError, SpdSolver, SymCsc};
-use solver_gpu::{kernels, GpuError, GpuSolver, OpenOptions, Preconditioner};
+use solver_gpu::{kernels, GpuError, GpuSolver, MixedPrecision, OpenOptions, Preconditioner};
 
 fn require_gpu() -> bool {
     std::env::var("REQUIRE_GPU").is_ok_and(|v| v == "1")
@@ -664,6 +664,125 @@ fn f64_kernels_converge_past_f32_precision() {
         "scalar Jacobi PCG: f64 to 1e-11 in {:?} iterations; to 1e-4 f32 {:?}, f64 {:?}",
         f64_run.iterations, r32.iterations, r64.iterations
     );
+}
+
+/// `L^2 (x) I3` for the 5-point Laplacian `L` of an `nx x ny` grid with a
+/// Dirichlet boundary (`L = 4 I - adjacency`), SPD.
+fn biharmonic_blocks(nx: usize, ny: usize) -> BlockSym3 {
+    let n = nx * ny;
+    let lap = |i: usize| {
+        let (x, y) = (i % nx, i / nx);
+        let mut row = vec![(i, 4.0)];
+        if x > 0 {
+            row.push((i - 1, -1.0));
+        }
+        if x + 1 < nx {
+            row.push((i + 1, -1.0));
+        }
+        if y > 0 {
+            row.push((i - nx, -1.0));
+        }
+        if y + 1 < ny {
+            row.push((i + nx, -1.0));
+        }
+        row
+    };
+    // (L^2)_ij = sum_k L_ik L_kj, lower triangle.
+    let mut entries = std::collections::BTreeMap::new();
+    for i in 0..n {
+        for (k, lik) in lap(i) {
+            for (j, lkj) in lap(k) {
+                if j <= i {
+                    *entries.entry((i, j)).or_insert(0.0) += lik * lkj;
+                }
+            }
+        }
+    }
+    let mut a = BlockSym3::from_pattern(n, entries.keys().filter(|(i, j)| i != j).copied());
+    for (&(i, j), &v) in &entries {
+        a.add_scalar(i, j, v);
+    }
+    a
+}
+
+/// An adapter with SHADER_F64, or None (skipped with a message).
+fn gpu_f64() -> Option<GpuSolver> {
+    let s = gpu()?;
+    if !s.adapter().shader_f64 {
+        eprintln!("skipped: adapter {} has no SHADER_F64", s.adapter_name());
+        return None;
+    }
+    Some(s)
+}
+
+#[test]
+fn mixed_precision_solve_matches_cholesky() {
+    let Some(mut s) = gpu_f64() else { return };
+    s.set_preconditioner(Preconditioner::Amg).unwrap();
+    s.set_mixed_precision(MixedPrecision::Always);
+    let mut rng = Rng(61);
+    let a = laplacian_blocks(50, 40, &mut rng);
+    let fixed = fixed_every(a.n, 70);
+    s.prepare_blocks(&a, &fixed).unwrap();
+    let n = 3 * a.n;
+    let b = rng.vec(3 * n);
+    let mut x = b.clone();
+    s.solve_in_place(&mut x, 3).unwrap();
+    assert!(s.last_solve_mixed());
+    let mut cpu = CholeskySolver::new();
+    cpu.prepare_blocks(&a, &fixed).unwrap();
+    let mut want = b;
+    cpu.solve_in_place(&mut want, 3).unwrap();
+    for c in 0..3 {
+        let cols = c * n..(c + 1) * n;
+        let e = rel_err(&x[cols.clone()], &want[cols]);
+        assert!(e < 1e-8, "column {c}: {e:e}");
+    }
+    // New values, same pattern: the f64 copy of the matrix follows.
+    let a2 = laplacian_blocks(50, 40, &mut Rng(62));
+    s.prepare_blocks(&a2, &fixed).unwrap();
+    let b2 = rng.vec(n);
+    let mut x2 = b2.clone();
+    s.solve_in_place(&mut x2, 1).unwrap();
+    cpu.prepare_blocks(&a2, &fixed).unwrap();
+    let mut want2 = b2;
+    cpu.solve_in_place(&mut want2, 1).unwrap();
+    assert!(rel_err(&x2, &want2) < 1e-8);
+}
+
+#[test]
+fn f32_refinement_that_stops_short_falls_back_to_mixed_precision() {
+    let Some(mut s) = gpu_f64() else { return };
+    s.set_preconditioner(Preconditioner::Amg).unwrap();
+    // One f32 round (inner tolerance 1e-3) cannot reach 1e-10: the same
+    // branch as a stagnating refinement (three rounds without halving the
+    // residual) hands the solve to the mixed-precision PCG.
+    s.set_max_rounds(1);
+    s.set_inner_tolerance(1e-3);
+    let mut rng = Rng(63);
+    let a = biharmonic_blocks(40, 40);
+    let fixed = vec![false; a.n];
+    s.prepare_blocks(&a, &fixed).unwrap();
+    let n = 3 * a.n;
+    let b = rng.vec(n);
+    let true_residual = |x: &[f64]| {
+        let mut ax = vec![0.0; n];
+        scalar_of(&a, &fixed).mul_vec(x, &mut ax);
+        rel_err(&ax, &b)
+    };
+    s.set_mixed_precision(MixedPrecision::Never);
+    let mut x = b.clone();
+    match s.solve_in_place(&mut x, 1) {
+        Err(SolverError::NoConvergence { .. }) => {}
+        other => panic!("f32 refinement alone: expected NoConvergence, got {other:?}"),
+    }
+    assert!(!s.last_solve_mixed());
+    s.set_mixed_precision(MixedPrecision::Fallback);
+    let mut x = b.clone();
+    s.solve_in_place(&mut x, 1).unwrap();
+    assert!(s.last_solve_mixed());
+    let r = true_residual(&x);
+    assert!(r < 2e-10, "true residual {r:e}");
 }
 
 /// Badly conditioned SPD block matrix like the shape systems: a weighted grid
