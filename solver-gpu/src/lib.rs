@@ -157,6 +157,59 @@ pub fn default_adapter() -> Result<AdapterSummary, GpuError> {
     device::default_adapter()
 }
 
+/// One refinement round on the GPU: the scaled residuals `r` (bytes in the
+/// workspace's precision) in, PCG to the squared thresholds `thr`, then
+/// `x_c += scale_c d_c` for the columns with a nonzero `scale` (their residual
+/// norm). Returns the iterations.
+struct Round<'a> {
+    ctx: &'a Context,
+    pcg: &'a pcg::Pcg,
+    spmv: &'a Spmv<'a>,
+    amg: &'a amg_gpu::AmgKernels,
+    convert: Option<&'a convert::Convert>,
+    budget: usize,
+    check_every: usize,
+}
+
+impl Round<'_> {
+    fn run(
+        &self,
+        ws: &mut Workspace,
+        r: &[u8],
+        thr: &[f64],
+        scale: &[f64],
+        x: &mut [f64],
+    ) -> Result<usize, GpuError> {
+        let (n, ncols) = (ws.n(), thr.len());
+        self.ctx.queue.write_buffer(&ws.r, 0, r);
+        let run = self.pcg.run(
+            self.ctx,
+            self.spmv,
+            ws,
+            ncols,
+            thr,
+            self.budget,
+            self.check_every,
+            false,
+            Some(self.amg),
+            self.convert,
+        )?;
+        if run.breakdown() {
+            return Err(GpuError::NotPositiveDefinite);
+        }
+        let d = self.pcg.read_x(self.ctx, ws, ncols)?;
+        for (c, &s) in scale.iter().enumerate() {
+            if s != 0.0 {
+                let cols = c * n..(c + 1) * n;
+                for (xi, di) in x[cols.clone()].iter_mut().zip(&d[cols]) {
+                    *xi += s * di;
+                }
+            }
+        }
+        Ok(run.iterations())
+    }
+}
+
 /// `r = b - A x` (f64, on the host) for `ncols` columns; per column `||r||` and
 /// `||r|| / ||b||` (0 for a zero right-hand side), and the largest of those.
 fn residuals(
@@ -494,37 +547,22 @@ impl GpuSolver {
                 }
             }
             let k = self.mixed_kernels.as_ref().unwrap();
+            let round = Round {
+                ctx: &self.ctx,
+                pcg: &k.pcg,
+                spmv: &Spmv::Scalar(&k.csr),
+                amg: &self.k.amg,
+                convert: Some(&k.convert),
+                budget: self.max_iterations - total,
+                check_every: self.check_every,
+            };
             let ws = &mut self.mixed.as_mut().unwrap().ws;
-            self.ctx
-                .queue
-                .write_buffer(&ws.r, 0, bytemuck::cast_slice(&r));
-            let run = k.pcg.run(
-                &self.ctx,
-                &Spmv::Scalar(&k.csr),
-                ws,
-                ncols,
-                &thr,
-                self.max_iterations - total,
-                self.check_every,
-                false,
-                Some(&self.k.amg),
-                Some(&k.convert),
-            )?;
-            total += run.iterations();
+            let active: Vec<f64> = (0..ncols)
+                .map(|c| if rel[c] > self.tol { rnorm[c] } else { 0.0 })
+                .collect();
+            total += round.run(ws, bytemuck::cast_slice(&r), &thr, &active, x)?;
             self.stats.rounds += 1;
             self.stats.iterations = total;
-            if run.breakdown() {
-                return Err(GpuError::NotPositiveDefinite);
-            }
-            let d = k.pcg.read_x(&self.ctx, ws, ncols)?;
-            for c in 0..ncols {
-                if rel[c] > self.tol {
-                    let cols = c * n..(c + 1) * n;
-                    for (xi, di) in x[cols.clone()].iter_mut().zip(&d[cols]) {
-                        *xi += rnorm[c] * di;
-                    }
-                }
-            }
         }
         unreachable!()
     }
@@ -742,40 +780,25 @@ impl GpuSolver {
                 };
                 thr[c] = eta * eta;
             }
-            let ws = self.ws.as_mut().unwrap();
-            self.ctx
-                .queue
-                .write_buffer(&ws.r, 0, bytemuck::cast_slice(&r32));
             let spmv = match self.host.as_ref().unwrap().bs {
                 1 => Spmv::Scalar(&self.k.csr),
                 _ => Spmv::Block(&self.k.bsr),
             };
-            let run = self.k.pcg.run(
-                &self.ctx,
-                &spmv,
-                ws,
-                ncols,
-                &thr,
-                self.max_iterations - total,
-                self.check_every,
-                false,
-                Some(&self.k.amg),
-                None,
-            )?;
-            total += run.iterations();
+            let round = Round {
+                ctx: &self.ctx,
+                pcg: &self.k.pcg,
+                spmv: &spmv,
+                amg: &self.k.amg,
+                convert: None,
+                budget: self.max_iterations - total,
+                check_every: self.check_every,
+            };
+            let ws = self.ws.as_mut().unwrap();
+            let active: Vec<f64> = (0..ncols)
+                .map(|c| if rel[c] > self.tol { rnorm[c] } else { 0.0 })
+                .collect();
+            total += round.run(ws, bytemuck::cast_slice(&r32), &thr, &active, x)?;
             self.stats.rounds += 1;
-            if run.breakdown() {
-                return Err(GpuError::NotPositiveDefinite);
-            }
-            let d = self.k.pcg.read_x(&self.ctx, ws, ncols)?;
-            for c in 0..ncols {
-                if rel[c] > self.tol {
-                    let s = rnorm[c];
-                    for (xi, di) in x[c * n..(c + 1) * n].iter_mut().zip(&d[c * n..(c + 1) * n]) {
-                        *xi += s * *di;
-                    }
-                }
-            }
             self.stats.iterations = total;
         }
         unreachable!()
