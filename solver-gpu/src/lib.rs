@@ -283,6 +283,7 @@ pub fn open_with(opts: OpenOptions) -> Result<GpuSolver, GpuError> {
         mixed_precision: MixedPrecision::default(),
         mixed_kernels: None,
         mixed: None,
+        mixed_sticky: false,
     })
 }
 
@@ -306,6 +307,8 @@ pub struct SolveStats {
     pub residual: f64,
     /// Whether the solve switched to mixed precision (f64 PCG, f32 V-cycle).
     pub mixed: bool,
+    /// Rounds of f32 refinement (the rest of `rounds` ran in mixed precision).
+    pub f32_rounds: usize,
 }
 
 /// The GPU PCG solver.
@@ -339,6 +342,9 @@ pub struct GpuSolver {
     mixed_kernels: Option<MixedKernels>,
     /// Its matrix and workspace, for the stamp's matrix.
     mixed: Option<MixedData>,
+    /// A solve of the current pattern fell back to mixed precision: the next
+    /// ones start there (reset by a new pattern).
+    mixed_sticky: bool,
 }
 
 /// When the solver runs the PCG iteration in f64 with the f32 AMG V-cycle as
@@ -346,7 +352,8 @@ pub struct GpuSolver {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum MixedPrecision {
     /// After f32 refinement stagnates (the system is too ill-conditioned for
-    /// f32: `cond(A) 2^-24` near 1), where the adapter has `SHADER_F64`.
+    /// f32: `cond(A) 2^-24` near 1), where the adapter has `SHADER_F64`; then
+    /// every later solve of the same matrix pattern starts in mixed precision.
     #[default]
     Fallback,
     /// Every solve (where the adapter has `SHADER_F64`).
@@ -677,6 +684,7 @@ impl GpuSolver {
                 self.drop_workspaces();
                 self.gpu = Some(GpuMatrix::upload(&self.ctx, &h, &minv)?);
                 self.pattern_uploads += 1;
+                self.mixed_sticky = false;
             }
         }
         self.host = Some(h);
@@ -724,7 +732,8 @@ impl GpuSolver {
                 x[c * n..(c + 1) * n].fill(0.0);
             }
         }
-        if self.mixed_precision == MixedPrecision::Always && self.mixed_available() {
+        let start_mixed = self.mixed_precision == MixedPrecision::Always || self.mixed_sticky;
+        if start_mixed && self.mixed_available() {
             return self.solve_batch_mixed(b, x, ncols, 0);
         }
         self.workspace(ncols)?;
@@ -755,6 +764,9 @@ impl GpuSolver {
                     log::info!(
                         "f32 refinement stagnated at a relative residual of {worst:.2e} after {total} iterations"
                     );
+                    // Later solves of this pattern start in mixed precision:
+                    // the neighbouring systems are as hard.
+                    self.mixed_sticky = true;
                     return self.solve_batch_mixed(b, x, ncols, total);
                 }
                 self.stats.residual = worst;
@@ -799,6 +811,7 @@ impl GpuSolver {
                 .collect();
             total += round.run(ws, bytemuck::cast_slice(&r32), &thr, &active, x)?;
             self.stats.rounds += 1;
+            self.stats.f32_rounds += 1;
             self.stats.iterations = total;
         }
         unreachable!()
@@ -834,6 +847,7 @@ impl GpuSolver {
                 iterations,
                 residual: worst,
                 mixed: before.mixed || self.stats.mixed,
+                f32_rounds: before.f32_rounds + self.stats.f32_rounds,
             };
             res.map_err(|e| match e {
                 GpuError::NoConvergence { residual, .. } => SolverError::NoConvergence {

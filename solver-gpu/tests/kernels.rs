@@ -777,12 +777,28 @@ fn f32_refinement_that_stops_short_falls_back_to_mixed_precision() {
         other => panic!("f32 refinement alone: expected NoConvergence, got {other:?}"),
     }
     assert!(!s.last_solve_mixed());
+    assert_eq!(s.last_stats().f32_rounds, 1);
     s.set_mixed_precision(MixedPrecision::Fallback);
     let mut x = b.clone();
     s.solve_in_place(&mut x, 1).unwrap();
     assert!(s.last_solve_mixed());
+    assert_eq!(s.last_stats().f32_rounds, 1);
     let r = true_residual(&x);
     assert!(r < 2e-10, "true residual {r:e}");
+    // The pattern needed the fallback once: the next solve starts there.
+    let mut x = b.clone();
+    s.solve_in_place(&mut x, 1).unwrap();
+    assert!(s.last_solve_mixed());
+    assert_eq!(s.last_stats().f32_rounds, 0);
+    assert!(true_residual(&x) < 2e-10);
+    // A new pattern starts with f32 refinement again.
+    let small = biharmonic_blocks(12, 10);
+    s.set_max_rounds(20);
+    s.prepare_blocks(&small, &vec![false; small.n]).unwrap();
+    let mut y = Rng(64).vec(3 * small.n);
+    s.solve_in_place(&mut y, 1).unwrap();
+    assert!(!s.last_solve_mixed());
+    assert!(s.last_stats().f32_rounds >= 1);
 }
 
 /// Badly conditioned SPD block matrix like the shape systems: a weighted grid
