@@ -809,9 +809,21 @@ impl GpuSolver {
             let active: Vec<f64> = (0..ncols)
                 .map(|c| if rel[c] > self.tol { rnorm[c] } else { 0.0 })
                 .collect();
-            total += round.run(ws, bytemuck::cast_slice(&r32), &thr, &active, x)?;
+            let done = round.run(ws, bytemuck::cast_slice(&r32), &thr, &active, x);
             self.stats.rounds += 1;
             self.stats.f32_rounds += 1;
+            total += match done {
+                Ok(iterations) => iterations,
+                // An f32 breakdown on a matrix whose diagonal blocks passed the
+                // SPD check can be rounding (p.Ap or r.z <= 0 in f32 on a very
+                // ill-conditioned system): the f64 iteration decides.
+                Err(GpuError::NotPositiveDefinite) if self.mixed_available() => {
+                    log::info!("f32 PCG broke down after {total} iterations");
+                    self.mixed_sticky = true;
+                    return self.solve_batch_mixed(b, x, ncols, total);
+                }
+                Err(e) => return Err(e),
+            };
             self.stats.iterations = total;
         }
         unreachable!()
