@@ -24,6 +24,15 @@ fn gpu() -> Option<GpuSolver> {
     solver_gpu::open().map_or_else(skip_or_fail, Some)
 }
 
+/// The device opened with its limits lowered by `adjust`.
+fn gpu_with_limits(adjust: impl Fn(&mut solver_gpu::wgpu::Limits) + 'static) -> Option<GpuSolver> {
+    let opts = OpenOptions {
+        adjust_limits: Some(Box::new(adjust)),
+        ..Default::default()
+    };
+    solver_gpu::open_with(opts).map_or_else(skip_or_fail, Some)
+}
+
 /// SplitMix64: seeded, reproducible.
 struct Rng(u64);
 impl Rng {
@@ -198,13 +207,7 @@ fn block_spmv_on_a_narrow_texture_wraps_rows_and_takes_new_values() {
     // At most 128 texels per texture row: the ~7.7k texels of this matrix span
     // about 60 rows, so every block column and value passes through the
     // row-wrapping address arithmetic of the shader and the upload.
-    let opts = OpenOptions {
-        adjust_limits: Some(Box::new(|l: &mut solver_gpu::wgpu::Limits| {
-            l.max_texture_dimension_2d = 128;
-        })),
-        ..Default::default()
-    };
-    let Some(mut s) = solver_gpu::open_with(opts).map_or_else(skip_or_fail, Some) else {
+    let Some(mut s) = gpu_with_limits(|l| l.max_texture_dimension_2d = 128) else {
         return;
     };
     let mut rng = Rng(12);
@@ -461,13 +464,7 @@ fn iteration_cap_gives_no_convergence_instead_of_hanging() {
 #[test]
 fn buffer_over_the_binding_limit_is_a_typed_error() {
     // Lower the device's binding limit so that a small matrix exceeds it.
-    let opts = OpenOptions {
-        adjust_limits: Some(Box::new(|l: &mut solver_gpu::wgpu::Limits| {
-            l.max_storage_buffer_binding_size = 4096;
-        })),
-        ..Default::default()
-    };
-    let Some(mut s) = solver_gpu::open_with(opts).map_or_else(skip_or_fail, Some) else {
+    let Some(mut s) = gpu_with_limits(|l| l.max_storage_buffer_binding_size = 4096) else {
         return;
     };
     assert_eq!(s.limits().max_storage_buffer_binding_size, 4096);
@@ -493,13 +490,7 @@ fn amg_solves_a_block_matrix_past_the_storage_binding_limit() {
     // its finest A) lives in a texture, so a binding limit that the matrices'
     // values pass by far, but the vectors fit in, still gives an AMG solve.
     let limit = 16 * 1024;
-    let opts = OpenOptions {
-        adjust_limits: Some(Box::new(move |l: &mut solver_gpu::wgpu::Limits| {
-            l.max_storage_buffer_binding_size = limit;
-        })),
-        ..Default::default()
-    };
-    let Some(mut s) = solver_gpu::open_with(opts).map_or_else(skip_or_fail, Some) else {
+    let Some(mut s) = gpu_with_limits(move |l| l.max_storage_buffer_binding_size = limit) else {
         return;
     };
     s.set_preconditioner(Preconditioner::Amg).unwrap();
@@ -533,13 +524,7 @@ fn block_matrix_over_the_texture_limit_is_a_typed_error() {
     // The 3x3 blocks live in a texture of 3 texels per block: with at most 64
     // texels per side, 4096 texels hold 1365 blocks, and a 20 x 20 grid of
     // vertices with its 2-ring has several thousand.
-    let opts = OpenOptions {
-        adjust_limits: Some(Box::new(|l: &mut solver_gpu::wgpu::Limits| {
-            l.max_texture_dimension_2d = 64;
-        })),
-        ..Default::default()
-    };
-    let Some(mut s) = solver_gpu::open_with(opts).map_or_else(skip_or_fail, Some) else {
+    let Some(mut s) = gpu_with_limits(|l| l.max_texture_dimension_2d = 64) else {
         return;
     };
     let mut rng = Rng(11);
