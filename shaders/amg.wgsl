@@ -11,6 +11,8 @@
 //   spmv    mode 0        b_l+1 = R_l t_l                       (restriction)
 //   dense                 x_L = C^-1 b_L                        (coarsest level)
 //   spmv    mode 2        x_l += P_l x_l+1                      (prolongation)
+// (`spmv_wide` in place of `spmv` for the wide-block matrices of an affine
+// hierarchy, same modes, one invocation per scalar row.)
 //
 // Bindings (group 0), shared by every entry point:
 //   0  P        uniform   rows = output rows (block rows; scalar rows for
@@ -35,7 +37,9 @@
 //   5  b        read      right-hand side (spmv mode 1) or residual (jacobi),
 //                         stride n.
 //   6  y        rw        output, stride n (read too by the accumulating modes).
-//   7  dinv     read      inverted diagonal blocks, BS * BS f32 per block row.
+//   7  dinv     read      omega times the inverted diagonal blocks, BS * BS f32
+//                         per block row.
+//   8  block_cols read    block columns of a wide-block matrix (`spmv_wide`).
 // Unused bindings hold a small placeholder buffer or a 1x1 texture.
 
 struct AmgParams {
@@ -50,8 +54,9 @@ struct AmgParams {
 }
 
 const WG: u32 = 128u;
-// Columns handled by this pipeline (1..=8) and the block size (3 or 1), fixed
-// when the pipeline is created: the loops unroll.
+// Columns handled by this pipeline (1..=8) and the block size (`spmv`: 3 or 1,
+// the matrix's texture layout; `jacobi`: 1, 3 or 12, its diagonal blocks),
+// fixed when the pipeline is created: the loops unroll.
 override NCOLS: u32 = 1u;
 override BS: u32 = 3u;
 // Texels per row of `blocks`: a power of two set by the host from the device's
@@ -66,6 +71,12 @@ override TW: u32 = 4096u;
 @group(0) @binding(5) var<storage, read> b: array<f32>;
 @group(0) @binding(6) var<storage, read_write> y: array<f32>;
 @group(0) @binding(7) var<storage, read> dinv: array<f32>;
+@group(0) @binding(8) var<storage, read> block_cols: array<u32>;
+
+// Block shape of `spmv_wide` (BR x BC <= 12 x 12): 3 x 12 for the finest P of an
+// affine hierarchy, 12 x 3 for its R, 12 x 12 past the finest level.
+override BR: u32 = 12u;
+override BC: u32 = 12u;
 
 fn row_of(wid: vec3<u32>, nwg: vec3<u32>, lid: u32) -> u32 {
     let g = wid.x + wid.y * nwg.x;
@@ -133,7 +144,58 @@ fn spmv(
     }
 }
 
-// y = omega D^-1 b (mode 0), y += omega D^-1 b (mode 1).
+// As `spmv`, for BR x BC blocks, one invocation per scalar row (`P.rows` =
+// block rows x BR): row q of a block takes ceil(BC / 4) texels (values packed
+// four to a texel, zero-padded), ceil(BC / 4) BR texels per block; block
+// columns from `block_cols`.
+@compute @workgroup_size(128)
+fn spmv_wide(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let r = row_of(wid, nwg, lid);
+    if r >= P.rows {
+        return;
+    }
+    let br = min(BR, 12u);
+    let bc = min(BC, 12u);
+    let tpr = (bc + 3u) / 4u;
+    let row = r / br;
+    let q = r % br;
+    var acc: array<f32, 8>;
+    let k0 = row_ptr[row];
+    let k1 = row_ptr[row + 1u];
+    for (var k = k0; k < k1; k++) {
+        let j = block_cols[k];
+        for (var e = 0u; e < tpr; e++) {
+            let t = (k * br + q) * tpr + e;
+            let v = textureLoad(blocks, vec2<u32>(t % TW, t / TW), 0);
+            for (var u = 0u; u < 4u; u++) {
+                let s = 4u * e + u;
+                if s < bc {
+                    for (var c = 0u; c < NCOLS; c++) {
+                        acc[c] += v[u] * x[c * P.nx + j * bc + s];
+                    }
+                }
+            }
+        }
+    }
+    for (var c = 0u; c < NCOLS; c++) {
+        let i = c * P.n + r;
+        if P.mode == 0u {
+            y[i] = acc[c];
+        } else if P.mode == 1u {
+            y[i] = b[i] - acc[c];
+        } else {
+            y[i] += acc[c];
+        }
+    }
+}
+
+// y = omega D^-1 b (mode 0), y += omega D^-1 b (mode 1); one invocation per
+// diagonal block (BS <= 12: 3 at the finest level, 12 on the coarse levels of
+// the affine hierarchy).
 @compute @workgroup_size(128)
 fn jacobi(
     @builtin(workgroup_id) wid: vec3<u32>,
@@ -144,22 +206,20 @@ fn jacobi(
     if row >= P.rows {
         return;
     }
-    let bs = min(BS, 3u);
-    var m: array<f32, 9>;
-    for (var q = 0u; q < bs * bs; q++) {
-        m[q] = P.omega * dinv[row * bs * bs + q];
-    }
+    let bs = min(BS, 12u);
+    let d0 = row * bs * bs;
     for (var c = 0u; c < NCOLS; c++) {
         let o = c * P.n + row * bs;
-        var rv: array<f32, 3>;
+        var rv: array<f32, 12>;
         for (var t = 0u; t < bs; t++) {
             rv[t] = b[o + t];
         }
         for (var q = 0u; q < bs; q++) {
             var s = 0.0;
             for (var t = 0u; t < bs; t++) {
-                s += m[q * bs + t] * rv[t];
+                s += dinv[d0 + q * bs + t] * rv[t];
             }
+            s *= P.omega;
             if P.mode == 0u {
                 y[o + q] = s;
             } else {

@@ -700,7 +700,14 @@ fn fine_tune(
     let ones_v = vec![1.0; n];
     // One factorization for the whole fine-tune (symbolic analysis reused).
     crate::report::release_free_memory();
+    // The fine-tune Hessian (k_m = k_l = 100 k_f) is nearly blind to local
+    // affine motions: an iterative backend's AMG takes them as its near-null
+    // space (measured: 4-7x fewer GPU PCG iterations on spot; the scale-driven
+    // systems converge fast with translations alone, BENCHMARKS.md).
+    let positions: Vec<[f64; 3]> = xstart.iter().map(|p| p.to_array()).collect();
+    model.solver().set_vertex_positions(&positions);
     model.assemble_and_factor(mesh, xstart, &ones_f, &ones_v, &o.fine_tune)?;
+    model.solver().set_vertex_positions(&[]);
     let goal = 0.01 * o.tolerance;
     let mut dx = vec![0.0; 3 * n];
     let apply = |dx: &[f64]| -> Vec<DVec3> {

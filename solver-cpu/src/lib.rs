@@ -172,6 +172,11 @@ pub trait SpdSolver {
     /// Relative residual `||A x - b|| / ||b||` an iterative backend must reach
     /// (ignored by direct solvers).
     fn set_tolerance(&mut self, _relative_residual: f64) {}
+    /// Positions of the vertices behind the block rows of the next block
+    /// matrices (empty: none), for iterative backends whose preconditioner
+    /// builds on them (the GPU's AMG: the affine motions as near-null space);
+    /// ignored by the others.
+    fn set_vertex_positions(&mut self, _positions: &[[f64; 3]]) {}
     /// Fill-reducing ordering of the next symbolic analysis, for backends that
     /// factor (of the scalar unknowns, or of the block rows of a block matrix);
     /// ignored by the others.

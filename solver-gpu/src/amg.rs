@@ -141,8 +141,10 @@ impl Bsr {
             let d = self.block(k);
             let inv = if bs == 1 {
                 (d[0] > 0.0 && d[0].is_finite()).then(|| vec![1.0 / d[0]])
-            } else {
+            } else if bs == 3 {
                 crate::block_jacobi::invert_spd3(d).map(|m| m.to_vec())
+            } else {
+                dense_spd_inverse(d, bs)
             };
             match inv {
                 Some(v) if v.iter().all(|a| a.is_finite()) => {
@@ -295,6 +297,10 @@ impl Default for AmgOptions {
     }
 }
 
+/// Columns of the affine near-null space: 3 translations and the 9 entries of
+/// a linear map.
+pub const AFFINE_MODES: usize = 12;
+
 /// One level above the coarsest.
 #[derive(Debug, Clone)]
 pub struct Level {
@@ -306,15 +312,23 @@ pub struct Level {
     /// Aggregate of each row (`u32::MAX`: none).
     pub agg: Vec<u32>,
     pub naggs: usize,
-    /// Prolongator (rows of `a` x next level's rows) and `R = P^T`.
+    /// Prolongator (rows of `a` x next level's rows) and `R = P^T`; scalar
+    /// (`bs` = 1) in an affine hierarchy.
     pub p: Bsr,
     pub r: Bsr,
+    /// The tentative prolongator of an affine hierarchy (kept for rebuilds
+    /// with new values).
+    pub tentative: Option<Bsr>,
 }
 
 /// The SA-AMG hierarchy.
 #[derive(Debug, Clone)]
 pub struct Hierarchy {
+    /// Block size of the finest level.
     pub bs: usize,
+    /// Built with the affine near-null space ([`Hierarchy::build_affine`]):
+    /// levels past the finest have [`AFFINE_MODES`]-square blocks.
+    pub affine: bool,
     pub opts: AmgOptions,
     pub levels: Vec<Level>,
     /// The coarsest matrix and its dense inverse (row-major, `n x n`).
@@ -327,6 +341,8 @@ pub struct Hierarchy {
 pub enum AmgError {
     #[error("a diagonal block is not positive definite")]
     NotPositiveDefinite,
+    #[error("{0} vertex positions for an affine near-null space of {1} block rows of size {2} (3 needed)")]
+    Positions(usize, usize, usize),
     #[error("coarsening stalled at {0} unknowns (dense coarse solve limited to {1})")]
     Stalled(usize, usize),
 }
@@ -601,7 +617,8 @@ pub fn dense_spd_inverse(a: &[f64], n: usize) -> Option<Vec<f64>> {
 }
 
 impl Hierarchy {
-    /// Build the hierarchy of `a` (full symmetric BSR, held rows identity).
+    /// Build the hierarchy of `a` (full symmetric BSR, held rows identity) with
+    /// the translations (constants per component) as near-null space.
     /// `reuse`: a previous hierarchy of a matrix with the same pattern, whose
     /// aggregates are kept (only the values are recomputed; the level patterns
     /// then stay the same).
@@ -610,41 +627,107 @@ impl Hierarchy {
         opts: &AmgOptions,
         reuse: Option<&Hierarchy>,
     ) -> Result<Hierarchy, AmgError> {
+        Self::build_with(a, opts, None, reuse)
+    }
+
+    /// As [`Hierarchy::build`], with the 12 affine motions of the vertices at
+    /// `positions` (one per block row, `bs` = 3) as near-null space: the coarse
+    /// levels represent every affine motion of each aggregate exactly, which the
+    /// translations alone do not (the fine-tune Hessian's membrane and bending
+    /// terms are nearly blind to local rotations and stretches). A reused
+    /// hierarchy keeps its tentative prolongators too, so `positions` only
+    /// matter on a first build.
+    pub fn build_affine(
+        a: Bsr,
+        opts: &AmgOptions,
+        positions: &[[f64; 3]],
+        reuse: Option<&Hierarchy>,
+    ) -> Result<Hierarchy, AmgError> {
+        if a.bs != 3 || positions.len() != a.rows {
+            return Err(AmgError::Positions(positions.len(), a.rows, a.bs));
+        }
+        Self::build_with(a, opts, Some(positions), reuse)
+    }
+
+    fn build_with(
+        a: Bsr,
+        opts: &AmgOptions,
+        positions: Option<&[[f64; 3]]>,
+        reuse: Option<&Hierarchy>,
+    ) -> Result<Hierarchy, AmgError> {
         let bs = a.bs;
+        let affine = positions.is_some();
         let reuse = reuse.filter(|h| {
             h.bs == bs
+                && h.affine == affine
                 && h.opts == *opts
                 && h.levels
                     .first()
                     .map_or(&h.coarse, |l| &l.a)
                     .same_pattern(&a)
         });
+        // Near-null space of the current level (affine only, first build).
+        let mut modes = match (positions, reuse) {
+            (Some(x), None) => affine_modes(x),
+            _ => Vec::new(),
+        };
         let mut levels: Vec<Level> = Vec::new();
         let mut a = a;
         loop {
             let depth = levels.len();
+            let t0 = std::time::Instant::now();
             let dinv = a.inverse_diagonal().ok_or(AmgError::NotPositiveDefinite)?;
+            let coarse_bs = if affine { AFFINE_MODES } else { bs };
             let (agg, naggs) = match reuse {
                 Some(h) => match h.levels.get(depth) {
                     Some(l) => (l.agg.clone(), l.naggs),
                     None => break,
                 },
                 None => {
-                    if a.rows * bs <= opts.max_coarse || depth + 1 >= opts.max_levels {
+                    if a.rows * a.bs <= opts.max_coarse || depth + 1 >= opts.max_levels {
                         break;
                     }
                     let (agg, naggs) = aggregate(&a, opts.theta);
-                    if naggs == 0 || naggs as f64 > 0.8 * a.rows as f64 {
+                    if naggs == 0 || (naggs * coarse_bs) as f64 > 0.8 * (a.rows * a.bs) as f64 {
                         break;
                     }
                     (agg, naggs)
                 }
             };
+            let t1 = std::time::Instant::now();
             let rho = spectral_radius(&a, &dinv, opts.power_iterations);
             let omega = 4.0 / (3.0 * rho);
-            let p = smoothed_prolongator(&a, &dinv, &agg, naggs, omega);
+            let t2 = std::time::Instant::now();
+            let (p, tentative) = if affine {
+                let p0 = match reuse.and_then(|h| h.levels[depth].tentative.clone()) {
+                    Some(p0) => p0,
+                    None => {
+                        let (p0, coarse_modes) =
+                            tentative_nullspace(a.bs, &agg, naggs, &modes, AFFINE_MODES);
+                        modes = coarse_modes;
+                        p0
+                    }
+                };
+                (smoothed_scalar_prolongator(&a, &dinv, &p0, omega), Some(p0))
+            } else {
+                (smoothed_prolongator(&a, &dinv, &agg, naggs, omega), None)
+            };
+            let t3 = std::time::Instant::now();
             let r = p.transpose();
-            let ac = r.mul(&a.mul(&p));
+            let ac = if affine {
+                galerkin_blocks(&a, &p, &r, AFFINE_MODES)
+            } else {
+                r.mul(&a.mul(&p))
+            };
+            let secs = |a: std::time::Instant, b: std::time::Instant| (b - a).as_secs_f64();
+            let t4 = std::time::Instant::now();
+            log::trace!(
+                "AMG level {depth}: diagonal+aggregates {:.3} s, rho {:.3} s, P {:.3} s, R A P {:.3} s",
+                secs(t0, t1),
+                secs(t1, t2),
+                secs(t2, t3),
+                secs(t3, t4)
+            );
             levels.push(Level {
                 a,
                 dinv,
@@ -653,17 +736,21 @@ impl Hierarchy {
                 naggs,
                 p,
                 r,
+                tentative,
             });
             a = ac;
         }
-        let n = a.rows * bs;
+        let n = a.rows * a.bs;
         if n > opts.dense_max {
             return Err(AmgError::Stalled(n, opts.dense_max));
         }
+        let t = std::time::Instant::now();
         let coarse_inv =
             dense_spd_inverse(&a.dense_symmetric(), n).ok_or(AmgError::NotPositiveDefinite)?;
+        log::trace!("AMG coarsest {n}: inverse {:.3} s", t.elapsed().as_secs_f64());
         Ok(Hierarchy {
             bs,
+            affine,
             opts: *opts,
             levels,
             coarse: a,
@@ -677,18 +764,18 @@ impl Hierarchy {
             .iter()
             .map(|l| &l.a)
             .chain([&self.coarse])
-            .map(|a| a.rows * self.bs)
+            .map(|a| a.rows * a.bs)
             .collect()
     }
 
     /// Stored blocks of all levels over those of the finest (operator complexity).
     pub fn operator_complexity(&self) -> f64 {
         let all: usize =
-            self.levels.iter().map(|l| l.a.nnz_blocks()).sum::<usize>() + self.coarse.nnz_blocks();
+            self.levels.iter().map(|l| l.a.vals.len()).sum::<usize>() + self.coarse.vals.len();
         let fine = self
             .levels
             .first()
-            .map_or(self.coarse.nnz_blocks(), |l| l.a.nnz_blocks());
+            .map_or(self.coarse.vals.len(), |l| l.a.vals.len());
         all as f64 / fine.max(1) as f64
     }
 
@@ -722,7 +809,7 @@ impl Hierarchy {
             jacobi(lv, &t, &mut x, true);
         }
         residual(&lv.a, b, &x, &mut t);
-        let mut bc = vec![0f64; lv.r.rows * self.bs];
+        let mut bc = vec![0f64; lv.r.rows * lv.r.bs];
         lv.r.matvec(&t, &mut bc);
         let xc = self.vcycle_at(l + 1, &bc);
         lv.p.matvec(&xc, &mut t);
@@ -813,6 +900,343 @@ pub fn block_jacobi(a: &Bsr) -> impl Fn(&[f64]) -> Vec<f64> + '_ {
         }
         z
     }
+}
+
+// ---------------------------------------------------------------------------
+// SA with a general near-null space `B` (`k` columns; the 12 affine motions of
+// the vertices): the tentative prolongator has `k` columns per aggregate (a QR
+// of the aggregate's rows of `B`), so coarse levels have `k x k` blocks. `P`,
+// `R` are scalar (bs = 1; the finest `P` is made of 3 x k blocks).
+
+/// A matrix regrouped into `br` x `bc` blocks (row-major, zeros where nothing
+/// is stored): the wide-block layout of the GPU V-cycle (`spmv_wide`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct WideBlocks {
+    pub br: usize,
+    pub bc: usize,
+    /// Block rows.
+    pub rows: usize,
+    pub row_ptr: Vec<u32>,
+    pub col_idx: Vec<u32>,
+    /// `br * bc` f64 per stored block.
+    pub vals: Vec<f64>,
+}
+
+impl Bsr {
+    /// This matrix (any `bs`) in `br` x `bc` blocks; its scalar rows and
+    /// columns must divide into them.
+    pub fn regroup(&self, br: usize, bc: usize) -> WideBlocks {
+        let bs = self.bs;
+        let (srows, scols) = (self.rows * bs, self.cols * bs);
+        assert!(srows % br == 0 && scols % bc == 0, "{srows} x {scols} in {br} x {bc} blocks");
+        let bb = br * bc;
+        let parts: Vec<(Vec<u32>, Vec<f64>)> = (0..srows / br)
+            .into_par_iter()
+            .map(|i| {
+                let rows = i * br..(i + 1) * br;
+                let mut cols: Vec<u32> = Vec::new();
+                for r in rows.clone() {
+                    for k in self.range(r / bs) {
+                        let j = self.col_idx[k] as usize;
+                        cols.extend((0..bs).map(|t| ((j * bs + t) / bc) as u32));
+                    }
+                }
+                cols.sort_unstable();
+                cols.dedup();
+                let mut vals = vec![0f64; cols.len() * bb];
+                for r in rows {
+                    let q = r % bs;
+                    for k in self.range(r / bs) {
+                        let j = self.col_idx[k] as usize;
+                        let m = self.block(k);
+                        for t in 0..bs {
+                            let c = j * bs + t;
+                            let p = cols.binary_search(&((c / bc) as u32)).unwrap();
+                            vals[p * bb + (r % br) * bc + c % bc] = m[q * bs + t];
+                        }
+                    }
+                }
+                (cols, vals)
+            })
+            .collect();
+        let mut row_ptr = vec![0u32];
+        let mut col_idx = Vec::new();
+        let mut vals = Vec::new();
+        for (c, v) in parts {
+            col_idx.extend_from_slice(&c);
+            vals.extend_from_slice(&v);
+            row_ptr.push(col_idx.len() as u32);
+        }
+        WideBlocks {
+            br,
+            bc,
+            rows: srows / br,
+            row_ptr,
+            col_idx,
+            vals,
+        }
+    }
+}
+
+/// Tentative prolongator (scalar, `n bs` x `naggs k`) and coarse near-null space
+/// (`naggs k` x `k`, row-major) by a modified Gram-Schmidt QR of each
+/// aggregate's rows of `b` (`n bs` x `k`, row-major). Dependent columns give
+/// zero columns of `P0` (their coarse unknowns are decoupled dummies).
+fn tentative_nullspace(
+    bs: usize,
+    agg: &[u32],
+    naggs: usize,
+    b: &[f64],
+    k: usize,
+) -> (Bsr, Vec<f64>) {
+    let n = agg.len();
+    let mut members: Vec<Vec<usize>> = vec![Vec::new(); naggs];
+    for i in 0..n {
+        if agg[i] != u32::MAX {
+            members[agg[i] as usize].push(i);
+        }
+    }
+    // Per aggregate: Q (rows = members * bs, k columns) and R (k x k).
+    let qr: Vec<(Vec<f64>, Vec<f64>)> = members
+        .par_iter()
+        .map(|mem| {
+            let m = mem.len() * bs;
+            let mut q = vec![0f64; m * k];
+            for (a, &i) in mem.iter().enumerate() {
+                for s in 0..bs {
+                    q[(a * bs + s) * k..(a * bs + s + 1) * k]
+                        .copy_from_slice(&b[(i * bs + s) * k..(i * bs + s + 1) * k]);
+                }
+            }
+            let mut r = vec![0f64; k * k];
+            for j in 0..k {
+                let n0: f64 = (0..m).map(|row| q[row * k + j].powi(2)).sum::<f64>().sqrt();
+                for _pass in 0..2 {
+                    for i in 0..j {
+                        let d: f64 = (0..m).map(|row| q[row * k + i] * q[row * k + j]).sum();
+                        r[i * k + j] += d;
+                        for row in 0..m {
+                            q[row * k + j] -= d * q[row * k + i];
+                        }
+                    }
+                }
+                let nj: f64 = (0..m).map(|row| q[row * k + j].powi(2)).sum::<f64>().sqrt();
+                if n0 == 0.0 || nj < 1e-6 * n0 {
+                    for row in 0..m {
+                        q[row * k + j] = 0.0;
+                    }
+                } else {
+                    r[j * k + j] = nj;
+                    for row in 0..m {
+                        q[row * k + j] /= nj;
+                    }
+                }
+            }
+            (q, r)
+        })
+        .collect();
+    let mut pos = vec![0usize; n];
+    for mem in &members {
+        for (a, &i) in mem.iter().enumerate() {
+            pos[i] = a;
+        }
+    }
+    let mut parts = Vec::with_capacity(n * bs);
+    for i in 0..n {
+        for s in 0..bs {
+            if agg[i] == u32::MAX {
+                parts.push((Vec::new(), Vec::new()));
+                continue;
+            }
+            let g = agg[i] as usize;
+            let row = pos[i] * bs + s;
+            let c: Vec<u32> = (0..k).map(|j| (g * k + j) as u32).collect();
+            let v = qr[g].0[row * k..(row + 1) * k].to_vec();
+            parts.push((c, v));
+        }
+    }
+    let p0 = assemble(1, n * bs, naggs * k, parts);
+    let mut bc = vec![0f64; naggs * k * k];
+    for g in 0..naggs {
+        bc[g * k * k..(g + 1) * k * k].copy_from_slice(&qr[g].1);
+    }
+    (p0, bc)
+}
+
+/// The `bs` scalar rows `i bs + q` of `A X` (`x` scalar, `a.cols bs` rows)
+/// over one column set: `cols` (in order of appearance) and
+/// `acc[slot bs + q]`. `mark` (one per column of `x`, `u32::MAX` when free)
+/// holds each column's slot; the caller frees it after reading.
+fn block_row_product(
+    a: &Bsr,
+    x: &Bsr,
+    i: usize,
+    mark: &mut [u32],
+    cols: &mut Vec<u32>,
+    acc: &mut Vec<f64>,
+) {
+    let bs = a.bs;
+    cols.clear();
+    acc.clear();
+    for k in a.range(i) {
+        let j = a.col_idx[k] as usize;
+        let m = a.block(k);
+        for t in 0..bs {
+            for kk in x.range(j * bs + t) {
+                let c = x.col_idx[kk] as usize;
+                if mark[c] == u32::MAX {
+                    mark[c] = cols.len() as u32;
+                    cols.push(c as u32);
+                    acc.resize(acc.len() + bs, 0.0);
+                }
+                let s = mark[c] as usize * bs;
+                let v = x.vals[kk];
+                for q in 0..bs {
+                    acc[s + q] += m[q * bs + t] * v;
+                }
+            }
+        }
+    }
+}
+
+/// The `bs` scalar rows (sorted columns) of one block row from
+/// [`block_row_product`]'s column set and `acc`; frees `mark`.
+fn scalar_rows(bs: usize, mark: &mut [u32], cols: &[u32], acc: &[f64]) -> Vec<(Vec<u32>, Vec<f64>)> {
+    let mut order: Vec<usize> = (0..cols.len()).collect();
+    order.sort_unstable_by_key(|&s| cols[s]);
+    let sorted: Vec<u32> = order.iter().map(|&s| cols[s]).collect();
+    for &c in cols {
+        mark[c as usize] = u32::MAX;
+    }
+    (0..bs)
+        .map(|q| (sorted.clone(), order.iter().map(|&s| acc[s * bs + q]).collect()))
+        .collect()
+}
+
+/// Smoothed prolongator `P = (I - omega D^-1 A) P0` of a scalar tentative `P0`
+/// (`a.rows bs` rows), scalar; structural zeros kept, so the pattern depends
+/// on the patterns of `a` and `P0` only.
+fn smoothed_scalar_prolongator(a: &Bsr, dinv: &[f64], p0: &Bsr, omega: f64) -> Bsr {
+    let bs = a.bs;
+    let bb = bs * bs;
+    let rows: Vec<Vec<(Vec<u32>, Vec<f64>)>> = (0..a.rows)
+        .into_par_iter()
+        .map_init(
+            || (vec![u32::MAX; p0.cols], Vec::new(), Vec::new()),
+            |(mark, cols, acc): &mut (Vec<u32>, Vec<u32>, Vec<f64>), i| {
+                block_row_product(a, p0, i, mark, cols, acc);
+                let m = &dinv[i * bb..(i + 1) * bb];
+                let mut out = vec![0f64; acc.len()];
+                for s in 0..cols.len() {
+                    for q in 0..bs {
+                        let d: f64 = (0..bs).map(|t| m[q * bs + t] * acc[s * bs + t]).sum();
+                        out[s * bs + q] = -omega * d;
+                    }
+                }
+                for q in 0..bs {
+                    for kk in p0.range(i * bs + q) {
+                        let c = p0.col_idx[kk] as usize;
+                        if mark[c] == u32::MAX {
+                            mark[c] = cols.len() as u32;
+                            cols.push(c as u32);
+                            out.resize(out.len() + bs, 0.0);
+                        }
+                        out[mark[c] as usize * bs + q] += p0.vals[kk];
+                    }
+                }
+                scalar_rows(bs, mark, cols, &out)
+            },
+        )
+        .collect();
+    assemble(1, a.rows * bs, p0.cols, rows.into_iter().flatten().collect())
+}
+
+/// The coarse operator `R A P` (`p` scalar, `r = P^T`) in `k x k` blocks. A
+/// coarse unknown whose column of `P` is zero (an aggregate too small for
+/// all `k` modes) gets a unit diagonal: it is decoupled and never excited.
+fn galerkin_blocks(a: &Bsr, p: &Bsr, r: &Bsr, k: usize) -> Bsr {
+    let bs = a.bs;
+    let ap_rows: Vec<Vec<(Vec<u32>, Vec<f64>)>> = (0..a.rows)
+        .into_par_iter()
+        .map_init(
+            || (vec![u32::MAX; p.cols], Vec::new(), Vec::new()),
+            |(mark, cols, acc): &mut (Vec<u32>, Vec<u32>, Vec<f64>), i| {
+                block_row_product(a, p, i, mark, cols, acc);
+                scalar_rows(bs, mark, cols, acc)
+            },
+        )
+        .collect();
+    let ap = assemble(1, a.rows * bs, p.cols, ap_rows.into_iter().flatten().collect());
+    let nc = p.cols / k;
+    let kk = k * k;
+    let rows: Vec<(Vec<u32>, Vec<f64>)> = (0..nc)
+        .into_par_iter()
+        .map_init(
+            || (vec![u32::MAX; nc], Vec::new(), Vec::new()),
+            |(mark, cols, acc): &mut (Vec<u32>, Vec<u32>, Vec<f64>), g| {
+                cols.clear();
+                acc.clear();
+                for q in 0..k {
+                    for kr in r.range(g * k + q) {
+                        let (m, rv) = (r.col_idx[kr] as usize, r.vals[kr]);
+                        for ka in ap.range(m) {
+                            let c = ap.col_idx[ka] as usize;
+                            let cb = c / k;
+                            if mark[cb] == u32::MAX {
+                                mark[cb] = cols.len() as u32;
+                                cols.push(cb as u32);
+                                acc.resize(acc.len() + kk, 0.0);
+                            }
+                            acc[mark[cb] as usize * kk + q * k + c % k] += rv * ap.vals[ka];
+                        }
+                    }
+                }
+                let mut order: Vec<usize> = (0..cols.len()).collect();
+                order.sort_unstable_by_key(|&s| cols[s]);
+                let oc: Vec<u32> = order.iter().map(|&s| cols[s]).collect();
+                let mut ov = Vec::with_capacity(acc.len());
+                for &s in &order {
+                    ov.extend_from_slice(&acc[s * kk..(s + 1) * kk]);
+                }
+                for &c in cols.iter() {
+                    mark[c as usize] = u32::MAX;
+                }
+                let diag = oc.binary_search(&(g as u32)).ok();
+                for q in 0..k {
+                    let zero = (0..oc.len()).all(|b| (0..k).all(|t| ov[b * kk + q * k + t] == 0.0));
+                    if let (true, Some(d)) = (zero, diag) {
+                        ov[d * kk + q * k + q] = 1.0;
+                    }
+                }
+                (oc, ov)
+            },
+        )
+        .collect();
+    assemble(k, nc, nc, rows)
+}
+
+/// The near-null space of the affine motions `x -> M x + t` of vertices at
+/// `x` (block size 3): row-major `3 n` x [`AFFINE_MODES`], `r` taken from the
+/// centroid. Held rows are harmless (they belong to no aggregate).
+fn affine_modes(x: &[[f64; 3]]) -> Vec<f64> {
+    const K: usize = AFFINE_MODES;
+    let n = x.len().max(1) as f64;
+    let mut c = [0.0; 3];
+    for p in x {
+        for d in 0..3 {
+            c[d] += p[d] / n;
+        }
+    }
+    let mut b = vec![0f64; 3 * x.len() * K];
+    for (i, p) in x.iter().enumerate() {
+        let r = [p[0] - c[0], p[1] - c[1], p[2] - c[2]];
+        for a in 0..3 {
+            let row = &mut b[(3 * i + a) * K..(3 * i + a + 1) * K];
+            row[a] = 1.0;
+            row[3 + 3 * a..6 + 3 * a].copy_from_slice(&r);
+        }
+    }
+    b
 }
 
 #[cfg(test)]
@@ -979,6 +1403,121 @@ mod tests {
         assert!((a1 - a2).abs() < 1e-10 * a1.abs(), "{a1} vs {a2}");
         let pos: f64 = u.iter().zip(&mu).map(|(a, b)| a * b).sum();
         assert!(pos > 0.0);
+    }
+
+    /// Positions of `grid`'s nodes on a gently curved sheet.
+    fn grid_positions(nx: usize, ny: usize) -> Vec<[f64; 3]> {
+        (0..nx * ny)
+            .map(|v| {
+                let (x, y) = ((v % nx) as f64, (v / nx) as f64);
+                [x, y, 0.02 * (x * x + y * y)]
+            })
+            .collect()
+    }
+
+    #[test]
+    fn affine_vcycle_is_symmetric_with_wide_coarse_blocks() {
+        let (nx, ny) = (40, 30);
+        let opts = AmgOptions {
+            max_coarse: 300,
+            ..Default::default()
+        };
+        let h = Hierarchy::build_affine(grid(nx, ny, 3, 17), &opts, &grid_positions(nx, ny), None)
+            .unwrap();
+        assert!(h.affine && h.levels.len() >= 2, "{:?}", h.sizes());
+        assert_eq!(h.levels[1].a.bs, AFFINE_MODES);
+        assert_eq!(h.levels[0].p.cols, h.levels[1].a.rows * AFFINE_MODES);
+        let n = h.n();
+        let u = rhs(n);
+        let v: Vec<f64> = (0..n).map(|i| ((i as f64) * 1.3).cos()).collect();
+        let (mu, mv) = (h.vcycle(&u), h.vcycle(&v));
+        let a1: f64 = v.iter().zip(&mu).map(|(a, b)| a * b).sum();
+        let a2: f64 = u.iter().zip(&mv).map(|(a, b)| a * b).sum();
+        assert!((a1 - a2).abs() < 1e-10 * a1.abs(), "{a1} vs {a2}");
+        assert!(u.iter().zip(&mu).map(|(a, b)| a * b).sum::<f64>() > 0.0);
+        // A rebuild with new values keeps every pattern and the tentative P.
+        let mut a2 = grid(nx, ny, 3, 17);
+        a2.vals.iter_mut().for_each(|v| *v *= 2.0);
+        let h2 = Hierarchy::build_affine(a2, &opts, &[], Some(&h));
+        assert!(h2.is_err(), "positions are checked even when reused");
+        let mut a2 = grid(nx, ny, 3, 17);
+        a2.vals.iter_mut().for_each(|v| *v *= 2.0);
+        let h2 = Hierarchy::build_affine(a2, &opts, &grid_positions(nx, ny), Some(&h)).unwrap();
+        for (x, y) in h.levels.iter().zip(&h2.levels) {
+            assert!(x.a.same_pattern(&y.a) && x.p.same_pattern(&y.p));
+            assert_eq!(x.tentative, y.tentative);
+        }
+        // Twice the matrix: half the preconditioned vector.
+        let mu2 = h2.vcycle(&u);
+        for (a, b) in mu.iter().zip(&mu2) {
+            assert!((a - 2.0 * b).abs() <= 1e-9 * (1.0 + a.abs()), "{a} vs 2 x {b}");
+        }
+    }
+
+    #[test]
+    fn tentative_prolongator_interpolates_the_affine_motions() {
+        let (nx, ny) = (20, 15);
+        let a = grid(nx, ny, 3, 11);
+        let (agg, naggs) = aggregate(&a, 0.08);
+        let b = affine_modes(&grid_positions(nx, ny));
+        let k = AFFINE_MODES;
+        let (p0, bc) = tentative_nullspace(3, &agg, naggs, &b, k);
+        assert_eq!((p0.rows, p0.cols), (3 * a.rows, k * naggs));
+        // P0 Bc = B on every aggregated row, column by column.
+        for j in 0..k {
+            let col: Vec<f64> = (0..naggs * k).map(|r| bc[r * k + j]).collect();
+            let mut y = vec![0f64; p0.rows];
+            p0.matvec(&col, &mut y);
+            for (r, yr) in y.iter().enumerate() {
+                let want = if agg[r / 3] == u32::MAX { 0.0 } else { b[r * k + j] };
+                assert!((yr - want).abs() < 1e-9 * (1.0 + want.abs()), "mode {j} row {r}: {yr} vs {want}");
+            }
+        }
+    }
+
+    #[test]
+    fn regrouped_blocks_hold_every_entry() {
+        let g = grid(9, 8, 3, 5);
+        let w = g.regroup(1, 1);
+        let a = Bsr {
+            bs: 1,
+            rows: w.rows,
+            cols: 3 * g.cols,
+            row_ptr: w.row_ptr,
+            col_idx: w.col_idx,
+            vals: w.vals,
+        };
+        for (br, bc) in [(3, 12), (12, 3), (12, 12), (4, 4)] {
+            let (rows, cols) = (a.rows - a.rows % br, a.cols - a.cols % bc);
+            // Trim to a multiple of the block shape.
+            let parts = (0..rows)
+                .map(|i| {
+                    let ks = a.range(i).filter(|&k| (a.col_idx[k] as usize) < cols);
+                    let ks: Vec<usize> = ks.collect();
+                    (ks.iter().map(|&k| a.col_idx[k]).collect(), ks.iter().map(|&k| a.vals[k]).collect())
+                })
+                .collect();
+            let t = assemble(1, rows, cols, parts);
+            let w = t.regroup(br, bc);
+            let mut dense = vec![0f64; rows * cols];
+            for i in 0..w.rows {
+                for k in w.row_ptr[i] as usize..w.row_ptr[i + 1] as usize {
+                    let j = w.col_idx[k] as usize;
+                    for q in 0..br {
+                        for u in 0..bc {
+                            dense[(i * br + q) * cols + j * bc + u] += w.vals[k * br * bc + q * bc + u];
+                        }
+                    }
+                }
+            }
+            let mut want = vec![0f64; rows * cols];
+            for i in 0..rows {
+                for k in t.range(i) {
+                    want[i * cols + t.col_idx[k] as usize] = t.vals[k];
+                }
+            }
+            assert_eq!(dense, want, "{br} x {bc}");
+        }
     }
 
     #[test]

@@ -17,14 +17,14 @@
 //! [`crate::matrix::block_texel`]): the matrix of the step; 2 `dense_inv` (the
 //! dense coarse inverse); 4 `x` (read); 5 `b` (read); 6 `y` (written); 7 `dinv`.
 
-use crate::amg::{Bsr, Hierarchy};
+use crate::amg::{Bsr, Hierarchy, WideBlocks, AFFINE_MODES};
 use crate::device::{dispatch, Bind, Context, Kernel, Shader, ROW_WG};
 use crate::matrix::{block_texel, check_texture_columns, GpuMatrix, MatrixStorage};
 use crate::{GpuError, CMAX};
 
 pub(crate) const SOURCE: &str = include_str!("../../shaders/amg.wgsl");
 
-const BINDINGS: [(u32, Bind); 8] = [
+const BINDINGS: [(u32, Bind); 9] = [
     (0, Bind::Uniform),
     (1, Bind::Read),
     (2, Bind::Read),
@@ -33,6 +33,7 @@ const BINDINGS: [(u32, Bind); 8] = [
     (5, Bind::Read),
     (6, Bind::ReadWrite),
     (7, Bind::Read),
+    (8, Bind::Read),
 ];
 
 /// Parameters of one dispatch, as `AmgParams` in `amg.wgsl`.
@@ -50,14 +51,19 @@ pub(crate) struct AmgParams {
 
 pub(crate) struct AmgKernels {
     shader: Shader,
+    /// Texture layouts `bs` = 3, 1.
     spmv: [Kernel; 2],
-    jacobi: [Kernel; 2],
+    /// Diagonal blocks of 3, 1 and [`AFFINE_MODES`].
+    jacobi: [Kernel; 3],
+    /// `spmv_wide` for the block shapes of an affine hierarchy.
+    wide: Vec<((usize, usize), Kernel)>,
     dense: Kernel,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 enum Op {
     Spmv,
+    SpmvWide,
     Jacobi,
     Dense,
 }
@@ -66,6 +72,7 @@ impl AmgKernels {
     pub fn new(ctx: &Context) -> Result<Self, GpuError> {
         let shader = Shader::new(ctx, "amg.wgsl", SOURCE, &BINDINGS)?;
         let tw = ctx.texture_width() as f64;
+        const K: usize = AFFINE_MODES;
         let k = |label, entry, bs: f64| {
             Kernel::with_constants(&shader, label, entry, &[("BS", bs), ("TW", tw)])
         };
@@ -77,30 +84,66 @@ impl AmgKernels {
             jacobi: [
                 k("amg_jacobi_bs3", "jacobi", 3.0),
                 k("amg_jacobi_bs1", "jacobi", 1.0),
+                k("amg_jacobi_bs12", "jacobi", AFFINE_MODES as f64),
             ],
             dense: k("amg_dense", "dense", 1.0),
+            wide: [
+                ((3, K), "amg_spmv_wide_3x12"),
+                ((K, 3), "amg_spmv_wide_12x3"),
+                ((K, K), "amg_spmv_wide_12x12"),
+            ]
+            .into_iter()
+            .map(|((br, bc), label)| {
+                let c = [("BR", br as f64), ("BC", bc as f64), ("TW", tw)];
+                ((br, bc), Kernel::with_constants(&shader, label, "spmv_wide", &c))
+            })
+            .collect(),
             shader,
         })
     }
 
-    fn kernel(&self, op: Op, bs: usize) -> &Kernel {
-        let i = usize::from(bs != 3);
-        match op {
-            Op::Spmv => &self.spmv[i],
-            Op::Jacobi => &self.jacobi[i],
-            Op::Dense => &self.dense,
+    /// The kernel of `op` for blocks of `shape` (the matrix's layout for the
+    /// products, the diagonal blocks for `Jacobi`).
+    fn kernel(&self, op: Op, shape: (usize, usize)) -> &Kernel {
+        match (op, shape.0) {
+            (Op::Spmv, 3) => &self.spmv[0],
+            (Op::Spmv, _) => &self.spmv[1],
+            (Op::SpmvWide, _) => {
+                let w = self.wide.iter().find(|(s, _)| *s == shape);
+                &w.expect("a wide-block kernel for every shape of an affine hierarchy").1
+            }
+            (Op::Jacobi, 3) => &self.jacobi[0],
+            (Op::Jacobi, 1) => &self.jacobi[1],
+            (Op::Jacobi, _) => &self.jacobi[2],
+            (Op::Dense, _) => &self.dense,
         }
     }
 }
 
-/// One block-CSR matrix on the GPU: row pointers in a buffer, blocks (f32) and
-/// block columns in a texture.
+/// How a [`GpuBsr`] is stored, and which kernel reads it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Layout {
+    /// `bs` x `bs` blocks (`bs` = 3 or 1), `bs` texels per block, the block
+    /// column in the first texel's `.w` ([`block_texel`]): `spmv`.
+    Blocks(usize),
+    /// `br` x `bc` blocks, each row packed four values to a texel, block
+    /// columns in a buffer: `spmv_wide`, one invocation per scalar row (the
+    /// affine hierarchy's `P`, `R` and coarse `A`).
+    Wide(usize, usize),
+}
+
+/// One block-CSR matrix on the GPU: row pointers (and, wide, block columns)
+/// in buffers, the blocks (f32) in a texture.
 struct GpuBsr {
+    layout: Layout,
     row_ptr: wgpu::Buffer,
+    /// Block columns ([`Layout::Wide`] only).
+    cols: Option<wgpu::Buffer>,
     /// `None`: the PCG's own matrix ([`GpuMatrix`], same layout), whose values
     /// are written with it.
     texture: Option<wgpu::Texture>,
     view: wgpu::TextureView,
+    /// Rows of its kernel's dispatch: block rows, scalar rows if wide.
     rows: usize,
 }
 
@@ -108,20 +151,51 @@ fn f32s(v: &[f64]) -> Vec<f32> {
     v.iter().map(|&a| a as f32).collect()
 }
 
+/// Texels per `br` x `bc` block of the wide layout: `ceil(bc / 4)` per row.
+fn wide_texels(br: usize, bc: usize) -> usize {
+    br * bc.div_ceil(4)
+}
+
+/// Texel `t` of the wide layout: values `4 e..4 e + 4` of row `q` of block `k`
+/// (`t = (k br + q) ceil(bc / 4) + e`), zero-padded.
+fn wide_texel(w: &WideBlocks, t: usize, out: &mut [f32]) {
+    let tpr = w.bc.div_ceil(4);
+    let (kq, e) = (t / tpr, t % tpr);
+    let row = &w.vals[kq * w.bc..(kq + 1) * w.bc];
+    for (u, o) in out.iter_mut().enumerate() {
+        *o = row.get(4 * e + u).map_or(0.0, |&v| v as f32);
+    }
+}
+
 impl GpuBsr {
-    fn upload(ctx: &Context, what: &str, m: &Bsr) -> Result<GpuBsr, GpuError> {
-        check_texture_columns(&format!("AMG {what}"), m.cols)?;
-        let texels = m.bs * m.nnz_blocks();
+    /// Upload `m` in `layout` (`Blocks(m.bs)`, or `Wide` with shapes that
+    /// divide `m`'s scalar rows and columns).
+    fn upload(ctx: &Context, what: &str, m: &Bsr, layout: Layout) -> Result<GpuBsr, GpuError> {
+        let (texels, row_ptr, cols, rows) = match layout {
+            Layout::Blocks(bs) => {
+                debug_assert_eq!(bs, m.bs);
+                check_texture_columns(&format!("AMG {what}"), m.cols)?;
+                (bs * m.nnz_blocks(), m.row_ptr.clone(), None, m.rows)
+            }
+            Layout::Wide(br, bc) => {
+                let w = m.regroup(br, bc);
+                let cols = ctx.storage_init(&format!("AMG {what} block columns"), &w.col_idx)?;
+                // spmv_wide runs one invocation per scalar row.
+                (wide_texels(br, bc) * w.col_idx.len(), w.row_ptr, Some(cols), w.rows * br)
+            }
+        };
         let texture = ctx.data_texture(
-            &format!("AMG {what} ({} blocks of {} texels)", m.nnz_blocks(), m.bs),
+            &format!("AMG {what} ({texels} texels, {layout:?})"),
             texels as u64,
             false,
         )?;
         let g = GpuBsr {
-            row_ptr: ctx.storage_init(&format!("AMG {what} row pointers"), &m.row_ptr)?,
+            layout,
+            row_ptr: ctx.storage_init(&format!("AMG {what} row pointers"), &row_ptr)?,
+            cols,
             view: texture.create_view(&Default::default()),
             texture: Some(texture),
-            rows: m.rows,
+            rows,
         };
         g.write(ctx, m);
         Ok(g)
@@ -131,7 +205,9 @@ impl GpuBsr {
     fn shared(m: &GpuMatrix, rows: usize) -> Option<GpuBsr> {
         match &m.storage {
             MatrixStorage::BlockTexture { view, .. } => Some(GpuBsr {
+                layout: Layout::Blocks(3),
                 row_ptr: m.row_ptr.clone(),
+                cols: None,
                 texture: None,
                 view: view.clone(),
                 rows,
@@ -141,10 +217,18 @@ impl GpuBsr {
     }
 
     fn write(&self, ctx: &Context, m: &Bsr) {
-        if let Some(t) = &self.texture {
-            ctx.write_data_texture(t, m.bs * m.nnz_blocks(), |t, out| {
-                block_texel(m.bs, &m.col_idx, &m.vals, t, out)
-            });
+        let Some(t) = &self.texture else {
+            return;
+        };
+        match self.layout {
+            Layout::Blocks(bs) => ctx.write_data_texture(t, bs * m.nnz_blocks(), |t, out| {
+                block_texel(bs, &m.col_idx, &m.vals, t, out)
+            }),
+            Layout::Wide(br, bc) => {
+                let w = m.regroup(br, bc);
+                let texels = wide_texels(br, bc) * w.col_idx.len();
+                ctx.write_data_texture(t, texels, |t, out| wide_texel(&w, t, out));
+            }
         }
     }
 }
@@ -155,6 +239,8 @@ struct GpuLevel {
     r: GpuBsr,
     /// `omega D^-1` (the smoother weight folded in).
     dinv: wgpu::Buffer,
+    /// Size of the diagonal blocks of `dinv`.
+    dinv_bs: usize,
 }
 
 fn scaled_dinv(lv: &crate::amg::Level) -> Vec<f32> {
@@ -163,7 +249,6 @@ fn scaled_dinv(lv: &crate::amg::Level) -> Vec<f32> {
 
 /// The uploaded hierarchy.
 pub(crate) struct GpuHierarchy {
-    bs: usize,
     levels: Vec<GpuLevel>,
     coarse_inv: wgpu::Buffer,
     /// Unknowns per level, the coarsest last.
@@ -178,6 +263,7 @@ pub(crate) struct GpuHierarchy {
 /// Whether two hierarchies have the same level patterns (values-only upload).
 pub(crate) fn same_patterns(a: &Hierarchy, b: &Hierarchy) -> bool {
     a.bs == b.bs
+        && a.affine == b.affine
         && a.opts.sweeps == b.opts.sweeps
         && a.levels.len() == b.levels.len()
         && a.coarse.rows == b.coarse.rows
@@ -195,25 +281,33 @@ impl GpuHierarchy {
         fine: Option<&GpuMatrix>,
     ) -> Result<GpuHierarchy, GpuError> {
         let mut levels = Vec::with_capacity(h.levels.len());
+        // An affine hierarchy: P, R and every A past the finest are wide.
+        const K: usize = AFFINE_MODES;
         for (l, lv) in h.levels.iter().enumerate() {
             let shared = match fine {
                 Some(m) if l == 0 && h.bs == 3 => GpuBsr::shared(m, lv.a.rows),
                 _ => None,
             };
+            let bs = lv.a.bs;
+            let (al, pl, rl) = match h.affine {
+                true if bs > 3 => (Layout::Wide(bs, bs), Layout::Wide(bs, K), Layout::Wide(K, bs)),
+                true => (Layout::Blocks(bs), Layout::Wide(bs, K), Layout::Wide(K, bs)),
+                false => (Layout::Blocks(bs), Layout::Blocks(bs), Layout::Blocks(bs)),
+            };
             let a = match shared {
                 Some(a) => a,
-                None => GpuBsr::upload(ctx, &format!("A_{l}"), &lv.a)?,
+                None => GpuBsr::upload(ctx, &format!("A_{l}"), &lv.a, al)?,
             };
             levels.push(GpuLevel {
                 a,
-                p: GpuBsr::upload(ctx, &format!("P_{l}"), &lv.p)?,
-                r: GpuBsr::upload(ctx, &format!("R_{l}"), &lv.r)?,
+                p: GpuBsr::upload(ctx, &format!("P_{l}"), &lv.p, pl)?,
+                r: GpuBsr::upload(ctx, &format!("R_{l}"), &lv.r, rl)?,
                 dinv: ctx.storage_init(&format!("AMG w D_{l}^-1"), &scaled_dinv(lv))?,
+                dinv_bs: bs,
             });
         }
         let dummy_texture = ctx.data_texture("AMG unused texture binding", 1, false)?;
         Ok(GpuHierarchy {
-            bs: h.bs,
             levels,
             coarse_inv: ctx.storage_init("AMG coarsest inverse", &f32s(&h.coarse_inv))?,
             sizes: h.sizes(),
@@ -250,6 +344,8 @@ impl GpuHierarchy {
 /// One recorded dispatch of the V-cycle.
 struct Step {
     op: Op,
+    /// Block shape of the kernel ([`AmgKernels::kernel`]).
+    shape: (usize, usize),
     bg: wgpu::BindGroup,
     dims: (u32, u32),
     /// Kept alive for the bind group.
@@ -259,7 +355,6 @@ struct Step {
 
 /// Per-level vectors and the recorded V-cycle for up to `cmax` columns.
 pub(crate) struct VcycleWorkspace {
-    bs: usize,
     steps: Vec<Step>,
     /// Level vectors (kept alive for the bind groups; poisoned by tests).
     pub vectors: Vec<wgpu::Buffer>,
@@ -276,7 +371,6 @@ impl VcycleWorkspace {
         cmax: usize,
     ) -> Result<VcycleWorkspace, GpuError> {
         let cmax = cmax.clamp(1, CMAX);
-        let bs = h.bs;
         let nl = h.depth();
         let mut vectors = Vec::new();
         let mut vec = |what: String, n: usize| -> Result<usize, GpuError> {
@@ -349,11 +443,19 @@ impl VcycleWorkspace {
                     (5, b.unwrap_or(d)),
                     (6, y),
                     (7, dinv.unwrap_or(d)),
+                    (8, m.and_then(|m| m.cols.as_ref()).unwrap_or(d)),
                 ],
                 &[(3, m.map_or(&h.dummy_view, |m| &m.view))],
             )?;
+            let (op, shape) = match (op, m.map(|m| m.layout)) {
+                (Op::Spmv, Some(Layout::Wide(br, bc))) => (Op::SpmvWide, (br, bc)),
+                (Op::Spmv, Some(Layout::Blocks(bs))) => (op, (bs, bs)),
+                (Op::Jacobi, _) => (op, (n / rows, n / rows)),
+                _ => (op, (1, 1)),
+            };
             steps.push(Step {
                 op,
+                shape,
                 bg,
                 dims: ctx.dims("AMG kernels", groups)?,
                 params,
@@ -364,6 +466,7 @@ impl VcycleWorkspace {
         for (l, lv) in h.levels.iter().enumerate() {
             let n = h.sizes[l];
             let rows = lv.a.rows;
+            let jrows = n / lv.dinv_bs;
             let (b, x, t) = (
                 buf(slots[l].0, "b"),
                 buf(slots[l].1, "x"),
@@ -372,7 +475,7 @@ impl VcycleWorkspace {
             let w = 1.0;
             step(
                 Op::Jacobi,
-                rows,
+                jrows,
                 n,
                 n,
                 0,
@@ -401,7 +504,7 @@ impl VcycleWorkspace {
                 )?;
                 step(
                     Op::Jacobi,
-                    rows,
+                    jrows,
                     n,
                     n,
                     1,
@@ -467,6 +570,7 @@ impl VcycleWorkspace {
         for (l, lv) in h.levels.iter().enumerate().rev() {
             let n = h.sizes[l];
             let rows = lv.a.rows;
+            let jrows = n / lv.dinv_bs;
             let (b, x, t) = (
                 buf(slots[l].0, "b"),
                 buf(slots[l].1, "x"),
@@ -506,7 +610,7 @@ impl VcycleWorkspace {
                 )?;
                 step(
                     Op::Jacobi,
-                    rows,
+                    jrows,
                     n,
                     n,
                     1,
@@ -520,7 +624,7 @@ impl VcycleWorkspace {
                 )?;
             }
         }
-        Ok(VcycleWorkspace { bs, steps, vectors })
+        Ok(VcycleWorkspace { steps, vectors })
     }
 
     /// The pipelines of the recorded steps for `ncols` columns.
@@ -532,7 +636,7 @@ impl VcycleWorkspace {
     ) -> Result<Vec<wgpu::ComputePipeline>, GpuError> {
         self.steps
             .iter()
-            .map(|s| k.kernel(s.op, self.bs).pipeline(ctx, ncols))
+            .map(|s| k.kernel(s.op, s.shape).pipeline(ctx, ncols))
             .collect()
     }
 

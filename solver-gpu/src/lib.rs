@@ -80,13 +80,20 @@ pub const CMAX: usize = 8;
 pub enum Preconditioner {
     /// `M = blockdiag(A)` (3x3 blocks, or plain Jacobi for the scalar system).
     BlockJacobi,
-    /// One smoothed-aggregation AMG V-cycle ([`amg`], [`amg_gpu`]); the default.
-    #[default]
+    /// One smoothed-aggregation AMG V-cycle ([`amg`], [`amg_gpu`]), the
+    /// translations as near-null space.
     Amg,
+    /// The same V-cycle on a hierarchy whose near-null space is the 12 affine
+    /// motions of the vertices ([`amg::Hierarchy::build_affine`]), for block
+    /// matrices whose vertex positions were given
+    /// ([`SpdSolver::set_vertex_positions`]); otherwise as `Amg`.
+    #[default]
+    AffineAmg,
 }
 
 impl Preconditioner {
-    /// From `METRICDEFORM_GPU_PRECONDITIONER` (`jacobi` or `amg`), else the default.
+    /// From `METRICDEFORM_GPU_PRECONDITIONER` (`jacobi`, `amg` or
+    /// `affine-amg`), else the default.
     pub fn from_env() -> Preconditioner {
         match std::env::var("METRICDEFORM_GPU_PRECONDITIONER")
             .unwrap_or_default()
@@ -96,7 +103,8 @@ impl Preconditioner {
             "jacobi" | "block-jacobi" | "block_jacobi" | "blockjacobi" => {
                 Preconditioner::BlockJacobi
             }
-            _ => Preconditioner::Amg,
+            "amg" => Preconditioner::Amg,
+            _ => Preconditioner::AffineAmg,
         }
     }
 }
@@ -280,6 +288,7 @@ pub fn open_with(opts: OpenOptions) -> Result<GpuSolver, GpuError> {
         amg_gpu: None,
         amg_fine_upload: 0,
         amg_setup_seconds: 0.0,
+        positions: None,
         mixed_precision: MixedPrecision::default(),
         mixed_kernels: None,
         mixed: None,
@@ -337,6 +346,8 @@ pub struct GpuSolver {
     /// matrix of that upload).
     amg_fine_upload: usize,
     amg_setup_seconds: f64,
+    /// Vertex positions of the block rows (the affine near-null space).
+    positions: Option<Vec<[f64; 3]>>,
     mixed_precision: MixedPrecision,
     /// The f64 kernels of the mixed-precision solve (compiled on first use).
     mixed_kernels: Option<MixedKernels>,
@@ -429,7 +440,7 @@ impl GpuSolver {
         self.stats
     }
 
-    /// Choose the preconditioner (default [`Preconditioner::Amg`], or
+    /// Choose the preconditioner (default [`Preconditioner::AffineAmg`], or
     /// `METRICDEFORM_GPU_PRECONDITIONER=jacobi|amg`); a prepared matrix gets
     /// the new one at once.
     pub fn set_preconditioner(&mut self, p: Preconditioner) -> Result<(), GpuError> {
@@ -580,12 +591,13 @@ impl GpuSolver {
     }
 
     /// The preconditioner of the prepared matrix: block Jacobi when AMG was not
-    /// asked for or its setup failed (coarsening stalled).
+    /// asked for or its setup failed (coarsening stalled); `Amg` when the
+    /// affine hierarchy had no positions or failed.
     pub fn active_preconditioner(&self) -> Preconditioner {
-        if self.amg_gpu.is_some() {
-            Preconditioner::Amg
-        } else {
-            Preconditioner::BlockJacobi
+        match (&self.amg_gpu, &self.amg_host) {
+            (Some(_), Some(h)) if h.affine => Preconditioner::AffineAmg,
+            (Some(_), _) => Preconditioner::Amg,
+            _ => Preconditioner::BlockJacobi,
         }
     }
 
@@ -606,7 +618,7 @@ impl GpuSolver {
 
     /// Build (or refresh) the AMG hierarchy of the prepared host matrix.
     fn setup_amg(&mut self) -> Result<(), GpuError> {
-        if self.preconditioner != Preconditioner::Amg {
+        if self.preconditioner == Preconditioner::BlockJacobi {
             self.amg_host = None;
             self.amg_gpu = None;
             return Ok(());
@@ -622,7 +634,18 @@ impl GpuSolver {
             vals: h.vals.clone(),
         };
         let prev = self.amg_host.take();
-        let built = amg::Hierarchy::build(fine, &self.amg_opts, prev.as_ref());
+        let positions = match (&self.positions, self.preconditioner) {
+            (Some(x), Preconditioner::AffineAmg) if h.bs == 3 && x.len() == h.rows => Some(x),
+            _ => None,
+        };
+        let built = match positions {
+            Some(x) => amg::Hierarchy::build_affine(fine.clone(), &self.amg_opts, x, prev.as_ref())
+                .or_else(|e| {
+                    log::warn!("affine AMG setup failed ({e}); translations only");
+                    amg::Hierarchy::build(fine, &self.amg_opts, prev.as_ref())
+                }),
+            None => amg::Hierarchy::build(fine, &self.amg_opts, prev.as_ref()),
+        };
         let hier = match built {
             Ok(hier) => hier,
             Err(e) => {
@@ -844,6 +867,7 @@ impl GpuSolver {
             )));
         }
         self.stats = SolveStats::default();
+        let t = std::time::Instant::now();
         let mut worst = 0.0f64;
         let mut iterations = 0;
         for c0 in (0..ncols).step_by(CMAX) {
@@ -869,6 +893,13 @@ impl GpuSolver {
                 other => other.into(),
             })?;
         }
+        log::debug!(
+            "GPU solve: {n} unknowns x {ncols}, {iterations} iterations, {} rounds ({} f32), \
+             residual {worst:.1e}, {:.3} s",
+            self.stats.rounds,
+            self.stats.f32_rounds,
+            t.elapsed().as_secs_f64()
+        );
         Ok(SolveInfo {
             iterations,
             residual: worst,
@@ -940,6 +971,10 @@ impl SpdSolver for GpuSolver {
 
     fn set_tolerance(&mut self, relative_residual: f64) {
         self.tol = relative_residual.max(1e-15);
+    }
+
+    fn set_vertex_positions(&mut self, positions: &[[f64; 3]]) {
+        self.positions = (!positions.is_empty()).then(|| positions.to_vec());
     }
 
     fn name(&self) -> &str {
