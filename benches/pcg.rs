@@ -15,6 +15,7 @@
 use metricdeform::shape::{ShapeModel, ShapeWeights};
 use metricdeform::Mesh;
 use solver_cpu::{BlockPcgSolver, BlockSym3, CholeskySolver, IsoRingSym3, SpdSolver};
+use solver_gpu::Preconditioner;
 use std::path::Path;
 use std::time::Instant;
 
@@ -185,8 +186,78 @@ fn row(label: &str, mesh: &Mesh, quick_direct: bool) {
     }
 }
 
+/// The fine-tune system (Eq. 8's Hessian, `k_m = k_l = 100 k_f`) on the GPU
+/// with each AMG near-null space: translations, and the vertices' affine
+/// motions (`set_vertex_positions`, as the pipeline does).
+fn fine_tune_row(label: &str, mesh: &Mesh) {
+    let topo = metricdeform::topology::Topology::build(mesh);
+    let mut model = ShapeModel::new(mesh, &topo, Vec::new()).unwrap();
+    let (nf, n) = (mesh.num_faces(), mesh.num_vertices());
+    let w = metricdeform::deform::Options::default().fine_tune;
+    model
+        .assemble_and_factor(mesh, &mesh.positions, &vec![1.0; nf], &vec![1.0; n], &w)
+        .unwrap();
+    // A right-hand side like the constrained step's: a smooth field.
+    let b: Vec<f64> = (0..3 * n)
+        .map(|i| ((i / 3) as f64 * 0.001 + (i % 3) as f64).sin())
+        .collect();
+    let (iso, fixed) = model.system();
+    let b: Vec<f64> = b
+        .iter()
+        .enumerate()
+        .map(|(i, &v)| if fixed[i / 3] { 0.0 } else { v })
+        .collect();
+    let a = iso.to_blocks();
+    let positions: Vec<[f64; 3]> = mesh.positions.iter().map(|p| p.to_array()).collect();
+    for p in [Preconditioner::Amg, Preconditioner::AffineAmg] {
+        let mut gpu = match solver_gpu::open() {
+            Ok(g) => g,
+            Err(e) => {
+                return println!("| {label} fine-tune | {nf} | gpu | unavailable: {e} | | | | |")
+            }
+        };
+        let name = gpu.adapter_name().to_string();
+        gpu.set_preconditioner(p).unwrap();
+        gpu.set_vertex_positions(&positions);
+        gpu.set_tolerance(1e-8); // the pipeline's GPU tolerance
+        let t = Instant::now();
+        gpu.prepare_blocks(&a, fixed).unwrap();
+        let t_prep = t.elapsed().as_secs_f64();
+        let h = gpu
+            .amg_hierarchy()
+            .map(|h| (h.sizes(), h.operator_complexity()));
+        let mut x = vec![0.0; b.len()];
+        let t = Instant::now();
+        let res = gpu.solve_with_guess(&b, &mut x, 1);
+        let t_solve = t.elapsed().as_secs_f64();
+        let st = gpu.last_stats();
+        match res {
+            Err(e) => println!("| {label} fine-tune | {nf} | gpu ({name}, {p:?}) | failed: {e} | | | | |"),
+            Ok(_) => println!(
+                "| {label} fine-tune | {nf} | gpu ({name}; {:?}, levels {:?}, operator complexity {:.2}) | {t_prep:.3} | {t_solve:.3} | {} ({} rounds) | {:.2} | {:.1e} |",
+                gpu.active_preconditioner(),
+                h.as_ref().map(|h| h.0.clone()).unwrap_or_default(),
+                h.map_or(0.0, |h| h.1),
+                st.iterations,
+                st.rounds,
+                1e3 * t_solve / st.iterations.max(1) as f64,
+                residual(&a, fixed, &x, &b)
+            ),
+        }
+    }
+}
+
 fn main() {
     let quick = std::env::args().any(|a| a == "--quick");
+    if std::env::args().any(|a| a == "--fine-tune") {
+        println!("| system | faces | solver | prepare s | solve s | iterations | ms / iteration | relative residual |");
+        println!("|---|---|---|---|---|---|---|---|");
+        fine_tune_row("fandisk", &load("fandisk.obj", 0));
+        if !quick {
+            fine_tune_row("spot-x16", &load("spot.obj", 2));
+        }
+        return;
+    }
     println!("| mesh | faces | solver | prepare s | solve s | iterations | ms / iteration | effective GB/s | relative residual |");
     println!("|---|---|---|---|---|---|---|---|---|");
     row("fandisk", &load("fandisk.obj", 0), true);

@@ -17,6 +17,14 @@
 //!    from a few power iterations; `D` = block diagonal); `R = P^T` is stored.
 //! 4. **Coarse operator** `A_c = R (A P)` (two row-parallel sparse products).
 //!
+//! **Affine near-null space** ([`Hierarchy::build_affine`], block size 3, given
+//! the vertex positions): the tentative prolongator interpolates the 12 affine
+//! motions `x -> M x + t` of each aggregate (a QR of the aggregate's rows of
+//! those modes; `k = 12` coarse unknowns per aggregate, a mode the aggregate
+//! cannot carry gives a zero column and a decoupled unit row of `A_c`), and the
+//! coarse levels recurse with their QR factors as near-null space. `P`, `R` are
+//! then scalar, coarse matrices 12x12-block.
+//!
 //! Coarsening stops at `max_coarse` unknowns (or when it stalls, more than 0.8 of
 //! the rows left); the coarsest matrix is inverted densely (Cholesky, f64).
 //!
@@ -747,7 +755,10 @@ impl Hierarchy {
         let t = std::time::Instant::now();
         let coarse_inv =
             dense_spd_inverse(&a.dense_symmetric(), n).ok_or(AmgError::NotPositiveDefinite)?;
-        log::trace!("AMG coarsest {n}: inverse {:.3} s", t.elapsed().as_secs_f64());
+        log::trace!(
+            "AMG coarsest {n}: inverse {:.3} s",
+            t.elapsed().as_secs_f64()
+        );
         Ok(Hierarchy {
             bs,
             affine,
@@ -928,7 +939,10 @@ impl Bsr {
     pub fn regroup(&self, br: usize, bc: usize) -> WideBlocks {
         let bs = self.bs;
         let (srows, scols) = (self.rows * bs, self.cols * bs);
-        assert!(srows % br == 0 && scols % bc == 0, "{srows} x {scols} in {br} x {bc} blocks");
+        assert!(
+            srows % br == 0 && scols % bc == 0,
+            "{srows} x {scols} in {br} x {bc} blocks"
+        );
         let bb = br * bc;
         let parts: Vec<(Vec<u32>, Vec<f64>)> = (0..srows / br)
             .into_par_iter()
@@ -1101,7 +1115,12 @@ fn block_row_product(
 
 /// The `bs` scalar rows (sorted columns) of one block row from
 /// [`block_row_product`]'s column set and `acc`; frees `mark`.
-fn scalar_rows(bs: usize, mark: &mut [u32], cols: &[u32], acc: &[f64]) -> Vec<(Vec<u32>, Vec<f64>)> {
+fn scalar_rows(
+    bs: usize,
+    mark: &mut [u32],
+    cols: &[u32],
+    acc: &[f64],
+) -> Vec<(Vec<u32>, Vec<f64>)> {
     let mut order: Vec<usize> = (0..cols.len()).collect();
     order.sort_unstable_by_key(|&s| cols[s]);
     let sorted: Vec<u32> = order.iter().map(|&s| cols[s]).collect();
@@ -1109,7 +1128,12 @@ fn scalar_rows(bs: usize, mark: &mut [u32], cols: &[u32], acc: &[f64]) -> Vec<(V
         mark[c as usize] = u32::MAX;
     }
     (0..bs)
-        .map(|q| (sorted.clone(), order.iter().map(|&s| acc[s * bs + q]).collect()))
+        .map(|q| {
+            (
+                sorted.clone(),
+                order.iter().map(|&s| acc[s * bs + q]).collect(),
+            )
+        })
         .collect()
 }
 
@@ -1148,7 +1172,12 @@ fn smoothed_scalar_prolongator(a: &Bsr, dinv: &[f64], p0: &Bsr, omega: f64) -> B
             },
         )
         .collect();
-    assemble(1, a.rows * bs, p0.cols, rows.into_iter().flatten().collect())
+    assemble(
+        1,
+        a.rows * bs,
+        p0.cols,
+        rows.into_iter().flatten().collect(),
+    )
 }
 
 /// The coarse operator `R A P` (`p` scalar, `r = P^T`) in `k x k` blocks. A
@@ -1166,7 +1195,12 @@ fn galerkin_blocks(a: &Bsr, p: &Bsr, r: &Bsr, k: usize) -> Bsr {
             },
         )
         .collect();
-    let ap = assemble(1, a.rows * bs, p.cols, ap_rows.into_iter().flatten().collect());
+    let ap = assemble(
+        1,
+        a.rows * bs,
+        p.cols,
+        ap_rows.into_iter().flatten().collect(),
+    );
     let nc = p.cols / k;
     let kk = k * k;
     let rows: Vec<(Vec<u32>, Vec<f64>)> = (0..nc)
@@ -1450,7 +1484,10 @@ mod tests {
         // Twice the matrix: half the preconditioned vector.
         let mu2 = h2.vcycle(&u);
         for (a, b) in mu.iter().zip(&mu2) {
-            assert!((a - 2.0 * b).abs() <= 1e-9 * (1.0 + a.abs()), "{a} vs 2 x {b}");
+            assert!(
+                (a - 2.0 * b).abs() <= 1e-9 * (1.0 + a.abs()),
+                "{a} vs 2 x {b}"
+            );
         }
     }
 
@@ -1469,8 +1506,15 @@ mod tests {
             let mut y = vec![0f64; p0.rows];
             p0.matvec(&col, &mut y);
             for (r, yr) in y.iter().enumerate() {
-                let want = if agg[r / 3] == u32::MAX { 0.0 } else { b[r * k + j] };
-                assert!((yr - want).abs() < 1e-9 * (1.0 + want.abs()), "mode {j} row {r}: {yr} vs {want}");
+                let want = if agg[r / 3] == u32::MAX {
+                    0.0
+                } else {
+                    b[r * k + j]
+                };
+                assert!(
+                    (yr - want).abs() < 1e-9 * (1.0 + want.abs()),
+                    "mode {j} row {r}: {yr} vs {want}"
+                );
             }
         }
     }
@@ -1494,7 +1538,10 @@ mod tests {
                 .map(|i| {
                     let ks = a.range(i).filter(|&k| (a.col_idx[k] as usize) < cols);
                     let ks: Vec<usize> = ks.collect();
-                    (ks.iter().map(|&k| a.col_idx[k]).collect(), ks.iter().map(|&k| a.vals[k]).collect())
+                    (
+                        ks.iter().map(|&k| a.col_idx[k]).collect(),
+                        ks.iter().map(|&k| a.vals[k]).collect(),
+                    )
                 })
                 .collect();
             let t = assemble(1, rows, cols, parts);
@@ -1505,7 +1552,8 @@ mod tests {
                     let j = w.col_idx[k] as usize;
                     for q in 0..br {
                         for u in 0..bc {
-                            dense[(i * br + q) * cols + j * bc + u] += w.vals[k * br * bc + q * bc + u];
+                            dense[(i * br + q) * cols + j * bc + u] +=
+                                w.vals[k * br * bc + q * bc + u];
                         }
                     }
                 }

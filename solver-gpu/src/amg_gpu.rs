@@ -15,7 +15,9 @@
 //! Bindings of `amg.wgsl` (group 0): 0 `P` uniform [`AmgParams`]; 1 `row_ptr`
 //! and 3 `blocks` (RGBA32F texture, `bs` texels per block, the layout of
 //! [`crate::matrix::block_texel`]): the matrix of the step; 2 `dense_inv` (the
-//! dense coarse inverse); 4 `x` (read); 5 `b` (read); 6 `y` (written); 7 `dinv`.
+//! dense coarse inverse); 4 `x` (read); 5 `b` (read); 6 `y` (written); 7 `dinv`;
+//! 8 `block_cols` (the block columns of a wide-block matrix, [`Layout::Wide`]:
+//! an affine hierarchy's `P`, `R` and coarse `A`).
 
 use crate::amg::{Bsr, Hierarchy, WideBlocks, AFFINE_MODES};
 use crate::device::{dispatch, Bind, Context, Kernel, Shader, ROW_WG};
@@ -95,7 +97,10 @@ impl AmgKernels {
             .into_iter()
             .map(|((br, bc), label)| {
                 let c = [("BR", br as f64), ("BC", bc as f64), ("TW", tw)];
-                ((br, bc), Kernel::with_constants(&shader, label, "spmv_wide", &c))
+                (
+                    (br, bc),
+                    Kernel::with_constants(&shader, label, "spmv_wide", &c),
+                )
             })
             .collect(),
             shader,
@@ -110,7 +115,8 @@ impl AmgKernels {
             (Op::Spmv, _) => &self.spmv[1],
             (Op::SpmvWide, _) => {
                 let w = self.wide.iter().find(|(s, _)| *s == shape);
-                &w.expect("a wide-block kernel for every shape of an affine hierarchy").1
+                &w.expect("a wide-block kernel for every shape of an affine hierarchy")
+                    .1
             }
             (Op::Jacobi, 3) => &self.jacobi[0],
             (Op::Jacobi, 1) => &self.jacobi[1],
@@ -181,7 +187,12 @@ impl GpuBsr {
                 let w = m.regroup(br, bc);
                 let cols = ctx.storage_init(&format!("AMG {what} block columns"), &w.col_idx)?;
                 // spmv_wide runs one invocation per scalar row.
-                (wide_texels(br, bc) * w.col_idx.len(), w.row_ptr, Some(cols), w.rows * br)
+                (
+                    wide_texels(br, bc) * w.col_idx.len(),
+                    w.row_ptr,
+                    Some(cols),
+                    w.rows * br,
+                )
             }
         };
         let texture = ctx.data_texture(
@@ -290,7 +301,11 @@ impl GpuHierarchy {
             };
             let bs = lv.a.bs;
             let (al, pl, rl) = match h.affine {
-                true if bs > 3 => (Layout::Wide(bs, bs), Layout::Wide(bs, K), Layout::Wide(K, bs)),
+                true if bs > 3 => (
+                    Layout::Wide(bs, bs),
+                    Layout::Wide(bs, K),
+                    Layout::Wide(K, bs),
+                ),
                 true => (Layout::Blocks(bs), Layout::Wide(bs, K), Layout::Wide(K, bs)),
                 false => (Layout::Blocks(bs), Layout::Blocks(bs), Layout::Blocks(bs)),
             };

@@ -29,14 +29,16 @@
 //! `r` and `z` (`shaders/convert.wgsl`).
 //!
 //! The PCG itself (`shaders/pcg.wgsl`, see [`pcg`](crate::pcg)) is preconditioned
-//! by one **smoothed-aggregation AMG V-cycle** by default ([`Preconditioner::Amg`]:
+//! by one **smoothed-aggregation AMG V-cycle** by default ([`Preconditioner::AffineAmg`]:
 //! hierarchy built on the CPU in f64 at prepare time by [`amg`], applied by
 //! `shaders/amg.wgsl` through [`amg_gpu`]; aggregates are kept while the matrix
-//! pattern stays the same, so a new matrix only recomputes and rewrites values),
+//! pattern stays the same, so a new matrix only recomputes and rewrites values;
+//! its near-null space is the vertices' affine motions where their positions
+//! were given by [`SpdSolver::set_vertex_positions`], else the translations),
 //! or by block Jacobi `M = blockdiag(A)` ([`Preconditioner::BlockJacobi`]: 3x3
 //! blocks inverted on the CPU in f64; plain Jacobi for the scalar system; also
 //! the fallback when AMG coarsening stalls). [`GpuSolver::set_preconditioner`] or
-//! `METRICDEFORM_GPU_PRECONDITIONER=jacobi|amg` chooses. The PCG keeps every scalar on the GPU:
+//! `METRICDEFORM_GPU_PRECONDITIONER=jacobi|amg|affine-amg` chooses. The PCG keeps every scalar on the GPU:
 //! `alpha = r.z / p.Ap` and `beta = r'.z' / r.z` are computed per column by a
 //! one-workgroup kernel from per-workgroup partial sums; the host reads the
 //! per-column state back only after batches of iterations (sized from the

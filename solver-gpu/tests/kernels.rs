@@ -923,7 +923,11 @@ fn affine_amg_vcycle_matches_the_cpu_reference_and_cuts_iterations() {
             let want = h.vcycle(&r[c * n..(c + 1) * n]);
             let got: Vec<f64> = z[c * n..(c + 1) * n].iter().map(|&v| v as f64).collect();
             let e = rel_err(&got, &want);
-            assert!(e < 1e-4, "column {c} of {ncols}: {e:e} (levels {:?})", h.sizes());
+            assert!(
+                e < 1e-4,
+                "column {c} of {ncols}: {e:e} (levels {:?})",
+                h.sizes()
+            );
         }
     }
     // The whole solve against Cholesky, and against the translations-only AMG.
