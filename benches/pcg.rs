@@ -209,7 +209,7 @@ fn fine_tune_row(label: &str, mesh: &Mesh) {
         .collect();
     let a = iso.to_blocks();
     let positions: Vec<[f64; 3]> = mesh.positions.iter().map(|p| p.to_array()).collect();
-    for p in [Preconditioner::Amg, Preconditioner::AffineAmg] {
+    for p in [Preconditioner::AffineAmg, Preconditioner::Amg] {
         let mut gpu = match solver_gpu::open() {
             Ok(g) => g,
             Err(e) => {
