@@ -291,7 +291,6 @@ pub fn open_with(opts: OpenOptions) -> Result<GpuSolver, GpuError> {
         amg_fine_upload: 0,
         amg_setup_seconds: 0.0,
         positions: None,
-        affine_refused: false,
         mixed_precision: MixedPrecision::default(),
         mixed_kernels: None,
         mixed: None,
@@ -351,9 +350,6 @@ pub struct GpuSolver {
     amg_setup_seconds: f64,
     /// Vertex positions of the block rows (the affine near-null space).
     positions: Option<Vec<[f64; 3]>>,
-    /// A solve with the affine hierarchy stalled: translations only until
-    /// new positions or a new pattern.
-    affine_refused: bool,
     mixed_precision: MixedPrecision,
     /// The f64 kernels of the mixed-precision solve (compiled on first use).
     mixed_kernels: Option<MixedKernels>,
@@ -641,11 +637,7 @@ impl GpuSolver {
         };
         let prev = self.amg_host.take();
         let positions = match (&self.positions, self.preconditioner) {
-            (Some(x), Preconditioner::AffineAmg)
-                if h.bs == 3 && x.len() == h.rows && !self.affine_refused =>
-            {
-                Some(x)
-            }
+            (Some(x), Preconditioner::AffineAmg) if h.bs == 3 && x.len() == h.rows => Some(x),
             _ => None,
         };
         let built = match positions {
@@ -718,7 +710,6 @@ impl GpuSolver {
                 self.gpu = Some(GpuMatrix::upload(&self.ctx, &h, &minv)?);
                 self.pattern_uploads += 1;
                 self.mixed_sticky = false;
-                self.affine_refused = false;
             }
         }
         self.host = Some(h);
@@ -886,27 +877,7 @@ impl GpuSolver {
             let rng = c0 * n..(c0 + m) * n;
             let before = self.stats;
             self.stats = SolveStats::default();
-            let mut res = self.solve_batch(&b[rng.clone()], &mut x[rng.clone()], m);
-            if let Err(GpuError::NoConvergence { residual, .. }) = res {
-                if self.amg_host.as_ref().is_some_and(|h| h.affine) {
-                    // The affine hierarchy's f32 V-cycle can stall a solve
-                    // short of the tolerance: go on from here with the
-                    // translations, for this matrix pattern.
-                    log::warn!(
-                        "GPU solve with the affine AMG stalled at {residual:.1e}; \
-                         going on with the translations-only AMG"
-                    );
-                    self.affine_refused = true;
-                    self.amg_host = None;
-                    self.setup_amg()?;
-                    let spent = self.stats;
-                    res = self.solve_batch(&b[rng.clone()], &mut x[rng], m);
-                    self.stats.iterations += spent.iterations;
-                    self.stats.rounds += spent.rounds;
-                    self.stats.f32_rounds += spent.f32_rounds;
-                    self.stats.mixed |= spent.mixed;
-                }
-            }
+            let res = self.solve_batch(&b[rng.clone()], &mut x[rng], m);
             iterations += self.stats.iterations;
             worst = worst.max(self.stats.residual);
             self.stats = SolveStats {
@@ -1006,7 +977,6 @@ impl SpdSolver for GpuSolver {
 
     fn set_vertex_positions(&mut self, positions: &[[f64; 3]]) {
         self.positions = (!positions.is_empty()).then(|| positions.to_vec());
-        self.affine_refused = false;
     }
 
     fn name(&self) -> &str {

@@ -947,26 +947,9 @@ fn affine_amg_vcycle_matches_the_cpu_reference_and_cuts_iterations() {
     }
     eprintln!("biharmonic, {ncols} columns: affine AMG {ia} iterations, translations {it}");
     assert!(ia * 2 < it, "affine {ia} vs translations {it}");
-    // A solve that stalls with the affine hierarchy goes on with the
-    // translations (here both run out of a tiny iteration budget: the error
-    // stays), and the pattern keeps them until new positions are given.
-    s.set_preconditioner(Preconditioner::AffineAmg).unwrap();
-    s.prepare_blocks(&a, &fixed).unwrap();
-    assert_eq!(s.active_preconditioner(), Preconditioner::AffineAmg);
-    s.set_max_iterations(4);
-    let mut x = b[..n].to_vec();
-    let e = s.solve_in_place(&mut x, 1).unwrap_err();
-    assert!(matches!(e, SolverError::NoConvergence { .. }), "{e:?}");
-    assert_eq!(s.active_preconditioner(), Preconditioner::Amg);
-    s.prepare_blocks(&a, &fixed).unwrap();
-    assert_eq!(s.active_preconditioner(), Preconditioner::Amg);
-    s.set_max_iterations(50_000);
-    s.set_vertex_positions(&sheet_positions(nx, ny));
-    s.prepare_blocks(&a, &fixed).unwrap();
-    assert_eq!(s.active_preconditioner(), Preconditioner::AffineAmg);
     // Positions dropped: the next hierarchy has translations only.
     s.set_vertex_positions(&[]);
-    s.prepare_blocks(&a, &fixed).unwrap();
+    s.set_preconditioner(Preconditioner::AffineAmg).unwrap();
     assert_eq!(s.active_preconditioner(), Preconditioner::Amg);
 }
 
