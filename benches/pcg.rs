@@ -248,6 +248,8 @@ fn fine_tune_row(label: &str, mesh: &Mesh) {
 }
 
 fn main() {
+    // `RUST_LOG=solver_gpu=trace` shows each refinement round's residual.
+    let _ = env_logger::builder().format_timestamp_millis().try_init();
     let quick = std::env::args().any(|a| a == "--quick");
     if std::env::args().any(|a| a == "--fine-tune") {
         println!("| system | faces | solver | prepare s | solve s | iterations | ms / iteration | relative residual |");

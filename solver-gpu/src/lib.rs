@@ -540,6 +540,9 @@ impl GpuSolver {
             let h = self.host.as_ref().unwrap();
             let (rnorm, rel, worst) = residuals(h, b, x, &mut r, ncols);
             self.stats.residual = worst;
+            log::trace!(
+                "mixed round {round}: relative residual {worst:.2e} after {total} iterations"
+            );
             if worst <= self.tol {
                 return Ok(());
             }
@@ -770,6 +773,9 @@ impl GpuSolver {
         for round in 0.. {
             let (rnorm, rel, worst) = residuals(self.host.as_ref().unwrap(), b, x, &mut r, ncols);
             self.stats.residual = self.stats.residual.max(worst);
+            log::trace!(
+                "f32 round {round}: relative residual {worst:.2e} after {total} iterations"
+            );
             if rel.iter().any(|v| !v.is_finite()) {
                 return Err(GpuError::NotPositiveDefinite);
             }
