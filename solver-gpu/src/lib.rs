@@ -443,7 +443,7 @@ impl GpuSolver {
     }
 
     /// Choose the preconditioner (default [`Preconditioner::AffineAmg`], or
-    /// `METRICDEFORM_GPU_PRECONDITIONER=jacobi|amg`); a prepared matrix gets
+    /// `METRICDEFORM_GPU_PRECONDITIONER=jacobi|amg|affine-amg`); a prepared matrix gets
     /// the new one at once.
     pub fn set_preconditioner(&mut self, p: Preconditioner) -> Result<(), GpuError> {
         if p == self.preconditioner {
@@ -630,7 +630,7 @@ impl GpuSolver {
         }
         let t = std::time::Instant::now();
         let h = self.host.as_ref().unwrap();
-        let fine = amg::Bsr {
+        let fine_of = |h: &HostMatrix| amg::Bsr {
             bs: h.bs,
             rows: h.rows,
             cols: h.rows,
@@ -644,12 +644,12 @@ impl GpuSolver {
             _ => None,
         };
         let built = match positions {
-            Some(x) => amg::Hierarchy::build_affine(fine.clone(), &self.amg_opts, x, prev.as_ref())
+            Some(x) => amg::Hierarchy::build_affine(fine_of(h), &self.amg_opts, x, prev.as_ref())
                 .or_else(|e| {
                     log::warn!("affine AMG setup failed ({e}); translations only");
-                    amg::Hierarchy::build(fine, &self.amg_opts, prev.as_ref())
+                    amg::Hierarchy::build(fine_of(h), &self.amg_opts, prev.as_ref())
                 }),
-            None => amg::Hierarchy::build(fine, &self.amg_opts, prev.as_ref()),
+            None => amg::Hierarchy::build(fine_of(h), &self.amg_opts, prev.as_ref()),
         };
         let hier = match built {
             Ok(hier) => hier,
