@@ -192,6 +192,25 @@ impl HostMatrix {
     }
 
     /// `r = b - A x` in f64 for `ncols` columns (column-major, length `n` each).
+    /// `||A||_inf`, the largest absolute row sum (an upper bound of `||A||_2`
+    /// for a symmetric matrix).
+    pub fn norm_inf(&self) -> f64 {
+        let bs = self.bs;
+        (0..self.rows)
+            .into_par_iter()
+            .map(|row| {
+                let mut acc = [0f64; 3];
+                for k in self.row_ptr[row] as usize..self.row_ptr[row + 1] as usize {
+                    let m = &self.vals[k * bs * bs..(k + 1) * bs * bs];
+                    for q in 0..bs {
+                        acc[q] += m[q * bs..(q + 1) * bs].iter().map(|v| v.abs()).sum::<f64>();
+                    }
+                }
+                acc.into_iter().fold(0.0, f64::max)
+            })
+            .reduce(|| 0.0, f64::max)
+    }
+
     pub fn residual(&self, b: &[f64], x: &[f64], r: &mut [f64], ncols: usize) {
         let n = self.n();
         let bs = self.bs;

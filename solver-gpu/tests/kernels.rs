@@ -701,6 +701,40 @@ fn gpu_f64() -> Option<GpuSolver> {
 }
 
 #[test]
+fn a_tolerance_below_the_f64_rounding_floor_ends_at_the_floor() {
+    let Some(mut s) = gpu_f64() else { return };
+    let (nx, ny) = (40, 40);
+    let a = biharmonic_blocks(nx, ny);
+    let fixed = vec![false; a.n];
+    let n = 3 * a.n;
+    // A smooth right-hand side: a large solution, so eps ||A|| ||x|| / ||b||
+    // is far above the asked 1e-15.
+    let b: Vec<f64> = (0..n)
+        .map(|i| 1.0 + 0.1 * ((i / 3) as f64 * 0.01).sin())
+        .collect();
+    let mut cpu = CholeskySolver::new();
+    cpu.prepare_blocks(&a, &fixed).unwrap();
+    let mut xc = b.clone();
+    cpu.solve_in_place(&mut xc, 1).unwrap();
+    let norm = |v: &[f64]| v.iter().map(|t| t * t).sum::<f64>().sqrt();
+    let anorm = 64.0; // ||A||_inf of the biharmonic stencil: 20 + 4 x 8 + 4 x 2 + 4 x 1
+    let floor = f64::EPSILON * anorm * norm(&xc) / norm(&b);
+    assert!(
+        floor > 1e-13,
+        "floor {floor:e}: the case must sit well above 1e-15"
+    );
+    s.prepare_blocks(&a, &fixed).unwrap();
+    s.set_tolerance(1e-15);
+    let mut x = b.clone();
+    let info = s.solve_in_place(&mut x, 1).unwrap();
+    assert!(
+        info.residual <= floor,
+        "{info:?} against the floor {floor:e}"
+    );
+    assert!(rel_err(&x, &xc) < 1e-6, "{:e}", rel_err(&x, &xc));
+}
+
+#[test]
 fn mixed_precision_solve_matches_cholesky() {
     let Some(mut s) = gpu_f64() else { return };
     s.set_preconditioner(Preconditioner::Amg).unwrap();
