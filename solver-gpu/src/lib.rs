@@ -11,7 +11,10 @@
 //! x = x0 (0, or the caller's guess)                        host, f64
 //! loop (at most max_rounds):
 //!     r = b - A x                    f64 SpMV on the host (rayon)
-//!     stop if ||r|| <= tol ||b||     (tol = 1e-10 by default, per column)
+//!     stop if ||r|| <= max(tol ||b||, eps ||A||_inf ||x||)
+//!                                    (per column; tol = 1e-10 by default; the
+//!                                    second term is the f64 rounding floor,
+//!                                    which no f64 solver gets under)
 //!     solve A d = r / ||r||          f32 PCG on the GPU, d0 = 0, to a relative
 //!                                    residual eta = clamp(0.5 tol ||b|| / ||r||, 1e-5, 0.1)
 //!     x += ||r|| d                   host, f64
