@@ -86,6 +86,18 @@ fn row_of(wid: vec3<u32>, nwg: vec3<u32>, lid: u32) -> u32 {
     return g * WG + lid;
 }
 
+// Output `v` (a row of A x) at `i` by mode: y = A x (0), y = b - A x (1),
+// y += A x (2).
+fn store(i: u32, v: f32) {
+    if P.mode == 0u {
+        y[i] = v;
+    } else if P.mode == 1u {
+        y[i] = b[i] - v;
+    } else {
+        y[i] += v;
+    }
+}
+
 // y = A x (mode 0), y = b - A x (mode 1), y += A x (mode 2).
 @compute @workgroup_size(128)
 fn spmv(
@@ -131,15 +143,7 @@ fn spmv(
     }
     for (var c = 0u; c < NCOLS; c++) {
         for (var q = 0u; q < bs; q++) {
-            let i = c * P.n + row * bs + q;
-            let v = acc[c * bs + q];
-            if P.mode == 0u {
-                y[i] = v;
-            } else if P.mode == 1u {
-                y[i] = b[i] - v;
-            } else {
-                y[i] += v;
-            }
+            store(c * P.n + row * bs + q, acc[c * bs + q]);
         }
     }
 }
@@ -182,14 +186,7 @@ fn spmv_wide(
         }
     }
     for (var c = 0u; c < NCOLS; c++) {
-        let i = c * P.n + r;
-        if P.mode == 0u {
-            y[i] = acc[c];
-        } else if P.mode == 1u {
-            y[i] = b[i] - acc[c];
-        } else {
-            y[i] += acc[c];
-        }
+        store(c * P.n + r, acc[c]);
     }
 }
 

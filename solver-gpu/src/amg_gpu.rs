@@ -173,10 +173,17 @@ fn wide_texel(w: &WideBlocks, t: usize, out: &mut [f32]) {
     }
 }
 
+/// Write the values of a wide-block matrix into its texture.
+fn write_wide(ctx: &Context, t: &wgpu::Texture, w: &WideBlocks) {
+    let texels = wide_texels(w.br, w.bc) * w.col_idx.len();
+    ctx.write_data_texture(t, texels, |t, out| wide_texel(w, t, out));
+}
+
 impl GpuBsr {
     /// Upload `m` in `layout` (`Blocks(m.bs)`, or `Wide` with shapes that
     /// divide `m`'s scalar rows and columns).
     fn upload(ctx: &Context, what: &str, m: &Bsr, layout: Layout) -> Result<GpuBsr, GpuError> {
+        let mut wide = None;
         let (texels, row_ptr, cols, rows) = match layout {
             Layout::Blocks(bs) => {
                 debug_assert_eq!(bs, m.bs);
@@ -184,15 +191,11 @@ impl GpuBsr {
                 (bs * m.nnz_blocks(), m.row_ptr.clone(), None, m.rows)
             }
             Layout::Wide(br, bc) => {
-                let w = m.regroup(br, bc);
+                let w = wide.insert(m.regroup(br, bc));
                 let cols = ctx.storage_init(&format!("AMG {what} block columns"), &w.col_idx)?;
                 // spmv_wide runs one invocation per scalar row.
-                (
-                    wide_texels(br, bc) * w.col_idx.len(),
-                    w.row_ptr,
-                    Some(cols),
-                    w.rows * br,
-                )
+                let texels = wide_texels(br, bc) * w.col_idx.len();
+                (texels, w.row_ptr.clone(), Some(cols), w.rows * br)
             }
         };
         let texture = ctx.data_texture(
@@ -208,7 +211,11 @@ impl GpuBsr {
             texture: Some(texture),
             rows,
         };
-        g.write(ctx, m);
+        // The wide layout is regrouped once, for the pattern and the values.
+        match (&wide, &g.texture) {
+            (Some(w), Some(t)) => write_wide(ctx, t, w),
+            _ => g.write(ctx, m),
+        }
         Ok(g)
     }
 
@@ -235,11 +242,7 @@ impl GpuBsr {
             Layout::Blocks(bs) => ctx.write_data_texture(t, bs * m.nnz_blocks(), |t, out| {
                 block_texel(bs, &m.col_idx, &m.vals, t, out)
             }),
-            Layout::Wide(br, bc) => {
-                let w = m.regroup(br, bc);
-                let texels = wide_texels(br, bc) * w.col_idx.len();
-                ctx.write_data_texture(t, texels, |t, out| wide_texel(&w, t, out));
-            }
+            Layout::Wide(br, bc) => write_wide(ctx, t, &m.regroup(br, bc)),
         }
     }
 }
