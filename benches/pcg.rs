@@ -15,7 +15,7 @@
 use metricdeform::shape::{ShapeModel, ShapeWeights};
 use metricdeform::Mesh;
 use solver_cpu::{BlockPcgSolver, BlockSym3, CholeskySolver, IsoRingSym3, SpdSolver};
-use solver_gpu::Preconditioner;
+use solver_gpu::{MixedPrecision, Preconditioner};
 use std::path::Path;
 use std::time::Instant;
 
@@ -180,6 +180,28 @@ fn row(label: &str, mesh: &Mesh, quick_direct: bool) {
                             residual(a, fixed, &xw, &b)
                         );
                     }
+                    // The mixed-precision solve from the start (f64 PCG, f32
+                    // V-cycle), where the adapter has SHADER_F64.
+                    if gpu.adapter().shader_f64 {
+                        gpu.set_mixed_precision(MixedPrecision::Always);
+                        let mut xm = vec![0.0; b.len()];
+                        let t = Instant::now();
+                        let res = gpu.solve_with_guess(&b, &mut xm, 1);
+                        let t_solve = t.elapsed().as_secs_f64();
+                        let st = gpu.last_stats();
+                        match res {
+                            Err(e) => println!("| {label} | {nf} | gpu, mixed precision | failed: {e} | | | | | |"),
+                            Ok(_) => println!(
+                                "| {label} | {nf} | gpu, mixed precision (f64 PCG and SpMV, f32 V-cycle; {} rounds) | | {:.3} | {} | {:.2} | | {:.1e} |",
+                                st.rounds,
+                                t_solve,
+                                st.iterations,
+                                1e3 * t_solve / st.iterations.max(1) as f64,
+                                residual(a, fixed, &xm, &b)
+                            ),
+                        }
+                        gpu.set_mixed_precision(MixedPrecision::Fallback);
+                    }
                 }
             }
         }
@@ -197,19 +219,34 @@ fn fine_tune_row(label: &str, mesh: &Mesh) {
     model
         .assemble_and_factor(mesh, &mesh.positions, &vec![1.0; nf], &vec![1.0; n], &w)
         .unwrap();
-    // A right-hand side like the constrained step's: a smooth field.
-    let b: Vec<f64> = (0..3 * n)
-        .map(|i| ((i / 3) as f64 * 0.001 + (i % 3) as f64).sin())
-        .collect();
+    // Right-hand sides like the constrained step's: smooth fields, `cols` of
+    // them (`--columns K`; the pipeline solves k + 1 at once).
+    let cols: usize = std::env::args()
+        .skip_while(|a| a != "--columns")
+        .nth(1)
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(1);
     let (iso, fixed) = model.system();
-    let b: Vec<f64> = b
-        .iter()
-        .enumerate()
-        .map(|(i, &v)| if fixed[i / 3] { 0.0 } else { v })
+    let b: Vec<f64> = (0..cols * 3 * n)
+        .map(|i| {
+            let (c, i) = (i / (3 * n), i % (3 * n));
+            let v = ((i / 3) as f64 * 0.001 * (1 + c) as f64 + (i % 3) as f64).sin();
+            if fixed[i / 3] {
+                0.0
+            } else {
+                v
+            }
+        })
         .collect();
     let a = iso.to_blocks();
     let positions: Vec<[f64; 3]> = mesh.positions.iter().map(|p| p.to_array()).collect();
-    for p in [Preconditioner::AffineAmg, Preconditioner::Amg] {
+    // Both near-null spaces, or the one METRICDEFORM_GPU_PRECONDITIONER names.
+    let both = [Preconditioner::AffineAmg, Preconditioner::Amg];
+    let chosen: Vec<Preconditioner> = match std::env::var("METRICDEFORM_GPU_PRECONDITIONER") {
+        Ok(_) => vec![Preconditioner::from_env()],
+        Err(_) => both.to_vec(),
+    };
+    for p in chosen {
         let mut gpu = match solver_gpu::open() {
             Ok(g) => g,
             Err(e) => {
@@ -228,7 +265,7 @@ fn fine_tune_row(label: &str, mesh: &Mesh) {
             .map(|h| (h.sizes(), h.operator_complexity()));
         let mut x = vec![0.0; b.len()];
         let t = Instant::now();
-        let res = gpu.solve_with_guess(&b, &mut x, 1);
+        let res = gpu.solve_with_guess(&b, &mut x, cols);
         let t_solve = t.elapsed().as_secs_f64();
         let st = gpu.last_stats();
         match res {
@@ -241,7 +278,12 @@ fn fine_tune_row(label: &str, mesh: &Mesh) {
                 st.iterations,
                 st.rounds,
                 1e3 * t_solve / st.iterations.max(1) as f64,
-                residual(&a, fixed, &x, &b)
+                (0..cols)
+                    .map(|c| {
+                        let r = c * 3 * n..(c + 1) * 3 * n;
+                        residual(&a, fixed, &x[r.clone()], &b[r])
+                    })
+                    .fold(0.0, f64::max)
             ),
         }
     }

@@ -14,6 +14,11 @@
 //! expansion of the matrix (9 entries per block, scalar Jacobi), per-iteration
 //! time and iterations to 1e-6 and 1e-10.
 //!
+//! A third table gives the adapter's read ceiling (`kernels::read_ceiling`,
+//! `shaders/stream.wgsl`) over the bytes of a minimal iteration: what any
+//! kernel reading them costs at least, next to a single-thread CPU read and
+//! the CPU SpMV.
+//!
 //! `cargo bench -p solver-gpu --bench pcg_kernels [-- 6500 50000]` (sizes optional).
 
 use solver_cpu::{BlockSym3, SpdSolver};
@@ -312,6 +317,7 @@ fn main() {
     println!("| block rows | blocks/row | {wg} ms/iter (1 rhs) | {wg} GB/s | {wg} ms/iter (4 rhs) | {wg} f32 PCG its to 1e-6 | solver 1e-6 cold its (ms) | solver 1e-6 warm its (ms) | cpu f32 ms/iter | cpu f32 its | cpu f64 ms/iter | cpu f64 its | cpu SpMV f32 GB/s | cpu SpMV f64 GB/s |");
     println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
     let mut precision_rows = Vec::new();
+    let mut ceiling_rows = Vec::new();
     for &rows in &sizes {
         let mut rng = Rng(rows as u64);
         let (mut a, fixed) = synthetic(rows, 1e-3, &mut rng);
@@ -371,7 +377,26 @@ fn main() {
         cells.push(format!("{:.2}", gb(spmv32, s32)));
         cells.push(format!("{:.2}", gb(spmv64, s64)));
         std::hint::black_box((&y32, &y64));
+        // The read ceiling over the bytes of a minimal iteration.
+        if let Some(g) = gpu.as_ref() {
+            let bytes = matrix_bytes + vec_bytes(1);
+            let iteration = cells[3].parse::<f64>().ok();
+            ceiling_rows.push(ceiling_row(g, a.n, bytes, gb(spmv32, s32), iteration));
+        }
         println!("| {} |", cells.join(" | "));
+    }
+    if !ceiling_rows.is_empty() {
+        println!();
+        println!("read ceiling over the bytes of a minimal PCG iteration (1 rhs): the least work per byte \
+                  (sum 16-byte elements, one partial per invocation; shaders/stream.wgsl) through a texture and \
+                  through a storage buffer; a plain single-thread CPU sum of as many f32; the PCG iteration and the \
+                  texture ceiling as a share of the single-thread CPU SpMV (f32)");
+        println!();
+        println!("| block rows | MB per iteration | {wg} texture read GB/s | {wg} storage-buffer read GB/s | cpu 1-thread read GB/s | cpu SpMV f32 GB/s | {wg} PCG iteration / cpu SpMV | {wg} texture read / cpu SpMV |");
+        println!("|---|---|---|---|---|---|---|---|");
+        for r in ceiling_rows {
+            println!("{r}");
+        }
     }
     if !precision_rows.is_empty() {
         println!();
@@ -424,6 +449,54 @@ fn precision_run(
     Ok(cells)
 }
 
+/// One row of the read-ceiling table (`spmv_cpu`: the single-thread CPU SpMV
+/// in GB/s; `iteration`: the adapter's PCG iteration in GB/s).
+fn ceiling_row(
+    g: &GpuSolver,
+    rows: usize,
+    bytes: f64,
+    spmv_cpu: f64,
+    iteration: Option<f64>,
+) -> String {
+    let c = match kernels::read_ceiling(g, bytes as u64, 20) {
+        Ok(c) => c,
+        Err(e) => return format!("| {rows} | {:.1} | error: {e} | | | | | |", bytes / 1e6),
+    };
+    // A single-thread CPU read of as many f32 (eight accumulators, so it
+    // vectorises), best of five.
+    let data: Vec<f32> = (0..(bytes as usize / 4))
+        .map(|i| (i % 1000) as f32)
+        .collect();
+    let mut best = f64::INFINITY;
+    for _ in 0..5 {
+        let t = Instant::now();
+        let mut acc = [0f32; 8];
+        for ch in data.chunks_exact(8) {
+            for (a, v) in acc.iter_mut().zip(ch) {
+                *a += v;
+            }
+        }
+        std::hint::black_box(acc);
+        best = best.min(t.elapsed().as_secs_f64());
+    }
+    let cpu_read = gb(bytes, best);
+    let pct = |v: f64| format!("{:.0} %", 100.0 * v / spmv_cpu);
+    format!(
+        "| {rows} | {:.1} | {:.2} | {} | {:.2} | {:.2} | {} | {} |",
+        bytes / 1e6,
+        c.texture_bandwidth() / 1e9,
+        c.buffer_bandwidth()
+            .map_or("over the binding limit".into(), |v| format!(
+                "{:.2}",
+                v / 1e9
+            )),
+        cpu_read,
+        spmv_cpu,
+        iteration.map_or("-".into(), pct),
+        pct(c.texture_bandwidth() / 1e9)
+    )
+}
+
 fn converged(out: &kernels::PcgOutput) -> String {
     let mark = if out.status[0] == 1 {
         ""
@@ -445,15 +518,21 @@ fn gpu_run(
     let n = b.len();
     g.prepare_blocks(a, fixed).map_err(|e| e.to_string())?;
     let mut cells = Vec::new();
-    // Per-iteration time: fixed iteration counts (tolerance 0), after a warm-up.
-    let iters = 64;
+    // Per-iteration time: fixed iteration counts (tolerance 0), after a
+    // warm-up; the difference of an 80- and a 16-iteration run, so the set-up
+    // (upload of b, first preconditioner application, read-back) cancels.
     let mut per_iter = [0.0; 2];
     for (slot, cols) in [1usize, 4].into_iter().enumerate() {
         let rhs: Vec<f32> = (0..cols).flat_map(|_| b32.iter().copied()).collect();
         kernels::pcg(g, &rhs, cols, 0.0, 16).map_err(|e| e.to_string())?;
-        let t = Instant::now();
-        let out = kernels::pcg(g, &rhs, cols, 0.0, iters).map_err(|e| e.to_string())?;
-        per_iter[slot] = t.elapsed().as_secs_f64() / out.dispatched as f64;
+        let mut run = |iters: usize| {
+            let t = Instant::now();
+            let out = kernels::pcg(g, &rhs, cols, 0.0, iters).map_err(|e| e.to_string())?;
+            Ok::<_, String>((out.dispatched, t.elapsed().as_secs_f64()))
+        };
+        let (d16, t16) = run(16)?;
+        let (d80, t80) = run(80)?;
+        per_iter[slot] = (t80 - t16) / (d80 - d16) as f64;
     }
     for cols in [1usize, 4] {
         let prof = kernels::profile_iteration(g, cols, 20).map_err(|e| e.to_string())?;

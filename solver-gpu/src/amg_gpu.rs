@@ -230,7 +230,7 @@ impl GpuBsr {
                 view: view.clone(),
                 rows,
             }),
-            MatrixStorage::Csr { .. } => None,
+            MatrixStorage::Csr { .. } | MatrixStorage::SplitBlockTexture { .. } => None,
         }
     }
 

@@ -12,12 +12,29 @@
 //! - 6 `partials` (written): `partials[c * groups + g]`.
 //!
 //! Dispatch: `groups` workgroups of 128 invocations, 2-D (see `Context::dims`).
+//!
+//! Also drives `shaders/bsr_spmv_f64.wgsl` ([`new_f64`]), the f64 product of
+//! the mixed-precision solve: the same blocks as high (the f32 texture) and low
+//! f32 parts, `x`, `y` and the partials in f64 buffers (bindings 2 `lo`, 3 `hi`,
+//! 4 `x`; the rest as above).
 
 use crate::device::{Bind, Context, Kernel, Shader};
 use crate::matrix::{GpuMatrix, MatrixStorage};
 use crate::GpuError;
 
 pub(crate) const SOURCE: &str = include_str!("../../shaders/bsr_spmv.wgsl");
+pub(crate) const F64_SOURCE: &str = include_str!("../../shaders/bsr_spmv_f64.wgsl");
+
+/// Layout of `bsr_spmv_f64.wgsl` (group 0).
+const BLOCK_F64_BINDINGS: [(u32, Bind); 7] = [
+    (0, Bind::Uniform),
+    (1, Bind::Read),
+    (2, Bind::Texture),
+    (3, Bind::Texture),
+    (4, Bind::Read),
+    (5, Bind::ReadWrite),
+    (6, Bind::ReadWrite),
+];
 
 /// Layout of `bsr_spmv.wgsl` (group 0).
 const BLOCK_BINDINGS: [(u32, Bind); 6] = [
@@ -55,6 +72,16 @@ pub(crate) fn new(ctx: &Context) -> Result<BsrSpmv, GpuError> {
     let shader = Shader::new(ctx, "bsr_spmv.wgsl", SOURCE, &BLOCK_BINDINGS)?;
     let tw = ctx.texture_width() as f64;
     let kernel = Kernel::with_constants(&shader, "bsr_spmv", "main", &[("TW", tw)]);
+    Ok(SpmvKernel { shader, kernel })
+}
+
+/// Compile `bsr_spmv_f64.wgsl` (needs `SHADER_F64`): the f64 block product of
+/// the mixed-precision solve, on a [`MatrixStorage::SplitBlockTexture`] matrix
+/// and a scalar PCG workspace (its parameters and dispatch; see the shader).
+pub(crate) fn new_f64(ctx: &Context) -> Result<BsrSpmv, GpuError> {
+    let shader = Shader::new(ctx, "bsr_spmv_f64.wgsl", F64_SOURCE, &BLOCK_F64_BINDINGS)?;
+    let tw = ctx.texture_width() as f64;
+    let kernel = Kernel::with_constants(&shader, "bsr_spmv_f64", "main", &[("TW", tw)]);
     Ok(SpmvKernel { shader, kernel })
 }
 
@@ -96,6 +123,12 @@ impl SpmvKernel {
             MatrixStorage::BlockTexture { view, .. } => {
                 self.shader
                     .bind_with_views(ctx, &shared, &[(3, view), (4, x_tex)])
+            }
+            MatrixStorage::SplitBlockTexture { hi, lo_view, .. } => {
+                let mut b = shared.to_vec();
+                b.push((4, x));
+                self.shader
+                    .bind_with_views(ctx, &b, &[(2, lo_view), (3, hi)])
             }
         }
     }

@@ -343,3 +343,14 @@ pub fn profile_iteration(
     s.k.pcg
         .profile(&s.ctx, &spmv, s.ws.as_ref().unwrap(), ncols, reps.max(1))
 }
+
+/// The adapter's read-bandwidth ceiling over `bytes` bytes (rounded up to
+/// 16-byte texels), through a texture and through a storage buffer, `reps`
+/// timed passes each (see [`crate::stream`]).
+pub fn read_ceiling(
+    s: &GpuSolver,
+    bytes: u64,
+    reps: usize,
+) -> Result<crate::stream::ReadCeiling, GpuError> {
+    crate::stream::measure(&s.ctx, bytes.div_ceil(16).max(1), reps)
+}

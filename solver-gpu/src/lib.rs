@@ -25,11 +25,15 @@
 //! `eta` as long as `cond(A) * 2^-24 << 1`. A warm start (`solve_with_guess`)
 //! helps through the first residual: a good guess needs fewer or cheaper rounds.
 //!
-//! Where the rounds stagnate (three without halving the residual) or run out,
-//! and the adapter has `SHADER_F64`, the solve goes on in **mixed precision**
-//! ([`MixedPrecision`]): PCG with f64 vectors, scalars and SpMV (the matrix as
-//! f64 scalar CSR), preconditioned by the same f32 AMG V-cycle on f32 copies of
-//! `r` and `z` (`shaders/convert.wgsl`).
+//! Where the rounds are limited by f32 rounding (two rounds in a row whose f64
+//! residual gained less than `(1/eta)^(1/3)` where the f32 PCG reached its
+//! tolerance `eta`), stagnate (three
+//! without halving the residual) or run out, and the adapter has `SHADER_F64`,
+//! the solve goes on in **mixed precision** ([`MixedPrecision`]): PCG with f64
+//! vectors, scalars and SpMV (3x3 blocks as high and low f32 parts in two
+//! textures, `shaders/bsr_spmv_f64.wgsl`; a scalar matrix as f64 CSR),
+//! preconditioned by the same f32 AMG V-cycle on f32 copies of `r` and `z`
+//! (`shaders/convert.wgsl`).
 //!
 //! The PCG itself (`shaders/pcg.wgsl`, see [`pcg`](crate::pcg)) is preconditioned
 //! by one **smoothed-aggregation AMG V-cycle** by default ([`Preconditioner::AffineAmg`]:
@@ -67,6 +71,7 @@ pub mod kernels;
 mod matrix;
 pub mod pcg;
 pub mod precision;
+pub mod stream;
 
 pub use device::{AdapterSummary, OpenOptions};
 pub use wgpu;
@@ -389,15 +394,67 @@ pub enum MixedPrecision {
     Never,
 }
 
+/// Tells when f32 refinement rounds are limited by f32 rounding. A round whose
+/// inner PCG reached its tolerance `eta` (a gain of `1/eta` in its f32
+/// recurrence) while the true f64 residual gained less than `(1/eta)^(1/3)`
+/// was limited by f32: the f64 iteration of the mixed-precision solve would
+/// gain about `1/eta` in as many iterations, at 1.6-2.2x the cost of an f32
+/// one on lavapipe. Two such rounds in a row are needed (a first round alone
+/// can be weak and the next ones fine: a 128x128 biharmonic system's rounds
+/// gain 13x, then 1660x and 2000x against 1e5 asked). Spot x16's shape system:
+/// 7 f32 rounds of ~190 iterations gaining ~27x each against 1e5 asked, 1354
+/// iterations in all, against 527 in mixed precision (BENCHMARKS.md).
+#[derive(Default)]
+struct RoundWatch {
+    /// The last round's relative residual and inner tolerance per column
+    /// (`eta = 1`: the column was done).
+    last: Option<(Vec<f64>, Vec<f64>)>,
+    /// Limited rounds in a row.
+    limited: usize,
+}
+
+impl RoundWatch {
+    /// With the relative residuals `rel` after the last round: whether the
+    /// rounds are limited by f32 rounding.
+    fn f32_limited(&mut self, rel: &[f64]) -> bool {
+        let limited = self.last.as_ref().is_some_and(|(prev, eta)| {
+            (0..rel.len()).any(|c| eta[c] < 1.0 && rel[c] > prev[c] * eta[c].cbrt())
+        });
+        self.limited = if limited { self.limited + 1 } else { 0 };
+        self.limited >= 2
+    }
+
+    /// A round starts from the relative residuals `rel`, asking each column
+    /// for a relative tolerance `eta` (1 for columns already done).
+    fn launched(&mut self, rel: &[f64], eta: Vec<f64>) {
+        self.last = Some((rel.to_vec(), eta));
+    }
+}
+
 /// The f64 kernels of the mixed-precision solve.
 struct MixedKernels {
     pcg: pcg::Pcg,
+    /// Scalar matrices (the face system).
     csr: csr_spmv::CsrSpmv,
+    /// 3x3 block matrices: high and low f32 parts in textures.
+    bsr: bsr_spmv::BsrSpmv,
     convert: convert::Convert,
 }
 
-/// The mixed-precision solve's data: the matrix as f64 scalar CSR and a
-/// workspace whose V-cycle runs on f32 copies of r and z.
+impl MixedKernels {
+    /// The f64 product for a matrix of block size `bs`.
+    fn spmv(&self, bs: usize) -> Spmv<'_> {
+        match bs {
+            1 => Spmv::Scalar(&self.csr),
+            _ => Spmv::Block(&self.bsr),
+        }
+    }
+}
+
+/// The mixed-precision solve's data: the matrix in f64 (3x3 blocks as high and
+/// low f32 parts in textures, the high part shared with the f32 matrix; a
+/// scalar matrix as f64 CSR) and a scalar workspace whose V-cycle runs on f32
+/// copies of r and z.
 struct MixedData {
     /// `(pattern_uploads, value_uploads)` of the matrix it was built from.
     stamp: (usize, usize),
@@ -511,13 +568,17 @@ impl GpuSolver {
             self.mixed_kernels = Some(MixedKernels {
                 pcg: pcg::Pcg::new(&self.ctx, precision::Precision::F64)?,
                 csr: csr_spmv::new_in(&self.ctx, precision::Precision::F64)?,
+                bsr: bsr_spmv::new_f64(&self.ctx)?,
                 convert: convert::Convert::new(&self.ctx)?,
             });
         }
         let k = self.mixed_kernels.as_ref().unwrap();
         let h = self.host.as_ref().unwrap();
-        let matrix = GpuMatrix::upload_scalar(&self.ctx, h, precision::Precision::F64)?;
-        let spmv = Spmv::Scalar(&k.csr);
+        let matrix = match h.bs {
+            1 => GpuMatrix::upload_scalar(&self.ctx, h, precision::Precision::F64)?,
+            _ => GpuMatrix::upload_split_f64(&self.ctx, h, self.gpu.as_ref().unwrap())?,
+        };
+        let spmv = k.spmv(h.bs);
         let mut ws = k.pcg.workspace(&self.ctx, &spmv, &matrix, h.n(), 1, want)?;
         let narrow = pcg::Narrow::new(&self.ctx, &k.convert, &ws)?;
         ws.amg = Some(amg_gpu::VcycleWorkspace::new(
@@ -587,7 +648,7 @@ impl GpuSolver {
             let round = Round {
                 ctx: &self.ctx,
                 pcg: &k.pcg,
-                spmv: &Spmv::Scalar(&k.csr),
+                spmv: &k.spmv(self.host.as_ref().unwrap().bs),
                 amg: &self.k.amg,
                 convert: Some(&k.convert),
                 budget: self.max_iterations - total,
@@ -784,6 +845,7 @@ impl GpuSolver {
         let mut total = 0usize;
         let mut worse = 0;
         let mut prev = f64::INFINITY;
+        let mut watch = RoundWatch::default();
         for round in 0.. {
             let (rnorm, rel, worst, target) =
                 residuals(self.host.as_ref().unwrap(), b, x, &mut r, ncols, self.tol);
@@ -805,10 +867,16 @@ impl GpuSolver {
                 worse = 0;
             }
             prev = prev.min(worst);
-            if round >= self.max_rounds || total >= self.max_iterations || worse >= 3 {
+            let f32_limited = watch.f32_limited(&rel);
+            if round >= self.max_rounds
+                || total >= self.max_iterations
+                || worse >= 3
+                || (f32_limited && self.mixed_available())
+            {
                 if self.mixed_available() && total < self.max_iterations {
                     log::info!(
-                        "f32 refinement stagnated at a relative residual of {worst:.2e} after {total} iterations"
+                        "f32 refinement {} at a relative residual of {worst:.2e} after {total} iterations",
+                        if f32_limited { "limited by f32 rounding" } else { "stagnated" }
                     );
                     // Later solves of this pattern start in mixed precision:
                     // the neighbouring systems are as hard.
@@ -822,6 +890,7 @@ impl GpuSolver {
                 });
             }
             let mut thr = vec![0f64; ncols];
+            let mut etas = vec![1.0; ncols];
             for c in 0..ncols {
                 let active = rel[c] > target[c];
                 let scale = if active { 1.0 / rnorm[c] } else { 0.0 };
@@ -837,7 +906,9 @@ impl GpuSolver {
                     1.0
                 };
                 thr[c] = eta * eta;
+                etas[c] = eta;
             }
+            watch.launched(&rel, etas);
             let spmv = match self.host.as_ref().unwrap().bs {
                 1 => Spmv::Scalar(&self.k.csr),
                 _ => Spmv::Block(&self.k.bsr),
@@ -1002,5 +1073,66 @@ impl SpdSolver for GpuSolver {
 
     fn name(&self) -> &str {
         "gpu"
+    }
+}
+
+#[cfg(test)]
+mod round_watch_tests {
+    use super::RoundWatch;
+
+    /// Feeds rounds of (residual after, eta asked) for one column from a
+    /// residual of 1; returns the verdict after each round.
+    fn verdicts(rounds: &[(f64, f64)]) -> Vec<bool> {
+        let mut w = RoundWatch::default();
+        let mut rel = 1.0;
+        assert!(!w.f32_limited(&[rel]), "no round yet");
+        rounds
+            .iter()
+            .map(|&(after, eta)| {
+                w.launched(&[rel], vec![eta]);
+                rel = after;
+                w.f32_limited(&[rel])
+            })
+            .collect()
+    }
+
+    #[test]
+    fn two_weak_rounds_in_a_row_mean_f32_rounding() {
+        // Spot x16's shape system: ~27x a round against 1e5 asked (cube root 46).
+        assert_eq!(
+            verdicts(&[(1.0 / 27.0, 1e-5), (1.0 / 27.0 / 27.0, 1e-5)]),
+            [false, true]
+        );
+        // The 128x128 biharmonic: a weak first round, then healthy ones.
+        assert_eq!(
+            verdicts(&[(7.5e-2, 1e-5), (4.5e-5, 1e-5), (2.3e-8, 1e-5)]),
+            [false, false, false]
+        );
+        // Near the end eta is larger (0.1, cube root 0.46): gaining 3x passes,
+        // 1.5x twice does not.
+        assert_eq!(
+            verdicts(&[(1.0 / 3.0, 0.1), (1.0 / 9.0, 0.1)]),
+            [false, false]
+        );
+        assert_eq!(
+            verdicts(&[(1.0 / 1.5, 0.1), (1.0 / 2.25, 0.1)]),
+            [false, true]
+        );
+    }
+
+    #[test]
+    fn columns_already_done_do_not_count() {
+        let mut w = RoundWatch::default();
+        // Column 1 is done (eta 1) and its residual does not move; column 0
+        // gains 1e4 against 1e5 asked.
+        w.launched(&[1.0, 1e-11], vec![1e-5, 1.0]);
+        assert!(!w.f32_limited(&[1e-4, 1e-11]));
+        w.launched(&[1e-4, 1e-11], vec![1e-5, 1.0]);
+        assert!(!w.f32_limited(&[1e-8, 1e-11]));
+        // Column 0 weak twice: limited.
+        w.launched(&[1e-8, 1e-11], vec![1e-2, 1.0]);
+        assert!(!w.f32_limited(&[0.5e-8, 1e-11]));
+        w.launched(&[0.5e-8, 1e-11], vec![1e-2, 1.0]);
+        assert!(w.f32_limited(&[0.25e-8, 1e-11]));
     }
 }

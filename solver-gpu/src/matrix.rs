@@ -264,6 +264,15 @@ pub(crate) enum MatrixStorage {
         texture: wgpu::Texture,
         view: wgpu::TextureView,
     },
+    /// 3x3 blocks in f64 as two f32 textures, `hi = f32(v)` (the f32 matrix's
+    /// own texture, shared) and `lo = f32(v - hi)` texel for texel: the f64
+    /// product of the mixed-precision solve (`bsr_spmv_f64.wgsl`).
+    SplitBlockTexture {
+        hi: wgpu::TextureView,
+        #[allow(dead_code)] // kept alive for `lo_view`
+        lo: wgpu::Texture,
+        lo_view: wgpu::TextureView,
+    },
 }
 
 /// Block columns a block texture can name: f32 holds every integer below 2^24
@@ -296,6 +305,24 @@ pub(crate) fn block_texel(bs: usize, col_idx: &[u32], vals: &[f64], t: usize, ou
         *o = v as f32;
     }
     out[3] = if q == 0 { col_idx[k] as f32 } else { 0.0 };
+}
+
+/// Texel `t` of the low-part texture of a 3x3 block matrix: row `t % 3` of
+/// block `t / 3`, each value's remainder `v - f64(f32(v))` rounded to f32
+/// (`.w` zero). With [`block_texel`]'s high parts, `hi + lo` equals `v` to a
+/// relative 2^-48.
+pub(crate) fn low_texel(vals: &[f64], t: usize, out: &mut [f32]) {
+    for (o, &v) in out[..3].iter_mut().zip(&vals[3 * t..3 * t + 3]) {
+        *o = (v - (v as f32) as f64) as f32;
+    }
+    out[3] = 0.0;
+}
+
+/// The scalar inverse diagonal `1 / a_ii` of a 3x3 block matrix.
+fn split_inverse_diagonal(h: &HostMatrix) -> Vec<f64> {
+    (0..3 * h.rows)
+        .map(|r| 1.0 / h.vals[9 * h.diag[r / 3] as usize + 4 * (r % 3)])
+        .collect()
 }
 
 impl GpuMatrix {
@@ -364,6 +391,47 @@ impl GpuMatrix {
         })
     }
 
+    /// The f64 block matrix of the mixed-precision solve: the f32 matrix `f32`'s
+    /// texture as the high parts and a new texture of the low parts
+    /// (`v - f64(f32(v))` rounded to f32, so `hi + lo` carries 48 bits), its row
+    /// pointers shared, and the scalar inverse diagonal in f64. Textures only:
+    /// no storage-buffer binding limit applies to the matrix.
+    pub fn upload_split_f64(
+        ctx: &Context,
+        h: &HostMatrix,
+        f32_matrix: &GpuMatrix,
+    ) -> Result<GpuMatrix, GpuError> {
+        let MatrixStorage::BlockTexture { view: hi, .. } = &f32_matrix.storage else {
+            return Err(GpuError::Backend(
+                "the f64 block product needs the f32 block texture".into(),
+            ));
+        };
+        assert_eq!(h.bs, 3);
+        let texels = 3 * h.nnz_blocks();
+        let lo = ctx.data_texture(
+            &format!(
+                "f64 block matrix, low parts ({} blocks of 3 texels)",
+                h.nnz_blocks()
+            ),
+            texels as u64,
+            false,
+        )?;
+        ctx.write_data_texture(&lo, texels, |t, out| low_texel(&h.vals, t, out));
+        let dinv = split_inverse_diagonal(h);
+        Ok(GpuMatrix {
+            row_ptr: f32_matrix.row_ptr.clone(),
+            storage: MatrixStorage::SplitBlockTexture {
+                hi: hi.clone(),
+                lo_view: lo.create_view(&Default::default()),
+                lo,
+            },
+            minv: ctx.storage_init(
+                "scalar inverse diagonal (f64)",
+                &Precision::F64.encode(&dinv),
+            )?,
+        })
+    }
+
     /// New values, same pattern.
     pub fn write_values(&self, ctx: &Context, h: &HostMatrix, minv: &[f32]) {
         match &self.storage {
@@ -376,6 +444,17 @@ impl GpuMatrix {
                 ctx.write_data_texture(texture, 3 * h.nnz_blocks(), |t, out| {
                     block_texel(3, &h.col_idx, &h.vals, t, out)
                 });
+            }
+            // The high parts are the f32 matrix's texture (rewritten there);
+            // the inverse diagonal is f64 here, computed from `h`.
+            MatrixStorage::SplitBlockTexture { lo, .. } => {
+                ctx.write_data_texture(lo, 3 * h.nnz_blocks(), |t, out| low_texel(&h.vals, t, out));
+                ctx.queue.write_buffer(
+                    &self.minv,
+                    0,
+                    &Precision::F64.encode(&split_inverse_diagonal(h)),
+                );
+                return;
             }
         }
         ctx.queue
@@ -404,5 +483,35 @@ mod texel_tests {
         assert!(check_texture_columns("m", 1 << 24).is_ok());
         let e = check_texture_columns("m", (1 << 24) + 1).unwrap_err();
         assert!(e.to_string().contains("2^24"), "{e}");
+    }
+
+    #[test]
+    fn high_and_low_parts_carry_48_bits() {
+        // Values whose f32 rounding alone is off by ~1e-8 relative.
+        let vals: Vec<f64> = (0..9)
+            .map(|i| {
+                (1.0 + i as f64).sqrt() * 10f64.powi(i - 4) * if i % 2 == 0 { 1.0 } else { -1.0 }
+            })
+            .collect();
+        let cols = [0u32];
+        let (mut hi, mut lo) = ([0f32; 4], [f32::NAN; 4]);
+        let mut worst_f32 = 0f64;
+        for t in 0..3 {
+            block_texel(3, &cols, &vals, t, &mut hi);
+            low_texel(&vals, t, &mut lo);
+            assert_eq!(lo[3], 0.0);
+            for q in 0..3 {
+                let v = vals[3 * t + q];
+                let f32_err = ((hi[q] as f64 - v) / v).abs();
+                let split_err = ((hi[q] as f64 + lo[q] as f64 - v) / v).abs();
+                worst_f32 = worst_f32.max(f32_err);
+                assert!(
+                    split_err <= 2f64.powi(-48),
+                    "value {v}: hi + lo {split_err:e}"
+                );
+            }
+        }
+        // The low parts matter: f32 alone is off by ~2^-25 somewhere.
+        assert!(worst_f32 > 1e-8, "f32 alone {worst_f32:e}");
     }
 }

@@ -7,9 +7,11 @@
 //! 2. a line `// f64-only: CODE` becomes `CODE`;
 //! 3. every `f32` becomes `f64`.
 //!
-//! The f64 kernels are used for the precision measurement (`kernels::scalar_pcg`
-//! and the `pcg_kernels` benchmark); the solver itself runs f32 kernels with
-//! residuals in f64 on the host (iterative refinement), see `BENCHMARKS.md`.
+//! The f64 kernels run the mixed-precision solve (f64 PCG, f32 V-cycle; its
+//! block product is the hand-written `bsr_spmv_f64.wgsl`) and the precision
+//! measurement (`kernels::scalar_pcg` and the `pcg_kernels` benchmark); the
+//! solver's first choice is f32 kernels with residuals in f64 on the host
+//! (iterative refinement), see `BENCHMARKS.md`.
 
 use std::borrow::Cow;
 

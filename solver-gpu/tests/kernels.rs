@@ -770,6 +770,49 @@ fn mixed_precision_solve_matches_cholesky() {
 }
 
 #[test]
+fn mixed_precision_solve_past_the_storage_binding_limit() {
+    // The mixed-precision PCG's f64 block matrix is two f32 textures (high
+    // parts: the f32 matrix's own; low parts), so a binding limit that an f64
+    // copy of the values (9 x 8 bytes per block) passes 10 times over, and
+    // that the f64 vectors fit in, still gives a mixed-precision solve.
+    let limit = 24 * 1024;
+    let Some(mut s) = gpu_with_limits(move |l| l.max_storage_buffer_binding_size = limit) else {
+        return;
+    };
+    if !s.adapter().shader_f64 {
+        return eprintln!("skipped: adapter {} has no SHADER_F64", s.adapter_name());
+    }
+    s.set_preconditioner(Preconditioner::Amg).unwrap();
+    s.set_mixed_precision(MixedPrecision::Always);
+    s.set_amg_options(solver_gpu::amg::AmgOptions {
+        max_coarse: 60,
+        ..Default::default()
+    });
+    let mut rng = Rng(65);
+    let a = laplacian_blocks(25, 25, &mut rng);
+    let fixed = fixed_every(a.n, 40);
+    s.prepare_blocks(&a, &fixed).unwrap();
+    let n = 3 * a.n;
+    assert!(n as u64 * 8 <= limit, "one f64 column must fit");
+    let nnzb = a.blocks.len() * 2 - a.n; // both triangles
+    assert!(nnzb as u64 * 72 > 10 * limit, "{nnzb} blocks");
+    let b = rng.vec(n);
+    let mut x = b.clone();
+    s.solve_in_place(&mut x, 1).unwrap();
+    assert!(s.last_solve_mixed());
+    assert_eq!(s.last_stats().f32_rounds, 0);
+    let mut cpu = CholeskySolver::new();
+    cpu.prepare_blocks(&a, &fixed).unwrap();
+    let mut want = b;
+    cpu.solve_in_place(&mut want, 1).unwrap();
+    let e = rel_err(&x, &want);
+    assert!(
+        e < 1e-8,
+        "mixed precision past the binding limit vs Cholesky: {e:e}"
+    );
+}
+
+#[test]
 fn f32_refinement_that_stops_short_falls_back_to_mixed_precision() {
     let Some(mut s) = gpu_f64() else { return };
     s.set_preconditioner(Preconditioner::Amg).unwrap();
@@ -1050,4 +1093,26 @@ fn amg_scalar_system_matches_cholesky_in_fewer_iterations() {
     assert!(e < 1e-8, "AMG vs Cholesky: {e:e}");
     eprintln!("scalar, 2 columns: AMG {ia} iterations, Jacobi {ij}");
     assert!(ia * 3 < ij, "AMG {ia} vs Jacobi {ij}");
+}
+
+#[test]
+fn read_ceiling_reads_every_value() {
+    // The benchmark's read ceiling checks that each pass's partials add up to
+    // the sum of the values it read; a small binding limit leaves the storage
+    // buffer pass out instead of failing.
+    let Some(s) = gpu() else { return };
+    let c = kernels::read_ceiling(&s, 1 << 20, 2).unwrap();
+    assert_eq!(c.bytes, 1 << 20);
+    assert!(
+        c.texture_seconds > 0.0 && c.buffer_seconds.is_some_and(|t| t > 0.0),
+        "{c:?}"
+    );
+    let Some(small) = gpu_with_limits(|l| l.max_storage_buffer_binding_size = 1 << 16) else {
+        return;
+    };
+    let c = kernels::read_ceiling(&small, 1 << 20, 1).unwrap();
+    assert!(
+        c.texture_seconds > 0.0 && c.buffer_seconds.is_none(),
+        "{c:?}"
+    );
 }

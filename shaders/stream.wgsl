@@ -1,0 +1,83 @@
+// The read-bandwidth ceiling of the adapter: the least work a kernel can do per
+// byte read. Each entry point sums a run of RGBA32F texels (or vec4<f32>
+// storage elements) and writes one partial per invocation, so its time is the
+// floor of any kernel that must read those bytes the same way. The benchmark
+// (`pcg_kernels`) compares it with the PCG iteration, whose matrix read alone
+// is most of the bytes it must move.
+//
+// Driven by solver-gpu/src/stream.rs.
+//
+// Bindings (group 0):
+//   0  P        uniform   texels = elements to read, groups = workgroups
+//                         holding them (each reads WG * PER texels); 2-D
+//                         dispatch, linear index wid.x + wid.y * nwg.x.
+//   1  src      texture   RGBA32F, TW texels per texture row (the layout of the
+//                         block matrix texture, bsr_spmv.wgsl).
+//   2  src_buf  read      the same values as vec4<f32> in a storage buffer.
+//   3  partials write     one sum per invocation (groups * WG), so that the
+//                         reads cannot be optimised away.
+//
+// Invocation `lid` of workgroup g reads elements g * WG * PER + k * WG + lid,
+// k < PER: neighbouring invocations read neighbouring elements.
+
+struct Params {
+    texels: u32,
+    groups: u32,
+    pad0: u32,
+    pad1: u32,
+}
+
+const WG: u32 = 128u;
+const PER: u32 = 16u;
+// Column count of the shared pipeline cache (unused: one pass reads once).
+override NCOLS: u32 = 1u;
+override TW: u32 = 4096u;
+
+@group(0) @binding(0) var<uniform> P: Params;
+@group(0) @binding(1) var src: texture_2d<f32>;
+@group(0) @binding(2) var<storage, read> src_buf: array<vec4<f32>>;
+@group(0) @binding(3) var<storage, read_write> partials: array<f32>;
+
+fn group_index(wid: vec3<u32>, nwg: vec3<u32>) -> u32 {
+    return wid.x + wid.y * nwg.x;
+}
+
+@compute @workgroup_size(128)
+fn texture_sum(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let g = group_index(wid, nwg);
+    if g >= P.groups || NCOLS == 0u {
+        return;
+    }
+    var s = vec4<f32>(0.0);
+    for (var k = 0u; k < PER; k++) {
+        let t = g * WG * PER + k * WG + lid;
+        if t < P.texels {
+            s += textureLoad(src, vec2<u32>(t % TW, t / TW), 0);
+        }
+    }
+    partials[g * WG + lid] = s.x + s.y + s.z + s.w;
+}
+
+@compute @workgroup_size(128)
+fn buffer_sum(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let g = group_index(wid, nwg);
+    if g >= P.groups || NCOLS == 0u {
+        return;
+    }
+    var s = vec4<f32>(0.0);
+    for (var k = 0u; k < PER; k++) {
+        let t = g * WG * PER + k * WG + lid;
+        if t < P.texels {
+            s += src_buf[t];
+        }
+    }
+    partials[g * WG + lid] = s.x + s.y + s.z + s.w;
+}
