@@ -147,6 +147,14 @@ fn row(label: &str, mesh: &Mesh, quick_direct: bool) {
         Err(e) => println!("| {label} | {nf} | gpu | unavailable: {e} | | | | | |"),
         Ok(mut gpu) => {
             let name = gpu.adapter_name().to_string();
+            // The pipeline builds the scale-driven systems' AMG on the
+            // translations; METRICDEFORM_GPU_PRECONDITIONER=affine-amg gives it
+            // the vertex positions here, for the affine near-null space.
+            if std::env::var("METRICDEFORM_GPU_PRECONDITIONER").is_ok_and(|v| v == "affine-amg") {
+                let positions: Vec<[f64; 3]> =
+                    mesh.positions.iter().map(|p| p.to_array()).collect();
+                gpu.set_vertex_positions(&positions);
+            }
             let t = Instant::now();
             let prep = gpu.prepare_blocks(a, fixed);
             let t_prep = t.elapsed().as_secs_f64();

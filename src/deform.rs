@@ -13,6 +13,18 @@ use crate::shape::{HandleTarget, ShapeModel, ShapeWeights};
 use crate::topology::Topology;
 use crate::validate::{require_closed, validate, MeshCheck};
 use crate::{Error, Mesh, Result};
+
+/// Meshes from this many vertices on give an iterative backend the vertex
+/// positions for the scale-driven shape systems too (Eq. 7), so that its AMG
+/// takes the affine motions as near-null space (the fine-tune always does).
+/// Measured on the GPU backend (BENCHMARKS.md, ninth session): with
+/// translations the PCG iterations grow with the mesh (120 on spot's 2.9k
+/// vertices, 527 on spot x16's 47k, 727-768 on 54k, ~1850 on 216k), with
+/// affine modes they stay near 45-60, and an affine V-cycle costs 3-4x a
+/// translations one plus its set-up: a loss on spot (22.6 s against 28.9 s
+/// end to end on lavapipe), 9x fewer iterations on spot x16. The crossover,
+/// translations needing about 4x the affine iterations, is near 10k vertices.
+pub const AFFINE_SCALE_DRIVEN_MIN_VERTICES: usize = 10_000;
 use glam::DVec3;
 use solver_cpu::cholesky::NESTED_DISSECTION_FROM;
 use solver_cpu::{
@@ -561,9 +573,16 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
                     c[v] *= curvature_factor[v];
                 }
             }
-            // Eq. 7 / 19.
+            // Eq. 7 / 19. On large meshes an iterative backend's AMG takes the
+            // vertices' affine motions as near-null space here too (see
+            // AFFINE_SCALE_DRIVEN_MIN_VERTICES).
             let t_shape = Instant::now();
+            if n >= AFFINE_SCALE_DRIVEN_MIN_VERTICES {
+                let positions: Vec<[f64; 3]> = x.iter().map(|p| p.to_array()).collect();
+                model.solver().set_vertex_positions(&positions);
+            }
             model.assemble_and_factor(mesh, &x, &s, &c, &o.shape)?;
+            model.solver().set_vertex_positions(&[]);
             let t_solve = Instant::now();
             let g = model.solve_unconstrained(&x)?;
             // The first step of a curvature job has its own targets (Eq. 21 factors
@@ -702,8 +721,7 @@ fn fine_tune(
     crate::report::release_free_memory();
     // The fine-tune Hessian (k_m = k_l = 100 k_f) is nearly blind to local
     // affine motions: an iterative backend's AMG takes them as its near-null
-    // space (measured: 4-7x fewer GPU PCG iterations on spot; the scale-driven
-    // systems converge fast with translations alone, BENCHMARKS.md).
+    // space (measured: 4-7x fewer GPU PCG iterations on spot, BENCHMARKS.md).
     let positions: Vec<[f64; 3]> = xstart.iter().map(|p| p.to_array()).collect();
     model.solver().set_vertex_positions(&positions);
     model.assemble_and_factor(mesh, xstart, &ones_f, &ones_v, &o.fine_tune)?;
