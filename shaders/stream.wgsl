@@ -1,7 +1,7 @@
 // The read-bandwidth ceiling of the adapter: the least work a kernel can do per
-// byte read. Each entry point sums a run of RGBA32F texels (or vec4<f32>
-// storage elements) and writes one partial per invocation, so its time is the
-// floor of any kernel that must read those bytes the same way. The benchmark
+// byte read. Each invocation sums a run of RGBA32F texels (or, with
+// FROM_TEXTURE false, vec4<f32> storage elements) and writes one partial, so
+// its time is the floor of any kernel that must read those bytes the same way. The benchmark
 // (`pcg_kernels`) compares it with the PCG iteration, whose matrix read alone
 // is most of the bytes it must move.
 //
@@ -38,17 +38,17 @@ override TW: u32 = 4096u;
 @group(0) @binding(2) var<storage, read> src_buf: array<vec4<f32>>;
 @group(0) @binding(3) var<storage, read_write> partials: array<f32>;
 
-fn group_index(wid: vec3<u32>, nwg: vec3<u32>) -> u32 {
-    return wid.x + wid.y * nwg.x;
-}
+// Read from the texture (true) or the storage buffer (false): a pipeline
+// constant, so each pipeline keeps only its own load.
+override FROM_TEXTURE: bool = true;
 
 @compute @workgroup_size(128)
-fn texture_sum(
+fn main(
     @builtin(workgroup_id) wid: vec3<u32>,
     @builtin(num_workgroups) nwg: vec3<u32>,
     @builtin(local_invocation_index) lid: u32,
 ) {
-    let g = group_index(wid, nwg);
+    let g = wid.x + wid.y * nwg.x;
     if g >= P.groups || NCOLS == 0u {
         return;
     }
@@ -56,27 +56,11 @@ fn texture_sum(
     for (var k = 0u; k < PER; k++) {
         let t = g * WG * PER + k * WG + lid;
         if t < P.texels {
-            s += textureLoad(src, vec2<u32>(t % TW, t / TW), 0);
-        }
-    }
-    partials[g * WG + lid] = s.x + s.y + s.z + s.w;
-}
-
-@compute @workgroup_size(128)
-fn buffer_sum(
-    @builtin(workgroup_id) wid: vec3<u32>,
-    @builtin(num_workgroups) nwg: vec3<u32>,
-    @builtin(local_invocation_index) lid: u32,
-) {
-    let g = group_index(wid, nwg);
-    if g >= P.groups || NCOLS == 0u {
-        return;
-    }
-    var s = vec4<f32>(0.0);
-    for (var k = 0u; k < PER; k++) {
-        let t = g * WG * PER + k * WG + lid;
-        if t < P.texels {
-            s += src_buf[t];
+            if FROM_TEXTURE {
+                s += textureLoad(src, vec2<u32>(t % TW, t / TW), 0);
+            } else {
+                s += src_buf[t];
+            }
         }
     }
     partials[g * WG + lid] = s.x + s.y + s.z + s.w;

@@ -13,6 +13,13 @@ use crate::shape::{HandleTarget, ShapeModel, ShapeWeights};
 use crate::topology::Topology;
 use crate::validate::{require_closed, validate, MeshCheck};
 use crate::{Error, Mesh, Result};
+use glam::DVec3;
+use solver_cpu::cholesky::NESTED_DISSECTION_FROM;
+use solver_cpu::{
+    nested_dissection_of_pattern, BlockPcgSolver, CholeskySolver, FillOrdering, SpdSolver, SymCsc,
+};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
 
 /// Meshes from this many vertices on give an iterative backend the vertex
 /// positions for the scale-driven shape systems too (Eq. 7), so that its AMG
@@ -25,13 +32,6 @@ use crate::{Error, Mesh, Result};
 /// end to end on lavapipe), 9x fewer iterations on spot x16. The crossover,
 /// translations needing about 4x the affine iterations, is near 10k vertices.
 pub const AFFINE_SCALE_DRIVEN_MIN_VERTICES: usize = 10_000;
-use glam::DVec3;
-use solver_cpu::cholesky::NESTED_DISSECTION_FROM;
-use solver_cpu::{
-    nested_dissection_of_pattern, BlockPcgSolver, CholeskySolver, FillOrdering, SpdSolver, SymCsc,
-};
-use std::path::{Path, PathBuf};
-use std::time::Instant;
 
 /// How the E_m target of each vertex is scaled (Eq. 21).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -422,6 +422,28 @@ pub fn max_error(p: &Problem, x: &[DVec3]) -> f64 {
         .fold(0.0, f64::max)
 }
 
+/// `model.assemble_and_factor` at `x`; with `affine`, the solver is given the
+/// vertex positions for the factorization (an iterative backend's AMG then
+/// takes the vertices' affine motions as near-null space) and they are
+/// cleared after it.
+fn assemble_with_positions(
+    model: &mut ShapeModel,
+    mesh: &Mesh,
+    x: &[DVec3],
+    s: &[f64],
+    c: &[f64],
+    w: &ShapeWeights,
+    affine: bool,
+) -> Result<()> {
+    if affine {
+        let positions: Vec<[f64; 3]> = x.iter().map(|p| p.to_array()).collect();
+        model.solver().set_vertex_positions(&positions);
+    }
+    let done = model.assemble_and_factor(mesh, x, s, c, w);
+    model.solver().set_vertex_positions(&[]);
+    done
+}
+
 /// Run the method on a resolved problem.
 pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> Result<Outcome> {
     let mesh = &p.mesh;
@@ -577,12 +599,8 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
             // vertices' affine motions as near-null space here too (see
             // AFFINE_SCALE_DRIVEN_MIN_VERTICES).
             let t_shape = Instant::now();
-            if n >= AFFINE_SCALE_DRIVEN_MIN_VERTICES {
-                let positions: Vec<[f64; 3]> = x.iter().map(|p| p.to_array()).collect();
-                model.solver().set_vertex_positions(&positions);
-            }
-            model.assemble_and_factor(mesh, &x, &s, &c, &o.shape)?;
-            model.solver().set_vertex_positions(&[]);
+            let affine = n >= AFFINE_SCALE_DRIVEN_MIN_VERTICES;
+            assemble_with_positions(&mut model, mesh, &x, &s, &c, &o.shape, affine)?;
             let t_solve = Instant::now();
             let g = model.solve_unconstrained(&x)?;
             // The first step of a curvature job has its own targets (Eq. 21 factors
@@ -722,10 +740,7 @@ fn fine_tune(
     // The fine-tune Hessian (k_m = k_l = 100 k_f) is nearly blind to local
     // affine motions: an iterative backend's AMG takes them as its near-null
     // space (measured: 4-7x fewer GPU PCG iterations on spot, BENCHMARKS.md).
-    let positions: Vec<[f64; 3]> = xstart.iter().map(|p| p.to_array()).collect();
-    model.solver().set_vertex_positions(&positions);
-    model.assemble_and_factor(mesh, xstart, &ones_f, &ones_v, &o.fine_tune)?;
-    model.solver().set_vertex_positions(&[]);
+    assemble_with_positions(model, mesh, xstart, &ones_f, &ones_v, &o.fine_tune, true)?;
     let goal = 0.01 * o.tolerance;
     let mut dx = vec![0.0; 3 * n];
     let apply = |dx: &[f64]| -> Vec<DVec3> {

@@ -228,16 +228,16 @@ impl Round<'_> {
     }
 }
 
-/// `r = b - A x` (f64, on the host) for `ncols` columns; per column `||r||` and
-/// `||r|| / ||b||` (0 for a zero right-hand side), and the largest of those.
 /// Per column: the f64 residual `r = b - A x` (in `r`), its norm, the relative
 /// residual `||r|| / ||b||`, and the target it must reach: `tol`, or the f64
 /// rounding floor `eps ||A|| ||x|| / ||b||` where that is larger (a smooth
 /// right-hand side of a stiff system has a large solution, and no f64 solver,
 /// Cholesky included, gets its relative residual below that floor). Also the
-/// largest relative residual.
+/// largest relative residual. `anorm`: `||A||_inf` (`HostMatrix::norm_inf`,
+/// computed once per solve).
 fn residuals(
     h: &HostMatrix,
+    anorm: f64,
     b: &[f64],
     x: &[f64],
     r: &mut [f64],
@@ -246,7 +246,6 @@ fn residuals(
 ) -> (Vec<f64>, Vec<f64>, f64, Vec<f64>) {
     let n = h.n();
     h.residual(b, x, r, ncols);
-    let anorm = h.norm_inf();
     let rnorm: Vec<f64> = (0..ncols).map(|c| norm(&r[c * n..(c + 1) * n])).collect();
     let mut target = vec![tol; ncols];
     let rel: Vec<f64> = (0..ncols)
@@ -611,9 +610,10 @@ impl GpuSolver {
         let n = h.n();
         let mut r = vec![0.0; n * ncols];
         let mut prev = f64::INFINITY;
+        let anorm = h.norm_inf();
         for round in 0.. {
             let h = self.host.as_ref().unwrap();
-            let (rnorm, rel, worst, target) = residuals(h, b, x, &mut r, ncols, self.tol);
+            let (rnorm, rel, worst, target) = residuals(h, anorm, b, x, &mut r, ncols, self.tol);
             self.stats.residual = worst;
             log::trace!(
                 "mixed round {round}: relative residual {worst:.2e} after {total} iterations"
@@ -846,9 +846,17 @@ impl GpuSolver {
         let mut worse = 0;
         let mut prev = f64::INFINITY;
         let mut watch = RoundWatch::default();
+        let anorm = self.host.as_ref().unwrap().norm_inf();
         for round in 0.. {
-            let (rnorm, rel, worst, target) =
-                residuals(self.host.as_ref().unwrap(), b, x, &mut r, ncols, self.tol);
+            let (rnorm, rel, worst, target) = residuals(
+                self.host.as_ref().unwrap(),
+                anorm,
+                b,
+                x,
+                &mut r,
+                ncols,
+                self.tol,
+            );
             self.stats.residual = self.stats.residual.max(worst);
             log::trace!(
                 "f32 round {round}: relative residual {worst:.2e} after {total} iterations"

@@ -191,7 +191,6 @@ impl HostMatrix {
         }
     }
 
-    /// `r = b - A x` in f64 for `ncols` columns (column-major, length `n` each).
     /// `||A||_inf`, the largest absolute row sum (an upper bound of `||A||_2`
     /// for a symmetric matrix).
     pub fn norm_inf(&self) -> f64 {
@@ -211,6 +210,7 @@ impl HostMatrix {
             .reduce(|| 0.0, f64::max)
     }
 
+    /// `r = b - A x` in f64 for `ncols` columns (column-major, length `n` each).
     pub fn residual(&self, b: &[f64], x: &[f64], r: &mut [f64], ncols: usize) {
         let n = self.n();
         let bs = self.bs;

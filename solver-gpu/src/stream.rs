@@ -1,7 +1,8 @@
 //! Drives `shaders/stream.wgsl`: the adapter's read-bandwidth ceiling, the
 //! time of the least work a kernel can do per byte read (sum a run of
 //! RGBA32F texels, or of `vec4<f32>` storage elements, one partial written per
-//! invocation). A kernel that must read `B` bytes the same way takes at least
+//! invocation; one entry point, the source chosen by the pipeline constant
+//! `FROM_TEXTURE`). A kernel that must read `B` bytes the same way takes at least
 //! `B / ceiling`; the `pcg_kernels` benchmark sets the PCG iteration beside it.
 //!
 //! Bindings (group 0), as the shader's header describes:
@@ -55,8 +56,18 @@ pub(crate) fn measure(ctx: &Context, texels: u64, reps: usize) -> Result<ReadCei
     let shader = Shader::new(ctx, "stream.wgsl", SOURCE, &BINDINGS)?;
     let tw = ctx.texture_width() as f64;
     let kernels = [
-        Kernel::with_constants(&shader, "texture_sum", "texture_sum", &[("TW", tw)]),
-        Kernel::with_constants(&shader, "buffer_sum", "buffer_sum", &[("TW", tw)]),
+        Kernel::with_constants(
+            &shader,
+            "texture_sum",
+            "main",
+            &[("TW", tw), ("FROM_TEXTURE", 1.0)],
+        ),
+        Kernel::with_constants(
+            &shader,
+            "buffer_sum",
+            "main",
+            &[("TW", tw), ("FROM_TEXTURE", 0.0)],
+        ),
     ];
     let value = |i: u64| (i % 1000) as f32 * 1e-3;
     let texture = ctx.data_texture("stream source", texels, false)?;
