@@ -17,6 +17,7 @@ use glam::DVec3;
 use solver_cpu::cholesky::NESTED_DISSECTION_FROM;
 use solver_cpu::{
     nested_dissection_of_pattern, BlockPcgSolver, CholeskySolver, FillOrdering, SpdSolver, SymCsc,
+    SystemKind, WorkCounters,
 };
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -132,6 +133,21 @@ fn open_gpu() -> Result<Box<dyn SpdSolver>> {
         ))),
         Err(e) => Err(Error::Solver(e.into())),
     }
+}
+
+/// `--backend auto`'s measured crossover: the smallest mesh, in faces, from
+/// which the GPU backend ran faster than the CPU backend on the same machine
+/// (BENCHMARKS.md, "`auto` crossover"). `None`: at no measured size. On an
+/// NVIDIA H100 against its 16-core host the GPU backend was 5-11x slower at
+/// every size measured, 5.9k to 1.2M faces, so `auto` uses the CPU until a
+/// measurement shows the GPU ahead.
+pub const GPU_FASTER_FROM_FACES: Option<usize> = None;
+
+/// Whether `--backend auto` runs a mesh of `faces` faces on the GPU: only on
+/// a hardware adapter (never a CPU emulation such as lavapipe) and only from
+/// the measured crossover [`GPU_FASTER_FROM_FACES`] on.
+pub fn auto_uses_gpu(faces: usize, hardware_adapter: bool) -> bool {
+    hardware_adapter && GPU_FASTER_FROM_FACES.is_some_and(|from| faces >= from)
 }
 
 /// Solver settings (`[solver]` of the job file, with defaults).
@@ -412,6 +428,99 @@ pub struct Outcome {
     pub face_scale: Vec<f64>,
     /// Why the scale-driven phase stopped.
     pub stop_reason: String,
+    /// What the linear solvers did (the report's `solver` section).
+    pub solver: SolverSummary,
+}
+
+/// The linear solvers' work in one run, by phase.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct SolverSummary {
+    /// The scale-factor solver (Eq. 3), over the whole run.
+    pub scale_factors: WorkCounters,
+    /// The shape solver during the scale-driven phase (Eq. 7).
+    pub scale_driven: WorkCounters,
+    /// The shape solver during the fine-tune (Eq. 8).
+    pub fine_tune: WorkCounters,
+    /// Per scale-driven outer iteration: both solvers' work in it, and its
+    /// wall seconds.
+    pub outer: Vec<OuterIteration>,
+    /// Stored 3x3 blocks of the shape matrix, both triangles: one set of its
+    /// values is `72 * shape_blocks` bytes in f64.
+    pub shape_blocks: usize,
+}
+
+/// One scale-driven outer iteration's solver work.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct OuterIteration {
+    pub work: WorkCounters,
+    pub seconds: f64,
+}
+
+impl SolverSummary {
+    fn phases(&self) -> [&WorkCounters; 3] {
+        [&self.scale_factors, &self.scale_driven, &self.fine_tune]
+    }
+
+    /// Most iterations of any one solve.
+    pub fn iterations_max(&self) -> usize {
+        self.phases()
+            .iter()
+            .map(|w| w.iterations_max)
+            .max()
+            .unwrap_or(0)
+    }
+
+    /// Seconds the host waited for the GPU.
+    pub fn device_seconds(&self) -> f64 {
+        self.phases().iter().map(|w| w.device_seconds).sum()
+    }
+
+    /// Bytes moved between host and device, both ways.
+    pub fn transfer_bytes(&self) -> u64 {
+        self.phases()
+            .iter()
+            .map(|w| w.bytes_to_device + w.bytes_from_device)
+            .sum()
+    }
+}
+
+/// Both solvers' counters added (the scale-factor one may be absent).
+fn work_sum(a: WorkCounters, b: Option<WorkCounters>) -> WorkCounters {
+    let b = b.unwrap_or_default();
+    WorkCounters {
+        preconditioner_setups: a.preconditioner_setups + b.preconditioner_setups,
+        solves: a.solves + b.solves,
+        iterations: a.iterations + b.iterations,
+        iterations_max: a.iterations_max.max(b.iterations_max),
+        device_seconds: a.device_seconds + b.device_seconds,
+        device_waits: a.device_waits + b.device_waits,
+        bytes_to_device: a.bytes_to_device + b.bytes_to_device,
+        bytes_from_device: a.bytes_from_device + b.bytes_from_device,
+    }
+}
+
+/// One `info` line for a phase's solver work.
+fn log_work(phase: &str, w: &WorkCounters, seconds: Option<f64>) {
+    let time = match seconds {
+        Some(t) => format!(
+            "{t:.3} s ({:.3} s on the host, ",
+            (t - w.device_seconds).max(0.0)
+        ),
+        None => "(".into(),
+    };
+    log::info!(
+        "{phase}: {time}{:.3} s waiting for the GPU in {} waits), \
+         {} preconditioner set-ups, {} solves, {} iterations (most in one solve {}), \
+         {} bytes to and {} from the device",
+        w.device_seconds,
+        w.device_waits,
+        w.preconditioner_setups,
+        w.solves,
+        w.iterations,
+        w.iterations_max,
+        w.bytes_to_device,
+        w.bytes_from_device
+    );
 }
 
 /// Largest relative metric error.
@@ -468,8 +577,9 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
         "deform: {nf} faces, resident {:.0} MiB at the start",
         crate::report::resident_memory_mb()
     );
-    let mut model =
-        ShapeModel::with_solver(mesh, &p.topo, p.handles.clone(), o.backend.shape_solver()?)?;
+    let mut shape_solver = o.backend.shape_solver()?;
+    shape_solver.set_system_kind(SystemKind::ScaleDriven);
+    let mut model = ShapeModel::with_solver(mesh, &p.topo, p.handles.clone(), shape_solver)?;
     let face_ordering = fill_orderings(p, o, &mut model);
     crate::report::release_free_memory();
     model
@@ -490,6 +600,11 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
     let mut history: Vec<f64> = Vec::new();
     let mut stop_reason = String::from("no constraints");
     let cap = o.preview.unwrap_or(o.max_iterations);
+    let mut summary = SolverSummary {
+        shape_blocks: 2 * model.matrix().iso.nnz() - n,
+        ..SolverSummary::default()
+    };
+    let mut scale_factor_work = None;
     if !p.constraints.is_empty() || has_handles || has_curvature {
         let mut scale_system = if p.constraints.is_empty() {
             None
@@ -502,6 +617,7 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
                 o.regulariser,
                 {
                     let mut solver = o.backend.scale_solver()?;
+                    solver.set_system_kind(SystemKind::ScaleFactors);
                     if let Some(order) = face_ordering {
                         solver.set_fill_ordering(FillOrdering::Given(order.into()));
                     }
@@ -518,6 +634,10 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
         });
         loop {
             let t_iter = Instant::now();
+            let before = work_sum(
+                model.solver().counters(),
+                scale_system.as_ref().map(|s| s.counters()),
+            );
             let areas = mesh.face_areas(&x);
             // Eq. 3: scale factors on the current mesh.
             let (s, max_ds) = match scale_system.as_mut() {
@@ -618,6 +738,15 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
                 next
             };
             iterations += 1;
+            let work = work_sum(
+                model.solver().counters(),
+                scale_system.as_ref().map(|s| s.counters()),
+            )
+            .since(&before);
+            summary.outer.push(OuterIteration {
+                work,
+                seconds: t_iter.elapsed().as_secs_f64(),
+            });
             log::debug!(
                 "outer iteration {iterations}: max |s-1| {max_ds:.4}, assemble+factor {:.3} s, solve {:.3} s, total {:.3} s, resident {:.0} MiB (peak {:.0})",
                 (t_solve - t_shape).as_secs_f64(),
@@ -631,8 +760,16 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
                 best = (e, x.clone());
             }
         }
+        scale_factor_work = scale_system.as_ref().map(|s| s.counters());
     }
     let t1 = Instant::now();
+    summary.scale_driven = model.solver().counters();
+    summary.scale_factors = scale_factor_work.unwrap_or_default();
+    log_work(
+        "scale-driven phase, shape solver",
+        &summary.scale_driven,
+        Some((t1 - t0).as_secs_f64()),
+    );
     let mut x = best.1;
     let mut ft_iterations = 0;
     if o.preview.is_none() && !p.constraints.is_empty() {
@@ -644,6 +781,16 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
         ft_iterations = it;
     }
     let t2 = Instant::now();
+    summary.fine_tune = model.solver().counters().since(&summary.scale_driven);
+    if summary.fine_tune.solves == 0 {
+        summary.fine_tune.iterations_max = 0;
+    }
+    log_work(
+        "fine-tune, shape solver",
+        &summary.fine_tune,
+        Some((t2 - t1).as_secs_f64()),
+    );
+    log_work("scale factors (whole run)", &summary.scale_factors, None);
     let face_scale = (0..nf)
         .map(|f| {
             let a = mesh.face_area(&x, f);
@@ -662,6 +809,7 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
         seconds_fine_tune: (t2 - t1).as_secs_f64(),
         face_scale,
         stop_reason,
+        solver: summary,
     })
 }
 
@@ -737,6 +885,7 @@ fn fine_tune(
     let ones_v = vec![1.0; n];
     // One factorization for the whole fine-tune (symbolic analysis reused).
     crate::report::release_free_memory();
+    model.solver().set_system_kind(SystemKind::FineTune);
     // The fine-tune Hessian (k_m = k_l = 100 k_f) is nearly blind to local
     // affine motions: an iterative backend's AMG takes them as its near-null
     // space (measured: 4-7x fewer GPU PCG iterations on spot, BENCHMARKS.md).

@@ -2,11 +2,11 @@
 
 use clap::{Parser, Subcommand, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
-use metricdeform::deform::{deform, Options, Problem, Progress, SolverBackend};
+use metricdeform::deform::{auto_uses_gpu, deform, Options, Problem, Progress, SolverBackend};
 use metricdeform::job::{Job, JobFormat};
 use metricdeform::report::{
     constraint_rows, explain_miss, peak_memory_mb, table, Distortion, Iterations, MeshInfo, Report,
-    Seconds,
+    Seconds, SolverWork,
 };
 use metricdeform::{distortion, io, Error};
 use std::io::IsTerminal;
@@ -159,11 +159,13 @@ fn demo(args: &RunArgs) -> Result<u8, Error> {
     result
 }
 
-/// Resolve the backend: flag, then the job, then METRICDEFORM_BACKEND, then auto.
-/// Returns the solver backend and the adapter in use (GPU only).
+/// Resolve the backend: flag, then the job, then METRICDEFORM_BACKEND, then auto
+/// (the GPU on a hardware adapter from the measured crossover on, see
+/// [`auto_uses_gpu`]). Returns the solver backend and the adapter in use (GPU only).
 fn choose_backend(
     flag: Option<Backend>,
     job: &Job,
+    faces: usize,
     quiet: bool,
 ) -> Result<(SolverBackend, Option<String>), Error> {
     let from_env = std::env::var("METRICDEFORM_BACKEND")
@@ -190,11 +192,21 @@ fn choose_backend(
             ))),
         },
         "auto" => match solver_gpu::default_adapter() {
-            Ok(a) if a.device_type != "Cpu" => {
+            Ok(a) if auto_uses_gpu(faces, a.device_type != "Cpu") => {
                 if !quiet {
-                    eprintln!("backend: gpu (auto: adapter {})", a.name);
+                    eprintln!("backend: gpu (auto: adapter {}, {faces} faces)", a.name);
                 }
                 Ok((SolverBackend::Gpu, Some(a.name)))
+            }
+            Ok(a) if a.device_type != "Cpu" => {
+                if !quiet {
+                    eprintln!(
+                        "backend: cpu (auto: the GPU backend is not measured faster than the CPU at {faces} faces; \
+                         --backend gpu uses {} anyway)",
+                        a.name
+                    );
+                }
+                Ok((SolverBackend::Cpu, None))
             }
             Ok(a) => {
                 eprintln!(
@@ -234,7 +246,6 @@ fn run(job: &Job, args: &RunArgs) -> Result<u8, Error> {
     if args.render.is_some() {
         return Err(Error::bad("--render is not available in this version"));
     }
-    let (backend, adapter) = choose_backend(args.backend, job, args.quiet)?;
     let out_path = args.out.clone().unwrap_or_else(|| job.output_path());
     check_writable_dir(&out_path, "output")?;
     if let Some(r) = &args.report {
@@ -242,8 +253,10 @@ fn run(job: &Job, args: &RunArgs) -> Result<u8, Error> {
     }
     let mut options = Options::from_spec(&job.spec.solver);
     options.preview = args.preview;
-    options.backend = backend;
     let problem = Problem::load(job)?;
+    let (backend, adapter) =
+        choose_backend(args.backend, job, problem.mesh.num_faces(), args.quiet)?;
+    options.backend = backend;
     if same_file(&out_path, &problem.mesh_path) {
         return Err(Error::bad(format!(
             "output {} is the input mesh: the input is never modified",
@@ -327,6 +340,7 @@ fn run(job: &Job, args: &RunArgs) -> Result<u8, Error> {
         },
         reason: reason.clone(),
         peak_memory_mb: peak_memory_mb(),
+        solver: Some(SolverWork::of(&outcome)),
     };
     print!("{}", table(&rows));
     println!(
@@ -381,6 +395,7 @@ fn measure(job: &Job, report_path: Option<&Path>) -> Result<u8, Error> {
         },
         reason: None,
         peak_memory_mb: peak_memory_mb(),
+        solver: None,
     };
     if let Some(p) = report_path {
         write_report(p, &report)?;

@@ -44,6 +44,48 @@ pub struct Distortion {
     pub quasi_conformal_max: f64,
 }
 
+/// Preconditioner set-ups per system kind (numeric factorizations on the
+/// CPU, AMG hierarchy builds on the GPU).
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct PreconditionerSetups {
+    pub scale_factors: usize,
+    pub scale_driven: usize,
+    pub fine_tune: usize,
+}
+
+/// The report's `solver` section: the linear solvers' work split.
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct SolverWork {
+    pub preconditioner_setups: PreconditionerSetups,
+    /// Most iterations of any one solve (0 where every solve was direct).
+    pub pcg_iterations_max: usize,
+    /// Seconds of the deformation (scale-driven phase and fine-tune) not
+    /// spent waiting for the GPU.
+    pub host_seconds: f64,
+    /// Seconds the host waited for the GPU (0 on the CPU backend).
+    pub gpu_seconds: f64,
+    /// Bytes moved between host and GPU, both ways.
+    pub transfer_bytes: u64,
+}
+
+impl SolverWork {
+    pub fn of(o: &Outcome) -> SolverWork {
+        let w = &o.solver;
+        let gpu = w.device_seconds();
+        SolverWork {
+            preconditioner_setups: PreconditionerSetups {
+                scale_factors: w.scale_factors.preconditioner_setups,
+                scale_driven: w.scale_driven.preconditioner_setups,
+                fine_tune: w.fine_tune.preconditioner_setups,
+            },
+            pcg_iterations_max: w.iterations_max(),
+            host_seconds: (o.seconds_scale_driven + o.seconds_fine_tune - gpu).max(0.0),
+            gpu_seconds: gpu,
+            transfer_bytes: w.transfer_bytes(),
+        }
+    }
+}
+
 #[derive(Debug, Clone, Serialize)]
 pub struct Report {
     pub mesh: MeshInfo,
@@ -60,6 +102,9 @@ pub struct Report {
     pub reason: Option<String>,
     /// Peak resident memory of the process, MiB (Linux; 0 elsewhere).
     pub peak_memory_mb: f64,
+    /// The linear solvers' work (deform only).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub solver: Option<SolverWork>,
 }
 
 /// Metric rows for positions `x` (the result, or the input for `measure`).

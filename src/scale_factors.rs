@@ -66,6 +66,11 @@ pub struct ScaleFactorSystem {
 }
 
 impl ScaleFactorSystem {
+    /// Work of its solver so far.
+    pub fn counters(&self) -> solver_cpu::WorkCounters {
+        self.solver.counters()
+    }
+
     /// Assemble and factor `2 k_d L_Q + 2 k_r diag(rho)` (Hessian of Eq. 3).
     pub fn new(
         face_pairs: &[[u32; 2]],

@@ -11,7 +11,7 @@
 //! preconditioner, not a solver: its solves carry f32 rounding amplified by the
 //! condition number, so it is used inside the f64 PCG of [`crate::BlockPcgSolver`].
 
-use crate::{BlockSym3, SolveInfo, SolverError, SpdSolver, SymCsc};
+use crate::{BlockSym3, SolveInfo, SolverError, SpdSolver, SymCsc, WorkCounters};
 use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::sparse::linalg::cholesky::{
     factorize_symbolic_cholesky, LltRef, SymbolicCholesky, SymmetricOrdering,
@@ -181,6 +181,8 @@ pub struct CholeskySolver {
     pub numeric_count: usize,
     /// Seconds of the last numeric factorization.
     pub numeric_seconds: f64,
+    /// Solve calls.
+    solves: usize,
 }
 
 impl CholeskySolver {
@@ -470,6 +472,7 @@ impl SpdSolver for CholeskySolver {
         }
         let sym = self.symbolic.as_ref().unwrap();
         let n = self.n;
+        self.solves += 1;
         let solved = if self.single {
             self.buf32.clear();
             self.buf32.extend(rhs.iter().map(|&v| v as f32));
@@ -491,6 +494,14 @@ impl SpdSolver for CholeskySolver {
             iterations: 0,
             residual: 0.0,
         })
+    }
+
+    fn counters(&self) -> WorkCounters {
+        WorkCounters {
+            preconditioner_setups: self.numeric_count,
+            solves: self.solves,
+            ..WorkCounters::default()
+        }
     }
 
     fn name(&self) -> &str {

@@ -42,6 +42,69 @@ pub struct SolveInfo {
     pub residual: f64,
 }
 
+/// Which of a run's linear systems a solver is prepared for. A backend whose
+/// preconditioner is costly to set up (the GPU's AMG) builds it once per kind
+/// and keeps it while later matrices of the same kind and pattern only change
+/// values; a new kind sets one up anew.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
+pub enum SystemKind {
+    /// The face system of the scale factors (Eq. 3).
+    ScaleFactors,
+    /// The shape systems of the scale-driven iteration (Eq. 7), new values
+    /// every outer iteration.
+    #[default]
+    ScaleDriven,
+    /// The fine-tune Hessian (Eq. 8), one matrix for the whole fine-tune.
+    FineTune,
+}
+
+/// Running totals of a solver's work since it was made (the report's
+/// `solver` section). Differences of two readings give one phase's share.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct WorkCounters {
+    /// Preconditioner set-ups: numeric factorizations (CPU), AMG hierarchy
+    /// builds (GPU).
+    pub preconditioner_setups: usize,
+    /// Solve calls.
+    pub solves: usize,
+    /// Iterations summed over solves (0 for direct solves).
+    pub iterations: usize,
+    /// Most iterations of any one solve.
+    pub iterations_max: usize,
+    /// Seconds the host waited for the device (0 without one).
+    pub device_seconds: f64,
+    /// Times the host waited for the device.
+    pub device_waits: usize,
+    /// Bytes written from the host to the device.
+    pub bytes_to_device: u64,
+    /// Bytes read back from the device.
+    pub bytes_from_device: u64,
+}
+
+impl WorkCounters {
+    /// Record one solve of `iterations` iterations.
+    pub fn solved(&mut self, iterations: usize) {
+        self.solves += 1;
+        self.iterations += iterations;
+        self.iterations_max = self.iterations_max.max(iterations);
+    }
+
+    /// `self - earlier` for the running totals; `iterations_max` is the
+    /// later reading's (a maximum has no difference).
+    pub fn since(&self, earlier: &WorkCounters) -> WorkCounters {
+        WorkCounters {
+            preconditioner_setups: self.preconditioner_setups - earlier.preconditioner_setups,
+            solves: self.solves - earlier.solves,
+            iterations: self.iterations - earlier.iterations,
+            iterations_max: self.iterations_max,
+            device_seconds: self.device_seconds - earlier.device_seconds,
+            device_waits: self.device_waits - earlier.device_waits,
+            bytes_to_device: self.bytes_to_device - earlier.bytes_to_device,
+            bytes_from_device: self.bytes_from_device - earlier.bytes_from_device,
+        }
+    }
+}
+
 /// Symmetric sparse matrix, lower triangle stored in compressed sparse columns
 /// (row indices sorted within each column, `row >= col`).
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -181,6 +244,11 @@ pub trait SpdSolver {
     /// factor (of the scalar unknowns, or of the block rows of a block matrix);
     /// ignored by the others.
     fn set_fill_ordering(&mut self, _ordering: FillOrdering) {}
+    /// The kind of system the next `prepare*` calls bring (default
+    /// [`SystemKind::ScaleDriven`]); see [`SystemKind`].
+    fn set_system_kind(&mut self, _kind: SystemKind) {}
+    /// Running totals of the work done so far.
+    fn counters(&self) -> WorkCounters;
     /// Short name for reports ("cpu", "gpu").
     fn name(&self) -> &str;
 }

@@ -24,7 +24,9 @@
 //! Every column stops when `||b - A x|| <= tolerance ||b||` (recurrence residual).
 
 use crate::cholesky::{CholeskySolver, FillOrdering, PatternKey};
-use crate::{BlockRows, BlockSym3, IsoRingSym3, SolveInfo, SolverError, SpdSolver, SymCsc};
+use crate::{
+    BlockRows, BlockSym3, IsoRingSym3, SolveInfo, SolverError, SpdSolver, SymCsc, WorkCounters,
+};
 use rayon::prelude::*;
 
 /// Settings of [`BlockPcgSolver`].
@@ -105,6 +107,8 @@ pub struct BlockPcgSolver {
     /// PCG iterations summed over all solves (for tests and benchmarks).
     pub total_iterations: usize,
     pub solves: usize,
+    /// Solves and iterations for [`SpdSolver::counters`].
+    work: WorkCounters,
 }
 
 impl BlockPcgSolver {
@@ -432,6 +436,7 @@ impl SpdSolver for BlockPcgSolver {
 
     fn solve_in_place(&mut self, rhs: &mut [f64], ncols: usize) -> Result<SolveInfo, SolverError> {
         if self.mode == Mode::ScalarDirect {
+            self.work.solved(0);
             return self.precond.solve_in_place(rhs, ncols);
         }
         // Zero initial guess: the residual is the right-hand side itself, so it
@@ -450,6 +455,13 @@ impl SpdSolver for BlockPcgSolver {
 
     fn set_tolerance(&mut self, relative_residual: f64) {
         self.params.tolerance = relative_residual;
+    }
+
+    fn counters(&self) -> WorkCounters {
+        WorkCounters {
+            preconditioner_setups: self.precond.numeric_count,
+            ..self.work
+        }
     }
 
     fn name(&self) -> &str {
@@ -627,6 +639,7 @@ impl BlockPcgSolver {
             it += 1;
         }
         self.total_iterations += it;
+        self.work.solved(it);
         if blocks {
             self.last_iterations = it;
             self.base_iterations.get_or_insert(it);

@@ -343,14 +343,24 @@ impl GpuHierarchy {
             g.a.write(ctx, &lv.a);
             g.p.write(ctx, &lv.p);
             g.r.write(ctx, &lv.r);
-            ctx.queue
-                .write_buffer(&g.dinv, 0, bytemuck::cast_slice(&scaled_dinv(lv)));
+            ctx.write_buffer(&g.dinv, 0, bytemuck::cast_slice(&scaled_dinv(lv)));
         }
-        ctx.queue.write_buffer(
+        ctx.write_buffer(
             &self.coarse_inv,
             0,
             bytemuck::cast_slice(&f32s(&h.coarse_inv)),
         );
+    }
+
+    /// The finest smoother's `omega D^-1` from new values of the PCG's matrix,
+    /// whose inverted diagonal blocks are `minv`; the coarse levels keep the
+    /// values they were built from (a fixed, still symmetric positive definite
+    /// preconditioner for the new matrix). `omega`: the finest level's weight.
+    pub fn write_fine_diagonal(&self, ctx: &Context, minv: &[f32], omega: f64) {
+        if let Some(g) = self.levels.first() {
+            let scaled: Vec<f32> = minv.iter().map(|&a| (omega * a as f64) as f32).collect();
+            ctx.write_buffer(&g.dinv, 0, bytemuck::cast_slice(&scaled));
+        }
     }
 
     /// Levels (the coarsest included).

@@ -3,6 +3,7 @@
 //! sizes, read-back, turning device errors into [`GpuError`]).
 
 use crate::GpuError;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 
 /// Uniform parameters shared by every shader (each declares the same struct).
@@ -67,6 +68,32 @@ pub(crate) struct Context {
     errors: Arc<Mutex<Option<GpuError>>>,
     /// Set by the device-lost callback.
     lost: Arc<Mutex<Option<String>>>,
+    /// Host-device traffic and waits since the device was opened.
+    traffic: Traffic,
+}
+
+/// Running counts of what crosses between host and device: every write and
+/// read-back goes through [`Context::write_buffer`], [`Context::write_data_texture`]
+/// and [`Context::read`], every wait through [`Context::wait`].
+#[derive(Default)]
+struct Traffic {
+    to_device: AtomicU64,
+    from_device: AtomicU64,
+    waits: AtomicU64,
+    wait_nanos: AtomicU64,
+}
+
+/// A reading of [`Traffic`].
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct TrafficCounts {
+    /// Bytes written from the host to the device.
+    pub to_device: u64,
+    /// Bytes read back to the host.
+    pub from_device: u64,
+    /// Times the host waited for the queue to drain.
+    pub waits: u64,
+    /// Seconds spent in those waits.
+    pub wait_seconds: f64,
 }
 
 fn instance() -> wgpu::Instance {
@@ -176,7 +203,27 @@ impl Context {
             shader_f64: !f64_feature.is_empty(),
             errors,
             lost,
+            traffic: Traffic::default(),
         })
+    }
+
+    /// Host-device traffic and waits so far.
+    pub fn traffic(&self) -> TrafficCounts {
+        let t = &self.traffic;
+        TrafficCounts {
+            to_device: t.to_device.load(Ordering::Relaxed),
+            from_device: t.from_device.load(Ordering::Relaxed),
+            waits: t.waits.load(Ordering::Relaxed),
+            wait_seconds: t.wait_nanos.load(Ordering::Relaxed) as f64 * 1e-9,
+        }
+    }
+
+    /// `queue.write_buffer`, counted.
+    pub fn write_buffer(&self, buffer: &wgpu::Buffer, offset: u64, data: &[u8]) {
+        self.traffic
+            .to_device
+            .fetch_add(data.len() as u64, Ordering::Relaxed);
+        self.queue.write_buffer(buffer, offset, data);
     }
 
     /// The first device error (uncaptured) or loss since the last call.
@@ -235,7 +282,7 @@ impl Context {
     ) -> Result<wgpu::Buffer, GpuError> {
         let b = self.storage(what, std::mem::size_of_val(data) as u64)?;
         if !data.is_empty() {
-            self.queue.write_buffer(&b, 0, bytemuck::cast_slice(data));
+            self.write_buffer(&b, 0, bytemuck::cast_slice(data));
         }
         Ok(b)
     }
@@ -317,6 +364,9 @@ impl Context {
                     texel(ti, out);
                 }
             });
+            self.traffic
+                .to_device
+                .fetch_add(std::mem::size_of_val(&buf[..]) as u64, Ordering::Relaxed);
             self.queue.write_texture(
                 wgpu::TexelCopyTextureInfo {
                     texture: t,
@@ -360,7 +410,7 @@ impl Context {
             usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         })?;
-        self.queue.write_buffer(&b, 0, bytemuck::bytes_of(p));
+        self.write_buffer(&b, 0, bytemuck::bytes_of(p));
         Ok(b)
     }
 
@@ -472,9 +522,13 @@ impl Context {
     }
 
     pub fn wait(&self) -> Result<(), GpuError> {
-        self.device
-            .poll(wgpu::PollType::wait_indefinitely())
-            .map_err(|e| GpuError::Backend(format!("poll: {e}")))?;
+        let t = std::time::Instant::now();
+        let polled = self.device.poll(wgpu::PollType::wait_indefinitely());
+        self.traffic.waits.fetch_add(1, Ordering::Relaxed);
+        self.traffic
+            .wait_nanos
+            .fetch_add(t.elapsed().as_nanos() as u64, Ordering::Relaxed);
+        polled.map_err(|e| GpuError::Backend(format!("poll: {e}")))?;
         self.check()
     }
 
@@ -535,6 +589,9 @@ impl Context {
             bytemuck::cast_slice::<u8, T>(&view[..bytes as usize]).to_vec()
         };
         st.unmap();
+        self.traffic
+            .from_device
+            .fetch_add(padded, Ordering::Relaxed);
         Ok(out)
     }
 }

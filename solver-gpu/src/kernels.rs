@@ -186,10 +186,10 @@ pub fn amg_vcycle(s: &mut GpuSolver, r: &[f32], ncols: usize) -> Result<Vec<f32>
     let ctx = &s.ctx;
     let ws = s.ws.as_ref().unwrap();
     let v = ws.amg.as_ref().unwrap();
-    ctx.queue.write_buffer(&ws.r, 0, bytemuck::cast_slice(r));
+    ctx.write_buffer(&ws.r, 0, bytemuck::cast_slice(r));
     for b in v.vectors.iter().chain([&ws.z]) {
         let nan = vec![f32::NAN; (b.size() / 4) as usize];
-        ctx.queue.write_buffer(b, 0, bytemuck::cast_slice(&nan));
+        ctx.write_buffer(b, 0, bytemuck::cast_slice(&nan));
     }
     let pipelines = v.pipelines(ctx, &s.k.amg, ncols)?;
     let mut enc = ctx.encoder("amg vcycle");
@@ -238,7 +238,7 @@ pub fn pcg(
         .collect();
     let thr: Vec<f64> = bb.iter().map(|&v| v * (rel_tol as f64).powi(2)).collect();
     let ws = s.ws.as_mut().unwrap();
-    s.ctx.queue.write_buffer(&ws.r, 0, bytemuck::cast_slice(b));
+    s.ctx.write_buffer(&ws.r, 0, bytemuck::cast_slice(b));
     let spmv = match s.host.as_ref().unwrap().bs {
         1 => Spmv::Scalar(&s.k.csr),
         _ => Spmv::Block(&s.k.bsr),
@@ -307,7 +307,7 @@ pub fn scalar_pcg(
     let mut ws = pcg.workspace(ctx, &spmv, &m, n, 1, ncols)?;
     let bb: Vec<f64> = b.chunks(n).map(|c| c.iter().map(|v| v * v).sum()).collect();
     let thr: Vec<f64> = bb.iter().map(|&v| v * rel_tol * rel_tol).collect();
-    ctx.queue.write_buffer(&ws.r, 0, &precision.encode(b));
+    ctx.write_buffer(&ws.r, 0, &precision.encode(b));
     let run = pcg.run(
         ctx,
         &spmv,

@@ -437,8 +437,7 @@ impl GpuMatrix {
         match &self.storage {
             MatrixStorage::Csr { vals, .. } => {
                 let vals32: Vec<f32> = h.vals.iter().map(|&v| v as f32).collect();
-                ctx.queue
-                    .write_buffer(vals, 0, bytemuck::cast_slice(&vals32));
+                ctx.write_buffer(vals, 0, bytemuck::cast_slice(&vals32));
             }
             MatrixStorage::BlockTexture { texture, .. } => {
                 ctx.write_data_texture(texture, 3 * h.nnz_blocks(), |t, out| {
@@ -449,7 +448,7 @@ impl GpuMatrix {
             // the inverse diagonal is f64 here, computed from `h`.
             MatrixStorage::SplitBlockTexture { lo, .. } => {
                 ctx.write_data_texture(lo, 3 * h.nnz_blocks(), |t, out| low_texel(&h.vals, t, out));
-                ctx.queue.write_buffer(
+                ctx.write_buffer(
                     &self.minv,
                     0,
                     &Precision::F64.encode(&split_inverse_diagonal(h)),
@@ -457,8 +456,7 @@ impl GpuMatrix {
                 return;
             }
         }
-        ctx.queue
-            .write_buffer(&self.minv, 0, bytemuck::cast_slice(minv));
+        ctx.write_buffer(&self.minv, 0, bytemuck::cast_slice(minv));
     }
 }
 

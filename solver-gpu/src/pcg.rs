@@ -454,10 +454,8 @@ impl Pcg {
         assert!(ncols >= 1 && ncols <= ws.cmax && thr.len() == ncols);
         assert_eq!(ws.precision, self.precision);
         let n = ws.n();
-        ctx.queue
-            .write_buffer(&ws.params, 0, bytemuck::bytes_of(&ws.params(ncols)));
-        ctx.queue
-            .write_buffer(&ws.cols, 0, &self.precision.col_states(thr));
+        ctx.write_buffer(&ws.params, 0, bytemuck::bytes_of(&ws.params(ncols)));
+        ctx.write_buffer(&ws.cols, 0, &self.precision.col_states(thr));
         let flat_dims = ctx.dims(
             "element-wise kernels",
             ((n * ncols) as u64).div_ceil(FLAT_WG as u64),
@@ -570,8 +568,7 @@ impl Pcg {
         ncols: usize,
         reps: usize,
     ) -> Result<Vec<(&'static str, f64)>, GpuError> {
-        ctx.queue
-            .write_buffer(&ws.params, 0, bytemuck::bytes_of(&ws.params(ncols)));
+        ctx.write_buffer(&ws.params, 0, bytemuck::bytes_of(&ws.params(ncols)));
         let flat_dims = ctx.dims(
             "element-wise kernels",
             ((ws.n() * ncols) as u64).div_ceil(FLAT_WG as u64),

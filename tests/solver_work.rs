@@ -1,0 +1,136 @@
+//! The linear solvers' work, counted (not timed): preconditioner set-ups per
+//! system kind, host-device traffic per outer iteration, and `--backend auto`'s
+//! crossover. These are the counts that predict a discrete GPU's cost (host
+//! set-up and transfers), checked on any adapter, lavapipe included.
+//!
+//! GPU tests need a wgpu adapter (lavapipe is enough). Without one they skip with
+//! a message on stderr; with `REQUIRE_GPU=1` they fail instead.
+
+mod common;
+
+use common::*;
+use metricdeform::deform::{
+    auto_uses_gpu, deform, Options, Problem, SolverBackend, GPU_FASTER_FROM_FACES,
+};
+
+fn gpu_available() -> bool {
+    if solver_gpu::gpu_available() {
+        return true;
+    }
+    if std::env::var("REQUIRE_GPU").is_ok_and(|v| v == "1") {
+        panic!("REQUIRE_GPU=1 but no GPU adapter is available (install mesa-vulkan-drivers for lavapipe)");
+    }
+    eprintln!("skipping GPU test: no GPU adapter (set REQUIRE_GPU=1 to fail instead)");
+    false
+}
+
+/// Spot with a girth, a region's area and the volume: several scale-driven
+/// outer iterations, then the fine-tune.
+const JOB: &str = r#"
+mesh = "spot.obj"
+[[constraint]]
+kind = "length"
+curve = { plane = { origin = [0.0, -0.1, 0.3], normal = [0.0, 0.0, 1.0] } }
+scale = 1.1
+[[constraint]]
+kind = "area"
+region = { sphere = { center = [0.0, 0.55, -0.4], radius = 0.35 } }
+scale = 1.3
+[[constraint]]
+kind = "volume"
+"#;
+
+fn run(backend: SolverBackend) -> (Problem, Options, metricdeform::deform::Outcome) {
+    let job = job(JOB);
+    let problem = Problem::load(&job).unwrap();
+    let mut options = Options::from_spec(&job.spec.solver);
+    options.backend = backend;
+    let out = deform(&problem, &options, &mut |_| {}).unwrap();
+    (problem, options, out)
+}
+
+/// GPU: one preconditioner set-up per system kind per run, and after the
+/// first outer iteration no more host-device traffic per outer iteration,
+/// each way, than one set of the shape matrix's values in f64.
+#[test]
+fn gpu_sets_up_each_preconditioner_once_and_moves_one_value_set_per_outer_iteration() {
+    if !gpu_available() {
+        return;
+    }
+    let (problem, options, out) = run(SolverBackend::Gpu);
+    let w = &out.solver;
+    assert!(
+        w.outer.len() >= 3,
+        "the job needs several outer iterations to test this ({})",
+        w.outer.len()
+    );
+    assert_eq!(w.scale_factors.preconditioner_setups, 1, "{w:?}");
+    assert_eq!(w.scale_driven.preconditioner_setups, 1, "{w:?}");
+    assert_eq!(w.fine_tune.preconditioner_setups, 1, "{w:?}");
+    let value_set = 72 * w.shape_blocks as u64;
+    assert!(value_set > 0);
+    for (k, o) in w.outer.iter().enumerate().skip(1) {
+        let (up, down) = (o.work.bytes_to_device, o.work.bytes_from_device);
+        eprintln!(
+            "outer iteration {}: {up} bytes to the device, {down} back (one f64 value set: \
+             {value_set}), {} solves, {} iterations, {} waits",
+            k + 1,
+            o.work.solves,
+            o.work.iterations,
+            o.work.device_waits
+        );
+        assert_eq!(o.work.preconditioner_setups, 0, "outer iteration {}", k + 1);
+        assert!(o.work.solves >= 2, "a shape and a scale-factor solve");
+        // Each way at most one set of values: the new shape matrix values
+        // (f32, with their diagonal inverses) and the vectors of the solves
+        // go up; corrections and convergence states come back. A pattern or
+        // an AMG hierarchy would be several sets more.
+        for (what, bytes) in [("to the device", up), ("from the device", down)] {
+            assert!(
+                bytes <= value_set,
+                "outer iteration {}: {bytes} bytes {what}, over one f64 value set of the \
+                 shape matrix ({value_set})",
+                k + 1
+            );
+        }
+    }
+    // The counts are the solver's, not a shortcut: the first outer iteration
+    // uploads the patterns and hierarchies, far more than later ones.
+    let first = w.outer[0].work.bytes_to_device;
+    assert!(first > w.outer[1].work.bytes_to_device);
+    assert!(w.transfer_bytes() >= first);
+    // And the result is still the method's.
+    let rows = metricdeform::report::constraint_rows(&problem, &out.positions, options.tolerance);
+    assert!(rows.iter().all(|r| r.met), "{rows:?}");
+}
+
+/// The CPU backend reports its work too: factorizations, PCG iterations, no
+/// GPU time and no transfers.
+#[test]
+fn cpu_reports_its_solver_work() {
+    let (_, _, out) = run(SolverBackend::Cpu);
+    let w = &out.solver;
+    assert_eq!(w.scale_factors.preconditioner_setups, 1, "{w:?}");
+    assert!(w.scale_driven.preconditioner_setups >= 1, "{w:?}");
+    assert!(w.iterations_max() > 0, "the shape systems run a block PCG");
+    assert_eq!(w.device_seconds(), 0.0);
+    assert_eq!(w.transfer_bytes(), 0);
+    assert_eq!(w.outer.len(), out.scale_driven_iterations);
+}
+
+/// `auto` never picks a CPU emulation, and picks a hardware adapter only from
+/// the recorded crossover on (BENCHMARKS.md).
+#[test]
+fn auto_follows_the_measured_crossover() {
+    for faces in [0, 5_856, 100_000, 1_200_000, 4_300_000, usize::MAX] {
+        assert!(
+            !auto_uses_gpu(faces, false),
+            "emulated adapter, {faces} faces"
+        );
+        assert_eq!(
+            auto_uses_gpu(faces, true),
+            GPU_FASTER_FROM_FACES.is_some_and(|from| faces >= from),
+            "{faces} faces"
+        );
+    }
+}
