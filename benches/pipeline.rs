@@ -10,7 +10,7 @@
 #[path = "../tests/common/mod.rs"]
 mod common;
 
-use metricdeform::deform::{deform, max_error, Options, Problem, SolverBackend};
+use metricdeform::deform::{deform, max_error, Options, Problem, SolverBackend, SolverSummary};
 use metricdeform::job::{Job, JobFormat};
 use metricdeform::report::peak_memory_mb;
 use std::path::Path;
@@ -86,7 +86,9 @@ fn row(
         100.0 * max_error(&problem, &out.positions),
         peak
     );
-    if backend != SolverBackend::Cpu {
+    if backend == SolverBackend::Cpu {
+        proxies(name, "cpu", &out.solver, None);
+    } else {
         options.backend = SolverBackend::Cpu;
         let cpu = deform(&problem, &options, &mut |_| {}).unwrap();
         let dev = common::max_deviation(&problem.mesh, &cpu.positions, &out.positions);
@@ -95,7 +97,60 @@ fn row(
             backend.name(),
             100.0 * dev
         );
+        proxies(name, "cpu", &cpu.solver, None);
+        proxies(name, backend.name(), &out.solver, Some(&cpu.solver));
     }
+}
+
+/// Mean of the outer iterations after the first: (wall seconds, seconds not
+/// spent waiting for the GPU).
+fn later_outer_seconds(s: &SolverSummary) -> (f64, f64) {
+    let later = &s.outer[1.min(s.outer.len())..];
+    let n = later.len().max(1) as f64;
+    (
+        later.iter().map(|o| o.seconds).sum::<f64>() / n,
+        later
+            .iter()
+            .map(|o| o.seconds - o.work.device_seconds)
+            .sum::<f64>()
+            / n,
+    )
+}
+
+/// The counts that predict a discrete GPU's cost (issue: GPU that
+/// accelerates), one line per run: host seconds per outer iteration after
+/// the first without the waits on the GPU (against the CPU backend's outer
+/// iteration when `cpu` is given), PCG iterations per shape solve, host waits
+/// per PCG iteration, preconditioner set-ups per system kind, bytes moved.
+fn proxies(name: &str, backend: &str, s: &SolverSummary, cpu: Option<&SolverSummary>) {
+    let (wall, host) = later_outer_seconds(s);
+    let shape = &s.scale_driven;
+    let all_iterations = s.scale_factors.iterations + shape.iterations + s.fine_tune.iterations;
+    let waits = s.scale_factors.device_waits + shape.device_waits + s.fine_tune.device_waits;
+    let mut line = format!(
+        "{name} ({backend}) proxies: outer iteration after the first {wall:.3} s, {host:.3} s of it \
+         on the host; shape solves: {} scale-driven with {:.1} iterations on average (most {}), \
+         {} fine-tune with at most {}; host waits per PCG iteration {:.3} ({waits} / {all_iterations}); \
+         preconditioner set-ups {} + {} + {} (scale factors, scale-driven, fine-tune); {:.1} MB moved",
+        shape.solves,
+        shape.iterations as f64 / shape.solves.max(1) as f64,
+        shape.iterations_max,
+        s.fine_tune.solves,
+        s.fine_tune.iterations_max,
+        waits as f64 / all_iterations.max(1) as f64,
+        s.scale_factors.preconditioner_setups,
+        shape.preconditioner_setups,
+        s.fine_tune.preconditioner_setups,
+        s.transfer_bytes() as f64 / 1e6
+    );
+    if let Some(c) = cpu {
+        let (cpu_wall, _) = later_outer_seconds(c);
+        line.push_str(&format!(
+            "; host seconds per outer iteration / the CPU backend's outer iteration: {:.1} %",
+            100.0 * host / cpu_wall
+        ));
+    }
+    println!("{line}");
 }
 
 /// Mesh I/O at scale: homer subdivided `subdivisions` times, written and read

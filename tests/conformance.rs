@@ -141,3 +141,56 @@ fn fig9_fandisk_top_area_x1_5_and_x2_on_cpu() {
         assert!(max < 3.0, "x{scale}: max distortion {max}");
     }
 }
+
+/// GPU parity at the million-face class (homer with every edge cut in 10:
+/// 1.2M faces; two girths and the volume), on a hardware adapter only: on
+/// lavapipe this run does not finish within a CI run. Every metric within the
+/// tolerance, GPU and CPU results within 1e-3 % of the bbox diagonal.
+#[test]
+fn gpu_parity_at_a_million_faces_on_hardware() {
+    match solver_gpu::default_adapter() {
+        Ok(a) if a.device_type != "Cpu" => {}
+        Ok(a) => {
+            eprintln!(
+                "skipping the 1M-face GPU parity test: {} is a CPU emulation",
+                a.name
+            );
+            return;
+        }
+        Err(why) => {
+            eprintln!("skipping the 1M-face GPU parity test: {why}");
+            return;
+        }
+    }
+    let job = job(GIRTHS_HOMER);
+    let mesh = metricdeform::io::read_mesh(&job.mesh_path())
+        .unwrap()
+        .subdivide_uniform(10);
+    let problem = metricdeform::deform::Problem::build(&job, mesh, &job.mesh_path()).unwrap();
+    assert!(problem.mesh.num_faces() > 1_000_000);
+    let mut options = metricdeform::deform::Options::from_spec(&job.spec.solver);
+    let mut result = |backend| {
+        options.backend = backend;
+        metricdeform::deform::deform(&problem, &options, &mut |_| {}).unwrap()
+    };
+    let gpu = result(SolverBackend::Gpu);
+    let cpu = result(SolverBackend::Cpu);
+    for c in &problem.constraints {
+        let err = c.residual(&problem.mesh, &gpu.positions).abs();
+        assert!(
+            err <= options.tolerance,
+            "{}: relative error {err:.2e}",
+            c.name
+        );
+    }
+    let dev = common::max_deviation(&problem.mesh, &gpu.positions, &cpu.positions);
+    eprintln!(
+        "1.2M faces: GPU and CPU results {:.2e} % of the bbox diagonal apart",
+        100.0 * dev
+    );
+    assert!(
+        dev <= 1e-5,
+        "{:.3e} % of the bbox diagonal apart",
+        100.0 * dev
+    );
+}

@@ -96,9 +96,15 @@ pub struct TrafficCounts {
     pub wait_seconds: f64,
 }
 
+/// Vulkan (Linux, Windows), Metal (macOS) and DX12 (Windows): the backends
+/// with compute shaders and the storage and texture limits the kernels need.
+const BACKENDS: wgpu::Backends = wgpu::Backends::VULKAN
+    .union(wgpu::Backends::METAL)
+    .union(wgpu::Backends::DX12);
+
 fn instance() -> wgpu::Instance {
     let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
-    desc.backends = wgpu::Backends::VULKAN;
+    desc.backends = BACKENDS;
     wgpu::Instance::new(desc.with_env())
 }
 
@@ -116,7 +122,7 @@ fn summary(a: &wgpu::Adapter) -> AdapterSummary {
 
 pub(crate) fn list_adapters() -> Vec<AdapterSummary> {
     let inst = instance();
-    pollster::block_on(inst.enumerate_adapters(wgpu::Backends::all()))
+    pollster::block_on(inst.enumerate_adapters(BACKENDS))
         .iter()
         .map(summary)
         .collect()
@@ -125,7 +131,7 @@ pub(crate) fn list_adapters() -> Vec<AdapterSummary> {
 fn choose_adapter(inst: &wgpu::Instance, name: Option<&str>) -> Result<wgpu::Adapter, GpuError> {
     if let Some(want) = name {
         let want_lc = want.to_lowercase();
-        let all = pollster::block_on(inst.enumerate_adapters(wgpu::Backends::all()));
+        let all = pollster::block_on(inst.enumerate_adapters(BACKENDS));
         let names: Vec<String> = all.iter().map(|a| a.get_info().name).collect();
         return all
             .into_iter()
