@@ -37,9 +37,12 @@
 //!
 //! The PCG itself (`shaders/pcg.wgsl`, see [`pcg`](crate::pcg)) is preconditioned
 //! by one **smoothed-aggregation AMG V-cycle** by default ([`Preconditioner::AffineAmg`]:
-//! hierarchy built on the CPU in f64 at prepare time by [`amg`], applied by
-//! `shaders/amg.wgsl` through [`amg_gpu`]; aggregates are kept while the matrix
-//! pattern stays the same, so a new matrix only recomputes and rewrites values;
+//! hierarchy built on the CPU in f64 by [`amg`] once per system kind
+//! ([`SpdSolver::set_system_kind`]: scale factors, scale-driven shape,
+//! fine-tune), applied by `shaders/amg.wgsl` through [`amg_gpu`]; a later
+//! matrix of the same kind and pattern rewrites only the PCG's matrix values
+//! and the finest smoother's diagonal and keeps the coarse levels, a fixed SPD
+//! preconditioner (a solve that fails with it rebuilds it, once);
 //! its near-null space is the vertices' affine motions where their positions
 //! were given by [`SpdSolver::set_vertex_positions`], else the translations),
 //! or by block Jacobi `M = blockdiag(A)` ([`Preconditioner::BlockJacobi`]: 3x3

@@ -2,7 +2,7 @@
 //! Without an adapter each test prints "skipping: no GPU adapter" and passes,
 //! unless REQUIRE_GPU=1, where it fails.
 
-use solver_cpu::{BlockSym3, CholeskySolver, SolverError, SpdSolver, SymCsc};
+use solver_cpu::{BlockSym3, CholeskySolver, SolverError, SpdSolver, SymCsc, SystemKind};
 use solver_gpu::{kernels, GpuError, GpuSolver, MixedPrecision, OpenOptions, Preconditioner};
 
 fn require_gpu() -> bool {
@@ -938,24 +938,58 @@ fn amg_vcycle_matches_the_cpu_reference() {
     });
     let a = spd_blocks(45, 40, 0.02, &mut rng);
     let fixed = fixed_every(a.n, 40);
-    // The finest A of the GPU V-cycle is the PCG's own block texture; the
-    // second pass (new values, same pattern: values-only upload) checks that
-    // the V-cycle sees the new values of that shared matrix.
     let a2 = spd_blocks(45, 40, 0.5, &mut Rng(22));
-    for (pass, m) in [&a, &a2].into_iter().enumerate() {
-        let uploads = s.pattern_uploads;
-        s.prepare_blocks(m, &fixed).unwrap();
-        assert_eq!(s.pattern_uploads, uploads + usize::from(pass == 0));
-        let h = s.amg_hierarchy().unwrap().clone();
-        assert!(h.levels.len() >= 2, "levels {:?}", h.sizes());
-        for ncols in [1, 3] {
-            let e = vcycle_error(&mut s, &h, ncols, &mut rng);
-            assert!(
-                e < 1e-4,
-                "bs 3, pass {pass}, {ncols} columns: {e:e} (levels {:?})",
-                h.sizes()
-            );
-        }
+    // 1. The hierarchy of `a`.
+    s.set_system_kind(SystemKind::ScaleDriven);
+    let uploads = s.pattern_uploads;
+    s.prepare_blocks(&a, &fixed).unwrap();
+    assert_eq!(s.pattern_uploads, uploads + 1);
+    let h = s.amg_hierarchy().unwrap().clone();
+    assert!(h.levels.len() >= 2, "levels {:?}", h.sizes());
+    for ncols in [1, 3] {
+        let e = vcycle_error(&mut s, &h, ncols, &mut rng);
+        assert!(
+            e < 1e-4,
+            "bs 3, {ncols} columns: {e:e} (levels {:?})",
+            h.sizes()
+        );
+    }
+    // 2. New values of the same kind and pattern: one set-up per kind, so the
+    // hierarchy is kept; the finest A of the V-cycle is the PCG's own matrix
+    // (values-only upload) and the finest smoother's diagonal is rewritten.
+    let setups = s.counters().preconditioner_setups;
+    s.prepare_blocks(&a2, &fixed).unwrap();
+    assert_eq!(s.pattern_uploads, uploads + 1);
+    assert_eq!(s.counters().preconditioner_setups, setups, "kept");
+    let r = rng.vec(3 * h.n());
+    let kept = kernels::amg_vcycle(&mut s, &f32s(&r), 3).unwrap();
+    // 3. A new kind rebuilds it for the new values (same patterns: values
+    // only), and the V-cycle sees them.
+    s.set_system_kind(SystemKind::FineTune);
+    s.prepare_blocks(&a2, &fixed).unwrap();
+    assert_eq!(s.counters().preconditioner_setups, setups + 1, "rebuilt");
+    let h2 = s.amg_hierarchy().unwrap().clone();
+    for ncols in [1, 3] {
+        let e = vcycle_error(&mut s, &h2, ncols, &mut rng);
+        assert!(
+            e < 1e-4,
+            "bs 3, rebuilt, {ncols} columns: {e:e} (levels {:?})",
+            h2.sizes()
+        );
+    }
+    // The kept V-cycle of step 2 is `h`'s coarse levels under the finest
+    // level of `a2` (its matrix and inverted diagonal, with `h`'s weight).
+    let mut expected = h.clone();
+    expected.levels[0].a = h2.levels[0].a.clone();
+    expected.levels[0].dinv = h2.levels[0].dinv.clone();
+    let n = h.n();
+    for c in 0..3 {
+        let want = expected.vcycle(&r[c * n..(c + 1) * n]);
+        let got: Vec<f64> = kept[c * n..(c + 1) * n].iter().map(|&v| v as f64).collect();
+        let e = rel_err(&got, &want);
+        assert!(e < 1e-4, "kept hierarchy, column {c}: {e:e}");
+        // And it differs from the rebuilt one: the test sees which ran.
+        assert!(rel_err(&got, &h2.vcycle(&r[c * n..(c + 1) * n])) > 1e-3);
     }
     // Scalar.
     let sa = spd_scalar(3000, &mut rng);
