@@ -16,20 +16,6 @@ use metricdeform::report::peak_memory_mb;
 use std::path::Path;
 use std::time::Instant;
 
-const SPOT_JOB: &str = r#"
-mesh = "spot.obj"
-[[constraint]]
-kind = "length"
-curve = { plane = { origin = [0.0, -0.1, 0.3], normal = [0.0, 0.0, 1.0] } }
-scale = 1.1
-[[constraint]]
-kind = "area"
-region = { sphere = { center = [0.0, 0.55, -0.4], radius = 0.35 } }
-scale = 1.3
-[[constraint]]
-kind = "volume"
-"#;
-
 /// How a row refines its mesh.
 #[derive(Clone, Copy)]
 enum Refine {
@@ -189,7 +175,7 @@ fn main() {
         let _ = env_logger::builder().format_timestamp_millis().try_init();
         let (name, mult) = (&args[i + 1], &args[i + 2]);
         let job: String = match name.split_once('-').map_or(name.as_str(), |(m, _)| m) {
-            "spot" => SPOT_JOB.into(),
+            "spot" => common::SPOT_DEMO.into(),
             "fandisk" => common::fig9_fandisk(2.0),
             "homer" => common::TABLE1_HOMER.into(),
             "girths" => common::GIRTHS_HOMER.into(),

@@ -24,24 +24,10 @@ fn gpu_available() -> bool {
     false
 }
 
-/// Spot with a girth, a region's area and the volume: several scale-driven
-/// outer iterations, then the fine-tune.
-const JOB: &str = r#"
-mesh = "spot.obj"
-[[constraint]]
-kind = "length"
-curve = { plane = { origin = [0.0, -0.1, 0.3], normal = [0.0, 0.0, 1.0] } }
-scale = 1.1
-[[constraint]]
-kind = "area"
-region = { sphere = { center = [0.0, 0.55, -0.4], radius = 0.35 } }
-scale = 1.3
-[[constraint]]
-kind = "volume"
-"#;
-
 fn run(backend: SolverBackend) -> (Problem, Options, metricdeform::deform::Outcome) {
-    let job = job(JOB);
+    // Spot with a girth, a region's area and the volume: several
+    // scale-driven outer iterations, then the fine-tune.
+    let job = job(SPOT_DEMO);
     let problem = Problem::load(&job).unwrap();
     let mut options = Options::from_spec(&job.spec.solver);
     options.backend = backend;

@@ -12,6 +12,21 @@ use metricdeform::{io, Mesh};
 use std::path::{Path, PathBuf};
 
 /// Table 1 style on spot: two lengths (plane section, edge path), an area, the volume.
+/// The demo's job on spot: belly girth +10 %, head area x1.3, volume kept.
+pub const SPOT_DEMO: &str = r#"
+mesh = "spot.obj"
+[[constraint]]
+kind = "length"
+curve = { plane = { origin = [0.0, -0.1, 0.3], normal = [0.0, 0.0, 1.0] } }
+scale = 1.1
+[[constraint]]
+kind = "area"
+region = { sphere = { center = [0.0, 0.55, -0.4], radius = 0.35 } }
+scale = 1.3
+[[constraint]]
+kind = "volume"
+"#;
+
 pub const TABLE1_SPOT: &str = r#"
 mesh = "spot.obj"
 [[constraint]]
