@@ -367,3 +367,56 @@ fn preview_stops_early_and_skips_fine_tune() {
     assert_eq!(report["iterations"]["fine_tune"].as_u64().unwrap(), 0);
     assert!(dir.path().join("out.obj").exists());
 }
+
+/// `auto` picks the faster backend by the recorded crossover: never an
+/// emulated adapter (lavapipe), and a hardware one only from
+/// `GPU_FASTER_FROM_FACES` on. The report's `solver` section names the work of
+/// the backend that ran.
+#[test]
+fn auto_follows_the_crossover_and_reports_the_solver_work() {
+    let job = "mesh = \"spot.obj\"\n[[constraint]]\nkind = \"volume\"\nscale = 1.2\n";
+    let (out, dir) = deform_job(
+        "spot.obj",
+        job,
+        &["--backend", "auto", "--report", "r.json"],
+    );
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let report = read_json(dir.path(), "r.json");
+    let faces = report["mesh"]["faces"].as_u64().unwrap() as usize;
+    let hardware = solver_gpu::default_adapter().is_ok_and(|a| a.device_type != "Cpu");
+    let expected = if metricdeform::deform::auto_uses_gpu(faces, hardware) {
+        "gpu"
+    } else {
+        "cpu"
+    };
+    assert_eq!(report["backend"], expected);
+    let solver = &report["solver"];
+    for kind in ["scale_factors", "scale_driven", "fine_tune"] {
+        assert!(
+            solver["preconditioner_setups"][kind].as_u64().unwrap() >= 1,
+            "{kind}: {solver}"
+        );
+    }
+    assert!(
+        solver["pcg_iterations_max"].as_u64().unwrap() > 0,
+        "{solver}"
+    );
+    assert!(solver["host_seconds"].as_f64().unwrap() > 0.0, "{solver}");
+    if expected == "cpu" {
+        assert_eq!(solver["gpu_seconds"].as_f64(), Some(0.0), "{solver}");
+        assert_eq!(solver["transfer_bytes"].as_u64(), Some(0), "{solver}");
+    }
+    // `measure` deforms nothing and has no solver section.
+    let out = bin()
+        .args(["measure", "job.toml", "--report", "m.json"])
+        .current_dir(dir.path())
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(0));
+    assert!(read_json(dir.path(), "m.json").get("solver").is_none());
+}
