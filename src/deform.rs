@@ -25,7 +25,9 @@ use std::time::Instant;
 /// Meshes from this many vertices on give an iterative backend the vertex
 /// positions for the scale-driven shape systems too (Eq. 7), so that its AMG
 /// takes the affine motions as near-null space (the fine-tune always does).
-/// Measured on the GPU backend (BENCHMARKS.md, ninth session): with
+/// Measured on the GPU backend on lavapipe, 2026-11-22 (BENCHMARKS.md, "AMG
+/// near-null space: translations or affine motions"; the full table is in its
+/// git history): with
 /// translations the PCG iterations grow with the mesh (120 on spot's 2.9k
 /// vertices, 527 on spot x16's 47k, 727-768 on 54k, ~1850 on 216k), with
 /// affine modes they stay near 45-60, and an affine V-cycle costs 3-4x a

@@ -427,7 +427,8 @@ pub enum MixedPrecision {
 /// can be weak and the next ones fine: a 128x128 biharmonic system's rounds
 /// gain 13x, then 1660x and 2000x against 1e5 asked). Spot x16's shape system:
 /// 7 f32 rounds of ~190 iterations gaining ~27x each against 1e5 asked, 1354
-/// iterations in all, against 527 in mixed precision (BENCHMARKS.md).
+/// iterations in all, against 527 in mixed precision (lavapipe, 2026-11-22;
+/// BENCHMARKS.md's git history).
 #[derive(Default)]
 struct RoundWatch {
     /// The last round's relative residual and inner tolerance per column
