@@ -5,7 +5,7 @@
 use crate::csr_spmv;
 use crate::device::{dispatch, Params, ROW_WG};
 use crate::matrix::GpuMatrix;
-use crate::pcg::{vector_texture, Pcg, PcgRun, Spmv};
+use crate::pcg::{vector_texture, Pcg, PcgRun, Spmv, FIRST_BATCH};
 pub use crate::precision::Precision;
 use crate::{GpuError, GpuSolver, CMAX};
 
@@ -251,6 +251,7 @@ pub fn pcg(
         &thr,
         max_iters,
         s.check_every,
+        FIRST_BATCH,
         rel_tol == 0.0,
         Some(&s.k.amg),
         None,
@@ -316,6 +317,7 @@ pub fn scalar_pcg(
         &thr,
         max_iters,
         s.check_every,
+        FIRST_BATCH,
         rel_tol == 0.0,
         None,
         None,

@@ -194,6 +194,8 @@ struct Round<'a> {
     convert: Option<&'a convert::Convert>,
     budget: usize,
     check_every: usize,
+    /// Iterations of the first batch ([`BatchHints`]).
+    first_batch: usize,
 }
 
 impl Round<'_> {
@@ -215,6 +217,7 @@ impl Round<'_> {
             thr,
             self.budget,
             self.check_every,
+            self.first_batch,
             false,
             Some(self.amg),
             self.convert,
@@ -232,6 +235,39 @@ impl Round<'_> {
             }
         }
         Ok(run.iterations())
+    }
+}
+
+/// Iterations the last PCG runs of each kind took, to size the first batch of
+/// the next one: a run of a kept preconditioner on a matrix of the same kind
+/// takes about as many iterations as the last, so its first read-back comes
+/// after that many instead of after [`pcg::FIRST_BATCH`]: a host round trip
+/// costs a discrete GPU far more than an iteration or two past convergence
+/// (on spot's pipeline row, lavapipe: 322 waits down to 279 for the same 1992
+/// iterations; the rest are the refinement rounds' read-backs of `x`).
+/// Keyed by system kind, precision and refinement round (rounds past the
+/// third share one entry).
+#[derive(Debug, Default)]
+struct BatchHints(std::collections::HashMap<(SystemKind, bool, usize), usize>);
+
+impl BatchHints {
+    fn key(kind: SystemKind, mixed: bool, round: usize) -> (SystemKind, bool, usize) {
+        (kind, mixed, round.min(3))
+    }
+
+    /// Iterations of the first batch of round `round`.
+    fn first_batch(&self, kind: SystemKind, mixed: bool, round: usize) -> usize {
+        self.0
+            .get(&Self::key(kind, mixed, round))
+            .map_or(pcg::FIRST_BATCH, |&it| it.max(2))
+    }
+
+    fn record(&mut self, kind: SystemKind, mixed: bool, round: usize, iterations: usize) {
+        self.0.insert(Self::key(kind, mixed, round), iterations);
+    }
+
+    fn clear(&mut self) {
+        self.0.clear();
     }
 }
 
@@ -325,6 +361,7 @@ pub fn open_with(opts: OpenOptions) -> Result<GpuSolver, GpuError> {
         setups: 0,
         work: WorkCounters::default(),
         amg_kept: false,
+        hints: BatchHints::default(),
     })
 }
 
@@ -401,6 +438,8 @@ pub struct GpuSolver {
     /// The hierarchy was kept for new values ([`Self::upload`]): a solve
     /// that fails with it rebuilds it and tries once more.
     amg_kept: bool,
+    /// First batch sizes from the last runs of each kind.
+    hints: BatchHints,
 }
 
 /// When the solver runs the PCG iteration in f64 with the f32 AMG V-cycle as
@@ -643,12 +682,12 @@ impl GpuSolver {
         let mut r = vec![0.0; n * ncols];
         let mut prev = f64::INFINITY;
         let anorm = h.norm_inf();
-        for round in 0.. {
+        for round_no in 0.. {
             let h = self.host.as_ref().unwrap();
             let (rnorm, rel, worst, target) = residuals(h, anorm, b, x, &mut r, ncols, self.tol);
             self.stats.residual = worst;
             log::trace!(
-                "mixed round {round}: relative residual {worst:.2e} after {total} iterations"
+                "mixed round {round_no}: relative residual {worst:.2e} after {total} iterations"
             );
             if (0..ncols).all(|c| rel[c] <= target[c]) {
                 return Ok(());
@@ -656,7 +695,7 @@ impl GpuSolver {
             // f64 rounds each gain many digits: two that do not halve the
             // residual mean the iteration itself stagnates.
             if !worst.is_finite()
-                || round >= 4
+                || round_no >= 4
                 || worst > 0.5 * prev
                 || total >= self.max_iterations
             {
@@ -685,12 +724,15 @@ impl GpuSolver {
                 convert: Some(&k.convert),
                 budget: self.max_iterations - total,
                 check_every: self.check_every,
+                first_batch: self.hints.first_batch(self.kind, true, round_no),
             };
             let ws = &mut self.mixed.as_mut().unwrap().ws;
             let active: Vec<f64> = (0..ncols)
                 .map(|c| if rel[c] > target[c] { rnorm[c] } else { 0.0 })
                 .collect();
-            total += round.run(ws, bytemuck::cast_slice(&r), &thr, &active, x)?;
+            let it = round.run(ws, bytemuck::cast_slice(&r), &thr, &active, x)?;
+            self.hints.record(self.kind, true, round_no, it);
+            total += it;
             self.stats.rounds += 1;
             self.stats.iterations = total;
         }
@@ -826,6 +868,7 @@ impl GpuSolver {
                 self.gpu = Some(GpuMatrix::upload(&self.ctx, &h, &minv)?);
                 self.pattern_uploads += 1;
                 self.mixed_sticky = false;
+                self.hints.clear();
             }
         }
         self.host = Some(h);
@@ -976,6 +1019,7 @@ impl GpuSolver {
                 1 => Spmv::Scalar(&self.k.csr),
                 _ => Spmv::Block(&self.k.bsr),
             };
+            let round_no = round;
             let round = Round {
                 ctx: &self.ctx,
                 pcg: &self.k.pcg,
@@ -984,6 +1028,7 @@ impl GpuSolver {
                 convert: None,
                 budget: self.max_iterations - total,
                 check_every: self.check_every,
+                first_batch: self.hints.first_batch(self.kind, false, round_no),
             };
             let ws = self.ws.as_mut().unwrap();
             let active: Vec<f64> = (0..ncols)
@@ -993,7 +1038,10 @@ impl GpuSolver {
             self.stats.rounds += 1;
             self.stats.f32_rounds += 1;
             total += match done {
-                Ok(iterations) => iterations,
+                Ok(iterations) => {
+                    self.hints.record(self.kind, false, round_no, iterations);
+                    iterations
+                }
                 // An f32 breakdown on a matrix whose diagonal blocks passed the
                 // SPD check can be rounding (p.Ap or r.z <= 0 in f32 on a very
                 // ill-conditioned system): the f64 iteration decides.

@@ -17,7 +17,8 @@
 //! The host reads the 32-byte [`ColState`] of each column back after each batch
 //! of iterations (one submission) and stops when every column is done (converged
 //! or broken down) or the iteration budget is spent. Batch sizes adapt: the first
-//! batch has 8 iterations, later ones the predicted remaining count (from the
+//! batch has as many iterations as the caller's last run of the same system
+//! kind took (8 with no such run), later ones the predicted remaining count (from the
 //! observed residual reduction rate, plus 2), between 2 and `check_every` (the
 //! cap, 32 by default), so few iterations are wasted past convergence.
 //!
@@ -129,6 +130,9 @@ impl Precision {
 }
 
 pub(crate) const DONE_BREAKDOWN: u32 = 2;
+
+/// Iterations of the first batch of a run with nothing known about it.
+pub(crate) const FIRST_BATCH: usize = 8;
 
 /// Layout of `pcg.wgsl` (group 0), shared by its four entry points.
 const BINDINGS: [(u32, Bind); 10] = [
@@ -435,8 +439,8 @@ impl Pcg {
     /// Run PCG on `ncols` columns whose right-hand sides are already in `ws.r`
     /// (x starts at 0). `thr[c]` is the squared residual norm at which column c
     /// is done (rounded to the working precision). Stops when every column is done or after `max_iters` iterations;
-    /// batches between read-backs hold at most `check_every` iterations
-    /// (`fixed_batches`: exactly `check_every`, for timing).
+    /// batches between read-backs hold at most `check_every` iterations, the
+    /// first `first_batch` (`fixed_batches`: exactly `check_every`, for timing).
     #[allow(clippy::too_many_arguments)]
     pub fn run(
         &self,
@@ -447,6 +451,7 @@ impl Pcg {
         thr: &[f64],
         max_iters: usize,
         check_every: usize,
+        first_batch: usize,
         fixed_batches: bool,
         amg: Option<&AmgKernels>,
         convert: Option<&Convert>,
@@ -518,7 +523,7 @@ impl Pcg {
         let mut next = if fixed_batches {
             check_every
         } else {
-            check_every.min(8)
+            first_batch.clamp(1, check_every)
         };
         let mut last: Option<(usize, Vec<ColState>)> = None;
         let result = loop {
@@ -638,7 +643,7 @@ impl Pcg {
 /// residual reduction between the last two read-backs (2..=cap).
 fn predict(last: Option<&(usize, Vec<ColState>)>, run: &PcgRun, cap: usize) -> usize {
     let Some((at, prev)) = last else {
-        return cap.min(8);
+        return cap.min(FIRST_BATCH);
     };
     let k = (run.dispatched - at) as f64;
     let mut need = 2.0f64;

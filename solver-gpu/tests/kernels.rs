@@ -1150,3 +1150,38 @@ fn read_ceiling_reads_every_value() {
         "{c:?}"
     );
 }
+
+/// A PCG run of a system kind solved before starts with a batch as long as
+/// that run took (counted host waits, not time): the same solve again reads
+/// the GPU back fewer times, and gives the same answer.
+#[test]
+fn a_repeated_solve_of_one_kind_waits_less() {
+    let Some(mut s) = gpu() else { return };
+    s.set_preconditioner(Preconditioner::BlockJacobi).unwrap();
+    let mut rng = Rng(11);
+    let a = spd_blocks(30, 20, 0.05, &mut rng);
+    let fixed = fixed_every(a.n, 40);
+    s.prepare_blocks(&a, &fixed).unwrap();
+    let b = rng.vec(3 * a.n);
+    let waits = |s: &GpuSolver| s.counters().device_waits;
+    let mut x1 = b.clone();
+    let w0 = waits(&s);
+    let first = s.solve_in_place(&mut x1, 1).unwrap();
+    let w1 = waits(&s);
+    let mut x2 = b.clone();
+    let second = s.solve_in_place(&mut x2, 1).unwrap();
+    let w2 = waits(&s);
+    assert!(
+        first.iterations > 16,
+        "the system needs several batches ({} iterations)",
+        first.iterations
+    );
+    assert!(
+        w2 - w1 < w1 - w0,
+        "second solve waited {} times, the first {}",
+        w2 - w1,
+        w1 - w0
+    );
+    assert!(rel_err(&x1, &x2) < 1e-8, "{:e}", rel_err(&x1, &x2));
+    assert!(second.residual <= 1e-10);
+}

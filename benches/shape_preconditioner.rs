@@ -1,0 +1,244 @@
+//! Candidate preconditioners for the GPU's shape systems (Eq. 7), counted in
+//! f64 on the host: PCG iterations to a relative residual of 1e-8 on the real
+//! shape system of spot refined 1, 2 and 3 times, every face asked to grow 10 %.
+//!
+//! The shape matrix is `A = K (x) I3 + sum_i L_i^T C_i L_i` (`IsoRingSym3`), and
+//! its isotropic part `K` carries almost all of it: the CPU backend's exact
+//! Cholesky of `K` needs 2-10 iterations. A GPU needs a preconditioner of `K`
+//! whose set-up is cheap and whose application streams: not a factor. Two are
+//! counted here, each applied to x, y and z as three scalar columns:
+//!
+//! * **`K`-AMG**: one smoothed-aggregation V-cycle ([`Hierarchy`]) of the
+//!   scalar `K`. `K` is dominated by E_m's bi-Laplacian
+//!   `S diag(m) S` (`S` the input's cotangent Laplacian, `m_i = k_m / (2 A_i)`),
+//!   which aggregation coarsens poorly.
+//! * **Factored**: with `Mt = diag(m)^-1`, `K ~ S Mt^-1 S + c S` (`c = 2 k_f / A`,
+//!   E_f's Hessian being `c S` at the reference positions), preconditioned by
+//!   `P = B^-1 Mt B^-1`, `B = S + eps Mt`, so that
+//!   `P^-1 = S Mt^-1 S + 2 eps S + eps^2 Mt`; in the eigenbasis of `(S, Mt)` the
+//!   ratio `(l^2 + c l) / (l + eps)^2` is bounded independently of the mesh, for
+//!   `eps = max(sqrt(c lambda), lambda)` with `lambda = tau / sum(Mt)` an
+//!   estimate of the smallest nonzero eigenvalue (`tau` = 50). The held vertex
+//!   `v0` enters as `Pi P Pi^T` with `Pi = I - 1 e_v0^T` (the pinned system's
+//!   inverse is `Pi K^+ Pi^T`). `B` is a screened Laplacian (an easy matrix for
+//!   AMG) that depends on the input mesh only: built once per run, never
+//!   refreshed. Each `B^-1` is approximated by `v` V-cycles (Richardson).
+//!
+//! `cargo bench --bench shape_preconditioner` (`-- --quick`: refinements 1 and
+//! 2 only).
+
+use metricdeform::shape::{vertex_areas, ShapeModel, ShapeWeights};
+use metricdeform::Mesh;
+use solver_gpu::amg::{AmgOptions, Bsr, Hierarchy};
+use std::path::Path;
+
+fn load(subdivisions: usize) -> Mesh {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/meshes");
+    let mut mesh = metricdeform::io::read_mesh(&dir.join("spot.obj")).unwrap();
+    for _ in 0..subdivisions {
+        mesh = mesh.subdivide_midpoint();
+    }
+    mesh
+}
+
+/// Full symmetric scalar matrix from rows of (column, value).
+fn bsr(rows: Vec<Vec<(u32, f64)>>) -> Bsr {
+    let n = rows.len();
+    let mut row_ptr = vec![0u32];
+    let (mut col_idx, mut vals) = (Vec::new(), Vec::new());
+    for mut r in rows {
+        r.sort_by_key(|e| e.0);
+        for (j, v) in r {
+            col_idx.push(j);
+            vals.push(v);
+        }
+        row_ptr.push(col_idx.len() as u32);
+    }
+    Bsr {
+        bs: 1,
+        rows: n,
+        cols: n,
+        row_ptr,
+        col_idx,
+        vals,
+    }
+}
+
+/// PCG iterations to `||r|| <= tol ||b||` (None past `max`).
+fn pcg(
+    op: &dyn Fn(&[f64], &mut [f64]),
+    b: &[f64],
+    tol: f64,
+    max: usize,
+    prec: &dyn Fn(&[f64]) -> Vec<f64>,
+) -> Option<usize> {
+    let dot = |u: &[f64], v: &[f64]| u.iter().zip(v).map(|(a, b)| a * b).sum::<f64>();
+    let n = b.len();
+    let mut x = vec![0.0; n];
+    let mut r = b.to_vec();
+    let bn = dot(b, b).sqrt();
+    let mut z = prec(&r);
+    let mut p = z.clone();
+    let mut rz = dot(&r, &z);
+    let mut ap = vec![0.0; n];
+    for it in 1..=max {
+        op(&p, &mut ap);
+        let alpha = rz / dot(&p, &ap);
+        for i in 0..n {
+            x[i] += alpha * p[i];
+            r[i] -= alpha * ap[i];
+        }
+        if dot(&r, &r).sqrt() <= tol * bn {
+            return Some(it);
+        }
+        z = prec(&r);
+        let rz1 = dot(&r, &z);
+        let beta = rz1 / rz;
+        rz = rz1;
+        for i in 0..n {
+            p[i] = z[i] + beta * p[i];
+        }
+    }
+    None
+}
+
+/// `v` V-cycles of `h` on `B x = r` from zero (a fixed symmetric operator).
+fn vcycles(h: &Hierarchy, b: &Bsr, r: &[f64], v: usize) -> Vec<f64> {
+    let mut x = h.vcycle(r);
+    let mut t = vec![0.0; r.len()];
+    for _ in 1..v {
+        b.matvec(&x, &mut t);
+        t.iter_mut().zip(r).for_each(|(t, r)| *t = r - *t);
+        let d = h.vcycle(&t);
+        x.iter_mut().zip(&d).for_each(|(x, d)| *x += d);
+    }
+    x
+}
+
+fn main() {
+    let quick = std::env::args().any(|a| a == "--quick");
+    let w = ShapeWeights {
+        k_f: 1000.0,
+        k_m: 1.0,
+        k_l: 1.0,
+        k_p: 1000.0,
+    };
+    println!(
+        "| mesh | faces | K-AMG | B alone | factored, 1 V-cycle | 2 | 3 | 4 | 8 (about exact) |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|");
+    let levels: &[usize] = if quick { &[1, 2] } else { &[1, 2, 3] };
+    for &sub in levels {
+        let mesh = load(sub);
+        let topo = metricdeform::topology::Topology::build(&mesh);
+        let mut model = ShapeModel::new(&mesh, &topo, Vec::new()).unwrap();
+        let (nf, n) = (mesh.num_faces(), mesh.num_vertices());
+        model
+            .assemble_and_factor(&mesh, &mesh.positions, &vec![1.1; nf], &vec![1.1; n], &w)
+            .unwrap();
+        let (iso, fixed) = model.system();
+        let held = |v: usize| fixed[v];
+        let mut b: Vec<f64> = model.reference_gradient().iter().map(|g| -g).collect();
+        for v in (0..n).filter(|&v| held(v)) {
+            b[3 * v..3 * v + 3].fill(0.0);
+        }
+        // The shape system with held rows and columns identity.
+        let op = |x: &[f64], y: &mut [f64]| {
+            let mut xm = x.to_vec();
+            for v in (0..n).filter(|&v| held(v)) {
+                xm[3 * v..3 * v + 3].fill(0.0);
+            }
+            iso.mul_vec(&xm, y);
+            for v in (0..n).filter(|&v| held(v)) {
+                y[3 * v..3 * v + 3].copy_from_slice(&x[3 * v..3 * v + 3]);
+            }
+        };
+        // Per component: a scalar preconditioner applied to x, y and z.
+        let per_component = |scalar: &dyn Fn(&[f64]) -> Vec<f64>| {
+            move |r: &[f64]| -> Vec<f64> {
+                let mut z = vec![0.0; 3 * n];
+                for c in 0..3 {
+                    let rc: Vec<f64> = (0..n).map(|i| r[3 * i + c]).collect();
+                    let zc = scalar(&rc);
+                    for i in 0..n {
+                        z[3 * i + c] = zc[i];
+                    }
+                }
+                z
+            }
+        };
+
+        // K-AMG.
+        let k = &iso.iso;
+        let mut rows: Vec<Vec<(u32, f64)>> = vec![Vec::new(); n];
+        for j in 0..n {
+            for s in k.col_ptr[j]..k.col_ptr[j + 1] {
+                let i = k.row_idx[s];
+                if held(i) || held(j) {
+                    if i == j {
+                        rows[i].push((i as u32, 1.0));
+                    }
+                    continue;
+                }
+                rows[i].push((j as u32, k.values[s]));
+                if i != j {
+                    rows[j].push((i as u32, k.values[s]));
+                }
+            }
+        }
+        let kb = bsr(rows);
+        let hk = Hierarchy::build(kb, &AmgOptions::default(), None).unwrap();
+        let k_amg = pcg(&op, &b, 1e-8, 3000, &per_component(&|r| hk.vcycle(r)));
+
+        // Factored.
+        let area = vertex_areas(&mesh, &mesh.positions);
+        let total: f64 = area.iter().sum();
+        let c = 2.0 * w.k_f / total;
+        let mt: Vec<f64> = area.iter().map(|a| 2.0 * a / w.k_m).collect();
+        let lambda = 50.0 / mt.iter().sum::<f64>();
+        let eps = (c * lambda).sqrt().max(lambda);
+        let cot = model.cotangent();
+        let bm = bsr((0..n)
+            .map(|i| {
+                let mut r: Vec<(u32, f64)> = cot.row(i).map(|(j, v)| (j as u32, v)).collect();
+                r[0].1 += eps * mt[i];
+                r
+            })
+            .collect());
+        let opts = AmgOptions {
+            sweeps: 2,
+            ..AmgOptions::default()
+        };
+        let hb = Hierarchy::build(bm.clone(), &opts, None).unwrap();
+        let bop = |x: &[f64], y: &mut [f64]| bm.matvec(x, y);
+        let rb: Vec<f64> = (0..n).map(|i| b[3 * i + 1]).collect();
+        let b_alone = pcg(&bop, &rb, 1e-8, 3000, &|r| hb.vcycle(r));
+        let v0 = (0..n).find(|&v| held(v)).expect("a held vertex");
+        let factored = |v: usize| {
+            let scalar = |r: &[f64]| -> Vec<f64> {
+                let mut t = r.to_vec();
+                let s: f64 = t.iter().sum();
+                t[v0] -= s;
+                let mut y = vcycles(&hb, &bm, &t, v);
+                y.iter_mut().zip(&mt).for_each(|(y, m)| *y *= m);
+                let y = vcycles(&hb, &bm, &y, v);
+                (0..n)
+                    .map(|i| if held(i) { 0.0 } else { y[i] - y[v0] })
+                    .collect()
+            };
+            pcg(&op, &b, 1e-8, 3000, &per_component(&scalar))
+        };
+        let f = |it: Option<usize>| it.map_or("> 3000".to_string(), |i| i.to_string());
+        println!(
+            "| spot x{} | {nf} | {} | {} | {} | {} | {} | {} | {} |",
+            4usize.pow(sub as u32),
+            f(k_amg),
+            f(b_alone),
+            f(factored(1)),
+            f(factored(2)),
+            f(factored(3)),
+            f(factored(4)),
+            f(factored(8)),
+        );
+    }
+}
