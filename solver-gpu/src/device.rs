@@ -543,7 +543,7 @@ impl Context {
             .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some(label) })
     }
 
-    /// Copy `bytes` bytes of `src` (from 0) into the host, via a staging buffer
+    /// Copy `count` values of `src` (from 0) into the host, via a staging buffer
     /// that is kept in `staging` and reused while large enough.
     pub fn read<T: bytemuck::Pod>(
         &self,
@@ -553,35 +553,63 @@ impl Context {
         enc: Option<wgpu::CommandEncoder>,
     ) -> Result<Vec<T>, GpuError> {
         let bytes = (count * std::mem::size_of::<T>()) as u64;
-        if bytes == 0 {
+        let mut parts = self.read_parts(&[(src, bytes)], staging, enc)?;
+        Ok(bytemuck::pod_collect_to_vec(
+            &parts.pop().unwrap_or_default(),
+        ))
+    }
+
+    /// Copy the first `bytes` bytes of each buffer into the host in one
+    /// submission and one wait (one staging buffer, kept in `staging` and
+    /// reused while large enough); the bytes of each, in order.
+    pub fn read_parts(
+        &self,
+        parts: &[(&wgpu::Buffer, u64)],
+        staging: &mut Option<wgpu::Buffer>,
+        enc: Option<wgpu::CommandEncoder>,
+    ) -> Result<Vec<Vec<u8>>, GpuError> {
+        // Each part at an 8-byte aligned offset, its copy padded to 4 bytes.
+        let mut offsets = Vec::with_capacity(parts.len());
+        let mut total = 0u64;
+        for &(_, bytes) in parts {
+            offsets.push(total);
+            total += bytes.div_ceil(8) * 8;
+        }
+        if total == 0 {
             if let Some(enc) = enc {
                 self.submit_wait(enc)?;
             }
-            return Ok(Vec::new());
+            return Ok(vec![Vec::new(); parts.len()]);
         }
-        let padded = bytes.div_ceil(4) * 4;
-        if staging.as_ref().is_none_or(|s| s.size() < padded) {
-            if padded > self.limits.max_buffer_size {
+        if staging.as_ref().is_none_or(|s| s.size() < total) {
+            if total > self.limits.max_buffer_size {
                 return Err(GpuError::LimitExceeded {
                     what: "read-back staging buffer".into(),
                     limit_name: "max_buffer_size",
-                    needed: padded,
+                    needed: total,
                     limit: self.limits.max_buffer_size,
                 });
             }
             *staging = Some(self.create(&wgpu::BufferDescriptor {
                 label: Some("staging"),
-                size: padded,
+                size: total,
                 usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
                 mapped_at_creation: false,
             })?);
         }
         let st = staging.as_ref().unwrap();
         let mut enc = enc.unwrap_or_else(|| self.encoder("read"));
-        enc.copy_buffer_to_buffer(src, 0, st, 0, padded);
+        let mut moved = 0u64;
+        for (&(src, bytes), &at) in parts.iter().zip(&offsets) {
+            let padded = bytes.div_ceil(4) * 4;
+            if padded > 0 {
+                enc.copy_buffer_to_buffer(src, 0, st, at, padded);
+            }
+            moved += padded;
+        }
         self.queue.submit([enc.finish()]);
         let (tx, rx) = std::sync::mpsc::channel();
-        st.map_async(wgpu::MapMode::Read, 0..padded, move |r| {
+        st.map_async(wgpu::MapMode::Read, 0..total, move |r| {
             let _ = tx.send(r);
         });
         self.wait()?;
@@ -590,14 +618,16 @@ impl Context {
             .map_err(|e| GpuError::Backend(format!("map read-back buffer: {e}")))?;
         let out = {
             let view = st
-                .get_mapped_range(0..padded)
+                .get_mapped_range(0..total)
                 .map_err(|e| GpuError::Backend(format!("mapped range: {e}")))?;
-            bytemuck::cast_slice::<u8, T>(&view[..bytes as usize]).to_vec()
+            parts
+                .iter()
+                .zip(&offsets)
+                .map(|(&(_, bytes), &at)| view[at as usize..(at + bytes) as usize].to_vec())
+                .collect()
         };
         st.unmap();
-        self.traffic
-            .from_device
-            .fetch_add(padded, Ordering::Relaxed);
+        self.traffic.from_device.fetch_add(moved, Ordering::Relaxed);
         Ok(out)
     }
 }

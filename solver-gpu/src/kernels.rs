@@ -5,7 +5,7 @@
 use crate::csr_spmv;
 use crate::device::{dispatch, Params, ROW_WG};
 use crate::matrix::GpuMatrix;
-use crate::pcg::{vector_texture, Pcg, PcgRun, Spmv, FIRST_BATCH};
+use crate::pcg::{vector_texture, Pcg, PcgRun, Spmv};
 pub use crate::precision::Precision;
 use crate::{GpuError, GpuSolver, CMAX};
 
@@ -243,7 +243,7 @@ pub fn pcg(
         1 => Spmv::Scalar(&s.k.csr),
         _ => Spmv::Block(&s.k.bsr),
     };
-    let run = s.k.pcg.run(
+    let mut run = s.k.pcg.run(
         &s.ctx,
         &spmv,
         ws,
@@ -251,12 +251,12 @@ pub fn pcg(
         &thr,
         max_iters,
         s.check_every,
-        FIRST_BATCH,
+        None,
         rel_tol == 0.0,
         Some(&s.k.amg),
         None,
     )?;
-    let x = s.k.pcg.read_x(&s.ctx, ws, ncols)?;
+    let x = s.k.pcg.read_x(&s.ctx, ws, ncols, &mut run)?;
     Ok(PcgOutput::new(x, &run, &bb))
 }
 
@@ -309,7 +309,7 @@ pub fn scalar_pcg(
     let bb: Vec<f64> = b.chunks(n).map(|c| c.iter().map(|v| v * v).sum()).collect();
     let thr: Vec<f64> = bb.iter().map(|&v| v * rel_tol * rel_tol).collect();
     ctx.write_buffer(&ws.r, 0, &precision.encode(b));
-    let run = pcg.run(
+    let mut run = pcg.run(
         ctx,
         &spmv,
         &mut ws,
@@ -317,12 +317,12 @@ pub fn scalar_pcg(
         &thr,
         max_iters,
         s.check_every,
-        FIRST_BATCH,
+        None,
         rel_tol == 0.0,
         None,
         None,
     )?;
-    let x = pcg.read_x(ctx, &mut ws, ncols)?;
+    let x = pcg.read_x(ctx, &mut ws, ncols, &mut run)?;
     ctx.check()?;
     Ok(PcgOutput::new(x, &run, &bb))
 }

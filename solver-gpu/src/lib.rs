@@ -194,8 +194,8 @@ struct Round<'a> {
     convert: Option<&'a convert::Convert>,
     budget: usize,
     check_every: usize,
-    /// Iterations of the first batch ([`BatchHints`]).
-    first_batch: usize,
+    /// Iterations of the first batch ([`BatchHints`]; `None`: nothing known).
+    first_batch: Option<usize>,
 }
 
 impl Round<'_> {
@@ -209,7 +209,7 @@ impl Round<'_> {
     ) -> Result<usize, GpuError> {
         let (n, ncols) = (ws.n(), thr.len());
         self.ctx.write_buffer(&ws.r, 0, r);
-        let run = self.pcg.run(
+        let mut run = self.pcg.run(
             self.ctx,
             self.spmv,
             ws,
@@ -225,7 +225,7 @@ impl Round<'_> {
         if run.breakdown() {
             return Err(GpuError::NotPositiveDefinite);
         }
-        let d = self.pcg.read_x(self.ctx, ws, ncols)?;
+        let d = self.pcg.read_x(self.ctx, ws, ncols, &mut run)?;
         for (c, &s) in scale.iter().enumerate() {
             if s != 0.0 {
                 let cols = c * n..(c + 1) * n;
@@ -242,9 +242,11 @@ impl Round<'_> {
 /// the next one: a run of a kept preconditioner on a matrix of the same kind
 /// takes about as many iterations as the last, so its first read-back comes
 /// after that many instead of after [`pcg::FIRST_BATCH`]: a host round trip
-/// costs a discrete GPU far more than an iteration or two past convergence
-/// (on spot's pipeline row, lavapipe: 322 waits down to 279 for the same 1992
-/// iterations; the rest are the refinement rounds' read-backs of `x`).
+/// costs a discrete GPU far more than an iteration or two past convergence.
+/// A batch sized to finish also brings `x` back with the column states
+/// ([`pcg::Pcg::run`]), so a round that goes as predicted waits once (spot's
+/// pipeline row on lavapipe: 322 host waits down to 180 for the same 1992
+/// PCG iterations, BENCHMARKS.md "GPU cost proxies").
 /// Keyed by system kind, precision and refinement round (rounds past the
 /// third share one entry).
 #[derive(Debug, Default)]
@@ -255,11 +257,11 @@ impl BatchHints {
         (kind, mixed, round.min(3))
     }
 
-    /// Iterations of the first batch of round `round`.
-    fn first_batch(&self, kind: SystemKind, mixed: bool, round: usize) -> usize {
+    /// Iterations of the first batch of round `round`, if a run like it was seen.
+    fn first_batch(&self, kind: SystemKind, mixed: bool, round: usize) -> Option<usize> {
         self.0
             .get(&Self::key(kind, mixed, round))
-            .map_or(pcg::FIRST_BATCH, |&it| it.max(2))
+            .map(|&it| it.max(2))
     }
 
     fn record(&mut self, kind: SystemKind, mixed: bool, round: usize, iterations: usize) {

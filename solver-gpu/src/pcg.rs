@@ -311,6 +311,8 @@ pub(crate) struct PcgRun {
     /// Iterations dispatched (the largest per-column count is `max(cols.iters)`).
     pub dispatched: usize,
     pub cols: Vec<ColState>,
+    /// `x` (bytes in the run's precision) where the last read-back brought it.
+    pub x: Option<Vec<u8>>,
 }
 
 impl PcgRun {
@@ -451,7 +453,7 @@ impl Pcg {
         thr: &[f64],
         max_iters: usize,
         check_every: usize,
-        first_batch: usize,
+        first_batch: Option<usize>,
         fixed_batches: bool,
         amg: Option<&AmgKernels>,
         convert: Option<&Convert>,
@@ -523,8 +525,12 @@ impl Pcg {
         let mut next = if fixed_batches {
             check_every
         } else {
-            first_batch.clamp(1, check_every)
+            first_batch.unwrap_or(FIRST_BATCH).clamp(1, check_every)
         };
+        // A batch sized to finish the run (from a hint or a prediction) brings
+        // x back with the column states: one host wait instead of two.
+        let mut with_x = !fixed_batches && first_batch.is_some();
+        let x_bytes = used;
         let mut last: Option<(usize, Vec<ColState>)> = None;
         let result = loop {
             let k = next.min(max_iters.saturating_sub(dispatched)).max(1);
@@ -543,17 +549,30 @@ impl Pcg {
                 }
             }
             dispatched += k;
-            let bytes = ncols * self.precision.col_state_bytes();
-            let cols = match ctx.read::<u8>(&ws.cols, bytes, &mut staging, Some(enc)) {
-                Ok(b) => self.precision.read_col_states(&b),
+            let bytes = (ncols * self.precision.col_state_bytes()) as u64;
+            let parts: &[(&wgpu::Buffer, u64)] = if with_x {
+                &[(&ws.cols, bytes), (&ws.x, x_bytes)]
+            } else {
+                &[(&ws.cols, bytes)]
+            };
+            let mut read = match ctx.read_parts(parts, &mut staging, Some(enc)) {
+                Ok(b) => b.into_iter(),
                 Err(e) => break Err(e),
             };
-            let run = PcgRun { dispatched, cols };
+            let cols = self
+                .precision
+                .read_col_states(&read.next().unwrap_or_default());
+            let run = PcgRun {
+                dispatched,
+                cols,
+                x: read.next(),
+            };
             if run.all_done() || run.breakdown() || dispatched >= max_iters {
                 break Ok(run);
             }
             if !fixed_batches {
                 next = predict(last.as_ref(), &run, check_every);
+                with_x = true;
             }
             last = Some((dispatched, run.cols));
             enc = ctx.encoder("pcg iterations");
@@ -620,22 +639,37 @@ impl Pcg {
     }
 
     /// Read the first `ncols` columns of `x` (as f64 whatever the precision).
+    /// The solution of `run`: from its last read-back where that brought
+    /// it, else read now.
     pub fn read_x(
         &self,
         ctx: &Context,
         ws: &mut Workspace,
         ncols: usize,
+        run: &mut PcgRun,
     ) -> Result<Vec<f64>, GpuError> {
-        let mut staging = ws.staging_x.take();
         let count = ws.n() * ncols;
-        let out = match ws.precision {
-            Precision::F32 => ctx
-                .read::<f32>(&ws.x, count, &mut staging, None)
-                .map(|v| v.into_iter().map(f64::from).collect()),
-            Precision::F64 => ctx.read::<f64>(&ws.x, count, &mut staging, None),
+        let bytes = match run.x.take() {
+            Some(b) => b,
+            None => {
+                let mut staging = ws.staging_x.take();
+                let b = ctx.read::<u8>(
+                    &ws.x,
+                    count * ws.precision.bytes() as usize,
+                    &mut staging,
+                    None,
+                );
+                ws.staging_x = staging;
+                b?
+            }
         };
-        ws.staging_x = staging;
-        out
+        Ok(match ws.precision {
+            Precision::F32 => bytemuck::pod_collect_to_vec::<u8, f32>(&bytes)
+                .into_iter()
+                .map(f64::from)
+                .collect(),
+            Precision::F64 => bytemuck::pod_collect_to_vec::<u8, f64>(&bytes),
+        })
     }
 }
 
