@@ -30,7 +30,7 @@ use crate::mesh::Mesh;
 use crate::topology::Topology;
 use crate::{Error, Result};
 use glam::DVec3;
-use solver_cpu::{BlockPcgSolver, IsoRingSym3, SparseRows, SpdSolver};
+use solver_cpu::{BlockPcgSolver, IsoRingSym3, ShapeOperatorModel, SparseRows, SpdSolver};
 use std::sync::Arc;
 
 /// Weights of Eq. 7 / Eq. 19.
@@ -110,7 +110,10 @@ pub struct HandleTarget {
 /// Everything about the input that the shape steps reuse, plus the factorization.
 pub struct ShapeModel {
     pub n: usize,
-    cot: Laplacian,
+    cot: Arc<Laplacian>,
+    /// The operator model handed to the solver, and the weights `(k_f, k_m)`
+    /// it was made for.
+    operator_model: Option<((f64, f64), Arc<ShapeOperatorModel>)>,
     /// Mean-value Laplacian of the input: E_l's rows, shared with the matrix.
     mv: Arc<Laplacian>,
     vertex_area: Vec<f64>,
@@ -154,7 +157,7 @@ impl ShapeModel {
     ) -> Result<Self> {
         let x = &mesh.positions;
         let n = x.len();
-        let cot = cotangent_laplacian(mesh, x);
+        let cot = Arc::new(cotangent_laplacian(mesh, x));
         let mv = Arc::new(mean_value_laplacian(mesh, x));
         let vertex_area = vertex_areas(mesh, x);
         let areas = mesh.face_areas(x);
@@ -255,6 +258,7 @@ impl ShapeModel {
         Ok(ShapeModel {
             n,
             cot,
+            operator_model: None,
             mv,
             vertex_area,
             face_weight,
@@ -442,6 +446,8 @@ impl ShapeModel {
             }
         }
         let t1 = std::time::Instant::now();
+        let model = self.operator_model(w);
+        self.solver.set_shape_model(model);
         self.h = self.solver.prepare_shape_owned(h_owned, &self.fixed)?;
         log::debug!(
             "shape system: assembly {:.3} s, {} {:.3} s",
@@ -450,6 +456,28 @@ impl ShapeModel {
             t1.elapsed().as_secs_f64()
         );
         Ok(())
+    }
+
+    /// The model `K ~ S Mt^-1 S + c S` of the Hessian's isotropic part for
+    /// the weights `w` ([`ShapeOperatorModel`]; made once per pair `(k_f,
+    /// k_m)`); `None` without E_m.
+    fn operator_model(&mut self, w: &ShapeWeights) -> Option<Arc<ShapeOperatorModel>> {
+        if w.k_m <= 0.0 || self.total_area <= 0.0 {
+            return None;
+        }
+        let key = (w.k_f, w.k_m);
+        if let Some((k, m)) = &self.operator_model {
+            if *k == key {
+                return Some(m.clone());
+            }
+        }
+        let m = Arc::new(ShapeOperatorModel {
+            laplacian: self.cot.clone(),
+            mt: self.vertex_area.iter().map(|a| 2.0 * a / w.k_m).collect(),
+            c: 2.0 * w.k_f.max(0.0) / self.total_area,
+        });
+        self.operator_model = Some((key, m.clone()));
+        Some(m)
     }
 
     /// The assembled Hessian of the last assembly and the held vertices (for

@@ -174,6 +174,22 @@ impl SymCsc {
 /// A solver for symmetric positive definite systems: `prepare` once per matrix,
 /// then solve many right-hand sides. Implemented by the CPU Cholesky reference
 /// backend and by the GPU preconditioned-conjugate-gradient backend.
+/// What a preconditioner may know of a shape matrix beyond its values: its
+/// isotropic part `K` is close to `S Mt^-1 S + c S`, with `S` the input's
+/// cotangent Laplacian (E_m's Hessian is `S diag(m) S`, `m_i = k_m / (2 A_i)`,
+/// so `Mt = diag(2 A_i / k_m)`) and E_f's Hessian `c S` at the reference
+/// positions (`c = 2 k_f / A`, `A` the input's area). The GPU backend builds
+/// its shape preconditioner from it (`solver_gpu`, `Preconditioner::SquaredLaplacian`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct ShapeOperatorModel {
+    /// `S`: rows `S_i x = diag_i x_i - sum_j w_ij x_j`, symmetric.
+    pub laplacian: std::sync::Arc<SparseRows>,
+    /// The diagonal of `Mt` (0 for vertices outside every face).
+    pub mt: Vec<f64>,
+    /// `c`.
+    pub c: f64,
+}
+
 pub trait SpdSolver {
     /// Factor (or upload) a scalar matrix. The symbolic analysis is reused while
     /// the sparsity pattern is unchanged.
@@ -244,6 +260,9 @@ pub trait SpdSolver {
     /// factor (of the scalar unknowns, or of the block rows of a block matrix);
     /// ignored by the others.
     fn set_fill_ordering(&mut self, _ordering: FillOrdering) {}
+    /// The model of the next shape matrices (`None`: no model), for backends
+    /// whose preconditioner builds on it; ignored by the others.
+    fn set_shape_model(&mut self, _model: Option<std::sync::Arc<ShapeOperatorModel>>) {}
     /// The kind of system the next `prepare*` calls bring (default
     /// [`SystemKind::ScaleDriven`]); see [`SystemKind`].
     fn set_system_kind(&mut self, _kind: SystemKind) {}

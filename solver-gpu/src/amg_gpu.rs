@@ -60,6 +60,9 @@ pub(crate) struct AmgKernels {
     /// `spmv_wide` for the block shapes of an affine hierarchy.
     wide: Vec<((usize, usize), Kernel)>,
     dense: Kernel,
+    /// The row scaling between the two V-cycles of the squared-Laplacian
+    /// preconditioner.
+    pub scale: crate::scale_rows::ScaleRows,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -103,6 +106,7 @@ impl AmgKernels {
                 )
             })
             .collect(),
+            scale: crate::scale_rows::ScaleRows::new(ctx)?,
             shader,
         })
     }
@@ -673,5 +677,47 @@ impl VcycleWorkspace {
         for (s, p) in self.steps.iter().zip(pipelines) {
             dispatch(pass, p, &s.bg, s.dims);
         }
+    }
+}
+
+/// The squared-Laplacian preconditioner `z = B^-1 Mt B^-1 r` as recorded
+/// steps: the first V-cycle of `B` writes `t`, `t` is scaled by `Mt` in
+/// place, the second V-cycle reads `t` and writes `z`.
+pub(crate) struct SquaredSteps {
+    /// Read through the bind groups only.
+    #[allow(dead_code)]
+    pub t: wgpu::Buffer,
+    pub first: VcycleWorkspace,
+    pub scale: crate::scale_rows::ScaleStep,
+    pub second: VcycleWorkspace,
+}
+
+impl SquaredSteps {
+    /// Record for the PCG's `r` and `z` (f32, `n x cmax`); `mt`: one f32 per
+    /// block row of `h`'s finest level (a hierarchy of `B (x) I3`).
+    pub fn new(
+        ctx: &Context,
+        k: &AmgKernels,
+        h: &GpuHierarchy,
+        mt: &wgpu::Buffer,
+        r: &wgpu::Buffer,
+        z: &wgpu::Buffer,
+        cmax: usize,
+    ) -> Result<SquaredSteps, GpuError> {
+        let n = h.sizes[0];
+        let bs = h.levels.first().map_or(1, |l| l.dinv_bs);
+        let t = ctx.storage(
+            &format!("squared-Laplacian middle vector ({n} x {cmax} f32)"),
+            (n * cmax.clamp(1, CMAX) * 4) as u64,
+        )?;
+        let first = VcycleWorkspace::new(ctx, k, h, r, &t, cmax)?;
+        let second = VcycleWorkspace::new(ctx, k, h, &t, z, cmax)?;
+        let scale = k.scale.step(ctx, mt, &t, n, bs)?;
+        Ok(SquaredSteps {
+            t,
+            first,
+            scale,
+            second,
+        })
     }
 }

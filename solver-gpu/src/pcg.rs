@@ -32,7 +32,7 @@
 //! bind group through one explicit layout serves them all. Every pipeline is
 //! specialised for the number of columns (`NCOLS` override, compiled on first use).
 
-use crate::amg_gpu::{AmgKernels, VcycleWorkspace};
+use crate::amg_gpu::{AmgKernels, SquaredSteps, VcycleWorkspace};
 use crate::bsr_spmv::BsrSpmv;
 use crate::convert::{Convert, ConvertParams};
 use crate::csr_spmv::CsrSpmv;
@@ -243,6 +243,8 @@ pub(crate) struct Workspace {
     /// The AMG V-cycle (z = M^-1 r) when the preconditioner is AMG, else the
     /// block Jacobi fused into `update`.
     pub amg: Option<VcycleWorkspace>,
+    /// The squared-Laplacian preconditioner (in place of `amg`).
+    pub squared: Option<SquaredSteps>,
     /// Mixed precision (an f64 workspace with the f32 V-cycle): the copies the
     /// V-cycle reads and writes.
     pub narrow: Option<Narrow>,
@@ -434,6 +436,7 @@ impl Pcg {
             staging_cols: None,
             staging_x: None,
             amg: None,
+            squared: None,
             narrow: None,
         })
     }
@@ -475,7 +478,16 @@ impl Pcg {
             (Some(v), Some(k)) => Some((v, v.pipelines(ctx, k, ncols)?)),
             _ => None,
         };
-        let k_update = if vcycle.is_some() {
+        let squared = match (&ws.squared, amg) {
+            (Some(q), Some(k)) => Some((
+                q,
+                q.first.pipelines(ctx, k, ncols)?,
+                k.scale.kernel.pipeline(ctx, ncols)?,
+                q.second.pipelines(ctx, k, ncols)?,
+            )),
+            _ => None,
+        };
+        let k_update = if vcycle.is_some() || squared.is_some() {
             self.update_amg.pipeline(ctx, ncols)?
         } else {
             self.update.pipeline(ctx, ncols)?
@@ -491,11 +503,18 @@ impl Pcg {
             _ => None,
         };
         let precondition = |pass: &mut wgpu::ComputePass| {
-            if let Some((v, pipes)) = &vcycle {
+            if vcycle.is_some() || squared.is_some() {
                 if let Some((nw, to32, _)) = &narrow {
                     dispatch(pass, to32, &nw.bg_r, nw.dims);
                 }
-                v.record(pass, pipes);
+                if let Some((v, pipes)) = &vcycle {
+                    v.record(pass, pipes);
+                }
+                if let Some((q, first, scale, second)) = &squared {
+                    q.first.record(pass, first);
+                    q.scale.record(pass, scale);
+                    q.second.record(pass, second);
+                }
                 if let Some((nw, _, to64)) = &narrow {
                     dispatch(pass, to64, &nw.bg_z, nw.dims);
                 }
