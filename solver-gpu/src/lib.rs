@@ -35,8 +35,26 @@
 //! preconditioned by the same f32 AMG V-cycle on f32 copies of `r` and `z`
 //! (`shaders/convert.wgsl`).
 //!
-//! The PCG itself (`shaders/pcg.wgsl`, see [`pcg`](crate::pcg)) is preconditioned
-//! by one **smoothed-aggregation AMG V-cycle** by default ([`Preconditioner::AffineAmg`]:
+//! The **scale-driven shape systems** (Eq. 7) are preconditioned by default by
+//! the **squared Laplacian** ([`Preconditioner::SquaredLaplacian`]): their
+//! isotropic part is close to `S Mt^-1 S + c S` (`S` the input's cotangent
+//! Laplacian; E_m's bi-Laplacian and E_f's Laplacian,
+//! [`solver_cpu::ShapeOperatorModel`], handed over by
+//! [`SpdSolver::set_shape_model`]), and
+//!
+//! ```text
+//! z = B^-1 Mt B^-1 r,   B = S + eps Mt   (held rows identity)
+//! P^-1 = S Mt^-1 S + 2 eps S + eps^2 Mt
+//! ```
+//!
+//! each `B^-1` one V-cycle of a scalar SA-AMG hierarchy of `B` (4 Jacobi
+//! sweeps each way) applied to x, y and z at once (`B (x) I3`), the rows
+//! scaled by `Mt` in between (`shaders/scale_rows.wgsl`). `B` depends on the
+//! input mesh and the weights only: it is set up once per run and never
+//! refreshed, whatever the outer iteration's matrix values.
+//!
+//! Every other system is preconditioned by one **smoothed-aggregation AMG
+//! V-cycle** ([`Preconditioner::AffineAmg`]:
 //! hierarchy built on the CPU in f64 by [`amg`] once per system kind
 //! ([`SpdSolver::set_system_kind`]: scale factors, scale-driven shape,
 //! fine-tune), applied by `shaders/amg.wgsl` through [`amg_gpu`]; a later
@@ -48,11 +66,13 @@
 //! or by block Jacobi `M = blockdiag(A)` ([`Preconditioner::BlockJacobi`]: 3x3
 //! blocks inverted on the CPU in f64; plain Jacobi for the scalar system; also
 //! the fallback when AMG coarsening stalls). [`GpuSolver::set_preconditioner`] or
-//! `METRICDEFORM_GPU_PRECONDITIONER=amg|affine-amg` chooses. The PCG keeps every scalar on the GPU:
+//! `METRICDEFORM_GPU_PRECONDITIONER=squared-laplacian|affine-amg|amg` chooses. The PCG keeps every scalar on the GPU:
 //! `alpha = r.z / p.Ap` and `beta = r'.z' / r.z` are computed per column by a
 //! one-workgroup kernel from per-workgroup partial sums; the host reads the
-//! per-column state back only after batches of iterations (sized from the
-//! observed convergence rate, at most 32). Up to
+//! per-column state back only after batches of iterations (the first as long
+//! as the last run of the same kind, later ones sized from the observed
+//! convergence rate, at most 32; a batch sized to finish brings `x` back
+//! with the state). Up to
 //! [`CMAX`] right-hand sides run together, so the matrix is read once per
 //! iteration for all of them. Breakdown (`p.Ap <= 0`, NaN) means the matrix is
 //! not positive definite ([`SolverError::NotPositiveDefinite`]); running out of
@@ -124,7 +144,8 @@ pub enum Preconditioner {
 }
 
 impl Preconditioner {
-    /// From `METRICDEFORM_GPU_PRECONDITIONER` (`amg` or `affine-amg`), else
+    /// From `METRICDEFORM_GPU_PRECONDITIONER` (`squared-laplacian`,
+    /// `affine-amg` or `amg`), else
     /// the default. Block Jacobi is not offered there: it needs tens of
     /// thousands of iterations on the shape systems of 100k-face meshes
     /// (50,000 without converging on an H100), so it stays an API choice for
@@ -610,8 +631,8 @@ impl GpuSolver {
         self.stats
     }
 
-    /// Choose the preconditioner (default [`Preconditioner::AffineAmg`], or
-    /// `METRICDEFORM_GPU_PRECONDITIONER=amg|affine-amg`); a prepared matrix gets
+    /// Choose the preconditioner (default [`Preconditioner::SquaredLaplacian`],
+    /// or `METRICDEFORM_GPU_PRECONDITIONER`); a prepared matrix gets
     /// the new one at once.
     pub fn set_preconditioner(&mut self, p: Preconditioner) -> Result<(), GpuError> {
         if p == self.preconditioner {
