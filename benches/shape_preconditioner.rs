@@ -1,6 +1,7 @@
 //! Candidate preconditioners for the GPU's shape systems (Eq. 7), counted in
 //! f64 on the host: PCG iterations to a relative residual of 1e-8 on the real
-//! shape system of spot refined 1, 2 and 3 times, every face asked to grow 10 %.
+//! shape system of spot refined 1, 2 and 3 times and of homer with every edge
+//! cut in 3 (108k faces), every face asked to grow 10 %.
 //!
 //! The shape matrix is `A = K (x) I3 + sum_i L_i^T C_i L_i` (`IsoRingSym3`), and
 //! its isotropic part `K` carries almost all of it: the CPU backend's exact
@@ -27,23 +28,30 @@
 //!
 //! The last column is what the GPU runs (`solver_gpu::Preconditioner::
 //! SquaredLaplacian`): held rows identity in `B` (Dirichlet) instead of `Pi`,
-//! one V-cycle of 4 sweeps per `B^-1`.
+//! `SQUARED_LAPLACIAN_VCYCLES` V-cycles of `SQUARED_LAPLACIAN_SWEEPS` sweeps
+//! per `B^-1` (`SWEEPS=.. VCYCLES=..` in the environment override them).
 //!
-//! `cargo bench --bench shape_preconditioner` (`-- --quick`: refinements 1 and
-//! 2 only).
+//! `cargo bench --bench shape_preconditioner` (`-- --quick`: spot refined 1
+//! and 2 times only; `-- --homer`: homer only).
 
 use metricdeform::shape::{vertex_areas, ShapeModel, ShapeWeights};
 use metricdeform::Mesh;
 use solver_gpu::amg::{squared_laplacian, AmgOptions, Bsr, Hierarchy, SQUARED_LAPLACIAN_TAU};
 use std::path::Path;
 
-fn load(subdivisions: usize) -> Mesh {
+/// A test mesh: spot refined `k` times 1-to-4 (`k` > 0), or homer with every
+/// edge cut in 3 (`k` = 0: the pipeline bench's 108k-face row).
+fn load(k: usize) -> (String, Mesh) {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/meshes");
+    if k == 0 {
+        let mesh = metricdeform::io::read_mesh(&dir.join("homer.obj")).unwrap();
+        return ("homer x9".into(), mesh.subdivide_uniform(3));
+    }
     let mut mesh = metricdeform::io::read_mesh(&dir.join("spot.obj")).unwrap();
-    for _ in 0..subdivisions {
+    for _ in 0..k {
         mesh = mesh.subdivide_midpoint();
     }
-    mesh
+    (format!("spot x{}", 4usize.pow(k as u32)), mesh)
 }
 
 /// Full symmetric scalar matrix from rows of (column, value).
@@ -134,6 +142,17 @@ fn per_component(n: usize, scalar: &dyn Fn(&[f64]) -> Vec<f64>, r: &[f64]) -> Ve
 
 fn main() {
     let quick = std::env::args().any(|a| a == "--quick");
+    // The GPU's form: sweeps and V-cycles per B^-1 (the solver's constants,
+    // or SWEEPS / VCYCLES from the environment to compare others).
+    let env = |k: &str, d: usize| {
+        std::env::var(k)
+            .ok()
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(d)
+    };
+    let gpu_sweeps = env("SWEEPS", solver_gpu::SQUARED_LAPLACIAN_SWEEPS);
+    let gpu_vcycles = env("VCYCLES", solver_gpu::SQUARED_LAPLACIAN_VCYCLES);
+    eprintln!("the GPU's form: {gpu_vcycles} V-cycles of {gpu_sweeps} sweeps per B^-1");
     let w = ShapeWeights {
         k_f: 1000.0,
         k_m: 1.0,
@@ -144,9 +163,14 @@ fn main() {
         "| mesh | faces | K-AMG | B alone | factored, 1 V-cycle | 2 | 3 | 4 | 8 (about exact) | 1 V-cycle, 4 sweeps | the GPU's form |"
     );
     println!("|---|---|---|---|---|---|---|---|---|---|---|");
-    let levels: &[usize] = if quick { &[1, 2] } else { &[1, 2, 3] };
+    let only_homer = std::env::args().any(|a| a == "--homer");
+    let levels: &[usize] = match (quick, only_homer) {
+        (_, true) => &[0],
+        (true, _) => &[1, 2],
+        _ => &[1, 2, 3, 0],
+    };
     for &sub in levels {
-        let mesh = load(sub);
+        let (name, mesh) = load(sub);
         let topo = metricdeform::topology::Topology::build(&mesh);
         let mut model = ShapeModel::new(&mesh, &topo, Vec::new()).unwrap();
         let (nf, n) = (mesh.num_faces(), mesh.num_vertices());
@@ -250,9 +274,9 @@ fn main() {
         };
         let (bg, mtg) = squared_laplacian(&model, fixed, SQUARED_LAPLACIAN_TAU);
         let hg = Hierarchy::build(
-            bg,
+            bg.clone(),
             &AmgOptions {
-                sweeps: 4,
+                sweeps: gpu_sweeps,
                 ..AmgOptions::default()
             },
             None,
@@ -261,17 +285,16 @@ fn main() {
         let gpu_form = {
             let scalar = |r: &[f64]| -> Vec<f64> {
                 let t: Vec<f64> = (0..n).map(|i| if held(i) { 0.0 } else { r[i] }).collect();
-                let mut y = hg.vcycle(&t);
+                let mut y = vcycles(&hg, &bg, &t, gpu_vcycles);
                 y.iter_mut().zip(&mtg).for_each(|(y, m)| *y *= m);
-                let y = hg.vcycle(&y);
+                let y = vcycles(&hg, &bg, &y, gpu_vcycles);
                 (0..n).map(|i| if held(i) { 0.0 } else { y[i] }).collect()
             };
             pcg(&op, &b, 1e-8, 3000, &|r| per_component(n, &scalar, r))
         };
         let f = |it: Option<usize>| it.map_or("> 3000".to_string(), |i| i.to_string());
         println!(
-            "| spot x{} | {nf} | {} | {} | {} | {} | {} | {} | {} | {} | {} |",
-            4usize.pow(sub as u32),
+            "| {name} | {nf} | {} | {} | {} | {} | {} | {} | {} | {} | {} |",
             f(k_amg),
             f(b_alone),
             f(factored(1)),

@@ -19,7 +19,9 @@
 //! kernel reading them costs at least, next to a single-thread CPU read and
 //! the CPU SpMV.
 //!
-//! `cargo bench -p solver-gpu --bench pcg_kernels [-- 6500 50000]` (sizes optional).
+//! `cargo bench -p solver-gpu --features bench-kernels --bench pcg_kernels
+//! [-- 6500 50000]` (sizes optional; the feature builds the read-ceiling kernel
+//! and the per-kernel timers, which production builds leave out).
 
 use solver_cpu::{BlockSym3, SpdSolver};
 use solver_gpu::kernels::Precision;

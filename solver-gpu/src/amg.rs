@@ -1273,6 +1273,140 @@ fn affine_modes(x: &[[f64; 3]]) -> Vec<f64> {
     b
 }
 
+// ---------------------------------------------------------------------------
+// The squared-Laplacian preconditioner of shape systems: a scalar hierarchy of
+// `B = S + eps Mt`, applied to x, y and z at once as `B (x) I3`.
+
+impl Bsr {
+    /// `A (x) I3` of a scalar matrix: each value `v` becomes the block `v I3`.
+    pub fn kron_i3(&self) -> Bsr {
+        assert_eq!(self.bs, 1, "kron_i3 takes a scalar matrix");
+        let mut vals = Vec::with_capacity(9 * self.vals.len());
+        for &v in &self.vals {
+            vals.extend_from_slice(&[v, 0.0, 0.0, 0.0, v, 0.0, 0.0, 0.0, v]);
+        }
+        Bsr {
+            bs: 3,
+            rows: self.rows,
+            cols: self.cols,
+            row_ptr: self.row_ptr.clone(),
+            col_idx: self.col_idx.clone(),
+            vals,
+        }
+    }
+}
+
+impl Hierarchy {
+    /// The hierarchy of `A (x) I3` from the scalar hierarchy of `A`: the same
+    /// V-cycle applied to the three components of each block row at once.
+    pub fn kron_i3(&self) -> Hierarchy {
+        assert!(
+            self.bs == 1 && !self.affine,
+            "kron_i3 takes a scalar hierarchy"
+        );
+        let diag = |d: &[f64]| -> Vec<f64> {
+            d.iter()
+                .flat_map(|&v| [v, 0.0, 0.0, 0.0, v, 0.0, 0.0, 0.0, v])
+                .collect()
+        };
+        let levels = self
+            .levels
+            .iter()
+            .map(|lv| Level {
+                a: lv.a.kron_i3(),
+                dinv: diag(&lv.dinv),
+                omega: lv.omega,
+                agg: lv.agg.clone(),
+                naggs: lv.naggs,
+                p: lv.p.kron_i3(),
+                r: lv.r.kron_i3(),
+                tentative: None,
+            })
+            .collect();
+        let nc = self.coarse.rows;
+        let mut coarse_inv = vec![0.0; 9 * nc * nc];
+        for i in 0..nc {
+            for j in 0..nc {
+                let v = self.coarse_inv[i * nc + j];
+                for a in 0..3 {
+                    coarse_inv[(3 * i + a) * 3 * nc + 3 * j + a] = v;
+                }
+            }
+        }
+        Hierarchy {
+            bs: 3,
+            affine: false,
+            opts: self.opts,
+            levels,
+            coarse: self.coarse.kron_i3(),
+            coarse_inv,
+        }
+    }
+}
+
+/// Estimate of the smallest nonzero eigenvalue of `(S, Mt)` times `sum(Mt)`
+/// behind the screening of [`squared_laplacian`] (a sphere's is 8 pi; measured
+/// best on spot between 25 and 50, `benches/shape_preconditioner.rs`).
+pub const SQUARED_LAPLACIAN_TAU: f64 = 50.0;
+
+/// The screened Laplacian `B = S + eps Mt` of the squared-Laplacian
+/// preconditioner `P = B^-1 Mt B^-1` of a shape matrix whose isotropic part is
+/// close to `S Mt^-1 S + c S` ([`solver_cpu::ShapeOperatorModel`]): then
+/// `P^-1 = S Mt^-1 S + 2 eps S + eps^2 Mt`, and in the eigenbasis of
+/// `(S, Mt)` the ratio `(l^2 + c l) / (l + eps)^2` stays within a band that
+/// does not depend on the mesh for `eps = max(sqrt(c lambda), lambda)`,
+/// `lambda = tau / sum(Mt)` an estimate of the smallest nonzero eigenvalue.
+/// Held vertices get identity rows and columns (Dirichlet rows: the pinned
+/// squared Laplacian differs from the squared pinned one by rank one per held
+/// vertex). Returns `B` (full symmetric, scalar) and `Mt` with 1 at held rows.
+pub fn squared_laplacian(
+    model: &solver_cpu::ShapeOperatorModel,
+    fixed: &[bool],
+    tau: f64,
+) -> (Bsr, Vec<f64>) {
+    let s = &model.laplacian;
+    let n = s.len();
+    let sum: f64 = model.mt.iter().sum();
+    let lambda = if sum > 0.0 { tau / sum } else { 0.0 };
+    let eps = (model.c.max(0.0) * lambda).sqrt().max(lambda);
+    let held = |v: usize| fixed.get(v).copied().unwrap_or(true) || model.mt[v] <= 0.0;
+    let mut row_ptr = Vec::with_capacity(n + 1);
+    row_ptr.push(0u32);
+    let (mut col_idx, mut vals) = (Vec::new(), Vec::new());
+    let mut mt = Vec::with_capacity(n);
+    for i in 0..n {
+        if held(i) {
+            col_idx.push(i as u32);
+            vals.push(1.0);
+            mt.push(1.0);
+        } else {
+            let mut row: Vec<(u32, f64)> = s
+                .row(i)
+                .filter(|&(j, _)| j == i || !held(j))
+                .map(|(j, v)| (j as u32, if j == i { v + eps * model.mt[i] } else { v }))
+                .collect();
+            row.sort_unstable_by_key(|e| e.0);
+            for (j, v) in row {
+                col_idx.push(j);
+                vals.push(v);
+            }
+            mt.push(model.mt[i]);
+        }
+        row_ptr.push(col_idx.len() as u32);
+    }
+    (
+        Bsr {
+            bs: 1,
+            rows: n,
+            cols: n,
+            row_ptr,
+            col_idx,
+            vals,
+        },
+        mt,
+    )
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -1602,138 +1736,71 @@ mod tests {
             }
         }
     }
-}
 
-// ---------------------------------------------------------------------------
-// The squared-Laplacian preconditioner of shape systems: a scalar hierarchy of
-// `B = S + eps Mt`, applied to x, y and z at once as `B (x) I3`.
-
-impl Bsr {
-    /// `A (x) I3` of a scalar matrix: each value `v` becomes the block `v I3`.
-    pub fn kron_i3(&self) -> Bsr {
-        assert_eq!(self.bs, 1, "kron_i3 takes a scalar matrix");
-        let mut vals = Vec::with_capacity(9 * self.vals.len());
-        for &v in &self.vals {
-            vals.extend_from_slice(&[v, 0.0, 0.0, 0.0, v, 0.0, 0.0, 0.0, v]);
-        }
-        Bsr {
-            bs: 3,
-            rows: self.rows,
-            cols: self.cols,
-            row_ptr: self.row_ptr.clone(),
-            col_idx: self.col_idx.clone(),
-            vals,
-        }
-    }
-}
-
-impl Hierarchy {
-    /// The hierarchy of `A (x) I3` from the scalar hierarchy of `A`: the same
-    /// V-cycle applied to the three components of each block row at once.
-    pub fn kron_i3(&self) -> Hierarchy {
-        assert!(
-            self.bs == 1 && !self.affine,
-            "kron_i3 takes a scalar hierarchy"
-        );
-        let diag = |d: &[f64]| -> Vec<f64> {
-            d.iter()
-                .flat_map(|&v| [v, 0.0, 0.0, 0.0, v, 0.0, 0.0, 0.0, v])
-                .collect()
+    /// The hierarchy of `A (x) I3` runs the scalar V-cycle on each of the
+    /// three components.
+    #[test]
+    fn kron_i3_hierarchy_is_the_scalar_vcycle_per_component() {
+        let a = grid(20, 15, 1, 7);
+        let opts = AmgOptions {
+            max_coarse: 40,
+            sweeps: 2,
+            ..AmgOptions::default()
         };
-        let levels = self
-            .levels
-            .iter()
-            .map(|lv| Level {
-                a: lv.a.kron_i3(),
-                dinv: diag(&lv.dinv),
-                omega: lv.omega,
-                agg: lv.agg.clone(),
-                naggs: lv.naggs,
-                p: lv.p.kron_i3(),
-                r: lv.r.kron_i3(),
-                tentative: None,
-            })
-            .collect();
-        let nc = self.coarse.rows;
-        let mut coarse_inv = vec![0.0; 9 * nc * nc];
-        for i in 0..nc {
-            for j in 0..nc {
-                let v = self.coarse_inv[i * nc + j];
-                for a in 0..3 {
-                    coarse_inv[(3 * i + a) * 3 * nc + 3 * j + a] = v;
-                }
+        let h = Hierarchy::build(a.clone(), &opts, None).unwrap();
+        assert!(h.levels.len() >= 2, "a multilevel hierarchy");
+        let h3 = h.kron_i3();
+        assert_eq!(h3.bs, 3);
+        let n = a.rows;
+        let b: Vec<f64> = (0..3 * n).map(|i| ((i * 37) % 11) as f64 - 5.0).collect();
+        let z3 = h3.vcycle(&b);
+        for c in 0..3 {
+            let bc: Vec<f64> = (0..n).map(|i| b[3 * i + c]).collect();
+            let zc = h.vcycle(&bc);
+            for i in 0..n {
+                let (x, y) = (z3[3 * i + c], zc[i]);
+                assert!(
+                    (x - y).abs() <= 1e-12 * (1.0 + y.abs()),
+                    "row {i}, component {c}: {x} vs {y}"
+                );
             }
         }
-        Hierarchy {
-            bs: 3,
-            affine: false,
-            opts: self.opts,
-            levels,
-            coarse: self.coarse.kron_i3(),
-            coarse_inv,
-        }
     }
-}
 
-/// Estimate of the smallest nonzero eigenvalue of `(S, Mt)` times `sum(Mt)`
-/// behind the screening of [`squared_laplacian`] (a sphere's is 8 pi; measured
-/// best on spot between 25 and 50, `benches/shape_preconditioner.rs`).
-pub const SQUARED_LAPLACIAN_TAU: f64 = 50.0;
-
-/// The screened Laplacian `B = S + eps Mt` of the squared-Laplacian
-/// preconditioner `P = B^-1 Mt B^-1` of a shape matrix whose isotropic part is
-/// close to `S Mt^-1 S + c S` ([`solver_cpu::ShapeOperatorModel`]): then
-/// `P^-1 = S Mt^-1 S + 2 eps S + eps^2 Mt`, and in the eigenbasis of
-/// `(S, Mt)` the ratio `(l^2 + c l) / (l + eps)^2` stays within a band that
-/// does not depend on the mesh for `eps = max(sqrt(c lambda), lambda)`,
-/// `lambda = tau / sum(Mt)` an estimate of the smallest nonzero eigenvalue.
-/// Held vertices get identity rows and columns (Dirichlet rows: the pinned
-/// squared Laplacian differs from the squared pinned one by rank one per held
-/// vertex). Returns `B` (full symmetric, scalar) and `Mt` with 1 at held rows.
-pub fn squared_laplacian(
-    model: &solver_cpu::ShapeOperatorModel,
-    fixed: &[bool],
-    tau: f64,
-) -> (Bsr, Vec<f64>) {
-    let s = &model.laplacian;
-    let n = s.len();
-    let sum: f64 = model.mt.iter().sum();
-    let lambda = if sum > 0.0 { tau / sum } else { 0.0 };
-    let eps = (model.c.max(0.0) * lambda).sqrt().max(lambda);
-    let held = |v: usize| fixed.get(v).copied().unwrap_or(true) || model.mt[v] <= 0.0;
-    let mut row_ptr = Vec::with_capacity(n + 1);
-    row_ptr.push(0u32);
-    let (mut col_idx, mut vals) = (Vec::new(), Vec::new());
-    let mut mt = Vec::with_capacity(n);
-    for i in 0..n {
-        if held(i) {
-            col_idx.push(i as u32);
-            vals.push(1.0);
-            mt.push(1.0);
-        } else {
-            let mut row: Vec<(u32, f64)> = s
-                .row(i)
-                .filter(|&(j, _)| j == i || !held(j))
-                .map(|(j, v)| (j as u32, if j == i { v + eps * model.mt[i] } else { v }))
-                .collect();
-            row.sort_unstable_by_key(|e| e.0);
-            for (j, v) in row {
-                col_idx.push(j);
-                vals.push(v);
-            }
-            mt.push(model.mt[i]);
-        }
-        row_ptr.push(col_idx.len() as u32);
+    /// `B = S + eps Mt` with held rows and columns identity, symmetric, and
+    /// `Mt` 1 on held rows.
+    #[test]
+    fn squared_laplacian_screens_and_holds() {
+        use solver_cpu::{ShapeOperatorModel, SparseRows};
+        // A path 0-1-2-3 with unit weights; vertex 3 outside every face.
+        let t = vec![
+            (0, 1, 1.0),
+            (1, 0, 1.0),
+            (1, 2, 1.0),
+            (2, 1, 1.0),
+            (2, 3, 1.0),
+            (3, 2, 1.0),
+        ];
+        let s = SparseRows::from_triplets(4, t, false);
+        let model = ShapeOperatorModel {
+            laplacian: std::sync::Arc::new(s),
+            mt: vec![2.0, 1.0, 1.0, 0.0],
+            c: 8.0,
+        };
+        let fixed = [true, false, false, false];
+        let (b, mt) = squared_laplacian(&model, &fixed, 4.0);
+        // lambda = 4 / 4 = 1, eps = max(sqrt(8), 1).
+        let eps = 8f64.sqrt();
+        let dense = |i: usize, j: usize| -> f64 {
+            (b.row_ptr[i] as usize..b.row_ptr[i + 1] as usize)
+                .find(|&k| b.col_idx[k] as usize == j)
+                .map_or(0.0, |k| b.vals[k])
+        };
+        assert_eq!(dense(0, 0), 1.0);
+        assert_eq!(dense(3, 3), 1.0);
+        assert_eq!((dense(0, 1), dense(1, 0), dense(2, 3)), (0.0, 0.0, 0.0));
+        assert!((dense(1, 1) - (2.0 + eps)).abs() < 1e-12);
+        assert_eq!((dense(1, 2), dense(2, 1)), (-1.0, -1.0));
+        assert_eq!(mt, vec![1.0, 1.0, 1.0, 1.0]);
     }
-    (
-        Bsr {
-            bs: 1,
-            rows: n,
-            cols: n,
-            row_ptr,
-            col_idx,
-            vals,
-        },
-        mt,
-    )
 }

@@ -402,11 +402,60 @@ impl VcycleWorkspace {
         x0: &wgpu::Buffer,
         cmax: usize,
     ) -> Result<VcycleWorkspace, GpuError> {
+        Self::record_cycle(ctx, k, h, b0, x0, cmax, false, None)
+    }
+
+    /// Record one more V-cycle on `A x0 = b0` from the `x0` that `before`
+    /// (a V-cycle of the same hierarchy, run just before) left: a Richardson
+    /// step `x0 += M^-1 (b0 - A x0)`. It shares `before`'s level vectors.
+    pub fn continued(
+        ctx: &Context,
+        k: &AmgKernels,
+        h: &GpuHierarchy,
+        b0: &wgpu::Buffer,
+        x0: &wgpu::Buffer,
+        cmax: usize,
+        before: &VcycleWorkspace,
+    ) -> Result<VcycleWorkspace, GpuError> {
+        Self::record_cycle(ctx, k, h, b0, x0, cmax, true, Some(before))
+    }
+
+    /// As [`Self::new`], on the level vectors of `other` (a V-cycle of the
+    /// same hierarchy that never runs at the same time).
+    pub fn sharing(
+        ctx: &Context,
+        k: &AmgKernels,
+        h: &GpuHierarchy,
+        b0: &wgpu::Buffer,
+        x0: &wgpu::Buffer,
+        cmax: usize,
+        other: &VcycleWorkspace,
+    ) -> Result<VcycleWorkspace, GpuError> {
+        Self::record_cycle(ctx, k, h, b0, x0, cmax, false, Some(other))
+    }
+
+    /// Record one V-cycle from zero, or (`warm`) from the `x0` there is.
+    #[allow(clippy::too_many_arguments)]
+    fn record_cycle(
+        ctx: &Context,
+        k: &AmgKernels,
+        h: &GpuHierarchy,
+        b0: &wgpu::Buffer,
+        x0: &wgpu::Buffer,
+        cmax: usize,
+        warm: bool,
+        share: Option<&VcycleWorkspace>,
+    ) -> Result<VcycleWorkspace, GpuError> {
         let cmax = cmax.clamp(1, CMAX);
         let nl = h.depth();
+        let mut shared = share.map(|b| b.vectors.clone().into_iter());
         let mut vectors = Vec::new();
         let mut vec = |what: String, n: usize| -> Result<usize, GpuError> {
-            vectors.push(ctx.storage(&what, (n * cmax * 4) as u64)?);
+            let v = match shared.as_mut().and_then(|s| s.next()) {
+                Some(v) => v,
+                None => ctx.storage(&what, (n * cmax * 4) as u64)?,
+            };
+            vectors.push(v);
             Ok(vectors.len() - 1)
         };
         // Buffer slots per level: (b, x, t); level 0's b and x are the PCG's.
@@ -505,17 +554,34 @@ impl VcycleWorkspace {
                 buf(slots[l].2, "t"),
             );
             let w = 1.0;
+            if warm && l == 0 {
+                // From the x0 left by the cycle before: x += w D^-1 (b - A x).
+                step(
+                    Op::Spmv,
+                    rows,
+                    n,
+                    n,
+                    1,
+                    0.0,
+                    Some(&lv.a),
+                    None,
+                    Some(x),
+                    Some(b),
+                    t,
+                    None,
+                )?;
+            }
             step(
                 Op::Jacobi,
                 jrows,
                 n,
                 n,
-                0,
+                u32::from(warm && l == 0),
                 w,
                 None,
                 None,
                 None,
-                Some(b),
+                Some(if warm && l == 0 { t } else { b }),
                 x,
                 Some(&lv.dinv),
             )?;
@@ -687,14 +753,17 @@ pub(crate) struct SquaredSteps {
     /// Read through the bind groups only.
     #[allow(dead_code)]
     pub t: wgpu::Buffer,
-    pub first: VcycleWorkspace,
+    /// `vcycles` V-cycles on `B t = r` (the later ones continue the first).
+    pub first: Vec<VcycleWorkspace>,
     pub scale: crate::scale_rows::ScaleStep,
-    pub second: VcycleWorkspace,
+    /// `vcycles` V-cycles on `B z = t`.
+    pub second: Vec<VcycleWorkspace>,
 }
 
 impl SquaredSteps {
     /// Record for the PCG's `r` and `z` (f32, `n x cmax`); `mt`: one f32 per
     /// block row of `h`'s finest level (a hierarchy of `B (x) I3`).
+    #[allow(clippy::too_many_arguments)]
     pub fn new(
         ctx: &Context,
         k: &AmgKernels,
@@ -703,6 +772,7 @@ impl SquaredSteps {
         r: &wgpu::Buffer,
         z: &wgpu::Buffer,
         cmax: usize,
+        vcycles: usize,
     ) -> Result<SquaredSteps, GpuError> {
         let n = h.sizes[0];
         let bs = h.levels.first().map_or(1, |l| l.dinv_bs);
@@ -710,8 +780,17 @@ impl SquaredSteps {
             &format!("squared-Laplacian middle vector ({n} x {cmax} f32)"),
             (n * cmax.clamp(1, CMAX) * 4) as u64,
         )?;
-        let first = VcycleWorkspace::new(ctx, k, h, r, &t, cmax)?;
-        let second = VcycleWorkspace::new(ctx, k, h, &t, z, cmax)?;
+        // One set of level vectors for every cycle: they run one after another.
+        let mut first = vec![VcycleWorkspace::new(ctx, k, h, r, &t, cmax)?];
+        let mut second = vec![VcycleWorkspace::sharing(ctx, k, h, &t, z, cmax, &first[0])?];
+        for _ in 1..vcycles.max(1) {
+            first.push(VcycleWorkspace::continued(
+                ctx, k, h, r, &t, cmax, &second[0],
+            )?);
+            second.push(VcycleWorkspace::continued(
+                ctx, k, h, &t, z, cmax, &second[0],
+            )?);
+        }
         let scale = k.scale.step(ctx, mt, &t, n, bs)?;
         Ok(SquaredSteps {
             t,

@@ -327,6 +327,7 @@ pub fn scalar_pcg(
     Ok(PcgOutput::new(x, &run, &bb))
 }
 
+#[cfg(feature = "bench-kernels")]
 /// Seconds per dispatch of each kernel of one PCG iteration on the prepared
 /// matrix with `ncols` columns: `[(label, seconds)]` for the SpMV,
 /// `finish_alpha`, `update`, `finish_beta` and `direction`.
@@ -346,6 +347,7 @@ pub fn profile_iteration(
         .profile(&s.ctx, &spmv, s.ws.as_ref().unwrap(), ncols, reps.max(1))
 }
 
+#[cfg(feature = "bench-kernels")]
 /// The adapter's read-bandwidth ceiling over `bytes` bytes (rounded up to
 /// 16-byte texels), through a texture and through a storage buffer, `reps`
 /// timed passes each (see [`crate::stream`]).

@@ -47,8 +47,8 @@
 //! P^-1 = S Mt^-1 S + 2 eps S + eps^2 Mt
 //! ```
 //!
-//! each `B^-1` one V-cycle of a scalar SA-AMG hierarchy of `B` (4 Jacobi
-//! sweeps each way) applied to x, y and z at once (`B (x) I3`), the rows
+//! each `B^-1` two V-cycles (Richardson from zero, a fixed symmetric
+//! operator) of a scalar SA-AMG hierarchy of `B` (4 Jacobi sweeps each way) applied to x, y and z at once (`B (x) I3`), the rows
 //! scaled by `Mt` in between (`shaders/scale_rows.wgsl`). `B` depends on the
 //! input mesh and the weights only: it is set up once per run and never
 //! refreshed, whatever the outer iteration's matrix values.
@@ -95,6 +95,7 @@ mod matrix;
 pub mod pcg;
 pub mod precision;
 mod scale_rows;
+#[cfg(feature = "bench-kernels")]
 pub mod stream;
 
 pub use device::{AdapterSummary, OpenOptions};
@@ -115,6 +116,13 @@ use solver_cpu::{
 /// for V-cycles of a scalar Laplacian, cheap beside the shape matrix's product.
 pub const SQUARED_LAPLACIAN_SWEEPS: usize = 4;
 
+/// V-cycles per `B^-1` of the squared-Laplacian preconditioner (Richardson
+/// from zero: symmetric, a fixed linear operator). The preconditioner is only
+/// as good as `B^-1` squared: with exact solves PCG needs 19-30 iterations at
+/// any size, with one V-cycle 39 / 59 / 125 on spot x4 / x16 / x64 and 252 on
+/// homer's 108k faces, with two 110 there (f64, `benches/shape_preconditioner.rs`).
+pub const SQUARED_LAPLACIAN_VCYCLES: usize = 2;
+
 /// Most right-hand sides one PCG batch carries (more are solved in batches).
 pub const CMAX: usize = 8;
 
@@ -132,8 +140,8 @@ pub enum Preconditioner {
     /// ([`SpdSolver::set_vertex_positions`]); otherwise as `Amg`.
     AffineAmg,
     /// For the scale-driven shape systems with a model
-    /// ([`SpdSolver::set_shape_model`]): `z = B^-1 Mt B^-1 r`, each `B^-1` one
-    /// V-cycle of the screened Laplacian `B = S + eps Mt`
+    /// ([`SpdSolver::set_shape_model`]): `z = B^-1 Mt B^-1 r`, each `B^-1`
+    /// [`SQUARED_LAPLACIAN_VCYCLES`] V-cycles of the screened Laplacian `B = S + eps Mt`
     /// ([`amg::squared_laplacian`]) applied to x, y and z at once. `B` depends
     /// on the input mesh and the weights only: built once per run, never
     /// refreshed. Every other system (the fine-tune's, whose E_l is as heavy
@@ -716,6 +724,7 @@ impl GpuSolver {
                     &narrow.r32,
                     &narrow.z32,
                     ws.cmax,
+                    SQUARED_LAPLACIAN_VCYCLES,
                 )?)
             }
             None => {
@@ -1064,6 +1073,7 @@ impl GpuSolver {
                 &ws.r,
                 &ws.z,
                 ws.cmax,
+                SQUARED_LAPLACIAN_VCYCLES,
             )?);
         } else if let Some(g) = &self.amg_gpu {
             ws.amg = Some(amg_gpu::VcycleWorkspace::new(

@@ -479,12 +479,19 @@ impl Pcg {
             _ => None,
         };
         let squared = match (&ws.squared, amg) {
-            (Some(q), Some(k)) => Some((
-                q,
-                q.first.pipelines(ctx, k, ncols)?,
-                k.scale.kernel.pipeline(ctx, ncols)?,
-                q.second.pipelines(ctx, k, ncols)?,
-            )),
+            (Some(q), Some(k)) => {
+                let pipes = |v: &[VcycleWorkspace]| {
+                    v.iter()
+                        .map(|c| c.pipelines(ctx, k, ncols))
+                        .collect::<Result<Vec<_>, _>>()
+                };
+                Some((
+                    q,
+                    pipes(&q.first)?,
+                    k.scale.kernel.pipeline(ctx, ncols)?,
+                    pipes(&q.second)?,
+                ))
+            }
             _ => None,
         };
         let k_update = if vcycle.is_some() || squared.is_some() {
@@ -511,9 +518,13 @@ impl Pcg {
                     v.record(pass, pipes);
                 }
                 if let Some((q, first, scale, second)) = &squared {
-                    q.first.record(pass, first);
+                    for (c, p) in q.first.iter().zip(first) {
+                        c.record(pass, p);
+                    }
                     q.scale.record(pass, scale);
-                    q.second.record(pass, second);
+                    for (c, p) in q.second.iter().zip(second) {
+                        c.record(pass, p);
+                    }
                 }
                 if let Some((nw, _, to64)) = &narrow {
                     dispatch(pass, to64, &nw.bg_z, nw.dims);
@@ -600,6 +611,7 @@ impl Pcg {
         result
     }
 
+    #[cfg(feature = "bench-kernels")]
     /// Seconds per dispatch of each kernel of an iteration (SpMV, finish_alpha,
     /// update, finish_beta, direction), each submitted `reps` times alone on the
     /// current workspace state (values are meaningless; for profiling).

@@ -1129,6 +1129,7 @@ fn amg_scalar_system_matches_cholesky_in_fewer_iterations() {
     assert!(ia * 3 < ij, "AMG {ia} vs Jacobi {ij}");
 }
 
+#[cfg(feature = "bench-kernels")]
 #[test]
 fn read_ceiling_reads_every_value() {
     // The benchmark's read ceiling checks that each pass's partials add up to
