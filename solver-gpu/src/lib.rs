@@ -294,8 +294,8 @@ impl Round<'_> {
 /// costs a discrete GPU far more than an iteration or two past convergence.
 /// A batch sized to finish also brings `x` back with the column states
 /// ([`pcg::Pcg::run`]), so a round that goes as predicted waits once (spot's
-/// pipeline row on lavapipe: 322 host waits down to 180 for the same 1992
-/// PCG iterations, BENCHMARKS.md "GPU cost proxies").
+/// pipeline row on lavapipe, affine AMG, 2026-11-23: 322 host waits down to
+/// 180 for the same 1992 PCG iterations).
 /// Keyed by system kind, precision and refinement round (rounds past the
 /// third share one entry).
 #[derive(Debug, Default)]
