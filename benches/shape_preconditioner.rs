@@ -85,34 +85,7 @@ fn pcg(
     max: usize,
     prec: &dyn Fn(&[f64]) -> Vec<f64>,
 ) -> Option<usize> {
-    let dot = |u: &[f64], v: &[f64]| u.iter().zip(v).map(|(a, b)| a * b).sum::<f64>();
-    let n = b.len();
-    let mut x = vec![0.0; n];
-    let mut r = b.to_vec();
-    let bn = dot(b, b).sqrt();
-    let mut z = prec(&r);
-    let mut p = z.clone();
-    let mut rz = dot(&r, &z);
-    let mut ap = vec![0.0; n];
-    for it in 1..=max {
-        op(&p, &mut ap);
-        let alpha = rz / dot(&p, &ap);
-        for i in 0..n {
-            x[i] += alpha * p[i];
-            r[i] -= alpha * ap[i];
-        }
-        if dot(&r, &r).sqrt() <= tol * bn {
-            return Some(it);
-        }
-        z = prec(&r);
-        let rz1 = dot(&r, &z);
-        let beta = rz1 / rz;
-        rz = rz1;
-        for i in 0..n {
-            p[i] = z[i] + beta * p[i];
-        }
-    }
-    None
+    solver_gpu::amg::pcg_op(op, b, tol, max, prec).map(|(_, it)| it)
 }
 
 /// `v` V-cycles of `h` on `B x = r` from zero (a fixed symmetric operator).

@@ -867,6 +867,17 @@ pub fn pcg(
     max_iters: usize,
     prec: impl Fn(&[f64]) -> Vec<f64>,
 ) -> Option<(Vec<f64>, usize)> {
+    pcg_op(|x, y| a.matvec(x, y), b, tol, max_iters, prec)
+}
+
+/// [`pcg`] for an operator `op(x, y)`: `y = A x` (for benchmarks and tests).
+pub fn pcg_op(
+    op: impl Fn(&[f64], &mut [f64]),
+    b: &[f64],
+    tol: f64,
+    max_iters: usize,
+    prec: impl Fn(&[f64]) -> Vec<f64>,
+) -> Option<(Vec<f64>, usize)> {
     let dot = |u: &[f64], v: &[f64]| u.iter().zip(v).map(|(a, b)| a * b).sum::<f64>();
     let n = b.len();
     let mut x = vec![0f64; n];
@@ -877,7 +888,7 @@ pub fn pcg(
     let mut rz = dot(&r, &z);
     let mut ap = vec![0f64; n];
     for it in 1..=max_iters {
-        a.matvec(&p, &mut ap);
+        op(&p, &mut ap);
         let alpha = rz / dot(&p, &ap);
         for i in 0..n {
             x[i] += alpha * p[i];

@@ -120,7 +120,8 @@ pub const SQUARED_LAPLACIAN_SWEEPS: usize = 4;
 /// from zero: symmetric, a fixed linear operator). The preconditioner is only
 /// as good as `B^-1` squared: with exact solves PCG needs 19-30 iterations at
 /// any size, with one V-cycle 39 / 59 / 125 on spot x4 / x16 / x64 and 252 on
-/// homer's 108k faces, with two 110 there (f64, `benches/shape_preconditioner.rs`).
+/// homer's 108k faces, with two 32 / 38 on spot x4 / x16 and 110 on homer
+/// (f64, `benches/shape_preconditioner.rs`).
 pub const SQUARED_LAPLACIAN_VCYCLES: usize = 2;
 
 /// Most right-hand sides one PCG batch carries (more are solved in batches).
