@@ -22,8 +22,10 @@
 //                         past `rows` do nothing), mode (see above), omega =
 //                         Jacobi weight.
 //   1  row_ptr  read      rows + 1 offsets (block units) of the BSR matrix.
-//   2  dense_inv read     the row-major rows x rows inverse of the coarsest
-//                         matrix (`dense` only).
+//   2  vals     read      f32 values read from a buffer: the row-major
+//                         rows x rows inverse of the coarsest matrix (`dense`,
+//                         `dense3`), or the values of a scalar CSR matrix
+//                         (`spmv3`, one per stored entry).
 //   3  blocks   texture   RGBA32F, TW texels per texture row: the blocks of the
 //                         step's matrix (A_l, P_l or R_l; rectangular for P and
 //                         R), BS texels per block: texel BS k + q holds row q of
@@ -39,8 +41,16 @@
 //   6  y        rw        output, stride n (read too by the accumulating modes).
 //   7  dinv     read      omega times the inverted diagonal blocks, BS * BS f32
 //                         per block row.
-//   8  block_cols read    block columns of a wide-block matrix (`spmv_wide`).
+//   8  block_cols read    block columns of a wide-block matrix (`spmv_wide`),
+//                         or the columns of a scalar CSR matrix (`spmv3`).
 // Unused bindings hold a small placeholder buffer or a 1x1 texture.
+//
+// A scalar hierarchy applied to 3-vectors (the squared-Laplacian
+// preconditioner's `B (x) I3`: x, y and z of a vertex interleaved, the PCG's
+// layout) runs `spmv3`, `jacobi3` and `dense3` in place of `spmv`, `jacobi`
+// and `dense`, same modes: each scalar entry acts on the three components, so
+// a stored entry costs 8 bytes (value and column, storage buffers) where its
+// `v I3` block would cost 48 (three texels).
 
 struct AmgParams {
     rows: u32,
@@ -65,7 +75,7 @@ override TW: u32 = 4096u;
 
 @group(0) @binding(0) var<uniform> P: AmgParams;
 @group(0) @binding(1) var<storage, read> row_ptr: array<u32>;
-@group(0) @binding(2) var<storage, read> dense_inv: array<f32>;
+@group(0) @binding(2) var<storage, read> vals: array<f32>;
 @group(0) @binding(3) var blocks: texture_2d<f32>;
 @group(0) @binding(4) var<storage, read> x: array<f32>;
 @group(0) @binding(5) var<storage, read> b: array<f32>;
@@ -241,12 +251,100 @@ fn dense(
     let nr = P.rows;
     var acc: array<f32, 8>;
     for (var j = 0u; j < nr; j++) {
-        let a = dense_inv[row * nr + j];
+        let a = vals[row * nr + j];
         for (var c = 0u; c < NCOLS; c++) {
             acc[c] += a * x[c * P.nx + j];
         }
     }
     for (var c = 0u; c < NCOLS; c++) {
         y[c * P.n + row] = acc[c];
+    }
+}
+
+// y = A x (mode 0), y = b - A x (mode 1), y += A x (mode 2) for a scalar CSR
+// matrix (values `vals`, columns `block_cols`) on interleaved 3-vectors: one
+// invocation per scalar row, writing its three components per column.
+@compute @workgroup_size(128)
+fn spmv3(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let row = row_of(wid, nwg, lid);
+    if row >= P.rows {
+        return;
+    }
+    var acc: array<vec3<f32>, 8>;
+    let k0 = row_ptr[row];
+    let k1 = row_ptr[row + 1u];
+    for (var k = k0; k < k1; k++) {
+        let a = vals[k];
+        let j = 3u * block_cols[k];
+        for (var c = 0u; c < NCOLS; c++) {
+            let o = c * P.nx + j;
+            acc[c] += a * vec3<f32>(x[o], x[o + 1u], x[o + 2u]);
+        }
+    }
+    for (var c = 0u; c < NCOLS; c++) {
+        let o = c * P.n + 3u * row;
+        store(o, acc[c].x);
+        store(o + 1u, acc[c].y);
+        store(o + 2u, acc[c].z);
+    }
+}
+
+// y = omega D^-1 b (mode 0), y += omega D^-1 b (mode 1) for a scalar diagonal
+// (`dinv`, one value per scalar row, omega folded in) on interleaved
+// 3-vectors: one invocation per scalar row.
+@compute @workgroup_size(128)
+fn jacobi3(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let row = row_of(wid, nwg, lid);
+    if row >= P.rows {
+        return;
+    }
+    let d = P.omega * dinv[row];
+    for (var c = 0u; c < NCOLS; c++) {
+        let o = c * P.n + 3u * row;
+        for (var q = 0u; q < 3u; q++) {
+            let s = d * b[o + q];
+            if P.mode == 0u {
+                y[o + q] = s;
+            } else {
+                y[o + q] += s;
+            }
+        }
+    }
+}
+
+// y = C^-1 x on the coarsest level of a scalar hierarchy on interleaved
+// 3-vectors: one invocation per scalar row of the dense rows x rows inverse.
+@compute @workgroup_size(128)
+fn dense3(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let row = row_of(wid, nwg, lid);
+    if row >= P.rows {
+        return;
+    }
+    let nr = P.rows;
+    var acc: array<vec3<f32>, 8>;
+    for (var j = 0u; j < nr; j++) {
+        let a = vals[row * nr + j];
+        for (var c = 0u; c < NCOLS; c++) {
+            let o = c * P.nx + 3u * j;
+            acc[c] += a * vec3<f32>(x[o], x[o + 1u], x[o + 2u]);
+        }
+    }
+    for (var c = 0u; c < NCOLS; c++) {
+        let o = c * P.n + 3u * row;
+        y[o] = acc[c].x;
+        y[o + 1u] = acc[c].y;
+        y[o + 2u] = acc[c].z;
     }
 }

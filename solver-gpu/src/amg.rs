@@ -1288,73 +1288,6 @@ fn affine_modes(x: &[[f64; 3]]) -> Vec<f64> {
 // The squared-Laplacian preconditioner of shape systems: a scalar hierarchy of
 // `B = S + eps Mt`, applied to x, y and z at once as `B (x) I3`.
 
-impl Bsr {
-    /// `A (x) I3` of a scalar matrix: each value `v` becomes the block `v I3`.
-    pub fn kron_i3(&self) -> Bsr {
-        assert_eq!(self.bs, 1, "kron_i3 takes a scalar matrix");
-        let mut vals = Vec::with_capacity(9 * self.vals.len());
-        for &v in &self.vals {
-            vals.extend_from_slice(&[v, 0.0, 0.0, 0.0, v, 0.0, 0.0, 0.0, v]);
-        }
-        Bsr {
-            bs: 3,
-            rows: self.rows,
-            cols: self.cols,
-            row_ptr: self.row_ptr.clone(),
-            col_idx: self.col_idx.clone(),
-            vals,
-        }
-    }
-}
-
-impl Hierarchy {
-    /// The hierarchy of `A (x) I3` from the scalar hierarchy of `A`: the same
-    /// V-cycle applied to the three components of each block row at once.
-    pub fn kron_i3(&self) -> Hierarchy {
-        assert!(
-            self.bs == 1 && !self.affine,
-            "kron_i3 takes a scalar hierarchy"
-        );
-        let diag = |d: &[f64]| -> Vec<f64> {
-            d.iter()
-                .flat_map(|&v| [v, 0.0, 0.0, 0.0, v, 0.0, 0.0, 0.0, v])
-                .collect()
-        };
-        let levels = self
-            .levels
-            .iter()
-            .map(|lv| Level {
-                a: lv.a.kron_i3(),
-                dinv: diag(&lv.dinv),
-                omega: lv.omega,
-                agg: lv.agg.clone(),
-                naggs: lv.naggs,
-                p: lv.p.kron_i3(),
-                r: lv.r.kron_i3(),
-                tentative: None,
-            })
-            .collect();
-        let nc = self.coarse.rows;
-        let mut coarse_inv = vec![0.0; 9 * nc * nc];
-        for i in 0..nc {
-            for j in 0..nc {
-                let v = self.coarse_inv[i * nc + j];
-                for a in 0..3 {
-                    coarse_inv[(3 * i + a) * 3 * nc + 3 * j + a] = v;
-                }
-            }
-        }
-        Hierarchy {
-            bs: 3,
-            affine: false,
-            opts: self.opts,
-            levels,
-            coarse: self.coarse.kron_i3(),
-            coarse_inv,
-        }
-    }
-}
-
 /// Estimate of the smallest nonzero eigenvalue of `(S, Mt)` times `sum(Mt)`
 /// behind the screening of [`squared_laplacian`] (a sphere's is 8 pi; measured
 /// best on spot between 25 and 50, `benches/shape_preconditioner.rs`).
@@ -1744,36 +1677,6 @@ mod tests {
             assert_eq!(h2.sizes(), h.sizes());
             for (l1, l2) in h.levels.iter().zip(&h2.levels) {
                 assert!(l1.p.same_pattern(&l2.p) && l1.a.same_pattern(&l2.a));
-            }
-        }
-    }
-
-    /// The hierarchy of `A (x) I3` runs the scalar V-cycle on each of the
-    /// three components.
-    #[test]
-    fn kron_i3_hierarchy_is_the_scalar_vcycle_per_component() {
-        let a = grid(20, 15, 1, 7);
-        let opts = AmgOptions {
-            max_coarse: 40,
-            sweeps: 2,
-            ..AmgOptions::default()
-        };
-        let h = Hierarchy::build(a.clone(), &opts, None).unwrap();
-        assert!(h.levels.len() >= 2, "a multilevel hierarchy");
-        let h3 = h.kron_i3();
-        assert_eq!(h3.bs, 3);
-        let n = a.rows;
-        let b: Vec<f64> = (0..3 * n).map(|i| ((i * 37) % 11) as f64 - 5.0).collect();
-        let z3 = h3.vcycle(&b);
-        for c in 0..3 {
-            let bc: Vec<f64> = (0..n).map(|i| b[3 * i + c]).collect();
-            let zc = h.vcycle(&bc);
-            for i in 0..n {
-                let (x, y) = (z3[3 * i + c], zc[i]);
-                assert!(
-                    (x - y).abs() <= 1e-12 * (1.0 + y.abs()),
-                    "row {i}, component {c}: {x} vs {y}"
-                );
             }
         }
     }

@@ -4,7 +4,10 @@
 //! [`GpuHierarchy`] holds the uploaded levels (per level: `A_l`, `P_l`, `R_l` as
 //! block-CSR with `bs` = 3 or 1, the inverted diagonal blocks; the dense inverse
 //! of the coarsest matrix). A hierarchy with the same level patterns (aggregates
-//! reused for a matrix of the same pattern) only rewrites the values.
+//! reused for a matrix of the same pattern) only rewrites the values. A scalar
+//! hierarchy can also be uploaded to act on 3-vectors
+//! ([`GpuHierarchy::upload_on_3_vectors`]: `A (x) I3` without storing the
+//! blocks `v I3`), its matrices as CSR in storage buffers.
 //!
 //! [`VcycleWorkspace`] holds the per-level vectors (`b_l`, `x_l`, `t_l`, sized for
 //! `cmax` columns; level 0 uses the PCG's `r` and `z`) and the V-cycle recorded
@@ -14,10 +17,11 @@
 //!
 //! Bindings of `amg.wgsl` (group 0): 0 `P` uniform [`AmgParams`]; 1 `row_ptr`
 //! and 3 `blocks` (RGBA32F texture, `bs` texels per block, the layout of
-//! [`crate::matrix::block_texel`]): the matrix of the step; 2 `dense_inv` (the
-//! dense coarse inverse); 4 `x` (read); 5 `b` (read); 6 `y` (written); 7 `dinv`;
-//! 8 `block_cols` (the block columns of a wide-block matrix, [`Layout::Wide`]:
-//! an affine hierarchy's `P`, `R` and coarse `A`).
+//! [`crate::matrix::block_texel`]): the matrix of the step; 2 `vals` (the
+//! dense coarse inverse, or a scalar CSR matrix's values); 4 `x` (read); 5 `b`
+//! (read); 6 `y` (written); 7 `dinv`; 8 `block_cols` (the block columns of a
+//! wide-block matrix, [`Layout::Wide`]: an affine hierarchy's `P`, `R` and
+//! coarse `A`; or a scalar CSR matrix's columns, [`Layout::Scalar3`]).
 
 use crate::amg::{Bsr, Hierarchy, WideBlocks, AFFINE_MODES};
 use crate::device::{dispatch, Bind, Context, Kernel, Shader, ROW_WG};
@@ -60,6 +64,8 @@ pub(crate) struct AmgKernels {
     /// `spmv_wide` for the block shapes of an affine hierarchy.
     wide: Vec<((usize, usize), Kernel)>,
     dense: Kernel,
+    /// `spmv3`, `jacobi3`, `dense3`: a scalar hierarchy on 3-vectors.
+    on3: [Kernel; 3],
     /// The row scaling between the two V-cycles of the squared-Laplacian
     /// preconditioner.
     pub scale: crate::scale_rows::ScaleRows,
@@ -71,6 +77,9 @@ enum Op {
     SpmvWide,
     Jacobi,
     Dense,
+    Spmv3,
+    Jacobi3,
+    Dense3,
 }
 
 impl AmgKernels {
@@ -92,6 +101,11 @@ impl AmgKernels {
                 k("amg_jacobi_bs12", "jacobi", AFFINE_MODES as f64),
             ],
             dense: k("amg_dense", "dense", 1.0),
+            on3: [
+                Kernel::new(&shader, "amg_spmv3", "spmv3"),
+                Kernel::new(&shader, "amg_jacobi3", "jacobi3"),
+                Kernel::new(&shader, "amg_dense3", "dense3"),
+            ],
             wide: [
                 ((3, K), "amg_spmv_wide_3x12"),
                 ((K, 3), "amg_spmv_wide_12x3"),
@@ -126,6 +140,9 @@ impl AmgKernels {
             (Op::Jacobi, 1) => &self.jacobi[1],
             (Op::Jacobi, _) => &self.jacobi[2],
             (Op::Dense, _) => &self.dense,
+            (Op::Spmv3, _) => &self.on3[0],
+            (Op::Jacobi3, _) => &self.on3[1],
+            (Op::Dense3, _) => &self.on3[2],
         }
     }
 }
@@ -140,19 +157,25 @@ enum Layout {
     /// columns in a buffer: `spmv_wide`, one invocation per scalar row (the
     /// affine hierarchy's `P`, `R` and coarse `A`).
     Wide(usize, usize),
+    /// A scalar matrix as CSR, values and columns in storage buffers, applied
+    /// to interleaved 3-vectors: `spmv3`, one invocation per scalar row.
+    Scalar3,
 }
 
-/// One block-CSR matrix on the GPU: row pointers (and, wide, block columns)
-/// in buffers, the blocks (f32) in a texture.
+/// One block-CSR matrix on the GPU: row pointers (and, wide or scalar, block
+/// columns) in buffers, the blocks (f32) in a texture, or (scalar) the values
+/// in a buffer.
 struct GpuBsr {
     layout: Layout,
     row_ptr: wgpu::Buffer,
-    /// Block columns ([`Layout::Wide`] only).
+    /// Block columns ([`Layout::Wide`], [`Layout::Scalar3`]).
     cols: Option<wgpu::Buffer>,
     /// `None`: the PCG's own matrix ([`GpuMatrix`], same layout), whose values
-    /// are written with it.
+    /// are written with it; or a [`Layout::Scalar3`] matrix.
     texture: Option<wgpu::Texture>,
-    view: wgpu::TextureView,
+    view: Option<wgpu::TextureView>,
+    /// The values of a [`Layout::Scalar3`] matrix.
+    vals: Option<wgpu::Buffer>,
     /// Rows of its kernel's dispatch: block rows, scalar rows if wide.
     rows: usize,
 }
@@ -194,6 +217,7 @@ impl GpuBsr {
                 check_texture_columns(&format!("AMG {what}"), m.cols)?;
                 (bs * m.nnz_blocks(), m.row_ptr.clone(), None, m.rows)
             }
+            Layout::Scalar3 => return Self::upload_scalar(ctx, what, m),
             Layout::Wide(br, bc) => {
                 let w = wide.insert(m.regroup(br, bc));
                 let cols = ctx.storage_init(&format!("AMG {what} block columns"), &w.col_idx)?;
@@ -211,8 +235,9 @@ impl GpuBsr {
             layout,
             row_ptr: ctx.storage_init(&format!("AMG {what} row pointers"), &row_ptr)?,
             cols,
-            view: texture.create_view(&Default::default()),
+            view: Some(texture.create_view(&Default::default())),
             texture: Some(texture),
+            vals: None,
             rows,
         };
         // The wide layout is regrouped once, for the pattern and the values.
@@ -223,6 +248,21 @@ impl GpuBsr {
         Ok(g)
     }
 
+    /// Upload the scalar matrix `m` as CSR in storage buffers
+    /// ([`Layout::Scalar3`]).
+    fn upload_scalar(ctx: &Context, what: &str, m: &Bsr) -> Result<GpuBsr, GpuError> {
+        debug_assert_eq!(m.bs, 1);
+        Ok(GpuBsr {
+            layout: Layout::Scalar3,
+            row_ptr: ctx.storage_init(&format!("AMG {what} row pointers"), &m.row_ptr)?,
+            cols: Some(ctx.storage_init(&format!("AMG {what} columns"), &m.col_idx)?),
+            texture: None,
+            view: None,
+            vals: Some(ctx.storage_init(&format!("AMG {what} values"), &f32s(&m.vals))?),
+            rows: m.rows,
+        })
+    }
+
     /// The PCG's block matrix as the finest `A` (no second copy on the GPU).
     fn shared(m: &GpuMatrix, rows: usize) -> Option<GpuBsr> {
         match &m.storage {
@@ -231,7 +271,8 @@ impl GpuBsr {
                 row_ptr: m.row_ptr.clone(),
                 cols: None,
                 texture: None,
-                view: view.clone(),
+                view: Some(view.clone()),
+                vals: None,
                 rows,
             }),
             MatrixStorage::Csr { .. } | MatrixStorage::SplitBlockTexture { .. } => None,
@@ -239,6 +280,9 @@ impl GpuBsr {
     }
 
     fn write(&self, ctx: &Context, m: &Bsr) {
+        if let Some(v) = &self.vals {
+            ctx.write_buffer(v, 0, bytemuck::cast_slice(&f32s(&m.vals)));
+        }
         let Some(t) = &self.texture else {
             return;
         };
@@ -247,6 +291,7 @@ impl GpuBsr {
                 block_texel(bs, &m.col_idx, &m.vals, t, out)
             }),
             Layout::Wide(br, bc) => write_wide(ctx, t, &m.regroup(br, bc)),
+            Layout::Scalar3 => {}
         }
     }
 }
@@ -269,8 +314,10 @@ fn scaled_dinv(lv: &crate::amg::Level) -> Vec<f32> {
 pub(crate) struct GpuHierarchy {
     levels: Vec<GpuLevel>,
     coarse_inv: wgpu::Buffer,
-    /// Unknowns per level, the coarsest last.
+    /// Unknowns per level, the coarsest last (3 per scalar row on 3-vectors).
     sizes: Vec<usize>,
+    /// A scalar hierarchy on 3-vectors ([`Self::upload_on_3_vectors`]).
+    on3: bool,
     sweeps: usize,
     dummy: wgpu::Buffer,
     #[allow(dead_code)]
@@ -298,6 +345,27 @@ impl GpuHierarchy {
         h: &Hierarchy,
         fine: Option<&GpuMatrix>,
     ) -> Result<GpuHierarchy, GpuError> {
+        Self::upload_as(ctx, h, fine, false)
+    }
+
+    /// Upload the scalar (not affine) hierarchy `h` to act on interleaved
+    /// 3-vectors: the V-cycle of `A (x) I3` (x, y and z of each row through
+    /// the same cycle), each matrix as scalar CSR in storage buffers.
+    pub fn upload_on_3_vectors(ctx: &Context, h: &Hierarchy) -> Result<GpuHierarchy, GpuError> {
+        if h.bs != 1 || h.affine {
+            return Err(GpuError::Backend(
+                "a hierarchy on 3-vectors is built from a scalar matrix".into(),
+            ));
+        }
+        Self::upload_as(ctx, h, None, true)
+    }
+
+    fn upload_as(
+        ctx: &Context,
+        h: &Hierarchy,
+        fine: Option<&GpuMatrix>,
+        on3: bool,
+    ) -> Result<GpuHierarchy, GpuError> {
         let mut levels = Vec::with_capacity(h.levels.len());
         // An affine hierarchy: P, R and every A past the finest are wide.
         const K: usize = AFFINE_MODES;
@@ -308,6 +376,7 @@ impl GpuHierarchy {
             };
             let bs = lv.a.bs;
             let (al, pl, rl) = match h.affine {
+                _ if on3 => (Layout::Scalar3, Layout::Scalar3, Layout::Scalar3),
                 true if bs > 3 => (
                     Layout::Wide(bs, bs),
                     Layout::Wide(bs, K),
@@ -325,14 +394,20 @@ impl GpuHierarchy {
                 p: GpuBsr::upload(ctx, &format!("P_{l}"), &lv.p, pl)?,
                 r: GpuBsr::upload(ctx, &format!("R_{l}"), &lv.r, rl)?,
                 dinv: ctx.storage_init(&format!("AMG w D_{l}^-1"), &scaled_dinv(lv))?,
-                dinv_bs: bs,
+                // On 3-vectors one diagonal value serves a row's 3 unknowns.
+                dinv_bs: if on3 { 3 } else { bs },
             });
         }
         let dummy_texture = ctx.data_texture("AMG unused texture binding", 1, false)?;
         Ok(GpuHierarchy {
             levels,
             coarse_inv: ctx.storage_init("AMG coarsest inverse", &f32s(&h.coarse_inv))?,
-            sizes: h.sizes(),
+            sizes: h
+                .sizes()
+                .iter()
+                .map(|&n| if on3 { 3 * n } else { n })
+                .collect(),
+            on3,
             sweeps: h.opts.sweeps.max(1),
             dummy: ctx.storage("AMG unused binding", 16)?,
             dummy_view: dummy_texture.create_view(&Default::default()),
@@ -519,16 +594,19 @@ impl VcycleWorkspace {
                 &[
                     (0, &params),
                     (1, m.map_or(d, |m| &m.row_ptr)),
-                    (2, vals.unwrap_or(d)),
+                    (2, vals.or(m.and_then(|m| m.vals.as_ref())).unwrap_or(d)),
                     (4, x.unwrap_or(d)),
                     (5, b.unwrap_or(d)),
                     (6, y),
                     (7, dinv.unwrap_or(d)),
                     (8, m.and_then(|m| m.cols.as_ref()).unwrap_or(d)),
                 ],
-                &[(3, m.map_or(&h.dummy_view, |m| &m.view))],
+                &[(3, m.and_then(|m| m.view.as_ref()).unwrap_or(&h.dummy_view))],
             )?;
             let (op, shape) = match (op, m.map(|m| m.layout)) {
+                (Op::Spmv, Some(Layout::Scalar3)) => (Op::Spmv3, (1, 1)),
+                (Op::Jacobi, _) if h.on3 => (Op::Jacobi3, (1, 1)),
+                (Op::Dense, _) if h.on3 => (Op::Dense3, (1, 1)),
                 (Op::Spmv, Some(Layout::Wide(br, bc))) => (Op::SpmvWide, (br, bc)),
                 (Op::Spmv, Some(Layout::Blocks(bs))) => (op, (bs, bs)),
                 (Op::Jacobi, _) => (op, (n / rows, n / rows)),
@@ -652,7 +730,7 @@ impl VcycleWorkspace {
         let (bc, xc) = (buf(slots[lc].0, "b"), buf(slots[lc].1, "x"));
         step(
             Op::Dense,
-            nc,
+            if h.on3 { nc / 3 } else { nc },
             nc,
             nc,
             0,
@@ -750,8 +828,7 @@ impl VcycleWorkspace {
 /// steps: the first V-cycle of `B` writes `t`, `t` is scaled by `Mt` in
 /// place, the second V-cycle reads `t` and writes `z`.
 pub(crate) struct SquaredSteps {
-    /// Read through the bind groups only.
-    #[allow(dead_code)]
+    /// The middle vector `t`.
     pub t: wgpu::Buffer,
     /// `vcycles` V-cycles on `B t = r` (the later ones continue the first).
     pub first: Vec<VcycleWorkspace>,
@@ -762,7 +839,7 @@ pub(crate) struct SquaredSteps {
 
 impl SquaredSteps {
     /// Record for the PCG's `r` and `z` (f32, `n x cmax`); `mt`: one f32 per
-    /// block row of `h`'s finest level (a hierarchy of `B (x) I3`).
+    /// vertex (`h`: the hierarchy of `B` on 3-vectors).
     #[allow(clippy::too_many_arguments)]
     pub fn new(
         ctx: &Context,

@@ -200,6 +200,49 @@ pub fn amg_vcycle(s: &mut GpuSolver, r: &[f32], ncols: usize) -> Result<Vec<f32>
     ctx.read(&ws.z, r.len(), &mut None, Some(enc))
 }
 
+/// `z = B^-1 Mt B^-1 r`: the squared-Laplacian preconditioner on the GPU as
+/// the PCG applies it (it must be the active preconditioner: a scale-driven
+/// block matrix with a shape model). `z`, the middle vector and every level
+/// vector are poisoned with NaN first.
+pub fn squared_laplacian(s: &mut GpuSolver, r: &[f32], ncols: usize) -> Result<Vec<f32>, GpuError> {
+    check_cols(s, r.len(), ncols)?;
+    if s.squared.is_none() || s.amg_gpu.is_none() {
+        return Err(GpuError::Backend(
+            "the squared-Laplacian preconditioner is not active".into(),
+        ));
+    }
+    s.workspace(ncols)?;
+    let ctx = &s.ctx;
+    let ws = s.ws.as_ref().unwrap();
+    let q = ws.squared.as_ref().unwrap();
+    ctx.write_buffer(&ws.r, 0, bytemuck::cast_slice(r));
+    let cycles = q.first.iter().chain(&q.second);
+    for b in cycles.flat_map(|c| &c.vectors).chain([&q.t, &ws.z]) {
+        let nan = vec![f32::NAN; (b.size() / 4) as usize];
+        ctx.write_buffer(b, 0, bytemuck::cast_slice(&nan));
+    }
+    let k = &s.k.amg;
+    let pipes = |v: &[crate::amg_gpu::VcycleWorkspace]| {
+        v.iter()
+            .map(|c| c.pipelines(ctx, k, ncols))
+            .collect::<Result<Vec<_>, _>>()
+    };
+    let (first, second) = (pipes(&q.first)?, pipes(&q.second)?);
+    let scale = k.scale.kernel.pipeline(ctx, ncols)?;
+    let mut enc = ctx.encoder("squared-Laplacian preconditioner");
+    {
+        let mut pass = enc.begin_compute_pass(&Default::default());
+        for (c, p) in q.first.iter().zip(&first) {
+            c.record(&mut pass, p);
+        }
+        q.scale.record(&mut pass, &scale);
+        for (c, p) in q.second.iter().zip(&second) {
+            c.record(&mut pass, p);
+        }
+    }
+    ctx.read(&ws.z, r.len(), &mut None, Some(enc))
+}
+
 /// Result of one f32 PCG run ([`pcg`]).
 #[derive(Debug, Clone)]
 pub struct PcgOutput {

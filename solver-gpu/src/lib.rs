@@ -957,7 +957,7 @@ impl GpuSolver {
             ..self.amg_opts
         };
         let hier = match amg::Hierarchy::build(b, &opts, None) {
-            Ok(h) => h.kron_i3(),
+            Ok(h) => h,
             Err(e) => {
                 log::warn!("squared-Laplacian AMG setup failed ({e}); block Jacobi instead");
                 self.amg_host = None;
@@ -968,7 +968,9 @@ impl GpuSolver {
         };
         self.drop_workspaces();
         self.amg_gpu = None;
-        self.amg_gpu = Some(amg_gpu::GpuHierarchy::upload(&self.ctx, &hier, None)?);
+        self.amg_gpu = Some(amg_gpu::GpuHierarchy::upload_on_3_vectors(
+            &self.ctx, &hier,
+        )?);
         let mt32: Vec<f32> = mt.iter().map(|&v| v as f32).collect();
         let buf = self.ctx.storage_init("squared-Laplacian Mt", &mt32)?;
         self.squared = Some((model, buf));
