@@ -107,7 +107,9 @@ fn later_outer_seconds(s: &SolverSummary) -> (f64, f64) {
 /// accelerates), one line per run: host seconds per outer iteration after
 /// the first without the waits on the GPU (against the CPU backend's outer
 /// iteration when `cpu` is given), PCG iterations per shape solve, host waits
-/// per PCG iteration, preconditioner set-ups per system kind, bytes moved.
+/// per PCG iteration, preconditioner set-ups per system kind, bytes moved;
+/// kernel dispatches and modelled device bytes per PCG iteration, against the
+/// least bytes of the operator applications (`solver_gpu::KernelWork`).
 fn proxies(name: &str, backend: &str, s: &SolverSummary, cpu: Option<&SolverSummary>) {
     let (wall, host) = later_outer_seconds(s);
     let shape = &s.scale_driven;
@@ -129,6 +131,24 @@ fn proxies(name: &str, backend: &str, s: &SolverSummary, cpu: Option<&SolverSumm
         s.fine_tune.preconditioner_setups,
         s.transfer_bytes() as f64 / 1e6
     );
+    let phases = [&s.scale_factors, shape, &s.fine_tune];
+    let dispatches: u64 = phases.iter().map(|w| w.device_dispatches).sum();
+    if dispatches > 0 {
+        let bytes: u64 = phases.iter().map(|w| w.device_bytes).sum();
+        let minimal: u64 = phases.iter().map(|w| w.device_bytes_minimal).sum();
+        let per = |v: u64, it: usize| v as f64 / it.max(1) as f64;
+        line.push_str(&format!(
+            "; kernel dispatches per PCG iteration {:.0} (scale-driven shape solves {:.0}); \
+             modelled device bytes per PCG iteration {:.2} MB (scale-driven {:.2} MB), \
+             {:.2}x the least bytes of its operator applications (scale-driven {:.2}x)",
+            per(dispatches, all_iterations),
+            per(shape.device_dispatches, shape.iterations),
+            per(bytes, all_iterations) / 1e6,
+            per(shape.device_bytes, shape.iterations) / 1e6,
+            bytes as f64 / minimal.max(1) as f64,
+            shape.device_bytes as f64 / shape.device_bytes_minimal.max(1) as f64,
+        ));
+    }
     if let Some(c) = cpu {
         let (cpu_wall, _) = later_outer_seconds(c);
         line.push_str(&format!(

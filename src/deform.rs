@@ -498,6 +498,9 @@ fn work_sum(a: WorkCounters, b: Option<WorkCounters>) -> WorkCounters {
         device_waits: a.device_waits + b.device_waits,
         bytes_to_device: a.bytes_to_device + b.bytes_to_device,
         bytes_from_device: a.bytes_from_device + b.bytes_from_device,
+        device_dispatches: a.device_dispatches + b.device_dispatches,
+        device_bytes: a.device_bytes + b.device_bytes,
+        device_bytes_minimal: a.device_bytes_minimal + b.device_bytes_minimal,
     }
 }
 
@@ -513,7 +516,8 @@ fn log_work(phase: &str, w: &WorkCounters, seconds: Option<f64>) {
     log::info!(
         "{phase}: {time}{:.3} s waiting for the GPU in {} waits), \
          {} preconditioner set-ups, {} solves, {} iterations (most in one solve {}), \
-         {} bytes to and {} from the device",
+         {} bytes to and {} from the device; kernels: {} dispatches, {} bytes modelled \
+         ({} for the operator applications in their least storage)",
         w.device_seconds,
         w.device_waits,
         w.preconditioner_setups,
@@ -521,7 +525,10 @@ fn log_work(phase: &str, w: &WorkCounters, seconds: Option<f64>) {
         w.iterations,
         w.iterations_max,
         w.bytes_to_device,
-        w.bytes_from_device
+        w.bytes_from_device,
+        w.device_dispatches,
+        w.device_bytes,
+        w.device_bytes_minimal
     );
 }
 

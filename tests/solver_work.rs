@@ -165,12 +165,14 @@ fn squared_laplacian_preconditions_the_scale_driven_systems() {
             let before = model.solver().counters();
             let mut rhs: Vec<f64> = model.reference_gradient().iter().map(|g| -g).collect();
             let info = model.solver().solve_in_place(&mut rhs, 1).unwrap();
-            let setups = model.solver().counters().preconditioner_setups;
+            let after = model.solver().counters();
+            let setups = after.preconditioner_setups;
             out.push((
                 rhs,
                 info.iterations,
                 setups - before.preconditioner_setups,
                 setups,
+                after.since(&before),
             ));
         }
         out
@@ -208,4 +210,26 @@ fn squared_laplacian_preconditions_the_scale_driven_systems() {
     // Set up once (the first matrix), kept for the second.
     assert_eq!(squared[0].3, 1, "one set-up for the first matrix");
     assert_eq!(squared[1].2, 0, "the second matrix of the kind keeps it");
+    // What a discrete GPU pays per PCG iteration (solver_gpu::KernelWork):
+    // the preconditioner's kernels, a scalar B on 3-vectors in storage
+    // buffers, stay within 2x the least bytes of the operator applications,
+    // vector updates included.
+    for (k, run) in squared.iter().enumerate() {
+        let w = &run.4;
+        let its = run.1 as u64;
+        eprintln!(
+            "system {k}: {} dispatches, {:.2} MB modelled, {:.2} MB least, {} iterations",
+            w.device_dispatches,
+            w.device_bytes as f64 / 1e6,
+            w.device_bytes_minimal as f64 / 1e6,
+            its
+        );
+        assert!(w.device_bytes_minimal > 0 && w.device_dispatches > its);
+        assert!(
+            w.device_bytes <= 2 * w.device_bytes_minimal,
+            "system {k}: {} bytes modelled against {} least",
+            w.device_bytes,
+            w.device_bytes_minimal
+        );
+    }
 }

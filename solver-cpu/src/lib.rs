@@ -79,6 +79,14 @@ pub struct WorkCounters {
     pub bytes_to_device: u64,
     /// Bytes read back from the device.
     pub bytes_from_device: u64,
+    /// Kernel dispatches submitted to the device.
+    pub device_dispatches: u64,
+    /// Bytes the device's kernels read and write, modelled from what they
+    /// access as stored (`solver_gpu::KernelWork`).
+    pub device_bytes: u64,
+    /// The least bytes of the operator applications among those kernels
+    /// (each matrix in its least storage, its vectors once).
+    pub device_bytes_minimal: u64,
 }
 
 impl WorkCounters {
@@ -101,6 +109,9 @@ impl WorkCounters {
             device_waits: self.device_waits - earlier.device_waits,
             bytes_to_device: self.bytes_to_device - earlier.bytes_to_device,
             bytes_from_device: self.bytes_from_device - earlier.bytes_from_device,
+            device_dispatches: self.device_dispatches - earlier.device_dispatches,
+            device_bytes: self.device_bytes - earlier.device_bytes,
+            device_bytes_minimal: self.device_bytes_minimal - earlier.device_bytes_minimal,
         }
     }
 }

@@ -24,7 +24,7 @@
 //! coarse `A`; or a scalar CSR matrix's columns, [`Layout::Scalar3`]).
 
 use crate::amg::{Bsr, Hierarchy, WideBlocks, AFFINE_MODES};
-use crate::device::{dispatch, Bind, Context, Kernel, Shader, ROW_WG};
+use crate::device::{dispatch, Bind, Context, Kernel, KernelWork, Shader, ROW_WG};
 use crate::matrix::{block_texel, check_texture_columns, GpuMatrix, MatrixStorage};
 use crate::{GpuError, CMAX};
 
@@ -176,6 +176,9 @@ struct GpuBsr {
     view: Option<wgpu::TextureView>,
     /// The values of a [`Layout::Scalar3`] matrix.
     vals: Option<wgpu::Buffer>,
+    /// Bytes a product reads of it, as stored and in its least storage
+    /// ([`KernelWork`]).
+    stored: (u64, u64),
     /// Rows of its kernel's dispatch: block rows, scalar rows if wide.
     rows: usize,
 }
@@ -211,19 +214,32 @@ impl GpuBsr {
     /// divide `m`'s scalar rows and columns).
     fn upload(ctx: &Context, what: &str, m: &Bsr, layout: Layout) -> Result<GpuBsr, GpuError> {
         let mut wide = None;
-        let (texels, row_ptr, cols, rows) = match layout {
+        let least = |blocks: usize, br: usize, bc: usize, rows: usize| {
+            (blocks * (4 * br * bc + 4) + 4 * (rows + 1)) as u64
+        };
+        let (texels, row_ptr, cols, rows, stored) = match layout {
             Layout::Blocks(bs) => {
                 debug_assert_eq!(bs, m.bs);
                 check_texture_columns(&format!("AMG {what}"), m.cols)?;
-                (bs * m.nnz_blocks(), m.row_ptr.clone(), None, m.rows)
+                let texels = bs * m.nnz_blocks();
+                let stored = (
+                    (16 * texels + 4 * (m.rows + 1)) as u64,
+                    least(m.nnz_blocks(), bs, bs, m.rows),
+                );
+                (texels, m.row_ptr.clone(), None, m.rows, stored)
             }
             Layout::Scalar3 => return Self::upload_scalar(ctx, what, m),
             Layout::Wide(br, bc) => {
                 let w = wide.insert(m.regroup(br, bc));
                 let cols = ctx.storage_init(&format!("AMG {what} block columns"), &w.col_idx)?;
                 // spmv_wide runs one invocation per scalar row.
-                let texels = wide_texels(br, bc) * w.col_idx.len();
-                (texels, w.row_ptr.clone(), Some(cols), w.rows * br)
+                let blocks = w.col_idx.len();
+                let texels = wide_texels(br, bc) * blocks;
+                let stored = (
+                    (16 * texels + 4 * blocks + 4 * (w.rows + 1)) as u64,
+                    least(blocks, br, bc, w.rows),
+                );
+                (texels, w.row_ptr.clone(), Some(cols), w.rows * br, stored)
             }
         };
         let texture = ctx.data_texture(
@@ -238,6 +254,7 @@ impl GpuBsr {
             view: Some(texture.create_view(&Default::default())),
             texture: Some(texture),
             vals: None,
+            stored,
             rows,
         };
         // The wide layout is regrouped once, for the pattern and the values.
@@ -259,6 +276,10 @@ impl GpuBsr {
             texture: None,
             view: None,
             vals: Some(ctx.storage_init(&format!("AMG {what} values"), &f32s(&m.vals))?),
+            stored: {
+                let b = (8 * m.nnz_blocks() + 4 * (m.rows + 1)) as u64;
+                (b, b)
+            },
             rows: m.rows,
         })
     }
@@ -273,6 +294,7 @@ impl GpuBsr {
                 texture: None,
                 view: Some(view.clone()),
                 vals: None,
+                stored: m.stored,
                 rows,
             }),
             MatrixStorage::Csr { .. } | MatrixStorage::SplitBlockTexture { .. } => None,
@@ -458,6 +480,10 @@ struct Step {
     /// Kept alive for the bind group.
     #[allow(dead_code)]
     params: wgpu::Buffer,
+    /// Modelled bytes ([`KernelWork`]): of the matrix or diagonal, as stored
+    /// and least; of the vectors, per column (f32).
+    fixed: (u64, u64),
+    per_column: u64,
 }
 
 /// Per-level vectors and the recorded V-cycle for up to `cmax` columns.
@@ -603,6 +629,19 @@ impl VcycleWorkspace {
                 ],
                 &[(3, m.and_then(|m| m.view.as_ref()).unwrap_or(&h.dummy_view))],
             )?;
+            // Modelled bytes: the matrix (or diagonal, or dense inverse) once,
+            // x, b, y once each per column as the mode reads and writes them.
+            let fixed = match (m, dinv, vals) {
+                (Some(m), _, _) => m.stored,
+                (None, Some(d), _) => (d.size(), d.size()),
+                (None, None, Some(v)) => (v.size(), v.size()),
+                _ => (0, 0),
+            };
+            let reads_y = (op == Op::Jacobi && mode == 1) || (op != Op::Jacobi && mode == 2);
+            let reads_b = op != Op::Jacobi && mode == 1;
+            let x_len = if op == Op::Jacobi { n } else { nx };
+            let per_column =
+                4 * (x_len + n + n * usize::from(reads_y) + n * usize::from(reads_b)) as u64;
             let (op, shape) = match (op, m.map(|m| m.layout)) {
                 (Op::Spmv, Some(Layout::Scalar3)) => (Op::Spmv3, (1, 1)),
                 (Op::Jacobi, _) if h.on3 => (Op::Jacobi3, (1, 1)),
@@ -616,6 +655,8 @@ impl VcycleWorkspace {
                 op,
                 shape,
                 bg,
+                fixed,
+                per_column,
                 dims: ctx.dims("AMG kernels", groups)?,
                 params,
             });
@@ -803,6 +844,17 @@ impl VcycleWorkspace {
         Ok(VcycleWorkspace { steps, vectors })
     }
 
+    /// The modelled work of one V-cycle for `ncols` columns ([`KernelWork`]).
+    pub fn work(&self, ncols: usize) -> KernelWork {
+        self.steps
+            .iter()
+            .map(|s| {
+                let v = s.per_column * ncols as u64;
+                KernelWork::operator(s.fixed.0 + v, s.fixed.1 + v)
+            })
+            .sum()
+    }
+
     /// The pipelines of the recorded steps for `ncols` columns.
     pub fn pipelines(
         &self,
@@ -838,6 +890,17 @@ pub(crate) struct SquaredSteps {
 }
 
 impl SquaredSteps {
+    /// Modelled work of one application for `ncols` columns.
+    pub fn work(&self, ncols: usize) -> KernelWork {
+        let cycles: KernelWork = self
+            .first
+            .iter()
+            .chain(&self.second)
+            .map(|c| c.work(ncols))
+            .sum();
+        cycles + self.scale.work(ncols)
+    }
+
     /// Record for the PCG's `r` and `z` (f32, `n x cmax`); `mt`: one f32 per
     /// vertex (`h`: the hierarchy of `B` on 3-vectors).
     #[allow(clippy::too_many_arguments)]

@@ -81,6 +81,72 @@ struct Traffic {
     from_device: AtomicU64,
     waits: AtomicU64,
     wait_nanos: AtomicU64,
+    dispatches: AtomicU64,
+    bytes_accessed: AtomicU64,
+    bytes_minimal: AtomicU64,
+}
+
+/// Modelled device work of recorded kernels, what a discrete GPU pays for:
+/// dispatches, and bytes moved between its memory and its cores. `bytes`
+/// counts what each kernel reads and writes as stored (every stored matrix
+/// entry or texel once, every vector entry once: repeated gathers of a
+/// vector are taken to hit the cache); `minimal` counts the operator
+/// applications among them (products, smoothing steps, transfers, coarse
+/// solves, scalings) with each matrix in its least storage at its precision
+/// (one value per entry and one u32 column per stored block) and their
+/// vectors once, and nothing for the PCG's vector updates and dot products.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct KernelWork {
+    pub dispatches: u64,
+    pub bytes: u64,
+    pub minimal: u64,
+}
+
+impl KernelWork {
+    /// One dispatch of an operator application stored at `bytes` whose
+    /// least storage is `minimal`.
+    pub fn operator(bytes: u64, minimal: u64) -> KernelWork {
+        KernelWork {
+            dispatches: 1,
+            bytes,
+            minimal,
+        }
+    }
+
+    /// One dispatch of a kernel that is not an operator application.
+    pub fn other(bytes: u64) -> KernelWork {
+        KernelWork {
+            dispatches: 1,
+            bytes,
+            minimal: 0,
+        }
+    }
+
+    /// `k` times this work.
+    pub fn times(self, k: u64) -> KernelWork {
+        KernelWork {
+            dispatches: self.dispatches * k,
+            bytes: self.bytes * k,
+            minimal: self.minimal * k,
+        }
+    }
+}
+
+impl std::ops::Add for KernelWork {
+    type Output = KernelWork;
+    fn add(self, o: KernelWork) -> KernelWork {
+        KernelWork {
+            dispatches: self.dispatches + o.dispatches,
+            bytes: self.bytes + o.bytes,
+            minimal: self.minimal + o.minimal,
+        }
+    }
+}
+
+impl std::iter::Sum for KernelWork {
+    fn sum<I: Iterator<Item = KernelWork>>(it: I) -> KernelWork {
+        it.fold(KernelWork::default(), |a, b| a + b)
+    }
 }
 
 /// A reading of [`Traffic`].
@@ -94,6 +160,8 @@ pub struct TrafficCounts {
     pub waits: u64,
     /// Seconds spent in those waits.
     pub wait_seconds: f64,
+    /// Kernels submitted, with their modelled bytes ([`KernelWork`]).
+    pub kernels: KernelWork,
 }
 
 /// Vulkan (Linux, Windows), Metal (macOS) and DX12 (Windows): the backends
@@ -221,7 +289,20 @@ impl Context {
             from_device: t.from_device.load(Ordering::Relaxed),
             waits: t.waits.load(Ordering::Relaxed),
             wait_seconds: t.wait_nanos.load(Ordering::Relaxed) as f64 * 1e-9,
+            kernels: KernelWork {
+                dispatches: t.dispatches.load(Ordering::Relaxed),
+                bytes: t.bytes_accessed.load(Ordering::Relaxed),
+                minimal: t.bytes_minimal.load(Ordering::Relaxed),
+            },
         }
+    }
+
+    /// Count kernels recorded for submission ([`KernelWork`]).
+    pub fn count_kernels(&self, w: KernelWork) {
+        let t = &self.traffic;
+        t.dispatches.fetch_add(w.dispatches, Ordering::Relaxed);
+        t.bytes_accessed.fetch_add(w.bytes, Ordering::Relaxed);
+        t.bytes_minimal.fetch_add(w.minimal, Ordering::Relaxed);
     }
 
     /// `queue.write_buffer`, counted.

@@ -245,6 +245,28 @@ pub(crate) struct GpuMatrix {
     pub row_ptr: wgpu::Buffer,
     pub storage: MatrixStorage,
     pub minv: wgpu::Buffer,
+    /// Bytes one product reads of the matrix as stored (row pointers
+    /// included), and in its least storage at its precision
+    /// ([`crate::KernelWork`]).
+    pub stored: (u64, u64),
+}
+
+/// [`GpuMatrix::stored`] for `entries` stored entries (blocks of `bs x bs`)
+/// of `value_bytes` each, `rows` (block) rows and `texel_bytes` per block in
+/// textures (0: values and columns in buffers).
+fn stored_bytes(
+    rows: usize,
+    entries: usize,
+    bs: u64,
+    value_bytes: u64,
+    texel_bytes: u64,
+) -> (u64, u64) {
+    let (rows, entries) = (rows as u64, entries as u64);
+    let least = entries * (bs * bs * value_bytes + 4) + 4 * (rows + 1);
+    match texel_bytes {
+        0 => (least, least),
+        t => (entries * t + 4 * (rows + 1), least),
+    }
 }
 
 /// Where the stored entries live.
@@ -353,10 +375,15 @@ impl GpuMatrix {
                 vals: ctx.storage_init("matrix values", &vals32)?,
             }
         };
+        let stored = match h.bs {
+            3 => stored_bytes(h.rows, h.nnz_blocks(), 3, 4, 48),
+            _ => stored_bytes(h.rows, h.nnz_blocks(), 1, 4, 0),
+        };
         Ok(GpuMatrix {
             row_ptr: ctx.storage_init("matrix row pointers", &h.row_ptr)?,
             storage,
             minv: ctx.storage_init("inverted diagonal blocks", minv)?,
+            stored,
         })
     }
 
@@ -388,6 +415,7 @@ impl GpuMatrix {
                 "scalar expansion inverse diagonal",
                 &precision.encode(&dinv),
             )?,
+            stored: stored_bytes(row_ptr.len() - 1, col_idx.len(), 1, fp, 0),
         })
     }
 
@@ -425,6 +453,8 @@ impl GpuMatrix {
                 lo_view: lo.create_view(&Default::default()),
                 lo,
             },
+            // hi and lo: six texels a block, against 72 bytes of f64 values.
+            stored: stored_bytes(h.rows, h.nnz_blocks(), 3, 8, 96),
             minv: ctx.storage_init(
                 "scalar inverse diagonal (f64)",
                 &Precision::F64.encode(&dinv),

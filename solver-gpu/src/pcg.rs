@@ -36,7 +36,7 @@ use crate::amg_gpu::{AmgKernels, SquaredSteps, VcycleWorkspace};
 use crate::bsr_spmv::BsrSpmv;
 use crate::convert::{Convert, ConvertParams};
 use crate::csr_spmv::CsrSpmv;
-use crate::device::{dispatch, Bind, Context, Kernel, Params, Shader, FLAT_WG, ROW_WG};
+use crate::device::{dispatch, Bind, Context, Kernel, KernelWork, Params, Shader, FLAT_WG, ROW_WG};
 use crate::matrix::GpuMatrix;
 use crate::precision::Precision;
 use crate::{GpuError, CMAX};
@@ -248,6 +248,8 @@ pub(crate) struct Workspace {
     /// Mixed precision (an f64 workspace with the f32 V-cycle): the copies the
     /// V-cycle reads and writes.
     pub narrow: Option<Narrow>,
+    /// The bound matrix's [`GpuMatrix::stored`] bytes.
+    stored: (u64, u64),
 }
 
 /// The f32 side of a mixed-precision workspace: the V-cycle runs from `r32` to
@@ -416,6 +418,7 @@ impl Pcg {
             &[(9, &p_tex.1)],
         )?;
         Ok(Workspace {
+            stored: m.stored,
             precision,
             cmax,
             rows,
@@ -509,6 +512,48 @@ impl Pcg {
             )),
             _ => None,
         };
+        // Modelled work (KernelWork) of an iteration: the product A p (an
+        // operator application: the matrix, p and Ap), the vector updates and
+        // dot products (reads and writes of x, r, p, Ap, z; partials), the
+        // preconditioner's kernels.
+        let nv = (n * ncols) as u64 * self.precision.bytes();
+        let partials = 2 * u64::from(ws.groups) * ncols as u64 * self.precision.bytes();
+        let spmv_work = KernelWork::operator(ws.stored.0 + 2 * nv + partials, ws.stored.1 + 2 * nv);
+        let scalars = KernelWork::other(partials);
+        let jacobi_update = vcycle.is_none() && squared.is_none();
+        let update_work = match jacobi_update {
+            // x, r, p, Ap read; x, r, z written; the inverted diagonal blocks.
+            true => KernelWork::other(7 * nv + (ws.rows * ws.bs * ws.bs * 4) as u64 + partials),
+            // x, r, p, Ap read; x, r written.
+            false => KernelWork::other(6 * nv + partials),
+        };
+        let mut precondition_work = KernelWork::default();
+        if !jacobi_update {
+            if let Some((v, _)) = &vcycle {
+                precondition_work = precondition_work + v.work(ncols);
+            }
+            if let Some((q, ..)) = &squared {
+                precondition_work = precondition_work + q.work(ncols);
+            }
+            if narrow.is_some() {
+                // r to f32 and z to f64: 12 bytes an entry each way.
+                let e = (n * ncols) as u64;
+                precondition_work = precondition_work + KernelWork::other(12 * e).times(2);
+            }
+            // dot_rz: r and z read.
+            precondition_work = precondition_work + KernelWork::other(2 * nv + partials);
+        }
+        // direction: z (or r) and p read, p written (and its texture copy).
+        let direction_work = KernelWork::other(
+            3 * nv
+                + if ws.bs == 3 {
+                    (16 * ws.rows * ncols) as u64
+                } else {
+                    0
+                },
+        );
+        let iteration_work =
+            spmv_work + scalars + update_work + precondition_work + scalars + direction_work;
         let precondition = |pass: &mut wgpu::ComputePass| {
             if vcycle.is_some() || squared.is_some() {
                 if let Some((nw, to32, _)) = &narrow {
@@ -549,6 +594,7 @@ impl Pcg {
             dispatch(&mut pass, &k_beta, &ws.bg_pcg, (1, 1));
             dispatch(&mut pass, &k_dir, &ws.bg_pcg, dir_dims);
         }
+        ctx.count_kernels(update_work + precondition_work + scalars + direction_work);
         let check_every = check_every.max(1);
         let mut dispatched = 0;
         let mut staging = ws.staging_cols.take();
@@ -579,6 +625,7 @@ impl Pcg {
                 }
             }
             dispatched += k;
+            ctx.count_kernels(iteration_work.times(k as u64));
             let bytes = (ncols * self.precision.col_state_bytes()) as u64;
             let parts: &[(&wgpu::Buffer, u64)] = if with_x {
                 &[(&ws.cols, bytes), (&ws.x, x_bytes)]

@@ -7,7 +7,7 @@
 //! 2 `v` (read-write, `NCOLS` columns of stride `n`). Dispatch: `ceil(n / 256)`
 //! workgroups, 2-D.
 
-use crate::device::{dispatch, Bind, Context, Kernel, Shader, FLAT_WG};
+use crate::device::{dispatch, Bind, Context, Kernel, KernelWork, Shader, FLAT_WG};
 use crate::GpuError;
 
 pub(crate) const SOURCE: &str = include_str!("../../shaders/scale_rows.wgsl");
@@ -31,6 +31,8 @@ pub(crate) struct ScaleRows {
 /// One recorded scaling of a vector buffer.
 pub(crate) struct ScaleStep {
     bg: wgpu::BindGroup,
+    /// Bytes of `m`, and of one column of `v`.
+    bytes: (u64, u64),
     dims: (u32, u32),
     /// Kept alive for the bind group.
     #[allow(dead_code)]
@@ -66,6 +68,7 @@ impl ScaleRows {
         )?;
         Ok(ScaleStep {
             bg: self.shader.bind(ctx, &[(0, &params), (1, m), (2, v)])?,
+            bytes: (m.size(), 4 * n as u64),
             dims: ctx.dims("scale_rows", (n as u64).div_ceil(FLAT_WG as u64))?,
             params,
         })
@@ -73,6 +76,12 @@ impl ScaleRows {
 }
 
 impl ScaleStep {
+    /// Modelled work for `ncols` columns: `m` once, `v` read and written.
+    pub fn work(&self, ncols: usize) -> KernelWork {
+        let b = self.bytes.0 + 2 * self.bytes.1 * ncols as u64;
+        KernelWork::operator(b, b)
+    }
+
     pub fn record(&self, pass: &mut wgpu::ComputePass, pipeline: &wgpu::ComputePipeline) {
         dispatch(pass, pipeline, &self.bg, self.dims);
     }
