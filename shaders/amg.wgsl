@@ -6,13 +6,20 @@
 // Driven by solver-gpu/src/amg_gpu.rs, which records one V-cycle as a fixed
 // sequence of dispatches, each with its own bind group and parameters:
 //   jacobi  mode 0        x_l = w D_l^-1 b_l                    (first pre-sweep)
-//   spmv    mode 1        t_l = b_l - A_l x_l                   (residual)
-//   jacobi  mode 1        x_l += w D_l^-1 t_l                   (further sweeps)
-//   spmv    mode 0        b_l+1 = R_l t_l                       (restriction)
+//   spmv    mode 3        u = v + w D_l^-1 (b_l - A_l v)        (further sweeps,
+//                         fused: v and u are x_l and t_l in turn)
+//   spmv    mode 1        s = b_l - A_l v                       (residual; s the
+//                         one of x_l, t_l not holding the iterate v)
+//   spmv    mode 0        b_l+1 = R_l s                         (restriction)
 //   dense                 x_L = C^-1 b_L                        (coarsest level)
-//   spmv    mode 2        x_l += P_l x_l+1                      (prolongation)
+//   spmv    mode 2        v += P_l x_l+1                        (prolongation)
+//   spmv    mode 1, then jacobi mode 1 (t_l = b_l - A_l x_l; x_l += w D_l^-1 t_l):
+//                         an unfused sweep in place, where the iterate must
+//                         end in x_l (the finest level's z) and the fused
+//                         sweeps would leave it in t_l.
 // (`spmv_wide` in place of `spmv` for the wide-block matrices of an affine
-// hierarchy, same modes, one invocation per scalar row.)
+// hierarchy, one invocation per scalar row: modes 0-2 only, so its levels
+// sweep unfused, spmv mode 1 then jacobi mode 1.)
 //
 // Bindings (group 0), shared by every entry point:
 //   0  P        uniform   rows = output rows (block rows; scalar rows for
@@ -39,8 +46,11 @@
 //   5  b        read      right-hand side (spmv mode 1) or residual (jacobi),
 //                         stride n.
 //   6  y        rw        output, stride n (read too by the accumulating modes).
+//                         Mode 3 writes y = x + w D^-1 (b - A x): y and x are
+//                         different buffers (every row reads the old x).
 //   7  dinv     read      omega times the inverted diagonal blocks, BS * BS f32
-//                         per block row.
+//                         per block row (`jacobi`, and `spmv` / `spmv3` in
+//                         mode 3).
 //   8  block_cols read    block columns of a wide-block matrix (`spmv_wide`),
 //                         or the columns of a scalar CSR matrix (`spmv3`).
 // Unused bindings hold a small placeholder buffer or a 1x1 texture.
@@ -108,7 +118,8 @@ fn store(i: u32, v: f32) {
     }
 }
 
-// y = A x (mode 0), y = b - A x (mode 1), y += A x (mode 2).
+// y = A x (mode 0), y = b - A x (mode 1), y += A x (mode 2), y = x + w D^-1
+// (b - A x) (mode 3, the fused damped-Jacobi sweep; x of stride P.nx = P.n).
 @compute @workgroup_size(128)
 fn spmv(
     @builtin(workgroup_id) wid: vec3<u32>,
@@ -150,6 +161,24 @@ fn spmv(
                 acc[c * bs + q] += s;
             }
         }
+    }
+    if P.mode == 3u {
+        let d0 = row * bs * bs;
+        for (var c = 0u; c < NCOLS; c++) {
+            let o = c * P.n + row * bs;
+            var res: array<f32, 3>;
+            for (var t = 0u; t < bs; t++) {
+                res[t] = b[o + t] - acc[c * bs + t];
+            }
+            for (var q = 0u; q < bs; q++) {
+                var s = 0.0;
+                for (var t = 0u; t < bs; t++) {
+                    s += dinv[d0 + q * bs + t] * res[t];
+                }
+                y[o + q] = x[c * P.nx + row * bs + q] + P.omega * s;
+            }
+        }
+        return;
     }
     for (var c = 0u; c < NCOLS; c++) {
         for (var q = 0u; q < bs; q++) {
@@ -261,9 +290,10 @@ fn dense(
     }
 }
 
-// y = A x (mode 0), y = b - A x (mode 1), y += A x (mode 2) for a scalar CSR
-// matrix (values `vals`, columns `block_cols`) on interleaved 3-vectors: one
-// invocation per scalar row, writing its three components per column.
+// y = A x (mode 0), y = b - A x (mode 1), y += A x (mode 2), y = x + w D^-1
+// (b - A x) (mode 3) for a scalar CSR matrix (values `vals`, columns
+// `block_cols`) on interleaved 3-vectors: one invocation per scalar row,
+// writing its three components per column.
 @compute @workgroup_size(128)
 fn spmv3(
     @builtin(workgroup_id) wid: vec3<u32>,
@@ -284,6 +314,20 @@ fn spmv3(
             let o = c * P.nx + j;
             acc[c] += a * vec3<f32>(x[o], x[o + 1u], x[o + 2u]);
         }
+    }
+    if P.mode == 3u {
+        let d = P.omega * dinv[row];
+        for (var c = 0u; c < NCOLS; c++) {
+            let o = c * P.n + 3u * row;
+            let ox = c * P.nx + 3u * row;
+            let v = vec3<f32>(x[ox], x[ox + 1u], x[ox + 2u]);
+            let r = vec3<f32>(b[o], b[o + 1u], b[o + 2u]) - acc[c];
+            let u = v + d * r;
+            y[o] = u.x;
+            y[o + 1u] = u.y;
+            y[o + 2u] = u.z;
+        }
+        return;
     }
     for (var c = 0u; c < NCOLS; c++) {
         let o = c * P.n + 3u * row;

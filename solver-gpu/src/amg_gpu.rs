@@ -632,13 +632,14 @@ impl VcycleWorkspace {
             // Modelled bytes: the matrix (or diagonal, or dense inverse) once,
             // x, b, y once each per column as the mode reads and writes them.
             let fixed = match (m, dinv, vals) {
+                (Some(m), Some(d), _) => (m.stored.0 + d.size(), m.stored.1 + d.size()),
                 (Some(m), _, _) => m.stored,
                 (None, Some(d), _) => (d.size(), d.size()),
                 (None, None, Some(v)) => (v.size(), v.size()),
                 _ => (0, 0),
             };
             let reads_y = (op == Op::Jacobi && mode == 1) || (op != Op::Jacobi && mode == 2);
-            let reads_b = op != Op::Jacobi && mode == 1;
+            let reads_b = op != Op::Jacobi && (mode == 1 || mode == 3);
             let x_len = if op == Op::Jacobi { n } else { nx };
             let per_column =
                 4 * (x_len + n + n * usize::from(reads_y) + n * usize::from(reads_b)) as u64;
@@ -662,90 +663,115 @@ impl VcycleWorkspace {
             });
             Ok(())
         };
+        // A level's smoothing sweep: fused (`spmv` mode 3, `u = v + w D^-1 (b -
+        // A v)` into the other buffer) where the level's `A` is not wide,
+        // else `spmv` mode 1 into the other buffer then `jacobi` mode 1 in
+        // place. `v`: which of `bufs` holds the iterate; gives where it is now.
+        let w = 1.0;
+        macro_rules! sweep {
+            ($lv:expr, $n:expr, $b:expr, $v:expr, $bufs:expr, $fused:expr) => {{
+                let (lv, n, v, bufs): (&GpuLevel, usize, usize, [&wgpu::Buffer; 2]) =
+                    ($lv, $n, $v, $bufs);
+                let (cur, other) = (bufs[v], bufs[1 - v]);
+                if $fused {
+                    step(
+                        Op::Spmv,
+                        lv.a.rows,
+                        n,
+                        n,
+                        3,
+                        w,
+                        Some(&lv.a),
+                        None,
+                        Some(cur),
+                        Some($b),
+                        other,
+                        Some(&lv.dinv),
+                    )?;
+                    1 - v
+                } else {
+                    step(
+                        Op::Spmv,
+                        lv.a.rows,
+                        n,
+                        n,
+                        1,
+                        0.0,
+                        Some(&lv.a),
+                        None,
+                        Some(cur),
+                        Some($b),
+                        other,
+                        None,
+                    )?;
+                    step(
+                        Op::Jacobi,
+                        n / lv.dinv_bs,
+                        n,
+                        n,
+                        1,
+                        w,
+                        None,
+                        None,
+                        None,
+                        Some(other),
+                        cur,
+                        Some(&lv.dinv),
+                    )?;
+                    v
+                }
+            }};
+        }
+        let fusable = |lv: &GpuLevel| !matches!(lv.a.layout, Layout::Wide(..));
+        // Per level, which of (x, t) holds the iterate after its down leg
+        // (then after its up leg): 0 = x, 1 = t.
+        let mut at = vec![0usize; nl];
         // Down.
         for (l, lv) in h.levels.iter().enumerate() {
             let n = h.sizes[l];
-            let rows = lv.a.rows;
-            let jrows = n / lv.dinv_bs;
             let (b, x, t) = (
                 buf(slots[l].0, "b"),
                 buf(slots[l].1, "x"),
                 buf(slots[l].2, "t"),
             );
-            let w = 1.0;
+            let bufs = [x, t];
+            let fused = fusable(lv);
+            let mut v = 0;
             if warm && l == 0 {
-                // From the x0 left by the cycle before: x += w D^-1 (b - A x).
-                step(
-                    Op::Spmv,
-                    rows,
-                    n,
-                    n,
-                    1,
-                    0.0,
-                    Some(&lv.a),
-                    None,
-                    Some(x),
-                    Some(b),
-                    t,
-                    None,
-                )?;
-            }
-            step(
-                Op::Jacobi,
-                jrows,
-                n,
-                n,
-                u32::from(warm && l == 0),
-                w,
-                None,
-                None,
-                None,
-                Some(if warm && l == 0 { t } else { b }),
-                x,
-                Some(&lv.dinv),
-            )?;
-            for _ in 1..h.sweeps {
-                step(
-                    Op::Spmv,
-                    rows,
-                    n,
-                    n,
-                    1,
-                    0.0,
-                    Some(&lv.a),
-                    None,
-                    Some(x),
-                    Some(b),
-                    t,
-                    None,
-                )?;
+                // From the x0 left by the cycle before.
+                v = sweep!(lv, n, b, v, bufs, fused);
+            } else {
                 step(
                     Op::Jacobi,
-                    jrows,
+                    n / lv.dinv_bs,
                     n,
                     n,
-                    1,
+                    0,
                     w,
                     None,
                     None,
                     None,
-                    Some(t),
+                    Some(b),
                     x,
                     Some(&lv.dinv),
                 )?;
             }
+            for _ in 1..h.sweeps {
+                v = sweep!(lv, n, b, v, bufs, fused);
+            }
+            // The residual into the buffer not holding the iterate, restricted.
             step(
                 Op::Spmv,
-                rows,
+                lv.a.rows,
                 n,
                 n,
                 1,
                 0.0,
                 Some(&lv.a),
                 None,
-                Some(x),
+                Some(bufs[v]),
                 Some(b),
-                t,
+                bufs[1 - v],
                 None,
             )?;
             let nc = h.sizes[l + 1];
@@ -759,11 +785,12 @@ impl VcycleWorkspace {
                 0.0,
                 Some(&lv.r),
                 None,
-                Some(t),
+                Some(bufs[1 - v]),
                 None,
                 bc,
                 None,
             )?;
+            at[l] = v;
         }
         // Coarsest.
         let lc = nl - 1;
@@ -783,63 +810,45 @@ impl VcycleWorkspace {
             xc,
             None,
         )?;
+        at[lc] = 0;
         // Up.
         for (l, lv) in h.levels.iter().enumerate().rev() {
             let n = h.sizes[l];
-            let rows = lv.a.rows;
-            let jrows = n / lv.dinv_bs;
             let (b, x, t) = (
                 buf(slots[l].0, "b"),
                 buf(slots[l].1, "x"),
                 buf(slots[l].2, "t"),
             );
-            let xc = buf(slots[l + 1].1, "x");
-            let nc = h.sizes[l + 1];
+            let bufs = [x, t];
+            let coarse = match at[l + 1] {
+                0 => buf(slots[l + 1].1, "x"),
+                _ => buf(slots[l + 1].2, "t"),
+            };
+            let mut v = at[l];
             step(
                 Op::Spmv,
                 lv.p.rows,
                 n,
-                nc,
+                h.sizes[l + 1],
                 2,
                 0.0,
                 Some(&lv.p),
                 None,
-                Some(xc),
+                Some(coarse),
                 None,
-                x,
+                bufs[v],
                 None,
             )?;
-            let w = 1.0;
-            for _ in 0..h.sweeps {
-                step(
-                    Op::Spmv,
-                    rows,
-                    n,
-                    n,
-                    1,
-                    0.0,
-                    Some(&lv.a),
-                    None,
-                    Some(x),
-                    Some(b),
-                    t,
-                    None,
-                )?;
-                step(
-                    Op::Jacobi,
-                    jrows,
-                    n,
-                    n,
-                    1,
-                    w,
-                    None,
-                    None,
-                    None,
-                    Some(t),
-                    x,
-                    Some(&lv.dinv),
-                )?;
+            let fused = fusable(lv);
+            // The finest level ends in x (the PCG's z): fused sweeps alternate
+            // the buffers, so where their count would end in t the first
+            // sweep is unfused, in place.
+            let flips = fused && l == 0 && (v + h.sweeps) % 2 == 1;
+            for k in 0..h.sweeps {
+                v = sweep!(lv, n, b, v, bufs, fused && !(flips && k == 0));
             }
+            debug_assert!(l > 0 || v == 0, "the finest level's iterate ends in x");
+            at[l] = v;
         }
         Ok(VcycleWorkspace { steps, vectors })
     }
