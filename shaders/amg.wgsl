@@ -30,8 +30,8 @@
 //                         Jacobi weight.
 //   1  row_ptr  read      rows + 1 offsets (block units) of the BSR matrix.
 //   2  vals     read      f32 values read from a buffer: the row-major
-//                         rows x rows inverse of the coarsest matrix (`dense`,
-//                         `dense3`), or the values of a scalar CSR matrix
+//                         rows x rows inverse of the coarsest matrix (`dense`),
+//                         or the values of a scalar CSR matrix
 //                         (`spmv3`, one per stored entry).
 //   3  blocks   texture   RGBA32F, TW texels per texture row: the blocks of the
 //                         step's matrix (A_l, P_l or R_l; rectangular for P and
@@ -57,8 +57,8 @@
 //
 // A scalar hierarchy applied to 3-vectors (the squared-Laplacian
 // preconditioner's `B (x) I3`: x, y and z of a vertex interleaved, the PCG's
-// layout) runs `spmv3`, `jacobi3` and `dense3` in place of `spmv`, `jacobi`
-// and `dense`, same modes: each scalar entry acts on the three components, so
+// layout) runs `spmv3` in place of `spmv`, and `jacobi` and `dense` with
+// KRON = 3, same modes: each scalar entry acts on the three components, so
 // a stored entry costs 8 bytes (value and column, storage buffers) where its
 // `v I3` block would cost 48 (three texels).
 
@@ -79,6 +79,9 @@ const WG: u32 = 128u;
 // fixed when the pipeline is created: the loops unroll.
 override NCOLS: u32 = 1u;
 override BS: u32 = 3u;
+// Components each scalar row acts on (`jacobi`, `dense`): 1, or 3 for a
+// scalar hierarchy on interleaved 3-vectors (x, y, z of a vertex).
+override KRON: u32 = 1u;
 // Texels per row of `blocks`: a power of two set by the host from the device's
 // max_texture_dimension_2d.
 override TW: u32 = 4096u;
@@ -231,7 +234,7 @@ fn spmv_wide(
 
 // y = omega D^-1 b (mode 0), y += omega D^-1 b (mode 1); one invocation per
 // diagonal block (BS <= 12: 3 at the finest level, 12 on the coarse levels of
-// the affine hierarchy).
+// the affine hierarchy; 1 with KRON = 3 on 3-vectors, one value per vertex).
 @compute @workgroup_size(128)
 fn jacobi(
     @builtin(workgroup_id) wid: vec3<u32>,
@@ -245,28 +248,30 @@ fn jacobi(
     let bs = min(BS, 12u);
     let d0 = row * bs * bs;
     for (var c = 0u; c < NCOLS; c++) {
-        let o = c * P.n + row * bs;
-        var rv: array<f32, 12>;
-        for (var t = 0u; t < bs; t++) {
-            rv[t] = b[o + t];
-        }
-        for (var q = 0u; q < bs; q++) {
-            var s = 0.0;
+        for (var k = 0u; k < KRON; k++) {
+            let o = c * P.n + row * bs * KRON + k;
+            var rv: array<f32, 12>;
             for (var t = 0u; t < bs; t++) {
-                s += dinv[d0 + q * bs + t] * rv[t];
+                rv[t] = b[o + t * KRON];
             }
-            s *= P.omega;
-            if P.mode == 0u {
-                y[o + q] = s;
-            } else {
-                y[o + q] += s;
+            for (var q = 0u; q < bs; q++) {
+                var s = 0.0;
+                for (var t = 0u; t < bs; t++) {
+                    s += dinv[d0 + q * bs + t] * rv[t];
+                }
+                s *= P.omega;
+                if P.mode == 0u {
+                    y[o + q * KRON] = s;
+                } else {
+                    y[o + q * KRON] += s;
+                }
             }
         }
     }
 }
 
 // y = C^-1 x on the coarsest level: one invocation per (scalar) row of the dense
-// rows x rows inverse.
+// rows x rows inverse, applied to KRON components per row.
 @compute @workgroup_size(128)
 fn dense(
     @builtin(workgroup_id) wid: vec3<u32>,
@@ -278,15 +283,19 @@ fn dense(
         return;
     }
     let nr = P.rows;
-    var acc: array<f32, 8>;
+    var acc: array<f32, 24>; // NCOLS * KRON <= 8 * 3
     for (var j = 0u; j < nr; j++) {
         let a = vals[row * nr + j];
         for (var c = 0u; c < NCOLS; c++) {
-            acc[c] += a * x[c * P.nx + j];
+            for (var k = 0u; k < KRON; k++) {
+                acc[c * KRON + k] += a * x[c * P.nx + j * KRON + k];
+            }
         }
     }
     for (var c = 0u; c < NCOLS; c++) {
-        y[c * P.n + row] = acc[c];
+        for (var k = 0u; k < KRON; k++) {
+            y[c * P.n + row * KRON + k] = acc[c * KRON + k];
+        }
     }
 }
 
@@ -334,61 +343,5 @@ fn spmv3(
         store(o, acc[c].x);
         store(o + 1u, acc[c].y);
         store(o + 2u, acc[c].z);
-    }
-}
-
-// y = omega D^-1 b (mode 0), y += omega D^-1 b (mode 1) for a scalar diagonal
-// (`dinv`, one value per scalar row, omega folded in) on interleaved
-// 3-vectors: one invocation per scalar row.
-@compute @workgroup_size(128)
-fn jacobi3(
-    @builtin(workgroup_id) wid: vec3<u32>,
-    @builtin(num_workgroups) nwg: vec3<u32>,
-    @builtin(local_invocation_index) lid: u32,
-) {
-    let row = row_of(wid, nwg, lid);
-    if row >= P.rows {
-        return;
-    }
-    let d = P.omega * dinv[row];
-    for (var c = 0u; c < NCOLS; c++) {
-        let o = c * P.n + 3u * row;
-        for (var q = 0u; q < 3u; q++) {
-            let s = d * b[o + q];
-            if P.mode == 0u {
-                y[o + q] = s;
-            } else {
-                y[o + q] += s;
-            }
-        }
-    }
-}
-
-// y = C^-1 x on the coarsest level of a scalar hierarchy on interleaved
-// 3-vectors: one invocation per scalar row of the dense rows x rows inverse.
-@compute @workgroup_size(128)
-fn dense3(
-    @builtin(workgroup_id) wid: vec3<u32>,
-    @builtin(num_workgroups) nwg: vec3<u32>,
-    @builtin(local_invocation_index) lid: u32,
-) {
-    let row = row_of(wid, nwg, lid);
-    if row >= P.rows {
-        return;
-    }
-    let nr = P.rows;
-    var acc: array<vec3<f32>, 8>;
-    for (var j = 0u; j < nr; j++) {
-        let a = vals[row * nr + j];
-        for (var c = 0u; c < NCOLS; c++) {
-            let o = c * P.nx + 3u * j;
-            acc[c] += a * vec3<f32>(x[o], x[o + 1u], x[o + 2u]);
-        }
-    }
-    for (var c = 0u; c < NCOLS; c++) {
-        let o = c * P.n + 3u * row;
-        y[o] = acc[c].x;
-        y[o + 1u] = acc[c].y;
-        y[o + 2u] = acc[c].z;
     }
 }

@@ -64,7 +64,8 @@ pub(crate) struct AmgKernels {
     /// `spmv_wide` for the block shapes of an affine hierarchy.
     wide: Vec<((usize, usize), Kernel)>,
     dense: Kernel,
-    /// `spmv3`, `jacobi3`, `dense3`: a scalar hierarchy on 3-vectors.
+    /// `spmv3`, `jacobi` and `dense` with `KRON` = 3: a scalar hierarchy on
+    /// 3-vectors.
     on3: [Kernel; 3],
     /// The row scaling between the two V-cycles of the squared-Laplacian
     /// preconditioner.
@@ -103,8 +104,13 @@ impl AmgKernels {
             dense: k("amg_dense", "dense", 1.0),
             on3: [
                 Kernel::new(&shader, "amg_spmv3", "spmv3"),
-                Kernel::new(&shader, "amg_jacobi3", "jacobi3"),
-                Kernel::new(&shader, "amg_dense3", "dense3"),
+                Kernel::with_constants(
+                    &shader,
+                    "amg_jacobi_on3",
+                    "jacobi",
+                    &[("BS", 1.0), ("KRON", 3.0)],
+                ),
+                Kernel::with_constants(&shader, "amg_dense_on3", "dense", &[("KRON", 3.0)]),
             ],
             wide: [
                 ((3, K), "amg_spmv_wide_3x12"),
