@@ -54,29 +54,6 @@ fn load(k: usize) -> (String, Mesh) {
     (format!("spot x{}", 4usize.pow(k as u32)), mesh)
 }
 
-/// Full symmetric scalar matrix from rows of (column, value).
-fn bsr(rows: Vec<Vec<(u32, f64)>>) -> Bsr {
-    let n = rows.len();
-    let mut row_ptr = vec![0u32];
-    let (mut col_idx, mut vals) = (Vec::new(), Vec::new());
-    for mut r in rows {
-        r.sort_by_key(|e| e.0);
-        for (j, v) in r {
-            col_idx.push(j);
-            vals.push(v);
-        }
-        row_ptr.push(col_idx.len() as u32);
-    }
-    Bsr {
-        bs: 1,
-        rows: n,
-        cols: n,
-        row_ptr,
-        col_idx,
-        vals,
-    }
-}
-
 /// PCG iterations to `||r|| <= tol ||b||` (None past `max`).
 fn pcg(
     op: &dyn Fn(&[f64], &mut [f64]),
@@ -185,7 +162,7 @@ fn main() {
                 }
             }
         }
-        let kb = bsr(rows);
+        let kb = Bsr::scalar_from_rows(rows);
         let hk = Hierarchy::build(kb, &AmgOptions::default(), None).unwrap();
         let k_amg = pcg(&op, &b, 1e-8, 3000, &|r| {
             per_component(n, &|q| hk.vcycle(q), r)
@@ -199,13 +176,15 @@ fn main() {
         let lambda = 50.0 / mt.iter().sum::<f64>();
         let eps = (c * lambda).sqrt().max(lambda);
         let cot = model.cotangent();
-        let bm = bsr((0..n)
-            .map(|i| {
-                let mut r: Vec<(u32, f64)> = cot.row(i).map(|(j, v)| (j as u32, v)).collect();
-                r[0].1 += eps * mt[i];
-                r
-            })
-            .collect());
+        let bm = Bsr::scalar_from_rows(
+            (0..n)
+                .map(|i| {
+                    let mut r: Vec<(u32, f64)> = cot.row(i).map(|(j, v)| (j as u32, v)).collect();
+                    r[0].1 += eps * mt[i];
+                    r
+                })
+                .collect(),
+        );
         let opts = AmgOptions {
             sweeps: 2,
             ..AmgOptions::default()

@@ -59,6 +59,31 @@ pub struct Bsr {
 }
 
 impl Bsr {
+    /// A square scalar matrix from its rows of `(column, value)`, each row
+    /// sorted by column here (stably: repeated columns keep their order).
+    pub fn scalar_from_rows(rows: Vec<Vec<(u32, f64)>>) -> Bsr {
+        let n = rows.len();
+        let mut row_ptr = Vec::with_capacity(n + 1);
+        row_ptr.push(0u32);
+        let (mut col_idx, mut vals) = (Vec::new(), Vec::new());
+        for mut r in rows {
+            r.sort_by_key(|e| e.0);
+            for (j, v) in r {
+                col_idx.push(j);
+                vals.push(v);
+            }
+            row_ptr.push(col_idx.len() as u32);
+        }
+        Bsr {
+            bs: 1,
+            rows: n,
+            cols: n,
+            row_ptr,
+            col_idx,
+            vals,
+        }
+    }
+
     pub fn nnz_blocks(&self) -> usize {
         self.col_idx.len()
     }
@@ -1314,41 +1339,21 @@ pub fn squared_laplacian(
     let lambda = if sum > 0.0 { tau / sum } else { 0.0 };
     let eps = (model.c.max(0.0) * lambda).sqrt().max(lambda);
     let held = |v: usize| fixed.get(v).copied().unwrap_or(true) || model.mt[v] <= 0.0;
-    let mut row_ptr = Vec::with_capacity(n + 1);
-    row_ptr.push(0u32);
-    let (mut col_idx, mut vals) = (Vec::new(), Vec::new());
     let mut mt = Vec::with_capacity(n);
-    for i in 0..n {
-        if held(i) {
-            col_idx.push(i as u32);
-            vals.push(1.0);
-            mt.push(1.0);
-        } else {
-            let mut row: Vec<(u32, f64)> = s
-                .row(i)
-                .filter(|&(j, _)| j == i || !held(j))
-                .map(|(j, v)| (j as u32, if j == i { v + eps * model.mt[i] } else { v }))
-                .collect();
-            row.sort_unstable_by_key(|e| e.0);
-            for (j, v) in row {
-                col_idx.push(j);
-                vals.push(v);
+    let rows = (0..n)
+        .map(|i| {
+            if held(i) {
+                mt.push(1.0);
+                return vec![(i as u32, 1.0)];
             }
             mt.push(model.mt[i]);
-        }
-        row_ptr.push(col_idx.len() as u32);
-    }
-    (
-        Bsr {
-            bs: 1,
-            rows: n,
-            cols: n,
-            row_ptr,
-            col_idx,
-            vals,
-        },
-        mt,
-    )
+            s.row(i)
+                .filter(|&(j, _)| j == i || !held(j))
+                .map(|(j, v)| (j as u32, if j == i { v + eps * model.mt[i] } else { v }))
+                .collect()
+        })
+        .collect();
+    (Bsr::scalar_from_rows(rows), mt)
 }
 
 #[cfg(test)]

@@ -921,8 +921,15 @@ impl GpuSolver {
                 self.amg_fine_upload = self.pattern_uploads;
             }
         }
+        self.finish_setup("AMG", hier, t);
+        Ok(())
+    }
+
+    /// Keep the host hierarchy `hier` of a finished set-up begun at `t`, and
+    /// log it.
+    fn finish_setup(&mut self, what: &str, hier: amg::Hierarchy, t: std::time::Instant) {
         log::debug!(
-            "AMG ({:?} system): levels {:?}, operator complexity {:.2}, setup {:.3} s",
+            "{what} ({:?} system): levels {:?}, operator complexity {:.2}, setup {:.3} s",
             self.kind,
             hier.sizes(),
             hier.operator_complexity(),
@@ -930,7 +937,6 @@ impl GpuSolver {
         );
         self.amg_host = Some(hier);
         self.amg_setup_seconds = t.elapsed().as_secs_f64();
-        Ok(())
     }
 
     /// The shape model the squared-Laplacian preconditioner builds on, where
@@ -976,15 +982,7 @@ impl GpuSolver {
         let mt32: Vec<f32> = mt.iter().map(|&v| v as f32).collect();
         let buf = self.ctx.storage_init("squared-Laplacian Mt", &mt32)?;
         self.squared = Some((model, buf));
-        log::debug!(
-            "squared-Laplacian AMG ({:?} system): levels {:?}, operator complexity {:.2}, setup {:.3} s",
-            self.kind,
-            hier.sizes(),
-            hier.operator_complexity(),
-            t.elapsed().as_secs_f64()
-        );
-        self.amg_host = Some(hier);
-        self.amg_setup_seconds = t.elapsed().as_secs_f64();
+        self.finish_setup("squared-Laplacian AMG", hier, t);
         Ok(())
     }
 
