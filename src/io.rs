@@ -29,9 +29,7 @@ use glam::DVec3;
 use std::collections::HashMap;
 use std::fmt::Write as _;
 use std::fs;
-use std::io::{BufWriter, Write};
-use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::path::Path;
 
 const SUPPORTED: &str = ".obj, .ply, .stl";
 
@@ -526,28 +524,6 @@ fn parse_stl(bytes: &[u8], path: &Path) -> Result<Mesh> {
 // Writing
 // ---------------------------------------------------------------------------------------
 
-/// Best-effort "same file" test: equal canonical paths (the output's directory is
-/// canonicalised when the output does not exist yet).
-fn same_file(a: &Path, b: &Path) -> bool {
-    fn canon(p: &Path) -> Option<PathBuf> {
-        if let Ok(c) = fs::canonicalize(p) {
-            return Some(c);
-        }
-        let name = p.file_name()?;
-        let parent = match p.parent() {
-            Some(d) if !d.as_os_str().is_empty() => d,
-            _ => Path::new("."),
-        };
-        Some(fs::canonicalize(parent).ok()?.join(name))
-    }
-    match (canon(a), canon(b)) {
-        (Some(x), Some(y)) => x == y,
-        _ => a == b,
-    }
-}
-
-static TMP_COUNTER: AtomicUsize = AtomicUsize::new(0);
-
 /// Writes `mesh` with the vertex positions `positions` to `path`, in the format given by
 /// the extension (`.obj`, `.ply`, `.stl`).
 ///
@@ -560,15 +536,28 @@ static TMP_COUNTER: AtomicUsize = AtomicUsize::new(0);
 /// * STL: binary (f32 coordinates), one triangle per face with its unit normal.
 ///
 /// Text formats print `f64` with `Display` (shortest round trip), so positions read back
-/// bit-identical. The write is atomic: a temporary file `.<name>.tmp-<pid>-<n>` in the
-/// target directory is written, fsynced and renamed over `path`; on error it is removed.
-/// Writing to the path of `source` is rejected ([`Error::BadInput`]).
+/// bit-identical. The write is atomic ([`crate::output::write_atomic`]): a temporary
+/// file `.<name>.tmp-<pid>-<n>` in the target directory is written, fsynced and renamed
+/// over `path`; on error it is removed. Writing to the path of `source` is rejected
+/// ([`Error::BadInput`]).
 pub fn write_mesh(
     path: &Path,
     mesh: &Mesh,
     positions: &[DVec3],
     source: Option<&Path>,
 ) -> Result<()> {
+    let data = encode_mesh(path, mesh, positions, source)?;
+    crate::output::write_atomic(path, &data)
+}
+
+/// The bytes [`write_mesh`] writes to `path` (format from its extension), for a
+/// caller that writes them together with other files ([`crate::output::stage`]).
+pub fn encode_mesh(
+    path: &Path,
+    mesh: &Mesh,
+    positions: &[DVec3],
+    source: Option<&Path>,
+) -> Result<Vec<u8>> {
     let format = format_of(path)?;
     if positions.len() != mesh.positions.len() {
         return Err(Error::Internal(format!(
@@ -578,7 +567,7 @@ pub fn write_mesh(
         )));
     }
     if let Some(src) = source {
-        if same_file(path, src) {
+        if crate::output::same_file(path, src) {
             return Err(Error::bad(format!(
                 "{}: output path equals the input mesh {}",
                 path.display(),
@@ -602,51 +591,7 @@ pub fn write_mesh(
         Format::Ply => ply_binary(mesh, positions),
         Format::Stl => stl_binary(mesh, positions, path)?,
     };
-    write_atomic(path, &data)
-}
-
-fn write_atomic(path: &Path, data: &[u8]) -> Result<()> {
-    let name = path
-        .file_name()
-        .ok_or_else(|| Error::bad(format!("{}: output path has no file name", path.display())))?;
-    let dir = match path.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d,
-        _ => Path::new("."),
-    };
-    let tmp = dir.join(format!(
-        ".{}.tmp-{}-{}",
-        name.to_string_lossy(),
-        std::process::id(),
-        TMP_COUNTER.fetch_add(1, Ordering::Relaxed)
-    ));
-    let result = (|| -> std::io::Result<()> {
-        let file = fs::OpenOptions::new()
-            .write(true)
-            .create_new(true)
-            .open(&tmp)?;
-        let mut w = BufWriter::with_capacity(1 << 20, file);
-        w.write_all(data)?;
-        let file = w.into_inner().map_err(|e| e.into_error())?;
-        file.sync_all()?;
-        drop(file);
-        fs::rename(&tmp, path)?;
-        Ok(())
-    })();
-    match result {
-        Ok(()) => {
-            // Make the rename durable (best effort; not possible on every platform).
-            #[cfg(unix)]
-            if let Ok(d) = fs::File::open(dir) {
-                let _ = d.sync_all();
-            }
-            log::debug!("wrote {} ({} bytes)", path.display(), data.len());
-            Ok(())
-        }
-        Err(e) => {
-            let _ = fs::remove_file(&tmp);
-            Err(io_err(path, e))
-        }
-    }
+    Ok(data)
 }
 
 fn push_vertex(out: &mut String, p: DVec3) {

@@ -16,6 +16,7 @@ pub use mesh::Mesh;
 pub mod deform;
 pub mod distortion;
 pub mod metrics;
+pub mod output;
 pub mod report;
 pub mod scale_factors;
 pub mod schur;

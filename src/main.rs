@@ -8,7 +8,7 @@ use metricdeform::report::{
     constraint_rows, explain_miss, peak_memory_mb, table, Distortion, Iterations, MeshInfo, Report,
     Seconds, SolverWork,
 };
-use metricdeform::{distortion, io, Error};
+use metricdeform::{distortion, io, output, Error};
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -82,8 +82,12 @@ enum Command {
 }
 
 fn main() -> ExitCode {
+    quiet_vulkan_layers();
     env_logger::Builder::from_env(env_logger::Env::default().default_filter_or("warn")).init();
     let cli = Cli::parse();
+    if let Err(e) = output::install_interrupt_handler() {
+        log::warn!("{e}: an interrupt will not clean up temporary files");
+    }
     let result = match cli.command {
         Command::Deform { job, args } => Job::load(&job).and_then(|j| run(&j, &args)),
         Command::Measure { job, report } => {
@@ -98,6 +102,22 @@ fn main() -> ExitCode {
             eprintln!("error: {e}");
             ExitCode::from(e.exit_code() as u8)
         }
+    }
+}
+
+/// Mesa's device-select Vulkan layer (an implicit layer, loaded by every Vulkan
+/// program) asks Wayland for the default GPU and, where no XDG_RUNTIME_DIR is
+/// set (servers, CI, containers), prints "error: XDG_RUNTIME_DIR is invalid or
+/// not set" on every run, though nothing failed. wgpu chooses the adapter
+/// itself, so the layer is switched off, unless the user configured it
+/// (NODEVICE_SELECT, MESA_VK_DEVICE_SELECT, DRI_PRIME).
+fn quiet_vulkan_layers() {
+    let configured = ["NODEVICE_SELECT", "MESA_VK_DEVICE_SELECT", "DRI_PRIME"]
+        .iter()
+        .any(|v| std::env::var_os(v).is_some());
+    if !configured {
+        // Single-threaded here: no thread has started yet.
+        std::env::set_var("NODEVICE_SELECT", "1");
     }
 }
 
@@ -131,18 +151,15 @@ fn adapters() -> Result<u8, Error> {
 }
 
 fn demo(args: &RunArgs) -> Result<u8, Error> {
-    let dir = std::env::temp_dir().join(format!("metricdeform-demo-{}", std::process::id()));
+    // Removed on return and on an interrupt.
+    let tmp = output::TempDir::new("metricdeform-demo")?;
+    let dir = tmp.path();
+    let io_err = |path: PathBuf| move |source| Error::Io { path, source };
     std::fs::create_dir_all(dir.join("data/meshes"))
         .and_then(|_| std::fs::create_dir_all(dir.join("examples")))
-        .map_err(|source| Error::Io {
-            path: dir.clone(),
-            source,
-        })?;
+        .map_err(io_err(dir.to_path_buf()))?;
     let mesh = dir.join("data/meshes/spot.obj");
-    std::fs::write(&mesh, DEMO_MESH).map_err(|source| Error::Io {
-        path: mesh.clone(),
-        source,
-    })?;
+    std::fs::write(&mesh, DEMO_MESH).map_err(io_err(mesh.clone()))?;
     let mut job = Job::from_str(
         DEMO_JOB,
         JobFormat::Toml,
@@ -154,9 +171,7 @@ fn demo(args: &RunArgs) -> Result<u8, Error> {
     if args.out.is_none() {
         args.out = Some(PathBuf::from("spot.deformed.obj"));
     }
-    let result = run(&job, &args);
-    let _ = std::fs::remove_dir_all(&dir);
-    result
+    run(&job, &args)
 }
 
 /// Resolve the backend: flag, then the job, then METRICDEFORM_BACKEND, then auto
@@ -186,7 +201,16 @@ fn choose_backend(
     match name.as_str() {
         "cpu" => Ok((SolverBackend::Cpu, None)),
         "gpu" => match solver_gpu::default_adapter() {
-            Ok(a) => Ok((SolverBackend::Gpu, Some(a.name))),
+            Ok(a) => {
+                if a.device_type == "Cpu" {
+                    eprintln!(
+                        "warning: --backend gpu runs on {}, a CPU emulation of a GPU: expect it to be \
+                         far slower than --backend cpu (250-300x measured on the demo)",
+                        a.name
+                    );
+                }
+                Ok((SolverBackend::Gpu, Some(a.name)))
+            }
             Err(why) => Err(Error::bad(format!(
                 "--backend gpu: no usable GPU adapter: {why}"
             ))),
@@ -209,14 +233,20 @@ fn choose_backend(
                 Ok((SolverBackend::Cpu, None))
             }
             Ok(a) => {
-                eprintln!(
-                    "backend: cpu (auto: the only adapter, {}, is a CPU emulation; --backend gpu uses it anyway)",
-                    a.name
-                );
+                // A fallback: said even under --quiet (contract).
+                {
+                    eprintln!(
+                        "backend: cpu (auto: the only adapter, {}, is a CPU emulation; --backend gpu uses it anyway)",
+                        a.name
+                    );
+                }
                 Ok((SolverBackend::Cpu, None))
             }
             Err(why) => {
-                eprintln!("backend: cpu (auto: {why})");
+                // A fallback: said even under --quiet (contract).
+                {
+                    eprintln!("backend: cpu (auto: {why})");
+                }
                 Ok((SolverBackend::Cpu, None))
             }
         },
@@ -226,17 +256,75 @@ fn choose_backend(
     }
 }
 
-fn check_writable_dir(path: &Path, what: &str) -> Result<(), Error> {
-    let dir = match path.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
-        _ => PathBuf::from("."),
-    };
-    if !dir.is_dir() {
-        return Err(Error::bad(format!(
-            "{what} {}: directory {} does not exist",
-            path.display(),
-            dir.display()
-        )));
+/// The job's name in messages: its file, or the demo.
+fn job_name(job: &Job) -> String {
+    job.path
+        .as_ref()
+        .map(|p| p.display().to_string())
+        .unwrap_or_else(|| "the demo job".into())
+}
+
+/// Every file a run reads: the mesh, the job file and any `faces_file`.
+fn input_files(job: &Job) -> Vec<(String, PathBuf)> {
+    let mut inputs = vec![("the input mesh".to_string(), job.mesh_path())];
+    if let Some(p) = &job.path {
+        inputs.push(("the job file".to_string(), p.clone()));
+    }
+    let regions = job
+        .spec
+        .constraint
+        .iter()
+        .filter_map(|c| c.region.as_ref())
+        .chain(job.spec.handle.iter().filter_map(|h| h.region.as_ref()))
+        .chain(job.spec.curvature.iter().map(|c| &c.region));
+    for r in regions {
+        if let Some(f) = &r.faces_file {
+            inputs.push(("a faces_file of the job".to_string(), job.resolve_path(f)));
+        }
+    }
+    inputs
+}
+
+/// Contract: `--out` and `--report` differ from each other and from every
+/// input, name files (not directories) in existing directories. Checked before
+/// any work, so that a bad path costs nothing and nothing is written.
+fn check_outputs(job: &Job, outputs: &[(&str, &Path)]) -> Result<(), Error> {
+    let inputs = input_files(job);
+    for (i, (what, path)) in outputs.iter().enumerate() {
+        let dir = match path.parent() {
+            Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
+            _ => PathBuf::from("."),
+        };
+        if !dir.is_dir() {
+            return Err(Error::bad(format!(
+                "{what} {}: directory {} does not exist; create it or choose another path",
+                path.display(),
+                dir.display()
+            )));
+        }
+        if path.is_dir() {
+            return Err(Error::bad(format!(
+                "{what} {} is a directory; give a file name",
+                path.display()
+            )));
+        }
+        for (input, ipath) in &inputs {
+            if output::same_file(path, ipath) {
+                return Err(Error::bad(format!(
+                    "{what} {} is {input} ({}): inputs are never overwritten; choose another path",
+                    path.display(),
+                    ipath.display()
+                )));
+            }
+        }
+        for (other, opath) in &outputs[..i] {
+            if output::same_file(path, opath) {
+                return Err(Error::bad(format!(
+                    "{what} {} is also the {other}: give them different paths",
+                    path.display()
+                )));
+            }
+        }
     }
     Ok(())
 }
@@ -247,22 +335,25 @@ fn run(job: &Job, args: &RunArgs) -> Result<u8, Error> {
         return Err(Error::bad("--render is not available in this version"));
     }
     let out_path = args.out.clone().unwrap_or_else(|| job.output_path());
-    check_writable_dir(&out_path, "output")?;
+    let mut outputs = vec![("output mesh", out_path.as_path())];
     if let Some(r) = &args.report {
-        check_writable_dir(r, "report")?;
+        outputs.push(("report", r.as_path()));
     }
+    check_outputs(job, &outputs)?;
     let mut options = Options::from_spec(&job.spec.solver);
     options.preview = args.preview;
     let problem = Problem::load(job)?;
+    if problem.constraints.is_empty() && problem.handles.is_empty() && problem.curvature.is_empty()
+    {
+        return Err(Error::bad(format!(
+            "{}: no [[constraint]], [[handle]] or [[curvature]]: nothing to deform. \
+             Add a constraint (`metricdeform measure` prints the input's metrics)",
+            job_name(job)
+        )));
+    }
     let (backend, adapter) =
         choose_backend(args.backend, job, problem.mesh.num_faces(), args.quiet)?;
     options.backend = backend;
-    if same_file(&out_path, &problem.mesh_path) {
-        return Err(Error::bad(format!(
-            "output {} is the input mesh: the input is never modified",
-            out_path.display()
-        )));
-    }
     let t_load = t0.elapsed().as_secs_f64();
 
     let bar = progress_bar(args.quiet);
@@ -270,11 +361,11 @@ fn run(job: &Job, args: &RunArgs) -> Result<u8, Error> {
     let mut on_progress = |p: Progress| {
         let msg = match p {
             Progress::ScaleDriven { iteration, max_error, max_scale_change } => format!(
-                "scale-driven iteration {iteration}: max metric error {:.3e} %, max |s-1| {max_scale_change:.3e}",
+                "scale-driven iteration {iteration}: metrics off by at most {:.3e} %, max |s-1| {max_scale_change:.3e}",
                 max_error * 100.0
             ),
             Progress::FineTune { iteration, max_error } => {
-                format!("fine-tune iteration {iteration}: max metric error {:.3e} %", max_error * 100.0)
+                format!("fine-tune iteration {iteration}: metrics off by at most {:.3e} %", max_error * 100.0)
             }
         };
         if plain {
@@ -299,7 +390,7 @@ fn run(job: &Job, args: &RunArgs) -> Result<u8, Error> {
             *p = p.as_vec3().as_dvec3();
         }
     }
-    io::write_mesh(
+    let mesh_bytes = io::encode_mesh(
         &out_path,
         &problem.mesh,
         &outcome.positions,
@@ -307,7 +398,8 @@ fn run(job: &Job, args: &RunArgs) -> Result<u8, Error> {
     )?;
     let rows = constraint_rows(&problem, &x, options.tolerance);
     let satisfied = rows.iter().all(|r| r.met);
-    let reason = if satisfied {
+    let preview = args.preview.is_some();
+    let reason = if satisfied || preview {
         None
     } else {
         explain_miss(&problem, &rows, Some(&outcome))
@@ -338,22 +430,37 @@ fn run(job: &Job, args: &RunArgs) -> Result<u8, Error> {
             quasi_conformal_mean: qc_mean,
             quasi_conformal_max: qc_max,
         },
+        preview,
         reason: reason.clone(),
         peak_memory_mb: peak_memory_mb(),
         solver: Some(SolverWork::of(&outcome)),
     };
+    // The mesh and the report as a pair: both or neither.
+    let mut staged = vec![output::stage(&out_path, &mesh_bytes)?];
+    if let Some(path) = &args.report {
+        staged.push(output::stage(path, &report_json(&report)?)?);
+    }
+    output::commit(staged)?;
     print!("{}", table(&rows));
     println!(
         "distortion: quasi-conformal mean {:.4}, max {:.4}; iterations: {} scale-driven, {} fine-tune; {:.2} s",
         qc_mean, qc_max, report.iterations.scale_driven, report.iterations.fine_tune, report.seconds.total
     );
     println!("wrote {}", out_path.display());
+    if let Some(path) = &args.report {
+        println!("wrote {}", path.display());
+    }
+    if preview {
+        println!(
+            "PREVIEW: the scale-driven phase stopped after {} iteration(s) and the fine-tune was skipped; \
+             the metrics are not expected to hold yet. Run without --preview for the exact result.",
+            outcome.scale_driven_iterations
+        );
+        return Ok(0);
+    }
     if let Some(r) = &reason {
         println!("NOT SATISFIED: {r}");
         eprintln!("warning: {r}");
-    }
-    if let Some(path) = &args.report {
-        write_report(path, &report)?;
     }
     Ok(if satisfied { 0 } else { 3 })
 }
@@ -361,7 +468,7 @@ fn run(job: &Job, args: &RunArgs) -> Result<u8, Error> {
 fn measure(job: &Job, report_path: Option<&Path>) -> Result<u8, Error> {
     let t0 = Instant::now();
     if let Some(r) = report_path {
-        check_writable_dir(r, "report")?;
+        check_outputs(job, &[("report", r)])?;
     }
     let options = Options::from_spec(&job.spec.solver);
     let problem = Problem::load(job)?;
@@ -393,53 +500,20 @@ fn measure(job: &Job, report_path: Option<&Path>) -> Result<u8, Error> {
             quasi_conformal_mean: 1.0,
             quasi_conformal_max: 1.0,
         },
+        preview: false,
         reason: None,
         peak_memory_mb: peak_memory_mb(),
         solver: None,
     };
     if let Some(p) = report_path {
-        write_report(p, &report)?;
+        output::write_atomic(p, &report_json(&report)?)?;
     }
     Ok(0)
 }
 
-fn write_report(path: &Path, report: &Report) -> Result<(), Error> {
+fn report_json(report: &Report) -> Result<Vec<u8>, Error> {
     let text = serde_json::to_string_pretty(report).map_err(|e| Error::Internal(e.to_string()))?;
-    let tmp = path.with_file_name(format!(
-        ".{}.tmp-{}",
-        path.file_name()
-            .map(|s| s.to_string_lossy().into_owned())
-            .unwrap_or_default(),
-        std::process::id()
-    ));
-    let res = std::fs::write(&tmp, text + "\n").and_then(|_| std::fs::rename(&tmp, path));
-    if let Err(source) = res {
-        let _ = std::fs::remove_file(&tmp);
-        return Err(Error::Io {
-            path: path.to_path_buf(),
-            source,
-        });
-    }
-    Ok(())
-}
-
-fn same_file(a: &Path, b: &Path) -> bool {
-    match (
-        std::fs::canonicalize(b),
-        a.parent().map(|p| {
-            if p.as_os_str().is_empty() {
-                Path::new(".")
-            } else {
-                p
-            }
-        }),
-    ) {
-        (Ok(cb), Some(pa)) => match (std::fs::canonicalize(pa), a.file_name()) {
-            (Ok(ca), Some(name)) => ca.join(name) == cb,
-            _ => false,
-        },
-        _ => false,
-    }
+    Ok((text + "\n").into_bytes())
 }
 
 fn progress_bar(quiet: bool) -> Option<ProgressBar> {

@@ -97,6 +97,9 @@ pub struct Report {
     pub iterations: Iterations,
     pub seconds: Seconds,
     pub distortion: Distortion,
+    /// `--preview N`: the scale-driven phase was cut after N iterations and the
+    /// fine-tune skipped; constraints are not expected to be met.
+    pub preview: bool,
     /// Why some constraint was missed (exit 3), when known.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub reason: Option<String>,
@@ -207,18 +210,37 @@ fn proc_status_mb(field: &str) -> f64 {
         .unwrap_or(0.0)
 }
 
-/// The stdout table.
+/// The stdout table. Names are padded by hand: `format!`'s width is limited
+/// to 65,535, and a name may be longer.
 pub fn table(rows: &[ConstraintReport]) -> String {
+    fn padded(name: &str, width: usize) -> String {
+        let n = name.chars().count();
+        let mut s = String::with_capacity(name.len() + width.saturating_sub(n));
+        s.push_str(name);
+        s.extend(std::iter::repeat_n(' ', width.saturating_sub(n)));
+        s
+    }
     let mut s = String::new();
-    let w = rows.iter().map(|r| r.name.len()).max().unwrap_or(4).max(10);
+    let w = rows
+        .iter()
+        .map(|r| r.name.chars().count())
+        .max()
+        .unwrap_or(4)
+        .max(10);
     s.push_str(&format!(
-        "{:<w$}  {:<6}  {:>14}  {:>14}  {:>14}  {:>10}  {}\n",
-        "constraint", "kind", "original", "target", "result", "error %", "met"
+        "{}  {:<6}  {:>14}  {:>14}  {:>14}  {:>10}  {}\n",
+        padded("constraint", w),
+        "kind",
+        "original",
+        "target",
+        "result",
+        "error %",
+        "met"
     ));
     for r in rows {
         s.push_str(&format!(
-            "{:<w$}  {:<6}  {:>14.6}  {:>14.6}  {:>14.6}  {:>10.6}  {}\n",
-            r.name,
+            "{}  {:<6}  {:>14.6}  {:>14.6}  {:>14.6}  {:>10.6}  {}\n",
+            padded(&r.name, w),
             r.kind,
             r.original,
             r.target,
@@ -228,4 +250,35 @@ pub fn table(rows: &[ConstraintReport]) -> String {
         ));
     }
     s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn row(name: &str) -> ConstraintReport {
+        ConstraintReport {
+            kind: "length".into(),
+            name: name.into(),
+            original: 1.0,
+            target: 1.2,
+            result: 1.2,
+            error_percent: 0.0,
+            met: true,
+        }
+    }
+
+    /// A name of 70,000 characters (past `format!`'s width limit of 65,535)
+    /// gives a table, not a panic; columns stay aligned.
+    #[test]
+    fn table_takes_names_longer_than_format_widths() {
+        let long = "n".repeat(70_000);
+        let t = table(&[row(&long), row("short")]);
+        let lines: Vec<&str> = t.lines().collect();
+        assert_eq!(lines.len(), 3);
+        assert!(lines[1].starts_with(&long));
+        let col = |l: &str| l.find("length").unwrap_or(0);
+        assert_eq!(col(lines[1]), col(lines[2]));
+        assert_eq!(col(lines[1]), 70_002);
+    }
 }
