@@ -682,3 +682,19 @@ fn successful_runs_print_no_error() {
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(!stderr.to_lowercase().contains("error"), "{stderr}");
 }
+
+/// The contract travels with the repository (docs/CONTRACT.md); where the
+/// project's shared copy is present, the two are the same text.
+#[test]
+fn contract_copy_is_in_step_with_the_shared_contract() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let ours = std::fs::read_to_string(root.join("docs/CONTRACT.md")).unwrap();
+    assert!(ours.contains("## Command line"));
+    match std::fs::read_to_string(root.join("../shared/CONTRACT.md")) {
+        Ok(shared) => assert!(
+            ours == shared,
+            "docs/CONTRACT.md differs from ../shared/CONTRACT.md"
+        ),
+        Err(_) => eprintln!("skipped the comparison: no ../shared/CONTRACT.md"),
+    }
+}
