@@ -103,3 +103,117 @@ mod tests {
         );
     }
 }
+
+/// When the solver runs the PCG iteration in f64 with the f32 AMG V-cycle as
+/// its preconditioner (needs `SHADER_F64` and the AMG preconditioner).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum MixedPrecision {
+    /// After f32 refinement stagnates (the system is too ill-conditioned for
+    /// f32: `cond(A) 2^-24` near 1), where the adapter has `SHADER_F64`; then
+    /// every later solve of the same matrix pattern starts in mixed precision.
+    #[default]
+    Fallback,
+    /// Every solve (where the adapter has `SHADER_F64`).
+    Always,
+    /// Never: stagnation is `NoConvergence`.
+    Never,
+}
+
+/// Tells when f32 refinement rounds are limited by f32 rounding. A round whose
+/// inner PCG reached its tolerance `eta` (a gain of `1/eta` in its f32
+/// recurrence) while the true f64 residual gained less than `(1/eta)^(1/3)`
+/// was limited by f32: the f64 iteration of the mixed-precision solve would
+/// gain about `1/eta` in as many iterations, at 1.6-2.2x the cost of an f32
+/// one on lavapipe. Two such rounds in a row are needed (a first round alone
+/// can be weak and the next ones fine: a 128x128 biharmonic system's rounds
+/// gain 13x, then 1660x and 2000x against 1e5 asked). Spot x16's shape system:
+/// 7 f32 rounds of ~190 iterations gaining ~27x each against 1e5 asked, 1354
+/// iterations in all, against 527 in mixed precision (lavapipe, 2026-11-22;
+/// BENCHMARKS.md's git history).
+#[derive(Default)]
+pub(crate) struct RoundWatch {
+    /// The last round's relative residual and inner tolerance per column
+    /// (`eta = 1`: the column was done).
+    last: Option<(Vec<f64>, Vec<f64>)>,
+    /// Limited rounds in a row.
+    limited: usize,
+}
+
+impl RoundWatch {
+    /// With the relative residuals `rel` after the last round: whether the
+    /// rounds are limited by f32 rounding.
+    pub(crate) fn f32_limited(&mut self, rel: &[f64]) -> bool {
+        let limited = self.last.as_ref().is_some_and(|(prev, eta)| {
+            (0..rel.len()).any(|c| eta[c] < 1.0 && rel[c] > prev[c] * eta[c].cbrt())
+        });
+        self.limited = if limited { self.limited + 1 } else { 0 };
+        self.limited >= 2
+    }
+
+    /// A round starts from the relative residuals `rel`, asking each column
+    /// for a relative tolerance `eta` (1 for columns already done).
+    pub(crate) fn launched(&mut self, rel: &[f64], eta: Vec<f64>) {
+        self.last = Some((rel.to_vec(), eta));
+    }
+}
+
+#[cfg(test)]
+mod round_watch_tests {
+    use super::RoundWatch;
+
+    /// Feeds rounds of (residual after, eta asked) for one column from a
+    /// residual of 1; returns the verdict after each round.
+    fn verdicts(rounds: &[(f64, f64)]) -> Vec<bool> {
+        let mut w = RoundWatch::default();
+        let mut rel = 1.0;
+        assert!(!w.f32_limited(&[rel]), "no round yet");
+        rounds
+            .iter()
+            .map(|&(after, eta)| {
+                w.launched(&[rel], vec![eta]);
+                rel = after;
+                w.f32_limited(&[rel])
+            })
+            .collect()
+    }
+
+    #[test]
+    fn two_weak_rounds_in_a_row_mean_f32_rounding() {
+        // Spot x16's shape system: ~27x a round against 1e5 asked (cube root 46).
+        assert_eq!(
+            verdicts(&[(1.0 / 27.0, 1e-5), (1.0 / 27.0 / 27.0, 1e-5)]),
+            [false, true]
+        );
+        // The 128x128 biharmonic: a weak first round, then healthy ones.
+        assert_eq!(
+            verdicts(&[(7.5e-2, 1e-5), (4.5e-5, 1e-5), (2.3e-8, 1e-5)]),
+            [false, false, false]
+        );
+        // Near the end eta is larger (0.1, cube root 0.46): gaining 3x passes,
+        // 1.5x twice does not.
+        assert_eq!(
+            verdicts(&[(1.0 / 3.0, 0.1), (1.0 / 9.0, 0.1)]),
+            [false, false]
+        );
+        assert_eq!(
+            verdicts(&[(1.0 / 1.5, 0.1), (1.0 / 2.25, 0.1)]),
+            [false, true]
+        );
+    }
+
+    #[test]
+    fn columns_already_done_do_not_count() {
+        let mut w = RoundWatch::default();
+        // Column 1 is done (eta 1) and its residual does not move; column 0
+        // gains 1e4 against 1e5 asked.
+        w.launched(&[1.0, 1e-11], vec![1e-5, 1.0]);
+        assert!(!w.f32_limited(&[1e-4, 1e-11]));
+        w.launched(&[1e-4, 1e-11], vec![1e-5, 1.0]);
+        assert!(!w.f32_limited(&[1e-8, 1e-11]));
+        // Column 0 weak twice: limited.
+        w.launched(&[1e-8, 1e-11], vec![1e-2, 1.0]);
+        assert!(!w.f32_limited(&[0.5e-8, 1e-11]));
+        w.launched(&[0.5e-8, 1e-11], vec![1e-2, 1.0]);
+        assert!(w.f32_limited(&[0.25e-8, 1e-11]));
+    }
+}

@@ -1,0 +1,1138 @@
+//! The solver behind [`solver_cpu::SpdSolver`]: opens the device, uploads
+//! each matrix (pattern once, values per matrix), sets up the preconditioner
+//! once per system kind and runs the refinement rounds of the crate docs
+//! (f32 PCG, f64 residuals on the host; mixed precision where f32 stalls).
+
+use device::Context;
+use matrix::{GpuMatrix, HostMatrix};
+use pcg::{Spmv, Workspace};
+use solver_cpu::{
+    BlockSym3, ShapeOperatorModel, SolveInfo, SolverError, SpdSolver, SymCsc, SystemKind,
+    WorkCounters,
+};
+
+use crate::precision::{MixedPrecision, RoundWatch};
+use crate::{
+    amg, amg_gpu, block_jacobi, bsr_spmv, convert, csr_spmv, default_adapter, device, dot, matrix,
+    pcg, precision, AdapterSummary, OpenOptions,
+};
+use crate::{GpuError, Preconditioner, CMAX, SQUARED_LAPLACIAN_SWEEPS, SQUARED_LAPLACIAN_VCYCLES};
+
+/// One refinement round on the GPU: the scaled residuals `r` (bytes in the
+/// workspace's precision) in, PCG to the squared thresholds `thr`, then
+/// `x_c += scale_c d_c` for the columns with a nonzero `scale` (their residual
+/// norm). Returns the iterations.
+struct Round<'a> {
+    pub(crate) ctx: &'a Context,
+    pcg: &'a pcg::Pcg,
+    spmv: &'a Spmv<'a>,
+    amg: &'a amg_gpu::AmgKernels,
+    convert: Option<&'a convert::Convert>,
+    budget: usize,
+    pub(crate) check_every: usize,
+    /// Iterations of the first batch ([`BatchHints`]; `None`: nothing known).
+    first_batch: Option<usize>,
+}
+
+impl Round<'_> {
+    fn run(
+        &self,
+        ws: &mut Workspace,
+        r: &[u8],
+        thr: &[f64],
+        scale: &[f64],
+        x: &mut [f64],
+    ) -> Result<usize, GpuError> {
+        let (n, ncols) = (ws.n(), thr.len());
+        self.ctx.write_buffer(&ws.r, 0, r);
+        let mut run = self.pcg.run(
+            self.ctx,
+            self.spmv,
+            ws,
+            ncols,
+            thr,
+            self.budget,
+            self.check_every,
+            self.first_batch,
+            false,
+            Some(self.amg),
+            self.convert,
+        )?;
+        if run.breakdown() {
+            return Err(GpuError::NotPositiveDefinite);
+        }
+        let d = self.pcg.read_x(self.ctx, ws, ncols, &mut run)?;
+        for (c, &s) in scale.iter().enumerate() {
+            if s != 0.0 {
+                let cols = c * n..(c + 1) * n;
+                for (xi, di) in x[cols.clone()].iter_mut().zip(&d[cols]) {
+                    *xi += s * di;
+                }
+            }
+        }
+        Ok(run.iterations())
+    }
+}
+
+/// Iterations the last PCG runs of each kind took, to size the first batch of
+/// the next one: a run of a kept preconditioner on a matrix of the same kind
+/// takes about as many iterations as the last, so its first read-back comes
+/// after that many instead of after [`pcg::FIRST_BATCH`]: a host round trip
+/// costs a discrete GPU far more than an iteration or two past convergence.
+/// A batch sized to finish also brings `x` back with the column states
+/// ([`pcg::Pcg::run`]), so a round that goes as predicted waits once (spot's
+/// pipeline row on lavapipe, affine AMG, 2026-11-23: 322 host waits down to
+/// 180 for the same 1992 PCG iterations).
+/// Keyed by system kind, precision and refinement round (rounds past the
+/// third share one entry).
+#[derive(Debug, Default)]
+struct BatchHints(std::collections::HashMap<(SystemKind, bool, usize), usize>);
+
+impl BatchHints {
+    fn key(kind: SystemKind, mixed: bool, round: usize) -> (SystemKind, bool, usize) {
+        (kind, mixed, round.min(3))
+    }
+
+    /// Iterations of the first batch of round `round`, if a run like it was seen.
+    fn first_batch(&self, kind: SystemKind, mixed: bool, round: usize) -> Option<usize> {
+        self.0
+            .get(&Self::key(kind, mixed, round))
+            .map(|&it| it.max(2))
+    }
+
+    fn record(&mut self, kind: SystemKind, mixed: bool, round: usize, iterations: usize) {
+        self.0.insert(Self::key(kind, mixed, round), iterations);
+    }
+
+    fn clear(&mut self) {
+        self.0.clear();
+    }
+}
+
+/// Per column: the f64 residual `r = b - A x` (in `r`), its norm, the relative
+/// residual `||r|| / ||b||`, and the target it must reach: `tol`, or the f64
+/// rounding floor `eps ||A|| ||x|| / ||b||` where that is larger (a smooth
+/// right-hand side of a stiff system has a large solution, and no f64 solver,
+/// Cholesky included, gets its relative residual below that floor). Also the
+/// largest relative residual. `anorm`: `||A||_inf` (`HostMatrix::norm_inf`,
+/// computed once per solve).
+fn residuals(
+    h: &HostMatrix,
+    anorm: f64,
+    b: &[f64],
+    x: &[f64],
+    r: &mut [f64],
+    ncols: usize,
+    tol: f64,
+) -> (Vec<f64>, Vec<f64>, f64, Vec<f64>) {
+    let n = h.n();
+    h.residual(b, x, r, ncols);
+    let rnorm: Vec<f64> = (0..ncols).map(|c| norm(&r[c * n..(c + 1) * n])).collect();
+    let mut target = vec![tol; ncols];
+    let rel: Vec<f64> = (0..ncols)
+        .map(|c| {
+            let bn = norm(&b[c * n..(c + 1) * n]);
+            if bn == 0.0 {
+                0.0
+            } else {
+                let floor = f64::EPSILON * anorm * norm(&x[c * n..(c + 1) * n]) / bn;
+                target[c] = tol.max(floor);
+                rnorm[c] / bn
+            }
+        })
+        .collect();
+    let worst = rel.iter().cloned().fold(0.0, f64::max);
+    (rnorm, rel, worst, target)
+}
+
+/// Whether some adapter is available.
+pub fn gpu_available() -> bool {
+    default_adapter().is_ok()
+}
+
+/// Open the GPU solver on the adapter named by `WGPU_ADAPTER_NAME`
+/// (case-insensitive substring) or wgpu's default high-performance adapter, with
+/// the adapter's own limits.
+pub fn open() -> Result<GpuSolver, GpuError> {
+    open_with(OpenOptions::default())
+}
+
+/// [`open`] with options (adapter name, lowered limits).
+pub fn open_with(opts: OpenOptions) -> Result<GpuSolver, GpuError> {
+    let ctx = Context::open(&opts)?;
+    let kernels = Kernels {
+        bsr: bsr_spmv::new(&ctx)?,
+        csr: csr_spmv::new(&ctx)?,
+        dot: dot::Dot::new(&ctx)?,
+        jacobi: block_jacobi::BlockJacobi::new(&ctx)?,
+        pcg: pcg::Pcg::new(&ctx, precision::Precision::F32)?,
+        amg: amg_gpu::AmgKernels::new(&ctx)?,
+    };
+    ctx.check()?;
+    Ok(GpuSolver {
+        ctx,
+        k: kernels,
+        host: None,
+        gpu: None,
+        ws: None,
+        tol: 1e-10,
+        inner_min: 1e-5,
+        max_iterations: 50_000,
+        max_rounds: 20,
+        check_every: 32,
+        stats: SolveStats::default(),
+        pattern_uploads: 0,
+        value_uploads: 0,
+        preconditioner: Preconditioner::from_env(),
+        amg_opts: amg::AmgOptions::default(),
+        amg_host: None,
+        amg_gpu: None,
+        amg_fine_upload: 0,
+        amg_setup_seconds: 0.0,
+        positions: None,
+        mixed_precision: MixedPrecision::default(),
+        mixed_kernels: None,
+        mixed: None,
+        mixed_sticky: false,
+        kind: SystemKind::default(),
+        amg_kind: None,
+        setups: 0,
+        work: WorkCounters::default(),
+        amg_kept: false,
+        hints: BatchHints::default(),
+        shape_model: None,
+        fixed: Vec::new(),
+        squared: None,
+    })
+}
+
+pub(crate) struct Kernels {
+    pub bsr: bsr_spmv::BsrSpmv,
+    pub csr: csr_spmv::CsrSpmv,
+    pub dot: dot::Dot,
+    pub jacobi: block_jacobi::BlockJacobi,
+    pub pcg: pcg::Pcg,
+    pub amg: amg_gpu::AmgKernels,
+}
+
+/// Counters of the last solve.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct SolveStats {
+    /// Refinement rounds (f64 residual evaluations that launched a GPU solve).
+    pub rounds: usize,
+    /// PCG iterations summed over rounds (largest column of each batch).
+    pub iterations: usize,
+    /// Largest final relative residual (f64).
+    pub residual: f64,
+    /// Whether the solve switched to mixed precision (f64 PCG, f32 V-cycle).
+    pub mixed: bool,
+    /// Rounds of f32 refinement (the rest of `rounds` ran in mixed precision).
+    pub f32_rounds: usize,
+}
+
+/// The GPU PCG solver.
+pub struct GpuSolver {
+    pub(crate) ctx: Context,
+    pub(crate) k: Kernels,
+    pub(crate) host: Option<HostMatrix>,
+    pub(crate) gpu: Option<GpuMatrix>,
+    pub(crate) ws: Option<Workspace>,
+    tol: f64,
+    inner_min: f64,
+    max_iterations: usize,
+    max_rounds: usize,
+    pub(crate) check_every: usize,
+    stats: SolveStats,
+    /// How many times a matrix pattern was uploaded (tests, benchmarks).
+    pub pattern_uploads: usize,
+    /// How many times only the values were rewritten.
+    pub value_uploads: usize,
+    preconditioner: Preconditioner,
+    amg_opts: amg::AmgOptions,
+    /// The AMG hierarchy of the prepared matrix (`None`: block Jacobi in use).
+    amg_host: Option<amg::Hierarchy>,
+    pub(crate) amg_gpu: Option<amg_gpu::GpuHierarchy>,
+    /// `pattern_uploads` when `amg_gpu` was uploaded (its finest `A` is the
+    /// matrix of that upload).
+    amg_fine_upload: usize,
+    amg_setup_seconds: f64,
+    /// Vertex positions of the block rows (the affine near-null space).
+    positions: Option<Vec<[f64; 3]>>,
+    mixed_precision: MixedPrecision,
+    /// The f64 kernels of the mixed-precision solve (compiled on first use).
+    mixed_kernels: Option<MixedKernels>,
+    /// Its matrix and workspace, for the stamp's matrix.
+    mixed: Option<MixedData>,
+    /// A solve of the current pattern fell back to mixed precision: the next
+    /// ones start there (reset by a new pattern).
+    mixed_sticky: bool,
+    /// The kind of system being prepared ([`SpdSolver::set_system_kind`]).
+    kind: SystemKind,
+    /// The kind the AMG hierarchy was built for: a new matrix of that kind and
+    /// pattern keeps it (only the finest smoother's diagonal is rewritten).
+    amg_kind: Option<SystemKind>,
+    /// Preconditioner set-ups (AMG hierarchy builds, block-Jacobi
+    /// inverses when AMG is off or failed).
+    setups: usize,
+    /// Solves and iterations.
+    work: WorkCounters,
+    /// The hierarchy was kept for new values ([`Self::upload`]): a solve
+    /// that fails with it rebuilds it and tries once more.
+    amg_kept: bool,
+    /// First batch sizes from the last runs of each kind.
+    hints: BatchHints,
+    /// The model of the next shape matrices ([`SpdSolver::set_shape_model`]).
+    shape_model: Option<std::sync::Arc<ShapeOperatorModel>>,
+    /// Held block rows of the prepared block matrix.
+    fixed: Vec<bool>,
+    /// The squared-Laplacian preconditioner in use (its hierarchy is
+    /// `amg_host` / `amg_gpu`): the model it was built from and `Mt` per
+    /// block row on the GPU.
+    pub(crate) squared: Option<(std::sync::Arc<ShapeOperatorModel>, wgpu::Buffer)>,
+}
+
+/// The f64 kernels of the mixed-precision solve.
+struct MixedKernels {
+    pcg: pcg::Pcg,
+    /// Scalar matrices (the face system).
+    csr: csr_spmv::CsrSpmv,
+    /// 3x3 block matrices: high and low f32 parts in textures.
+    bsr: bsr_spmv::BsrSpmv,
+    convert: convert::Convert,
+}
+
+impl MixedKernels {
+    /// The f64 product for a matrix of block size `bs`.
+    pub(crate) fn spmv(&self, bs: usize) -> Spmv<'_> {
+        match bs {
+            1 => Spmv::Scalar(&self.csr),
+            _ => Spmv::Block(&self.bsr),
+        }
+    }
+}
+
+/// The mixed-precision solve's data: the matrix in f64 (3x3 blocks as high and
+/// low f32 parts in textures, the high part shared with the f32 matrix; a
+/// scalar matrix as f64 CSR) and a scalar workspace whose V-cycle runs on f32
+/// copies of r and z.
+struct MixedData {
+    /// `(pattern_uploads, value_uploads)` of the matrix it was built from.
+    stamp: (usize, usize),
+    /// Read through the workspace's bind groups only.
+    #[allow(dead_code)]
+    matrix: GpuMatrix,
+    pub(crate) ws: Workspace,
+}
+
+impl GpuSolver {
+    /// Name of the adapter in use.
+    pub fn adapter_name(&self) -> &str {
+        &self.ctx.info.name
+    }
+
+    /// The adapter in use.
+    pub fn adapter(&self) -> AdapterSummary {
+        let i = &self.ctx.info;
+        AdapterSummary {
+            name: i.name.clone(),
+            backend: format!("{:?}", i.backend),
+            device_type: format!("{:?}", i.device_type),
+            driver: i.driver.clone(),
+            driver_info: i.driver_info.clone(),
+            shader_f64: self.ctx.shader_f64,
+        }
+    }
+
+    /// The limits the device was opened with.
+    pub fn limits(&self) -> &wgpu::Limits {
+        &self.ctx.limits
+    }
+
+    /// Cap on the PCG iterations of one solve (all rounds together).
+    pub fn set_max_iterations(&mut self, n: usize) {
+        self.max_iterations = n.max(1);
+    }
+
+    /// Cap on the refinement rounds of one solve.
+    pub fn set_max_rounds(&mut self, n: usize) {
+        self.max_rounds = n.max(1);
+    }
+
+    /// Most iterations between two read-backs of the residuals (default 32).
+    pub fn set_check_every(&mut self, n: usize) {
+        self.check_every = n.max(1);
+    }
+
+    /// Relative residual the f32 inner solve must reach at least (default 1e-5).
+    pub fn set_inner_tolerance(&mut self, eta: f64) {
+        self.inner_min = eta.clamp(1e-7, 0.5);
+    }
+
+    /// Counters of the last solve.
+    pub fn last_stats(&self) -> SolveStats {
+        self.stats
+    }
+
+    /// Choose the preconditioner (default [`Preconditioner::SquaredLaplacian`],
+    /// or `METRICDEFORM_GPU_PRECONDITIONER`); a prepared matrix gets
+    /// the new one at once.
+    pub fn set_preconditioner(&mut self, p: Preconditioner) -> Result<(), GpuError> {
+        if p == self.preconditioner {
+            return Ok(());
+        }
+        self.preconditioner = p;
+        self.drop_workspaces();
+        self.amg_host = None;
+        self.amg_gpu = None;
+        if self.host.is_some() {
+            self.setup_amg()?;
+        }
+        Ok(())
+    }
+
+    /// When to switch to the mixed-precision solve (default: as a fallback).
+    pub fn set_mixed_precision(&mut self, m: MixedPrecision) {
+        self.mixed_precision = m;
+    }
+
+    /// Whether the last solve ran (partly) in mixed precision.
+    pub fn last_solve_mixed(&self) -> bool {
+        self.stats.mixed
+    }
+
+    fn drop_workspaces(&mut self) {
+        self.ws = None;
+        self.mixed = None;
+    }
+
+    /// Whether the mixed-precision solve can run (f64 kernels and AMG).
+    fn mixed_available(&self) -> bool {
+        self.ctx.shader_f64
+            && self.amg_gpu.is_some()
+            && self.mixed_precision != MixedPrecision::Never
+    }
+
+    /// The mixed-precision matrix and workspace for at least `ncols` columns.
+    fn mixed_workspace(&mut self, ncols: usize) -> Result<(), GpuError> {
+        let stamp = (self.pattern_uploads, self.value_uploads);
+        let want = ncols.min(CMAX);
+        let block = self.host.as_ref().is_some_and(|h| h.bs == 3);
+        if let Some(m) = self.mixed.as_mut() {
+            if m.stamp.0 == stamp.0 && m.ws.cmax >= want && (block || m.stamp.1 == stamp.1) {
+                if m.stamp.1 != stamp.1 {
+                    // Same pattern, new values: rewrite them in place (the
+                    // high parts are the f32 matrix's, already written).
+                    let h = self.host.as_ref().unwrap();
+                    m.matrix.write_values(&self.ctx, h, &[]);
+                    m.stamp = stamp;
+                }
+                return Ok(());
+            }
+        }
+        self.mixed = None;
+        if self.mixed_kernels.is_none() {
+            self.mixed_kernels = Some(MixedKernels {
+                pcg: pcg::Pcg::new(&self.ctx, precision::Precision::F64)?,
+                csr: csr_spmv::new_in(&self.ctx, precision::Precision::F64)?,
+                bsr: bsr_spmv::new_f64(&self.ctx)?,
+                convert: convert::Convert::new(&self.ctx)?,
+            });
+        }
+        let k = self.mixed_kernels.as_ref().unwrap();
+        let h = self.host.as_ref().unwrap();
+        let matrix = match h.bs {
+            1 => GpuMatrix::upload_scalar(&self.ctx, h, precision::Precision::F64)?,
+            _ => GpuMatrix::upload_split_f64(&self.ctx, h, self.gpu.as_ref().unwrap())?,
+        };
+        let spmv = k.spmv(h.bs);
+        let mut ws = k.pcg.workspace(&self.ctx, &spmv, &matrix, h.n(), 1, want)?;
+        let narrow = pcg::Narrow::new(&self.ctx, &k.convert, &ws)?;
+        let g = self.amg_gpu.as_ref().unwrap();
+        match &self.squared {
+            Some((_, mt)) => {
+                ws.squared = Some(amg_gpu::SquaredSteps::new(
+                    &self.ctx,
+                    &self.k.amg,
+                    g,
+                    mt,
+                    &narrow.r32,
+                    &narrow.z32,
+                    ws.cmax,
+                    SQUARED_LAPLACIAN_VCYCLES,
+                )?)
+            }
+            None => {
+                ws.amg = Some(amg_gpu::VcycleWorkspace::new(
+                    &self.ctx,
+                    &self.k.amg,
+                    g,
+                    &narrow.r32,
+                    &narrow.z32,
+                    ws.cmax,
+                )?)
+            }
+        }
+        ws.narrow = Some(narrow);
+        self.mixed = Some(MixedData { stamp, matrix, ws });
+        Ok(())
+    }
+
+    /// Solve up to CMAX columns in mixed precision from the start `x`: rounds
+    /// of f64 PCG (f32 V-cycle) on the f64 residual. `total`: PCG iterations
+    /// already spent on these columns.
+    fn solve_batch_mixed(
+        &mut self,
+        b: &[f64],
+        x: &mut [f64],
+        ncols: usize,
+        mut total: usize,
+    ) -> Result<(), GpuError> {
+        log::info!("GPU solve: PCG in f64 with the f32 AMG V-cycle");
+        self.stats.mixed = true;
+        self.mixed_workspace(ncols)?;
+        let h = self.host.as_ref().unwrap();
+        let n = h.n();
+        let mut r = vec![0.0; n * ncols];
+        let mut prev = f64::INFINITY;
+        let anorm = h.norm_inf();
+        for round_no in 0.. {
+            let h = self.host.as_ref().unwrap();
+            let (rnorm, rel, worst, target) = residuals(h, anorm, b, x, &mut r, ncols, self.tol);
+            self.stats.residual = worst;
+            log::trace!(
+                "mixed round {round_no}: relative residual {worst:.2e} after {total} iterations"
+            );
+            if (0..ncols).all(|c| rel[c] <= target[c]) {
+                return Ok(());
+            }
+            // f64 rounds each gain many digits: two that do not halve the
+            // residual mean the iteration itself stagnates.
+            if !worst.is_finite()
+                || round_no >= 4
+                || worst > 0.5 * prev
+                || total >= self.max_iterations
+            {
+                return Err(GpuError::NoConvergence {
+                    iterations: total,
+                    residual: worst,
+                });
+            }
+            prev = worst;
+            let mut thr = vec![0f64; ncols];
+            for c in 0..ncols {
+                let cols = c * n..(c + 1) * n;
+                if rel[c] > target[c] {
+                    r[cols].iter_mut().for_each(|v| *v /= rnorm[c]);
+                    thr[c] = (0.5 * target[c] / rel[c]).clamp(1e-13, 0.1).powi(2);
+                } else {
+                    r[cols].fill(0.0);
+                }
+            }
+            let k = self.mixed_kernels.as_ref().unwrap();
+            let round = Round {
+                ctx: &self.ctx,
+                pcg: &k.pcg,
+                spmv: &k.spmv(self.host.as_ref().unwrap().bs),
+                amg: &self.k.amg,
+                convert: Some(&k.convert),
+                budget: self.max_iterations - total,
+                check_every: self.check_every,
+                first_batch: self.hints.first_batch(self.kind, true, round_no),
+            };
+            let ws = &mut self.mixed.as_mut().unwrap().ws;
+            let active: Vec<f64> = (0..ncols)
+                .map(|c| if rel[c] > target[c] { rnorm[c] } else { 0.0 })
+                .collect();
+            let it = round.run(ws, bytemuck::cast_slice(&r), &thr, &active, x)?;
+            self.hints.record(self.kind, true, round_no, it);
+            total += it;
+            self.stats.rounds += 1;
+            self.stats.iterations = total;
+        }
+        unreachable!()
+    }
+
+    /// The preconditioner asked for.
+    pub fn preconditioner(&self) -> Preconditioner {
+        self.preconditioner
+    }
+
+    /// The preconditioner of the prepared matrix: block Jacobi when AMG was not
+    /// asked for or its setup failed (coarsening stalled); `Amg` when the
+    /// affine hierarchy had no positions or failed.
+    pub fn active_preconditioner(&self) -> Preconditioner {
+        match (&self.amg_gpu, &self.amg_host) {
+            (Some(_), _) if self.squared.is_some() => Preconditioner::SquaredLaplacian,
+            (Some(_), Some(h)) if h.affine => Preconditioner::AffineAmg,
+            (Some(_), _) => Preconditioner::Amg,
+            _ => Preconditioner::BlockJacobi,
+        }
+    }
+
+    /// Tuning of the AMG hierarchy (applies from the next prepare).
+    pub fn set_amg_options(&mut self, o: amg::AmgOptions) {
+        self.amg_opts = o;
+    }
+
+    /// The AMG hierarchy of the prepared matrix, if AMG is in use.
+    pub fn amg_hierarchy(&self) -> Option<&amg::Hierarchy> {
+        self.amg_host.as_ref()
+    }
+
+    /// Seconds the last AMG setup took on the CPU (hierarchy and upload).
+    pub fn amg_setup_seconds(&self) -> f64 {
+        self.amg_setup_seconds
+    }
+
+    /// Build (or refresh) the AMG hierarchy of the prepared host matrix.
+    fn setup_amg(&mut self) -> Result<(), GpuError> {
+        self.setups += 1;
+        self.amg_kept = false;
+        self.amg_kind = Some(self.kind);
+        self.squared = None;
+        if self.preconditioner == Preconditioner::BlockJacobi {
+            self.amg_host = None;
+            self.amg_gpu = None;
+            return Ok(());
+        }
+        let t = std::time::Instant::now();
+        if let Some(model) = self.squared_model() {
+            return self.setup_squared(model, t);
+        }
+        let h = self.host.as_ref().unwrap();
+        let fine_of = |h: &HostMatrix| amg::Bsr {
+            bs: h.bs,
+            rows: h.rows,
+            cols: h.rows,
+            row_ptr: h.row_ptr.clone(),
+            col_idx: h.col_idx.clone(),
+            vals: h.vals.clone(),
+        };
+        let prev = self.amg_host.take();
+        let positions = match (&self.positions, self.preconditioner) {
+            (Some(x), Preconditioner::AffineAmg | Preconditioner::SquaredLaplacian)
+                if h.bs == 3 && x.len() == h.rows =>
+            {
+                Some(x)
+            }
+            _ => None,
+        };
+        let built = match positions {
+            Some(x) => amg::Hierarchy::build_affine(fine_of(h), &self.amg_opts, x, prev.as_ref())
+                .or_else(|e| {
+                    log::warn!("affine AMG setup failed ({e}); translations only");
+                    amg::Hierarchy::build(fine_of(h), &self.amg_opts, prev.as_ref())
+                }),
+            None => amg::Hierarchy::build(fine_of(h), &self.amg_opts, prev.as_ref()),
+        };
+        let hier = match built {
+            Ok(hier) => hier,
+            Err(e) => {
+                log::warn!("AMG setup failed ({e}); block Jacobi instead");
+                self.amg_gpu = None;
+                self.drop_workspaces();
+                return Ok(());
+            }
+        };
+        // The finest A on the GPU is the PCG's matrix itself (block texture):
+        // a new upload of that matrix means a new hierarchy upload too.
+        let fine_current = self.amg_fine_upload == self.pattern_uploads;
+        match (&self.amg_gpu, &prev) {
+            (Some(g), Some(p)) if fine_current && amg_gpu::same_patterns(p, &hier) => {
+                g.write_values(&self.ctx, &hier);
+            }
+            _ => {
+                self.drop_workspaces();
+                self.amg_gpu = None;
+                self.amg_gpu = Some(amg_gpu::GpuHierarchy::upload(
+                    &self.ctx,
+                    &hier,
+                    self.gpu.as_ref(),
+                )?);
+                self.amg_fine_upload = self.pattern_uploads;
+            }
+        }
+        self.finish_setup("AMG", hier, t);
+        Ok(())
+    }
+
+    /// Keep the host hierarchy `hier` of a finished set-up begun at `t`, and
+    /// log it.
+    fn finish_setup(&mut self, what: &str, hier: amg::Hierarchy, t: std::time::Instant) {
+        log::debug!(
+            "{what} ({:?} system): levels {:?}, operator complexity {:.2}, setup {:.3} s",
+            self.kind,
+            hier.sizes(),
+            hier.operator_complexity(),
+            t.elapsed().as_secs_f64()
+        );
+        self.amg_host = Some(hier);
+        self.amg_setup_seconds = t.elapsed().as_secs_f64();
+    }
+
+    /// The shape model the squared-Laplacian preconditioner builds on, where
+    /// it is asked for and fits the prepared block matrix.
+    fn squared_model(&self) -> Option<std::sync::Arc<ShapeOperatorModel>> {
+        let h = self.host.as_ref()?;
+        let m = self.shape_model.as_ref()?;
+        (self.preconditioner == Preconditioner::SquaredLaplacian
+            && self.kind == SystemKind::ScaleDriven
+            && h.bs == 3
+            && m.laplacian.len() == h.rows
+            && m.mt.len() == h.rows
+            && self.fixed.len() == h.rows)
+            .then(|| m.clone())
+    }
+
+    /// Build and upload the squared-Laplacian preconditioner of `model`.
+    fn setup_squared(
+        &mut self,
+        model: std::sync::Arc<ShapeOperatorModel>,
+        t: std::time::Instant,
+    ) -> Result<(), GpuError> {
+        let (b, mt) = amg::squared_laplacian(&model, &self.fixed, amg::SQUARED_LAPLACIAN_TAU);
+        let opts = amg::AmgOptions {
+            sweeps: self.amg_opts.sweeps.max(SQUARED_LAPLACIAN_SWEEPS),
+            ..self.amg_opts
+        };
+        let hier = match amg::Hierarchy::build(b, &opts, None) {
+            Ok(h) => h,
+            Err(e) => {
+                log::warn!("squared-Laplacian AMG setup failed ({e}); block Jacobi instead");
+                self.amg_host = None;
+                self.amg_gpu = None;
+                self.drop_workspaces();
+                return Ok(());
+            }
+        };
+        self.drop_workspaces();
+        self.amg_gpu = None;
+        self.amg_gpu = Some(amg_gpu::GpuHierarchy::upload_on_3_vectors(
+            &self.ctx, &hier,
+        )?);
+        let mt32: Vec<f32> = mt.iter().map(|&v| v as f32).collect();
+        let buf = self.ctx.storage_init("squared-Laplacian Mt", &mt32)?;
+        self.squared = Some((model, buf));
+        self.finish_setup("squared-Laplacian AMG", hier, t);
+        Ok(())
+    }
+
+    pub(crate) fn spmv(&self) -> Spmv<'_> {
+        match self.host.as_ref().map(|h| h.bs) {
+            Some(1) => Spmv::Scalar(&self.k.csr),
+            _ => Spmv::Block(&self.k.bsr),
+        }
+    }
+
+    /// Upload a prepared host matrix (pattern if new, else values only).
+    fn upload(&mut self, h: HostMatrix, same: bool) -> Result<(), GpuError> {
+        let minv = block_jacobi::inverse_diagonal(&h).map_err(|e| match e {
+            SolverError::NotPositiveDefinite => GpuError::NotPositiveDefinite,
+            other => GpuError::Backend(other.to_string()),
+        })?;
+        let mut same_values_only = false;
+        match (same, self.gpu.as_ref()) {
+            (true, Some(gpu)) => {
+                gpu.write_values(&self.ctx, &h, &minv);
+                self.value_uploads += 1;
+                same_values_only = true;
+            }
+            _ => {
+                self.gpu = None;
+                self.drop_workspaces();
+                self.gpu = Some(GpuMatrix::upload(&self.ctx, &h, &minv)?);
+                self.pattern_uploads += 1;
+                self.mixed_sticky = false;
+                self.hints.clear();
+            }
+        }
+        self.host = Some(h);
+        // One preconditioner set-up per system kind: a new matrix of the kind
+        // the hierarchy was built for, same pattern, keeps it. Its finest
+        // level is the PCG's matrix itself (just rewritten); the finest
+        // smoother's diagonal is refreshed, the coarse levels are kept. The
+        // scale-driven matrices differ by the scale factors only, which
+        // leaves the iteration counts as they were (BENCHMARKS.md).
+        let keep = same_values_only
+            && self.amg_kind == Some(self.kind)
+            && (self.amg_gpu.is_some() || self.preconditioner == Preconditioner::BlockJacobi);
+        // The squared-Laplacian preconditioner does not depend on the
+        // matrix values at all: kept while its model is.
+        let squared_kept = self.squared.as_ref().is_some_and(|(m, _)| {
+            self.squared_model()
+                .is_some_and(|now| std::sync::Arc::ptr_eq(m, &now))
+        });
+        match (&self.amg_gpu, &self.amg_host) {
+            _ if self.squared.is_some() => {
+                if keep && squared_kept {
+                    self.amg_kept = true;
+                } else {
+                    self.setup_amg()?;
+                }
+            }
+            (Some(g), Some(hier)) if keep => {
+                let omega = hier.levels.first().map_or(1.0, |l| l.omega);
+                g.write_fine_diagonal(&self.ctx, &minv, omega);
+                self.amg_kept = true;
+            }
+            _ if keep => {}
+            _ => self.setup_amg()?,
+        }
+        self.ctx.check()
+    }
+
+    /// The workspace for at least `ncols` columns.
+    pub(crate) fn workspace(&mut self, ncols: usize) -> Result<(), GpuError> {
+        let want = ncols.min(CMAX);
+        if self.ws.as_ref().is_some_and(|w| w.cmax >= want) {
+            return Ok(());
+        }
+        self.drop_workspaces();
+        let h = self.host.as_ref().unwrap();
+        let ws = self.k.pcg.workspace(
+            &self.ctx,
+            &self.spmv(),
+            self.gpu.as_ref().unwrap(),
+            h.rows,
+            h.bs,
+            want,
+        )?;
+        let mut ws = ws;
+        if let (Some(g), Some((_, mt))) = (&self.amg_gpu, &self.squared) {
+            ws.squared = Some(amg_gpu::SquaredSteps::new(
+                &self.ctx,
+                &self.k.amg,
+                g,
+                mt,
+                &ws.r,
+                &ws.z,
+                ws.cmax,
+                SQUARED_LAPLACIAN_VCYCLES,
+            )?);
+        } else if let Some(g) = &self.amg_gpu {
+            ws.amg = Some(amg_gpu::VcycleWorkspace::new(
+                &self.ctx,
+                &self.k.amg,
+                g,
+                &ws.r,
+                &ws.z,
+                ws.cmax,
+            )?);
+        }
+        self.ws = Some(ws);
+        Ok(())
+    }
+
+    /// Solve up to CMAX columns: `x` holds the start on entry.
+    fn solve_batch(&mut self, b: &[f64], x: &mut [f64], ncols: usize) -> Result<(), GpuError> {
+        let n = self.host.as_ref().unwrap().n();
+        let bnorm: Vec<f64> = (0..ncols).map(|c| norm(&b[c * n..(c + 1) * n])).collect();
+        for c in 0..ncols {
+            if bnorm[c] == 0.0 {
+                x[c * n..(c + 1) * n].fill(0.0);
+            }
+        }
+        let start_mixed = self.mixed_precision == MixedPrecision::Always || self.mixed_sticky;
+        if start_mixed && self.mixed_available() {
+            return self.solve_batch_mixed(b, x, ncols, 0);
+        }
+        self.workspace(ncols)?;
+        let mut r = vec![0.0; n * ncols];
+        let mut r32 = vec![0f32; n * ncols];
+        let mut total = 0usize;
+        let mut worse = 0;
+        let mut prev = f64::INFINITY;
+        let mut watch = RoundWatch::default();
+        let anorm = self.host.as_ref().unwrap().norm_inf();
+        for round in 0.. {
+            let (rnorm, rel, worst, target) = residuals(
+                self.host.as_ref().unwrap(),
+                anorm,
+                b,
+                x,
+                &mut r,
+                ncols,
+                self.tol,
+            );
+            self.stats.residual = self.stats.residual.max(worst);
+            log::trace!(
+                "f32 round {round}: relative residual {worst:.2e} after {total} iterations"
+            );
+            if rel.iter().any(|v| !v.is_finite()) {
+                return Err(GpuError::NotPositiveDefinite);
+            }
+            if (0..ncols).all(|c| rel[c] <= target[c]) {
+                self.stats.residual = worst;
+                return Ok(());
+            }
+            // Not improving for three rounds: the f32 solve cannot help (cond(A) too large).
+            if worst > 0.5 * prev {
+                worse += 1;
+            } else {
+                worse = 0;
+            }
+            prev = prev.min(worst);
+            let f32_limited = watch.f32_limited(&rel);
+            if round >= self.max_rounds
+                || total >= self.max_iterations
+                || worse >= 3
+                || (f32_limited && self.mixed_available())
+            {
+                if self.mixed_available() && total < self.max_iterations {
+                    log::info!(
+                        "f32 refinement {} at a relative residual of {worst:.2e} after {total} iterations",
+                        if f32_limited { "limited by f32 rounding" } else { "stagnated" }
+                    );
+                    // Later solves of this pattern start in mixed precision:
+                    // the neighbouring systems are as hard.
+                    self.mixed_sticky = true;
+                    return self.solve_batch_mixed(b, x, ncols, total);
+                }
+                self.stats.residual = worst;
+                return Err(GpuError::NoConvergence {
+                    iterations: total,
+                    residual: worst,
+                });
+            }
+            let mut thr = vec![0f64; ncols];
+            let mut etas = vec![1.0; ncols];
+            for c in 0..ncols {
+                let active = rel[c] > target[c];
+                let scale = if active { 1.0 / rnorm[c] } else { 0.0 };
+                for (o, v) in r32[c * n..(c + 1) * n]
+                    .iter_mut()
+                    .zip(&r[c * n..(c + 1) * n])
+                {
+                    *o = (v * scale) as f32;
+                }
+                let eta = if active {
+                    (0.5 * target[c] / rel[c]).clamp(self.inner_min, 0.1)
+                } else {
+                    1.0
+                };
+                thr[c] = eta * eta;
+                etas[c] = eta;
+            }
+            watch.launched(&rel, etas);
+            let spmv = match self.host.as_ref().unwrap().bs {
+                1 => Spmv::Scalar(&self.k.csr),
+                _ => Spmv::Block(&self.k.bsr),
+            };
+            let round_no = round;
+            let round = Round {
+                ctx: &self.ctx,
+                pcg: &self.k.pcg,
+                spmv: &spmv,
+                amg: &self.k.amg,
+                convert: None,
+                budget: self.max_iterations - total,
+                check_every: self.check_every,
+                first_batch: self.hints.first_batch(self.kind, false, round_no),
+            };
+            let ws = self.ws.as_mut().unwrap();
+            let active: Vec<f64> = (0..ncols)
+                .map(|c| if rel[c] > target[c] { rnorm[c] } else { 0.0 })
+                .collect();
+            let done = round.run(ws, bytemuck::cast_slice(&r32), &thr, &active, x);
+            self.stats.rounds += 1;
+            self.stats.f32_rounds += 1;
+            total += match done {
+                Ok(iterations) => {
+                    self.hints.record(self.kind, false, round_no, iterations);
+                    iterations
+                }
+                // An f32 breakdown on a matrix whose diagonal blocks passed the
+                // SPD check can be rounding (p.Ap or r.z <= 0 in f32 on a very
+                // ill-conditioned system): the f64 iteration decides.
+                Err(GpuError::NotPositiveDefinite) if self.mixed_available() => {
+                    log::info!("f32 PCG broke down after {total} iterations");
+                    self.mixed_sticky = true;
+                    return self.solve_batch_mixed(b, x, ncols, total);
+                }
+                Err(e) => return Err(e),
+            };
+            self.stats.iterations = total;
+        }
+        unreachable!()
+    }
+
+    fn solve(&mut self, b: &[f64], x: &mut [f64], ncols: usize) -> Result<SolveInfo, SolverError> {
+        let Some(h) = self.host.as_ref() else {
+            return Err(SolverError::NotPrepared);
+        };
+        let n = h.n();
+        if b.len() != n * ncols || x.len() != n * ncols {
+            return Err(SolverError::DimensionMismatch(format!(
+                "right-hand sides have {} entries, guesses {}, expected {} x {}",
+                b.len(),
+                x.len(),
+                n,
+                ncols
+            )));
+        }
+        self.stats = SolveStats::default();
+        let t = std::time::Instant::now();
+        let mut worst = 0.0f64;
+        let mut iterations = 0;
+        let start = self.amg_kept.then(|| x.to_vec());
+        let mut outcome = self.solve_columns(b, x, ncols, n, &mut worst, &mut iterations);
+        if let (Err(e), Some(start)) = (&outcome, start) {
+            // The kept hierarchy (built for an earlier matrix of this kind)
+            // did not carry this one: build it for this matrix, once.
+            log::info!("GPU solve with the kept preconditioner failed ({e}); rebuilding it");
+            self.setup_amg().map_err(SolverError::from)?;
+            x.copy_from_slice(&start);
+            worst = 0.0;
+            outcome = self.solve_columns(b, x, ncols, n, &mut worst, &mut iterations);
+        }
+        self.work.solved(iterations);
+        outcome?;
+        log::debug!(
+            "GPU solve: {n} unknowns x {ncols}, {iterations} iterations, {} rounds ({} f32), \
+             residual {worst:.1e}, {:.3} s",
+            self.stats.rounds,
+            self.stats.f32_rounds,
+            t.elapsed().as_secs_f64()
+        );
+        Ok(SolveInfo {
+            iterations,
+            residual: worst,
+        })
+    }
+
+    /// The batches of [`Self::solve`].
+    fn solve_columns(
+        &mut self,
+        b: &[f64],
+        x: &mut [f64],
+        ncols: usize,
+        n: usize,
+        worst: &mut f64,
+        iterations: &mut usize,
+    ) -> Result<(), SolverError> {
+        for c0 in (0..ncols).step_by(CMAX) {
+            let m = CMAX.min(ncols - c0);
+            let rng = c0 * n..(c0 + m) * n;
+            let before = self.stats;
+            self.stats = SolveStats::default();
+            let res = self.solve_batch(&b[rng.clone()], &mut x[rng], m);
+            *iterations += self.stats.iterations;
+            *worst = worst.max(self.stats.residual);
+            self.stats = SolveStats {
+                rounds: before.rounds + self.stats.rounds,
+                iterations: *iterations,
+                residual: *worst,
+                mixed: before.mixed || self.stats.mixed,
+                f32_rounds: before.f32_rounds + self.stats.f32_rounds,
+            };
+            res.map_err(|e| match e {
+                GpuError::NoConvergence { residual, .. } => SolverError::NoConvergence {
+                    iterations: *iterations,
+                    residual,
+                },
+                other => other.into(),
+            })?;
+        }
+        Ok(())
+    }
+}
+
+fn norm(v: &[f64]) -> f64 {
+    v.iter().map(|a| a * a).sum::<f64>().sqrt()
+}
+
+impl SpdSolver for GpuSolver {
+    fn prepare(&mut self, a: &SymCsc) -> Result<(), SolverError> {
+        let same = self
+            .host
+            .as_ref()
+            .is_some_and(|h| h.same_pattern(1, &a.col_ptr, &a.row_idx));
+        let mut h = match (same, self.host.take()) {
+            (true, Some(h)) => h,
+            _ => HostMatrix::pattern(a.n, 1, &a.col_ptr, &a.row_idx)?,
+        };
+        if a.values.len() != a.row_idx.len() {
+            return Err(SolverError::DimensionMismatch(format!(
+                "{} values for {} entries",
+                a.values.len(),
+                a.row_idx.len()
+            )));
+        }
+        h.fill_scalar(a);
+        self.upload(h, same).map_err(Into::into)
+    }
+
+    fn prepare_blocks(&mut self, a: &BlockSym3, fixed: &[bool]) -> Result<(), SolverError> {
+        if fixed.len() != a.n || a.blocks.len() != a.row_idx.len() {
+            return Err(SolverError::DimensionMismatch(format!(
+                "{} fixed flags and {} blocks for {} block rows and {} pattern entries",
+                fixed.len(),
+                a.blocks.len(),
+                a.n,
+                a.row_idx.len()
+            )));
+        }
+        let same = self
+            .host
+            .as_ref()
+            .is_some_and(|h| h.same_pattern(3, &a.col_ptr, &a.row_idx));
+        let mut h = match (same, self.host.take()) {
+            (true, Some(h)) => h,
+            _ => HostMatrix::pattern(a.n, 3, &a.col_ptr, &a.row_idx)?,
+        };
+        h.fill_blocks(a, fixed);
+        self.fixed.clear();
+        self.fixed.extend_from_slice(fixed);
+        self.upload(h, same).map_err(Into::into)
+    }
+
+    fn solve_in_place(&mut self, rhs: &mut [f64], ncols: usize) -> Result<SolveInfo, SolverError> {
+        let b = rhs.to_vec();
+        rhs.fill(0.0);
+        self.solve(&b, rhs, ncols)
+    }
+
+    fn solve_with_guess(
+        &mut self,
+        b: &[f64],
+        x: &mut [f64],
+        ncols: usize,
+    ) -> Result<SolveInfo, SolverError> {
+        self.solve(b, x, ncols)
+    }
+
+    fn set_tolerance(&mut self, relative_residual: f64) {
+        self.tol = relative_residual.max(1e-15);
+    }
+
+    fn set_vertex_positions(&mut self, positions: &[[f64; 3]]) {
+        self.positions = (!positions.is_empty()).then(|| positions.to_vec());
+    }
+
+    fn set_system_kind(&mut self, kind: SystemKind) {
+        self.kind = kind;
+    }
+
+    fn set_shape_model(&mut self, model: Option<std::sync::Arc<ShapeOperatorModel>>) {
+        self.shape_model = model;
+    }
+
+    fn counters(&self) -> WorkCounters {
+        let t = self.ctx.traffic();
+        WorkCounters {
+            preconditioner_setups: self.setups,
+            device_seconds: t.wait_seconds,
+            device_waits: t.waits as usize,
+            bytes_to_device: t.to_device,
+            bytes_from_device: t.from_device,
+            device_dispatches: t.kernels.dispatches,
+            device_bytes: t.kernels.bytes,
+            device_bytes_minimal: t.kernels.minimal,
+            ..self.work
+        }
+    }
+
+    fn name(&self) -> &str {
+        "gpu"
+    }
+}
