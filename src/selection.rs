@@ -293,11 +293,58 @@ fn plane_section(plane: &PlaneSpec, mesh: &Mesh, topo: &Topology, what: &str) ->
     }
     match best {
         Some((_, segments, closed)) => Ok(Curve { segments, closed }),
-        None => Err(Error::bad(format!(
-            "{what}: the plane (origin {:?}, normal {:?}) misses the mesh",
-            plane.origin, plane.normal
-        ))),
+        None => {
+            // Extent of the mesh along the unit normal, measured from the origin.
+            let nh = normal.normalize();
+            let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+            for t in &mesh.faces {
+                for &v in t {
+                    let h = (x[v as usize] - origin).dot(nh);
+                    lo = lo.min(h);
+                    hi = hi.max(h);
+                }
+            }
+            Err(Error::bad(format!(
+                "{what}: the plane (origin {:?}, normal {:?}) misses the mesh: the mesh \
+                 spans {} to {} along the unit normal from the origin (dot(x - origin, \
+                 n/|n|)); move the origin along the normal into that range",
+                plane.origin,
+                plane.normal,
+                short(lo),
+                short(hi)
+            )))
+        }
     }
+}
+
+/// A number for messages: about 6 significant digits.
+fn short(v: f64) -> String {
+    let a = v.abs();
+    if a == 0.0 || (1e-3..1e6).contains(&a) {
+        let s = format!("{v:.6}");
+        let s = s.trim_end_matches('0').trim_end_matches('.');
+        if s == "-0" {
+            "0".into()
+        } else {
+            s.into()
+        }
+    } else {
+        format!("{v:.5e}")
+    }
+}
+
+/// `min [..] max [..]` of the vertices that faces use, for messages.
+fn bbox_text(mesh: &Mesh) -> String {
+    let mut lo = DVec3::splat(f64::INFINITY);
+    let mut hi = DVec3::splat(f64::NEG_INFINITY);
+    for t in &mesh.faces {
+        for &v in t {
+            lo = lo.min(mesh.positions[v as usize]);
+            hi = hi.max(mesh.positions[v as usize]);
+        }
+    }
+    let f = |p: DVec3| format!("[{}, {}, {}]", short(p.x), short(p.y), short(p.z));
+    format!("min {} max {}", f(lo), f(hi))
 }
 
 /// Vertex-vertex adjacency (CSR) with the connecting edge index.
@@ -621,7 +668,8 @@ pub fn build_region(spec: &RegionSpec, mesh: &Mesh, job: &Job, what: &str) -> Re
             ))
         })?;
         let mut list = Vec::new();
-        for line in text.lines() {
+        // Lines end in LF, CRLF or a lone CR (old Mac files).
+        for line in text.split(['\n', '\r']) {
             let line = line.split('#').next().unwrap_or("");
             for tok in line.split_whitespace() {
                 let f: usize = tok.parse().map_err(|_| {
@@ -686,8 +734,35 @@ pub fn build_region(spec: &RegionSpec, mesh: &Mesh, job: &Job, what: &str) -> Re
     faces.sort_unstable();
     faces.dedup();
     if faces.is_empty() {
+        let hint = if let Some(sp) = &spec.sphere {
+            let r = sp.radius;
+            let c = sp.center;
+            format!(
+                ": no face centroid lies within the sphere (center {:?}, radius {r}, \
+                 extent [{}, {}, {}] to [{}, {}, {}]); the mesh's bounding box is {}: \
+                 move the center or enlarge the radius",
+                c,
+                short(c[0] - r),
+                short(c[1] - r),
+                short(c[2] - r),
+                short(c[0] + r),
+                short(c[1] + r),
+                short(c[2] + r),
+                bbox_text(mesh)
+            )
+        } else if let Some(b) = &spec.box_ {
+            format!(
+                ": no face centroid lies inside the box (min {:?} max {:?}); the mesh's \
+                 bounding box is {}: move or enlarge the box",
+                b.min,
+                b.max,
+                bbox_text(mesh)
+            )
+        } else {
+            ": the list is empty; give at least one face index".to_string()
+        };
         return Err(Error::bad(format!(
-            "{what}: region selects no faces ({})",
+            "{what}: region selects no faces ({}){hint}",
             spec.given().join("")
         )));
     }

@@ -486,7 +486,8 @@ fn validation_rejections() {
             non_manifold_edges: 0,
             unreferenced_vertices: 1,
             components: 1,
-            closed: false
+            closed: false,
+            ..MeshCheck::default()
         }
     );
     let msg = bad_msg(require_closed(&c, &f, "volume constraint 'x'"));
@@ -530,13 +531,17 @@ fn validation_rejections() {
         "{msg}"
     );
 
-    // Zero area (collinear corners).
+    // Zero area (collinear corners): accepted, named in a warning.
     let mut m = quad.clone();
     m.positions[3] = DVec3::new(2.0, 2.0, 0.0);
-    let msg = bad_msg(check(&m, &f));
+    let c = check(&m, &f).unwrap();
+    assert_eq!(c.zero_area_faces, vec![1]);
     assert!(
-        msg.contains("degenerate") && msg.contains("face 1"),
-        "{msg}"
+        c.warnings.iter().any(|w| w.contains("t.obj")
+            && w.contains("1 zero-area face")
+            && w.contains("0-based: 1)")),
+        "{:?}",
+        c.warnings
     );
 
     // Many offenders: at most five listed, then "and N more".

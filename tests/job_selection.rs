@@ -254,8 +254,9 @@ fn toml_and_json_parse_to_equal_specs() {
     assert_eq!(s.solver.max_iterations, Some(100));
     assert_eq!(t.mesh_path(), dir.path().join("spot.obj"));
     assert_eq!(t.output_path(), dir.path().join("out/spot-deformed.obj"));
-    assert_eq!(t.constraint_label(0), "constraint 0 ('neck girth')");
-    assert_eq!(t.constraint_label(1), "constraint 1 (length)");
+    // Constraints are numbered from 1 in messages (contract: "1-based number").
+    assert_eq!(t.constraint_label(0), "constraint 1 ('neck girth')");
+    assert_eq!(t.constraint_label(1), "constraint 2 (length)");
     assert_eq!(MetricKind::Area.to_string(), "area");
 }
 
@@ -336,13 +337,13 @@ fn constraint_validation() {
          [[constraint]]\nkind = \"volume\"\nname = \"neck girth\"\nscale = 1.0\nvalue = 2.0\n",
     ));
     assert!(
-        msg.contains("constraint 2 ('neck girth'): give either scale or value, not both"),
+        msg.contains("constraint 3 ('neck girth'): give either scale or value, not both"),
         "{msg}"
     );
     let cases: [(&str, &str); 9] = [
         (
             "kind = \"volume\"\nscale = -1.0",
-            "constraint 0 (volume): scale",
+            "constraint 1 (volume): scale",
         ),
         ("kind = \"volume\"\nvalue = 0.0", "value"),
         ("kind = \"volume\"\nscale = nan", "scale"),
@@ -384,7 +385,7 @@ fn constraint_validation() {
     let msg = bad_msg(toml_job(
         "mesh = \"a.obj\"\n[[handle]]\nvertices = [0]\nregion = { faces = [0] }\n",
     ));
-    assert!(msg.contains("handle 0"), "{msg}");
+    assert!(msg.contains("handle 1"), "{msg}");
     let msg = bad_msg(toml_job("mesh = \"a.obj\"\n[solver]\ntolerance = 0.0\n"));
     assert!(msg.contains("tolerance"), "{msg}");
     let msg = bad_msg(toml_job(
