@@ -277,6 +277,13 @@ impl Job {
     /// Parse and validate job text (e.g. the embedded demo). `dir` is the folder
     /// relative paths are resolved against; `origin` names the text in messages.
     pub fn from_str(text: &str, format: JobFormat, dir: &Path, origin: &str) -> Result<Job> {
+        // TOML knows LF and CRLF line ends only: read old Mac files (lone CR) too.
+        let text = if text.contains('\r') {
+            std::borrow::Cow::Owned(lone_cr_to_lf(text))
+        } else {
+            std::borrow::Cow::Borrowed(text)
+        };
+        let text: &str = &text;
         let spec: JobSpec = match format {
             JobFormat::Toml => toml::from_str(text)
                 .map_err(|e| Error::bad(format!("{origin}: {}", e.to_string().trim_end())))?,
@@ -351,6 +358,30 @@ pub fn handle_label(i: usize) -> String {
 /// `curvature N` for the 0-based index `i`, N 1-based.
 pub fn curvature_label(i: usize) -> String {
     format!("curvature {}", i + 1)
+}
+
+/// A number for messages: plain, or in exponent form when very large or small.
+fn num(v: f64) -> String {
+    let a = v.abs();
+    if a != 0.0 && a.is_finite() && !(1e-3..1e6).contains(&a) {
+        format!("{v:e}")
+    } else {
+        format!("{v}")
+    }
+}
+
+/// Every `\r` not followed by `\n` turned into `\n`.
+fn lone_cr_to_lf(text: &str) -> String {
+    let mut out = String::with_capacity(text.len());
+    let mut chars = text.chars().peekable();
+    while let Some(c) = chars.next() {
+        if c == '\r' && chars.peek() != Some(&'\n') {
+            out.push('\n');
+        } else {
+            out.push(c);
+        }
+    }
+    out
 }
 
 fn finite3(v: &[f64; 3]) -> bool {
@@ -665,7 +696,7 @@ impl WeightsSpec {
             .filter_map(|&(name, v)| {
                 let v = v?;
                 (!(v.is_finite() && (0.0..=MAX_WEIGHT).contains(&v)))
-                    .then(|| format!("{name} = {v}"))
+                    .then(|| format!("{name} = {}", num(v)))
             })
             .collect();
         if !bad.is_empty() {
@@ -706,9 +737,11 @@ impl WeightsSpec {
         }
         if k_f < MIN_FRAME_RATIO * big {
             return Err(format!(
-                "solver.weights.k_f = {k_f} is negligible next to {big_name} = {big} \
+                "solver.weights.k_f = {} is negligible next to {big_name} = {} \
                  (ratio below {MIN_FRAME_RATIO:e}): the shape system is numerically \
-                 singular; raise k_f or lower {big_name}"
+                 singular; raise k_f or lower {big_name}",
+                num(k_f),
+                num(big)
             ));
         }
         Ok(())
