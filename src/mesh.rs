@@ -102,7 +102,7 @@ impl Mesh {
                 }
                 let p = [x[a as usize], x[b as usize], x[c as usize]];
                 let cr = (p[1] - p[0]).cross(p[2] - p[0]).length();
-                if !(cr > tol) {
+                if cr.is_nan() || cr <= tol {
                     return true;
                 }
                 (0..3).any(|k| {

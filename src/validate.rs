@@ -385,12 +385,12 @@ fn closed_message(check: &MeshCheck, file: &Path, what: &str, seams: Option<&Sea
         ));
     }
     match seams {
-        Some(s) if s.paired > 0 && s.paired == check.boundary_edges => msg.push_str(&format!(
+        Some(s) if s.paired > 0 && s.paired == check.boundary_edges => msg.push_str(
             ": the mesh is open only because its seams are split (every boundary edge \
              coincides in position with another, as after a UV or normal export): weld \
              vertices at equal positions (e.g. MeshLab's Merge Close Vertices, trimesh's \
-             merge_vertices), or drop the volume constraint"
-        )),
+             merge_vertices), or drop the volume constraint",
+        ),
         Some(s) if s.paired > 0 => msg.push_str(&format!(
             ": {} of them coincide in position with another (split seams: weld vertices \
              at equal positions); fill the remaining holes (e.g. MeshLab's Close Holes) or \

@@ -234,9 +234,9 @@ fn spot_with_split_seam(z: f64) -> Mesh {
             copy[v] = (m.positions.len() - 1) as u32;
         }
     }
-    for f in 0..nf {
-        if upper[f] {
-            for v in m.faces[f].iter_mut() {
+    for (t, &up) in m.faces.iter_mut().zip(&upper) {
+        if up {
+            for v in t.iter_mut() {
                 if copy[*v as usize] != u32::MAX {
                     *v = copy[*v as usize];
                 }
