@@ -199,7 +199,8 @@ fn plane_section(plane: &PlaneSpec, mesh: &Mesh, topo: &Topology, what: &str) ->
     // Best piece so far: (distance of its nearest crossing to origin, segments, closed).
     let mut best: Option<(f64, Vec<Segment>, bool)> = None;
     for f0 in 0..nf {
-        if visited[f0] {
+        // Duplicate and collapsed faces are not part of the surface's adjacency.
+        if visited[f0] || topo.ignored.get(f0).copied().unwrap_or(false) {
             continue;
         }
         let Some(sides0) = crossed_sides(f0) else {
@@ -355,8 +356,16 @@ struct Adjacency {
 
 impl Adjacency {
     fn build(nv: usize, topo: &Topology) -> Adjacency {
+        // Edges without faces (sides of collapsed faces only) are no path.
+        let usable = |e: usize| {
+            let [a, b] = topo.edges[e];
+            a != b && !topo.edge_faces(e).is_empty()
+        };
         let mut start = vec![0usize; nv + 1];
-        for &[a, b] in &topo.edges {
+        for (e, &[a, b]) in topo.edges.iter().enumerate() {
+            if !usable(e) {
+                continue;
+            }
             start[a as usize + 1] += 1;
             start[b as usize + 1] += 1;
         }
@@ -366,6 +375,9 @@ impl Adjacency {
         let mut fill = start.clone();
         let mut nbr = vec![(0u32, 0u32); start[nv]];
         for (e, &[a, b]) in topo.edges.iter().enumerate() {
+            if !usable(e) {
+                continue;
+            }
             nbr[fill[a as usize]] = (b, e as u32);
             fill[a as usize] += 1;
             nbr[fill[b as usize]] = (a, e as u32);

@@ -61,6 +61,9 @@ pub fn cotangent_laplacian_masked(mesh: &Mesh, x: &[DVec3], skip: &[bool]) -> La
         let skipped = skip.get(fi).copied().unwrap_or(false);
         for k in 0..3 {
             let (a, b, c) = (f[k], f[(k + 1) % 3], f[(k + 2) % 3]);
+            if skipped && a == b {
+                continue; // a collapsed face's side (a, a): nothing to keep
+            }
             let cot = if skipped {
                 0.0
             } else {
@@ -95,8 +98,12 @@ pub fn mean_value_laplacian_masked(mesh: &Mesh, x: &[DVec3], skip: &[bool]) -> L
         for k in 0..3 {
             let (a, b, c) = (f[k], f[(k + 1) % 3], f[(k + 2) % 3]);
             if skipped {
-                t.push((a, b, 0.0));
-                t.push((a, c, 0.0));
+                if a != b {
+                    t.push((a, b, 0.0));
+                }
+                if a != c {
+                    t.push((a, c, 0.0));
+                }
                 continue;
             }
             let e1 = x[b as usize] - x[a as usize];

@@ -2,12 +2,12 @@
 //! names the file and the offending elements; what it can live with is counted.
 //!
 //! Rejected ([`Error::BadInput`]): no faces, face corners out of range, non-finite
-//! coordinates on vertices used by faces, faces with a repeated vertex index, and
-//! non-manifold edges (more than two faces, duplicate faces not counted).
+//! coordinates on vertices used by faces, and non-manifold edges (more than two
+//! faces; duplicate and collapsed faces not counted).
 //!
 //! Accepted and counted ([`MeshCheck`]): boundary edges, unreferenced vertices (logged with
-//! `log::warn!`), connected components; zero-area, needle and cap faces
-//! ([`Mesh::degenerate_faces`]: they get no shape weight) and duplicate faces (left out of
+//! `log::warn!`), connected components; zero-area (a repeated corner index included),
+//! needle and cap faces ([`Mesh::degenerate_faces`]: they get no shape weight) and duplicate faces (left out of
 //! the adjacency, see [`Topology`]) are listed in [`MeshCheck::warnings`] and logged.
 //! Non-manifold vertices (two fans of faces meeting in one vertex) are logged with
 //! `log::warn!` but not rejected.
@@ -160,28 +160,10 @@ pub fn validate(mesh: &Mesh, topo: &Topology, file: &Path) -> Result<MeshCheck> 
         )));
     }
 
-    // Faces that are not triangles (a repeated corner index): refused.
     let x = &mesh.positions;
-    let degenerate: Vec<String> = mesh
-        .faces
-        .iter()
-        .enumerate()
-        .filter_map(|(f, t)| {
-            let [a, b, c] = *t;
-            (a == b || b == c || a == c)
-                .then(|| format!("face {f} ({a}, {b}, {c}) repeats a vertex"))
-        })
-        .collect();
-    if !degenerate.is_empty() {
-        return Err(Error::bad(format!(
-            "{file_s}: {} (0-based triangle index (vertices); a face needs three \
-             different vertices: remove these faces or fix their indices): {}",
-            plural(degenerate.len(), "degenerate face", "degenerate faces"),
-            listing(&degenerate)
-        )));
-    }
 
-    // Tolerated: zero-area, needle and cap faces, and duplicate faces.
+    // Tolerated: zero-area (a repeated corner index included), needle and cap faces,
+    // and duplicate faces.
     let mut warnings = Vec::new();
     let zero_area_faces: Vec<usize> = mesh
         .degenerate_faces(x)

@@ -522,14 +522,19 @@ fn validation_rejections() {
     let msg = bad_msg(check(&m, &f));
     assert!(msg.contains("face 2") && msg.contains("vertex 9"), "{msg}");
 
-    // Repeated vertex.
+    // Repeated vertex index (an STL triangle with two equal corners reads so): a
+    // zero-area face, accepted and named.
     let mut m = quad.clone();
-    m.faces[1] = [0, 2, 2];
-    let msg = bad_msg(check(&m, &f));
+    m.faces.push([0, 2, 2]);
+    let c = check(&m, &f).unwrap();
+    assert_eq!(c.zero_area_faces, vec![2]);
     assert!(
-        msg.contains("degenerate") && msg.contains("face 1"),
-        "{msg}"
+        c.warnings.iter().any(|w| w.contains("0-based: 2)")),
+        "{:?}",
+        c.warnings
     );
+    assert_eq!(c.boundary_edges, 4);
+    assert_eq!(c.non_manifold_edges, 0);
 
     // Zero area (collinear corners): accepted, named in a warning.
     let mut m = quad.clone();
@@ -546,8 +551,8 @@ fn validation_rejections() {
 
     // Many offenders: at most five listed, then "and N more".
     let mut m = quad.clone();
-    for _ in 0..8 {
-        m.faces.push([1, 1, 2]);
+    for i in 0..8 {
+        m.faces.push([1, 2, 9 + i]);
     }
     let msg = bad_msg(check(&m, &f));
     assert!(msg.contains("and 3 more"), "{msg}");

@@ -336,3 +336,39 @@ fn ogre_area_and_girth_job_runs_and_its_volume_job_is_refused() {
         "{msg}"
     );
 }
+
+/// Faces with a repeated corner index (an ASCII STL triangle with two equal corners
+/// reads so) are zero-area faces: warned, and the volume job on the otherwise closed
+/// mesh runs (they made an edge "non-manifold" and were refused as degenerate).
+#[test]
+fn collapsed_faces_are_zero_area_faces() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut mesh = spot();
+    let [a, b, _] = mesh.faces[40];
+    mesh.faces.push([a, a, b]);
+    mesh.faces.push([b, a, b]);
+    let nf = mesh.num_faces();
+    let topo = Topology::build(&mesh);
+    assert!(topo.is_closed());
+    assert_eq!(topo.collapsed_faces, vec![nf as u32 - 2, nf as u32 - 1]);
+    let job = job_on(
+        dir.path(),
+        &mesh,
+        &format!(
+            "{AREA_AND_VOLUME}[[constraint]]\nkind = \"length\"\n\
+             curve = {{ path = [{a}, 1500, {b}] }}\nscale = 1.05\n"
+        ),
+    );
+    let (problem, x, met) = run(&job);
+    assert!(
+        problem
+            .warnings
+            .iter()
+            .any(|w| w.contains("2 zero-area faces")
+                && w.contains(&format!("0-based: {}, {})", nf - 2, nf - 1))),
+        "{:?}",
+        problem.warnings
+    );
+    assert!(met);
+    assert!(x.iter().all(|p| p.is_finite()));
+}
