@@ -5,12 +5,12 @@
 //! coordinates on vertices used by faces, and non-manifold edges (more than two
 //! faces; duplicate and collapsed faces not counted).
 //!
-//! Accepted and counted ([`MeshCheck`]): boundary edges, unreferenced vertices (logged with
-//! `log::warn!`), connected components; zero-area (a repeated corner index included),
-//! needle and cap faces ([`Mesh::degenerate_faces`]: they get no shape weight) and duplicate faces (left out of
-//! the adjacency, see [`Topology`]) are listed in [`MeshCheck::warnings`] and logged.
-//! Non-manifold vertices (two fans of faces meeting in one vertex) are logged with
-//! `log::warn!` but not rejected.
+//! Accepted and counted ([`MeshCheck`]): boundary edges, connected components. Accepted
+//! and named in [`MeshCheck::warnings`] (each also logged with `log::warn!`):
+//! zero-area (a repeated corner index included), needle and cap faces
+//! ([`Mesh::degenerate_faces`]: they get no shape weight), duplicate faces (left out of
+//! the adjacency, see [`Topology`]), unreferenced vertices and non-manifold vertices
+//! (two fans of faces meeting in one vertex).
 //!
 //! A volume constraint needs more ([`require_volume`]): a closed, consistently oriented
 //! mesh.
@@ -212,10 +212,6 @@ pub fn validate(mesh: &Mesh, topo: &Topology, file: &Path) -> Result<MeshCheck> 
             )
         ));
     }
-    for w in &warnings {
-        log::warn!("{w}");
-    }
-
     // Non-manifold edges.
     if !topo.non_manifold_edges.is_empty() {
         let items: Vec<String> = topo
@@ -243,22 +239,28 @@ pub fn validate(mesh: &Mesh, topo: &Topology, file: &Path) -> Result<MeshCheck> 
             .filter(|(_, &u)| !u)
             .map(|(v, _)| v.to_string())
             .collect();
-        log::warn!(
-            "{file_s}: {} not used by any face (ignored; 0-based): {}",
+        warnings.push(format!(
+            "mesh {file_s}: {} not used by any face (ignored; 0-based: {})",
             plural(unreferenced, "vertex is", "vertices are"),
-            listing(&first)
-        );
+            index_listing(first.into_iter())
+        ));
     }
 
     // Tolerated: non-manifold vertices (the faces around a vertex form several fans).
     let nm_vertices = non_manifold_vertices(mesh, topo);
     if !nm_vertices.is_empty() {
-        let items: Vec<String> = nm_vertices.iter().map(|v| v.to_string()).collect();
-        log::warn!(
-            "{file_s}: {} where separate fans of faces meet (0-based): {}",
-            plural(items.len(), "non-manifold vertex", "non-manifold vertices"),
-            listing(&items)
-        );
+        warnings.push(format!(
+            "mesh {file_s}: {} where separate fans of faces meet (0-based: {})",
+            plural(
+                nm_vertices.len(),
+                "non-manifold vertex",
+                "non-manifold vertices"
+            ),
+            index_listing(nm_vertices.iter().map(|v| v.to_string()))
+        ));
+    }
+    for w in &warnings {
+        log::warn!("{w}");
     }
 
     // Connected components of faces via shared vertices.

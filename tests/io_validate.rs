@@ -487,6 +487,10 @@ fn validation_rejections() {
             unreferenced_vertices: 1,
             components: 1,
             closed: false,
+            warnings: vec![format!(
+                "mesh {}: 1 vertex is not used by any face (ignored; 0-based: 4)",
+                f.display()
+            )],
             ..MeshCheck::default()
         }
     );

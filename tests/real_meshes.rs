@@ -372,3 +372,62 @@ fn collapsed_faces_are_zero_area_faces() {
     assert!(met);
     assert!(x.iter().all(|p| p.is_finite()));
 }
+
+/// Item 1: the scale-factor system (Eq. 3) stays positive definite and its solution
+/// finite when faces have zero rest area, with both regularisers and even with
+/// k_d = k_r = 0 (the regulariser keeps a floor on zero-area faces).
+#[test]
+fn scale_factor_system_is_well_posed_on_zero_area_faces() {
+    use metricdeform::scale_factors::{Regulariser, ScaleConstraint, ScaleFactorSystem};
+    use metricdeform::schur::Multipliers;
+    let (mut mesh, sliver) = spot_with_sliver(100, 0.0);
+    // A second, isolated zero-area face: a collapsed one.
+    let [a, b, _] = mesh.faces[200];
+    mesh.faces.push([a, b, b]);
+    let topo = Topology::build(&mesh);
+    let x = &mesh.positions;
+    let areas = mesh.face_areas(x);
+    assert!(areas[sliver] < 1e-15);
+    // Area x1.5 of the faces around the sliver, the sliver included.
+    let faces: Vec<u32> = (0..mesh.num_faces() as u32)
+        .filter(|&f| (mesh.centroid(x, f as usize) - mesh.centroid(x, sliver)).length() < 0.2)
+        .collect();
+    assert!(faces.contains(&(sliver as u32)));
+    let total: f64 = faces.iter().map(|&f| areas[f as usize]).sum();
+    for reg in [Regulariser::Area, Regulariser::Uniform] {
+        for (k_d, k_r) in [(1.0, 0.01), (0.0, 0.0)] {
+            let mut sys = ScaleFactorSystem::new(&topo.face_pairs, &areas, k_d, k_r, reg).unwrap();
+            let c = ScaleConstraint {
+                coeffs: faces.iter().map(|&f| (f, areas[f as usize])).collect(),
+                degree: 2,
+                target: 1.5 * total,
+                group: 0,
+            };
+            let (s, info) = sys.estimate(&[c], Multipliers::PerConstraint).unwrap();
+            assert!(
+                s.iter().all(|v| v.is_finite() && *v > 0.0),
+                "{reg:?} k_d {k_d} k_r {k_r}"
+            );
+            assert!(info.max_residual < 1e-9, "{reg:?}: {}", info.max_residual);
+        }
+    }
+}
+
+/// Unreferenced and non-manifold vertices join the warnings list (for the command
+/// line to print), each naming the mesh and the 0-based indices.
+#[test]
+fn warnings_list_names_unreferenced_vertices() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut mesh = spot();
+    mesh.positions.push(DVec3::new(9.0, 9.0, 9.0));
+    let nv = mesh.num_vertices();
+    let job = job_on(dir.path(), &mesh, "");
+    let p = Problem::load(&job).unwrap();
+    assert!(
+        p.warnings.iter().any(|w| w.contains("m.obj")
+            && w.contains("1 vertex is not used")
+            && w.contains(&format!("0-based: {})", nv - 1))),
+        "{:?}",
+        p.warnings
+    );
+}
