@@ -431,3 +431,38 @@ fn warnings_list_names_unreferenced_vertices() {
         p.warnings
     );
 }
+
+/// Item 1: vertices used only by zero-area faces (here a separate sliver
+/// component) have no frame, curvature or Laplacian weight; the springs on the
+/// sides of such faces keep the shape system positive definite, and they follow
+/// along rigidly instead of breaking the solve.
+#[test]
+fn vertices_only_in_zero_area_faces_keep_the_system_well_posed() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut mesh = spot();
+    let n = mesh.num_vertices() as u32;
+    for p in [
+        DVec3::new(2.0, 0.0, 0.0),
+        DVec3::new(2.5, 0.0, 0.0),
+        DVec3::new(3.0, 0.0, 0.0),
+    ] {
+        mesh.positions.push(p);
+    }
+    mesh.faces.push([n, n + 1, n + 2]);
+    let sliver_before: Vec<DVec3> = mesh.positions[n as usize..].to_vec();
+    let job = job_on(
+        dir.path(),
+        &mesh,
+        "[[constraint]]\nkind = \"area\"\nregion = { sphere = { center = [0.0, 0.55, -0.4], radius = 0.35 } }\nscale = 1.3\n",
+    );
+    let (problem, x, met) = run(&job);
+    assert_eq!(problem.check.zero_area_faces, vec![mesh.num_faces() - 1]);
+    assert!(met);
+    assert!(x.iter().all(|p| p.is_finite()));
+    // The sliver keeps its shape (it may translate).
+    let after = &x[n as usize..];
+    let d = after[0] - sliver_before[0];
+    for (p, q) in after.iter().zip(&sliver_before) {
+        assert!((*p - *q - d).length() < 1e-6, "{p} vs {q}");
+    }
+}
