@@ -383,7 +383,7 @@ impl Problem {
                 name: spec
                     .name
                     .clone()
-                    .unwrap_or_else(|| format!("{} {}", spec.kind, i)),
+                    .unwrap_or_else(|| format!("{} {}", spec.kind, i + 1)),
                 selection,
                 original: 0.0,
                 target: 0.0,

@@ -1305,3 +1305,27 @@ fn empty_selections_say_where_the_mesh_is() {
         "{e}"
     );
 }
+
+/// An unnamed constraint's default name counts from 1 like the messages'
+/// `constraint N (kind)`: the third table, a volume, is "volume 3".
+#[test]
+fn default_constraint_names_count_from_one() {
+    let dir = tempfile::tempdir().unwrap();
+    let m = cube();
+    metricdeform::io::write_mesh(&dir.path().join("m.obj"), &m, &m.positions, None).unwrap();
+    let p = dir.path().join("names.toml");
+    std::fs::write(
+        &p,
+        "mesh = \"m.obj\"\n[[constraint]]\nkind = \"area\"\nregion = { faces = [0] }\n\
+         [[constraint]]\nkind = \"area\"\nname = \"top\"\nregion = { faces = [1] }\n\
+         [[constraint]]\nkind = \"volume\"\n",
+    )
+    .unwrap();
+    let problem = Problem::load(&Job::load(&p).unwrap()).unwrap();
+    let names: Vec<&str> = problem
+        .constraints
+        .iter()
+        .map(|c| c.name.as_str())
+        .collect();
+    assert_eq!(names, ["area 1", "top", "volume 3"]);
+}
