@@ -308,7 +308,8 @@ fn plane_section(plane: &PlaneSpec, mesh: &Mesh, topo: &Topology, what: &str) ->
             Err(Error::bad(format!(
                 "{what}: the plane (origin {:?}, normal {:?}) misses the mesh: the mesh \
                  spans {} to {} along the unit normal from the origin (dot(x - origin, \
-                 n/|n|)); move the origin along the normal into that range",
+                 n/|n|)); move the origin by a distance in that range along the unit \
+                 normal",
                 plane.origin,
                 plane.normal,
                 short(lo),

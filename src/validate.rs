@@ -478,8 +478,8 @@ pub fn require_volume(
             file.display(),
             plural(
                 count,
-                "edge has faces of opposite orientation",
-                "edges have faces of opposite orientation"
+                "edge has two faces that disagree on orientation",
+                "edges have two faces that disagree on orientation"
             ),
             bad.join("; "),
             if count > bad.len() {
