@@ -466,3 +466,47 @@ fn vertices_only_in_zero_area_faces_keep_the_system_well_posed() {
         assert!((*p - *q - d).length() < 1e-6, "{p} vs {q}");
     }
 }
+
+/// Item 6 end to end: singular weights are exit 2 (they were exit 1, "linear
+/// solver: matrix is not positive definite"), naming the weight and the job file,
+/// and nothing is written.
+#[test]
+fn singular_weights_exit_2_from_the_command_line() {
+    for weights in [
+        "k_f = 0.0, k_m = 0.0, k_l = 0.0, k_d = 0.0, k_r = 0.0, k_p = 0.0",
+        "k_f = 1e300",
+    ] {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::copy(
+            common::meshes().join("spot.obj"),
+            dir.path().join("spot.obj"),
+        )
+        .unwrap();
+        let job = dir.path().join("weights.toml");
+        std::fs::write(
+            &job,
+            format!(
+                "mesh = \"spot.obj\"\n[[constraint]]\nkind = \"volume\"\nscale = 1.1\n\
+                 [solver]\nweights = {{ {weights} }}\n"
+            ),
+        )
+        .unwrap();
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_metricdeform"))
+            .args(["deform", "--backend", "cpu", "--quiet"])
+            .arg(&job)
+            .output()
+            .unwrap();
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{weights}: {stderr}");
+        assert!(
+            stderr.contains("weights.toml") && stderr.contains("k_f"),
+            "{weights}: {stderr}"
+        );
+        let mut files: Vec<String> = std::fs::read_dir(dir.path())
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        files.sort();
+        assert_eq!(files, ["spot.obj", "weights.toml"], "{weights}");
+    }
+}
