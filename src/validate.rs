@@ -400,29 +400,43 @@ struct Seams {
 
 fn seams(mesh: &Mesh, topo: &Topology) -> Seams {
     use std::collections::HashMap;
-    let key = |v: u32| -> [u64; 3] {
+    // Positions equal bit for bit (-0.0 = 0.0), else equal on a grid of 1e-9 times
+    // the bbox diagonal (exporters that print seam copies with other rounding).
+    let count_paired = |key: &dyn Fn(u32) -> [u64; 3]| -> usize {
+        let keys: Vec<([u64; 3], [u64; 3])> = topo
+            .boundary_edges
+            .iter()
+            .map(|&e| {
+                let [a, b] = topo.edges[e];
+                let (ka, kb) = (key(a), key(b));
+                if ka <= kb {
+                    (ka, kb)
+                } else {
+                    (kb, ka)
+                }
+            })
+            .collect();
+        let mut count: HashMap<([u64; 3], [u64; 3]), usize> = HashMap::new();
+        for k in &keys {
+            *count.entry(*k).or_default() += 1;
+        }
+        keys.iter().filter(|k| count[*k] >= 2).count()
+    };
+    let exact = |v: u32| -> [u64; 3] {
         mesh.positions[v as usize]
             .to_array()
             .map(|c| if c == 0.0 { 0 } else { c.to_bits() })
     };
-    let mut count: HashMap<([u64; 3], [u64; 3]), usize> = HashMap::new();
-    let keys: Vec<([u64; 3], [u64; 3])> = topo
-        .boundary_edges
-        .iter()
-        .map(|&e| {
-            let [a, b] = topo.edges[e];
-            let (ka, kb) = (key(a), key(b));
-            if ka <= kb {
-                (ka, kb)
-            } else {
-                (kb, ka)
-            }
-        })
-        .collect();
-    for k in &keys {
-        *count.entry(*k).or_default() += 1;
+    let mut paired = count_paired(&exact);
+    let grid = 1e-9 * mesh.bbox_diagonal(&mesh.positions);
+    if paired < topo.boundary_edges.len() && grid > 0.0 {
+        let snapped = |v: u32| -> [u64; 3] {
+            mesh.positions[v as usize]
+                .to_array()
+                .map(|c| (c / grid).round() as i64 as u64)
+        };
+        paired = paired.max(count_paired(&snapped));
     }
-    let paired = keys.iter().filter(|k| count[*k] >= 2).count();
     let examples = topo
         .boundary_edges
         .iter()

@@ -260,6 +260,24 @@ fn split_seams_say_weld() {
         msg.contains("job.toml") && msg.contains("boundary edges") && msg.contains("weld"),
         "{msg}"
     );
+    assert!(
+        msg.contains("open only because its seams are split"),
+        "{msg}"
+    );
+
+    // Copies one ulp off (an exporter that rounds the seam copies differently): still
+    // recognised as split seams.
+    let mut mesh = spot_with_split_seam(0.0);
+    let nv = spot().num_vertices();
+    for p in mesh.positions[nv..].iter_mut() {
+        p.x = f64::from_bits(p.x.to_bits() + 1);
+    }
+    let job = job_on(dir.path(), &mesh, "[[constraint]]\nkind = \"volume\"\n");
+    let msg = bad_msg(Problem::load(&job));
+    assert!(
+        msg.contains("open only because its seams are split"),
+        "{msg}"
+    );
 }
 
 /// Item 5: a mesh with a real hole: "boundary edges", fill the holes or drop the
