@@ -4,14 +4,14 @@
 //! Eqs. 15-18 on a Hessian factored once).
 
 use crate::anderson::Anderson;
-use crate::job::{Job, MetricKind, SolverSpec};
+use crate::job::{curvature_label, handle_label, Job, MetricKind, SolverSpec};
 use crate::metrics::{Constraint, Selection, VolumeShare};
 use crate::scale_factors::{Regulariser, ScaleConstraint, ScaleFactorSystem};
 use crate::schur::{constrained_step_warm, Linearized, Multipliers};
 use crate::selection::{build_curve, build_handle_vertices, build_region};
 use crate::shape::{HandleTarget, ShapeModel, ShapeWeights};
 use crate::topology::Topology;
-use crate::validate::{require_closed, validate, MeshCheck};
+use crate::validate::{require_volume, validate, MeshCheck};
 use crate::{Error, Mesh, Result};
 use glam::DVec3;
 use solver_cpu::cholesky::NESTED_DISSECTION_FROM;
@@ -289,20 +289,51 @@ pub struct Problem {
     pub constraints: Vec<Constraint>,
     pub handles: Vec<HandleTarget>,
     pub curvature: Vec<CurvatureRegion>,
+    /// Tolerated defects of the input worth telling the user (zero-area, needle and
+    /// duplicate faces, ...), one line each without a `warning:` prefix; they are
+    /// also logged with `log::warn!` when found.
+    pub warnings: Vec<String>,
+}
+
+/// A bad-input message that does not name the job file yet gets it in front
+/// (contract: bad-input messages name the job file).
+fn naming_job(job: &Job, e: Error) -> Error {
+    match e {
+        Error::BadInput(m) if !job.origin.is_empty() && !m.starts_with(&job.origin) => {
+            Error::BadInput(format!("{}: {m}", job.origin))
+        }
+        Error::Io { path, source } if !job.origin.is_empty() => Error::BadInput(format!(
+            "{}: cannot read {}: {source}",
+            job.origin,
+            path.display()
+        )),
+        e => e,
+    }
 }
 
 impl Problem {
     /// Read the job's mesh and resolve every selection on it.
     pub fn load(job: &Job) -> Result<Problem> {
         let mesh_path = job.mesh_path();
-        let mesh = crate::io::read_mesh(&mesh_path)?;
+        let mesh = crate::io::read_mesh(&mesh_path).map_err(|e| naming_job(job, e))?;
         Problem::build(job, mesh, &mesh_path)
     }
 
-    /// Resolve the job's selections on an already loaded mesh.
+    /// Resolve the job's selections on an already loaded mesh. Bad-input messages
+    /// name the job file.
     pub fn build(job: &Job, mesh: Mesh, mesh_path: &Path) -> Result<Problem> {
+        Self::build_named(job, mesh, mesh_path).map_err(|e| naming_job(job, e))
+    }
+
+    fn build_named(job: &Job, mesh: Mesh, mesh_path: &Path) -> Result<Problem> {
         let topo = Topology::build(&mesh);
         let check = validate(&mesh, &topo, mesh_path)?;
+        // Duplicate faces count once in whole-mesh metrics.
+        let skip: Vec<bool> = if topo.duplicate_faces.is_empty() {
+            Vec::new()
+        } else {
+            topo.is_duplicate.clone()
+        };
         let x = &mesh.positions;
         let mut constraints = Vec::new();
         for (i, spec) in job.spec.constraint.iter().enumerate() {
@@ -327,8 +358,17 @@ impl Problem {
                     )
                 }
                 MetricKind::Volume => {
-                    require_closed(&check, mesh_path, &label)?;
-                    let v = mesh.signed_volume(x);
+                    require_volume(&mesh, &topo, &check, mesh_path, &label)?;
+                    let v = Constraint {
+                        kind: MetricKind::Volume,
+                        name: String::new(),
+                        selection: Selection::Whole,
+                        original: 0.0,
+                        target: 0.0,
+                        orientation: 1.0,
+                        skip: skip.clone(),
+                    }
+                    .measure(&mesh, x);
                     if v == 0.0 || !v.is_finite() {
                         return Err(Error::bad(format!(
                             "{label}: the mesh {} encloses no volume",
@@ -343,11 +383,12 @@ impl Problem {
                 name: spec
                     .name
                     .clone()
-                    .unwrap_or_else(|| format!("{} {}", spec.kind, i)),
+                    .unwrap_or_else(|| format!("{} {}", spec.kind, i + 1)),
                 selection,
                 original: 0.0,
                 target: 0.0,
                 orientation,
+                skip: skip.clone(),
             };
             c.original = c.measure(&mesh, x);
             if !(c.original > 0.0) || !c.original.is_finite() {
@@ -370,7 +411,7 @@ impl Problem {
         }
         let mut handles = Vec::new();
         for (i, h) in job.spec.handle.iter().enumerate() {
-            let what = format!("handle {i}");
+            let what = handle_label(i);
             let t = h.translate.unwrap_or([0.0; 3]);
             let t = DVec3::from_array(t);
             for v in build_handle_vertices(h, &mesh, job, &what)? {
@@ -382,7 +423,7 @@ impl Problem {
         }
         let mut curvature = Vec::new();
         for (i, c) in job.spec.curvature.iter().enumerate() {
-            let what = format!("curvature {i}");
+            let what = curvature_label(i);
             if !(c.scale.is_finite()) {
                 return Err(Error::bad(format!("{what}: scale must be a finite number")));
             }
@@ -396,10 +437,11 @@ impl Problem {
             mesh_path: mesh_path.to_path_buf(),
             mesh,
             topo,
-            check,
             constraints,
             handles,
             curvature,
+            warnings: check.warnings.clone(),
+            check,
         })
     }
 }

@@ -91,15 +91,68 @@ pub fn read_mesh(path: &Path) -> Result<Mesh> {
 // OBJ
 // ---------------------------------------------------------------------------------------
 
-/// Iterates over the lines of `bytes` (split at `\n`, a trailing `\r` removed), with their
-/// 1-based line numbers.
+/// Iterates over the lines of `bytes` with their 1-based line numbers. A line ends
+/// at `\n`, `\r\n` or a lone `\r` (old Mac files), so files with any of these line
+/// endings read the same.
 fn lines(bytes: &[u8]) -> impl Iterator<Item = (usize, &[u8])> {
-    let body = bytes.strip_suffix(b"\n").unwrap_or(bytes);
-    let empty = bytes.is_empty();
-    body.split(|&b| b == b'\n')
-        .filter(move |_| !empty)
-        .enumerate()
-        .map(|(i, l)| (i + 1, l.strip_suffix(b"\r").unwrap_or(l)))
+    let mut rest = bytes;
+    let mut ln = 0usize;
+    std::iter::from_fn(move || {
+        if rest.is_empty() {
+            return None;
+        }
+        ln += 1;
+        let end = rest
+            .iter()
+            .position(|&b| b == b'\n' || b == b'\r')
+            .unwrap_or(rest.len());
+        let line = &rest[..end];
+        let mut next = end;
+        if next < rest.len() {
+            next += if rest[next] == b'\r' && rest.get(next + 1) == Some(&b'\n') {
+                2
+            } else {
+                1
+            };
+        }
+        rest = &rest[next..];
+        Some((ln, line))
+    })
+}
+
+/// `bytes` with every lone `\r` (a line end not followed by `\n`) turned into
+/// `\n`, for parsers that only know `\n` and `\r\n`; borrowed when there is none.
+fn lone_cr_to_lf(bytes: &[u8]) -> std::borrow::Cow<'_, [u8]> {
+    let lone = |i: usize| bytes[i] == b'\r' && bytes.get(i + 1) != Some(&b'\n');
+    if !(0..bytes.len()).any(lone) {
+        return std::borrow::Cow::Borrowed(bytes);
+    }
+    let mut out = bytes.to_vec();
+    for (i, b) in out.iter_mut().enumerate() {
+        if lone(i) {
+            *b = b'\n';
+        }
+    }
+    std::borrow::Cow::Owned(out)
+}
+
+/// A PLY file whose header lines end in a lone `\r`: the header's (and, for an
+/// ASCII body, the whole file's) line ends made `\n`; a binary body is left alone.
+fn ply_line_ends(bytes: &[u8]) -> std::borrow::Cow<'_, [u8]> {
+    let Some(pos) = bytes.windows(10).position(|w| w == b"end_header") else {
+        return std::borrow::Cow::Borrowed(bytes);
+    };
+    let head_end = pos + 10;
+    if bytes.get(head_end) != Some(&b'\r') || bytes.get(head_end + 1) == Some(&b'\n') {
+        return std::borrow::Cow::Borrowed(bytes);
+    }
+    let ascii = bytes[..pos].windows(12).any(|w| w == b"format ascii");
+    if ascii {
+        return lone_cr_to_lf(bytes);
+    }
+    let mut out = lone_cr_to_lf(&bytes[..=head_end]).into_owned();
+    out.extend_from_slice(&bytes[head_end + 1..]);
+    std::borrow::Cow::Owned(out)
 }
 
 #[inline]
@@ -384,7 +437,8 @@ fn parse_ply(bytes: &[u8], path: &Path) -> Result<Mesh> {
     let file = path.display();
     let perr =
         |e: ply_rs_bw::parser::ParseError| Error::bad(format!("{file}: cannot parse PLY: {e}"));
-    let mut reader = Reader::new(bytes);
+    let bytes = ply_line_ends(bytes);
+    let mut reader = Reader::new(&bytes[..]);
     let vparser = Parser::<ply_elems::Vertex>::new();
     let fparser = Parser::<ply_elems::Face>::new();
     let sparser = Parser::<ply_elems::Skip>::new();
@@ -488,7 +542,9 @@ fn stl_triangles(bytes: &[u8], path: &Path) -> Result<Vec<[[f32; 3]; 3]>> {
                 .collect());
         }
     }
-    let mut cursor = std::io::Cursor::new(bytes);
+    // ASCII STL with lone-CR line ends (old Mac files).
+    let bytes = lone_cr_to_lf(bytes);
+    let mut cursor = std::io::Cursor::new(&bytes[..]);
     let bad = |e: std::io::Error| Error::bad(format!("{}: cannot parse STL: {e}", path.display()));
     let reader = stl_io::create_stl_reader(&mut cursor).map_err(bad)?;
     reader

@@ -246,6 +246,9 @@ pub struct Job {
     /// Folder that relative paths in the job are resolved against.
     pub dir: PathBuf,
     pub spec: JobSpec,
+    /// What bad-input messages call the job: the job file's path, or the `origin`
+    /// given to [`Job::from_str`].
+    pub origin: String,
 }
 
 impl Job {
@@ -274,6 +277,13 @@ impl Job {
     /// Parse and validate job text (e.g. the embedded demo). `dir` is the folder
     /// relative paths are resolved against; `origin` names the text in messages.
     pub fn from_str(text: &str, format: JobFormat, dir: &Path, origin: &str) -> Result<Job> {
+        // TOML knows LF and CRLF line ends only: read old Mac files (lone CR) too.
+        let text = if text.contains('\r') {
+            std::borrow::Cow::Owned(lone_cr_to_lf(text))
+        } else {
+            std::borrow::Cow::Borrowed(text)
+        };
+        let text: &str = &text;
         let spec: JobSpec = match format {
             JobFormat::Toml => toml::from_str(text)
                 .map_err(|e| Error::bad(format!("{origin}: {}", e.to_string().trim_end())))?,
@@ -287,6 +297,7 @@ impl Job {
             path: None,
             dir: dir.to_path_buf(),
             spec,
+            origin: origin.to_string(),
         })
     }
 
@@ -322,19 +333,55 @@ impl Job {
         self.resolve_path(Path::new(&name))
     }
 
-    /// Name of constraint `i` for messages: `constraint 2 ('neck girth')` or
-    /// `constraint 2 (length)`.
+    /// Name of constraint `i` (0-based index) for messages, numbered from 1 as a
+    /// user counts the `[[constraint]]` tables: `constraint 2 ('neck girth')` or
+    /// `constraint 2 (length)` for `i = 1`.
     pub fn constraint_label(&self, i: usize) -> String {
         constraint_label(i, &self.spec.constraint[i])
     }
 }
 
-/// `constraint N ('name')`, or `constraint N (kind)` when unnamed; N is 0-based.
+/// `constraint N ('name')`, or `constraint N (kind)` when unnamed; N = i + 1 is
+/// 1-based (the contract: constraints by name or 1-based number).
 pub fn constraint_label(i: usize, c: &ConstraintSpec) -> String {
     match &c.name {
-        Some(name) => format!("constraint {i} ('{name}')"),
-        None => format!("constraint {i} ({})", c.kind),
+        Some(name) => format!("constraint {} ('{name}')", i + 1),
+        None => format!("constraint {} ({})", i + 1, c.kind),
     }
+}
+
+/// `handle N` for the 0-based index `i`, N 1-based.
+pub fn handle_label(i: usize) -> String {
+    format!("handle {}", i + 1)
+}
+
+/// `curvature N` for the 0-based index `i`, N 1-based.
+pub fn curvature_label(i: usize) -> String {
+    format!("curvature {}", i + 1)
+}
+
+/// A number for messages: plain, or in exponent form when very large or small.
+fn num(v: f64) -> String {
+    let a = v.abs();
+    if a != 0.0 && a.is_finite() && !(1e-3..1e6).contains(&a) {
+        format!("{v:e}")
+    } else {
+        format!("{v}")
+    }
+}
+
+/// Every `\r` not followed by `\n` turned into `\n`.
+fn lone_cr_to_lf(text: &str) -> String {
+    let mut out = String::with_capacity(text.len());
+    let mut chars = text.chars().peekable();
+    while let Some(c) = chars.next() {
+        if c == '\r' && chars.peek() != Some(&'\n') {
+            out.push('\n');
+        } else {
+            out.push(c);
+        }
+    }
+    out
 }
 
 fn finite3(v: &[f64; 3]) -> bool {
@@ -362,10 +409,10 @@ impl JobSpec {
             c.validate(&constraint_label(i, c))?;
         }
         for (i, h) in self.handle.iter().enumerate() {
-            h.validate(&format!("handle {i}"))?;
+            h.validate(&handle_label(i))?;
         }
         for (i, c) in self.curvature.iter().enumerate() {
-            let what = format!("curvature {i}");
+            let what = curvature_label(i);
             c.region.validate(&what, false)?;
             if !c.scale.is_finite() {
                 return Err(format!("{what}: scale must be a finite number"));
@@ -611,22 +658,91 @@ impl SolverSpec {
             }
         }
         if let Some(w) = &self.weights {
-            for (name, v) in [
-                ("k_f", w.k_f),
-                ("k_m", w.k_m),
-                ("k_l", w.k_l),
-                ("k_d", w.k_d),
-                ("k_r", w.k_r),
-                ("k_p", w.k_p),
-            ] {
-                if let Some(v) = v {
-                    if !(v.is_finite() && v >= 0.0) {
-                        return Err(format!(
-                            "solver.weights.{name} must be a finite number >= 0 (got {v})"
-                        ));
-                    }
+            w.validate()?;
+        }
+        Ok(())
+    }
+}
+
+/// Largest accepted energy weight: beyond it the systems lose every digit of the
+/// other terms (`k_f = 1e300` made the shape system numerically singular).
+pub const MAX_WEIGHT: f64 = 1e12;
+
+/// Smallest accepted ratio of the frame weight `k_f` to the largest other shape
+/// weight (`k_m`, `k_l`, `k_p`).
+pub const MIN_FRAME_RATIO: f64 = 1e-12;
+
+impl WeightsSpec {
+    /// Every weight finite, in `[0, MAX_WEIGHT]`; the frame weight `k_f` positive
+    /// and not negligible next to the other shape weights. Why `k_f`: the shape
+    /// system (Eq. 7) is positive definite (with one vertex per component held)
+    /// through E_f alone, a Dirichlet energy; E_m vanishes on harmonic motions of an
+    /// open mesh, E_l on tangential ones, E_p away from the handles. The
+    /// scale-factor system (Eq. 3) stays positive definite with any `k_d, k_r >= 0`
+    /// (`k_r = 0` is replaced by a tiny floor), and the fine-tune keeps its own
+    /// weights (1, 100, 100). Unset weights keep their defaults
+    /// (`k_f` 1000, `k_m` 1, `k_l` 1, `k_d` 1, `k_r` 0.01, `k_p` 1000).
+    pub fn validate(&self) -> Result<(), String> {
+        let all = [
+            ("k_f", self.k_f),
+            ("k_m", self.k_m),
+            ("k_l", self.k_l),
+            ("k_d", self.k_d),
+            ("k_r", self.k_r),
+            ("k_p", self.k_p),
+        ];
+        let bad: Vec<String> = all
+            .iter()
+            .filter_map(|&(name, v)| {
+                let v = v?;
+                (!(v.is_finite() && (0.0..=MAX_WEIGHT).contains(&v)))
+                    .then(|| format!("{name} = {}", num(v)))
+            })
+            .collect();
+        if !bad.is_empty() {
+            return Err(format!(
+                "solver.weights: {} (each weight must be a finite number between 0 and \
+                 {MAX_WEIGHT:e}; the defaults are k_f = 1000, k_m = 1, k_l = 1, k_d = 1, \
+                 k_r = 0.01, k_p = 1000)",
+                bad.join(", ")
+            ));
+        }
+        let k_f = self.k_f.unwrap_or(1000.0);
+        let others = [
+            ("k_m", self.k_m.unwrap_or(1.0)),
+            ("k_l", self.k_l.unwrap_or(1.0)),
+            ("k_p", self.k_p.unwrap_or(1000.0)),
+        ];
+        let (big_name, big) =
+            others
+                .iter()
+                .copied()
+                .fold(("k_m", 0.0f64), |m, o| if o.1 > m.1 { o } else { m });
+        if k_f <= 0.0 {
+            let zero: Vec<&str> = all
+                .iter()
+                .filter(|(_, v)| *v == Some(0.0))
+                .map(|(n, _)| *n)
+                .collect();
+            return Err(format!(
+                "solver.weights.k_f = 0 makes the shape system singular{}: the frame \
+                 weight k_f must be > 0 (it alone makes the system positive definite; \
+                 default 1000)",
+                if zero.len() > 1 {
+                    format!(" (zero weights: {})", zero.join(", "))
+                } else {
+                    String::new()
                 }
-            }
+            ));
+        }
+        if k_f < MIN_FRAME_RATIO * big {
+            return Err(format!(
+                "solver.weights.k_f = {} is negligible next to {big_name} = {} \
+                 (ratio below {MIN_FRAME_RATIO:e}): the shape system is numerically \
+                 singular; raise k_f or lower {big_name}",
+                num(k_f),
+                num(big)
+            ));
         }
         Ok(())
     }

@@ -5,6 +5,14 @@
 
 use glam::DVec3;
 
+/// Twice a face's area at or below this times the squared bbox diagonal counts as
+/// zero ([`Mesh::degenerate_faces`]).
+pub const DEGENERATE_AREA: f64 = 1e-12;
+
+/// A face with an angle whose cotangent exceeds this in magnitude is a needle or a
+/// cap ([`Mesh::degenerate_faces`]): its cotangent weights would be clamped.
+pub const COT_CAP: f64 = 1e5;
+
 /// A named set of faces (OBJ `g`/`o` statement).
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct FaceGroup {
@@ -74,6 +82,36 @@ impl Mesh {
             return 0.0;
         }
         (hi - lo).length()
+    }
+
+    /// Faces that get no shape weight (no frame energy, no Laplacian weights):
+    /// zero-area faces (twice the area at most [`DEGENERATE_AREA`] times the bbox
+    /// diagonal squared, the tolerance of a robust `doublearea`) and needles or caps
+    /// (an angle whose cotangent exceeds [`COT_CAP`] in magnitude, where libigl's
+    /// `cotmatrix_entries` would give huge or infinite weights). A face whose corners
+    /// are not all distinct counts too. Judged on the positions `x`.
+    pub fn degenerate_faces(&self, x: &[DVec3]) -> Vec<bool> {
+        let diag = self.bbox_diagonal(x);
+        let tol = DEGENERATE_AREA * diag * diag;
+        self.faces
+            .iter()
+            .map(|t| {
+                let [a, b, c] = *t;
+                if a == b || b == c || a == c {
+                    return true;
+                }
+                let p = [x[a as usize], x[b as usize], x[c as usize]];
+                let cr = (p[1] - p[0]).cross(p[2] - p[0]).length();
+                if cr.is_nan() || cr <= tol {
+                    return true;
+                }
+                (0..3).any(|k| {
+                    let e1 = p[(k + 1) % 3] - p[k];
+                    let e2 = p[(k + 2) % 3] - p[k];
+                    e1.dot(e2).abs() > COT_CAP * cr
+                })
+            })
+            .collect()
     }
 
     /// Face centroid for positions `x`.

@@ -39,6 +39,9 @@ pub struct Constraint {
     pub target: f64,
     /// Sign of the input's signed volume (an inward-oriented mesh has -1).
     pub orientation: f64,
+    /// Faces a whole-mesh metric leaves out (duplicate faces, see
+    /// [`crate::topology::Topology::duplicate_faces`]); empty: none.
+    pub skip: Vec<bool>,
 }
 
 impl Constraint {
@@ -48,10 +51,27 @@ impl Constraint {
             Selection::Curve(c) => c.length(mesh, x),
             Selection::Region(r) => r.faces.iter().map(|&f| mesh.face_area(x, f as usize)).sum(),
             Selection::Whole => match self.kind {
-                MetricKind::Volume => self.orientation * mesh.signed_volume(x),
-                _ => (0..mesh.num_faces()).map(|f| mesh.face_area(x, f)).sum(),
+                MetricKind::Volume if self.skip.is_empty() => {
+                    self.orientation * mesh.signed_volume(x)
+                }
+                MetricKind::Volume => {
+                    self.orientation
+                        * self
+                            .whole_faces(mesh)
+                            .map(|f| {
+                                let [a, b, c] = mesh.corners(x, f);
+                                a.dot(b.cross(c)) / 6.0
+                            })
+                            .sum::<f64>()
+                }
+                _ => self.whole_faces(mesh).map(|f| mesh.face_area(x, f)).sum(),
             },
         }
+    }
+
+    /// The faces a whole-mesh metric runs over: all but those flagged in `skip`.
+    fn whole_faces<'a>(&'a self, mesh: &Mesh) -> impl Iterator<Item = usize> + 'a {
+        (0..mesh.num_faces()).filter(move |&f| !self.skip.get(f).copied().unwrap_or(false))
     }
 
     /// Relative residual `C = measure / target - 1` (the hard constraint of Eq. 8).
@@ -90,7 +110,8 @@ impl Constraint {
             Selection::Whole => match self.kind {
                 MetricKind::Volume => {
                     let s = self.orientation / 6.0;
-                    for t in &mesh.faces {
+                    for f in self.whole_faces(mesh) {
+                        let t = &mesh.faces[f];
                         let [a, b, c] = [x[t[0] as usize], x[t[1] as usize], x[t[2] as usize]];
                         add(t[0], s * b.cross(c));
                         add(t[1], s * c.cross(a));
@@ -98,7 +119,7 @@ impl Constraint {
                     }
                 }
                 _ => {
-                    for f in 0..mesh.num_faces() {
+                    for f in self.whole_faces(mesh) {
                         area_gradient(mesh, x, f, &mut add);
                     }
                 }
@@ -138,20 +159,22 @@ impl Constraint {
             Selection::Whole => match self.kind {
                 MetricKind::Volume => match share {
                     VolumeShare::Area => {
-                        let vol = self.orientation * mesh.signed_volume(x);
-                        let total: f64 = areas.iter().sum();
-                        (0..mesh.num_faces())
+                        let vol = self.measure(mesh, x);
+                        let total: f64 = self.whole_faces(mesh).map(|f| areas[f]).sum();
+                        self.whole_faces(mesh)
                             .map(|f| (f as u32, vol * areas[f] / total))
                             .collect()
                     }
-                    VolumeShare::Tetrahedra => (0..mesh.num_faces())
+                    VolumeShare::Tetrahedra => self
+                        .whole_faces(mesh)
                         .map(|f| {
                             let [a, b, c] = mesh.corners(x, f);
                             (f as u32, self.orientation * a.dot(b.cross(c)) / 6.0)
                         })
                         .collect(),
                 },
-                _ => (0..mesh.num_faces())
+                _ => self
+                    .whole_faces(mesh)
                     .map(|f| (f as u32, areas[f]))
                     .collect(),
             },

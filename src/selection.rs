@@ -199,7 +199,8 @@ fn plane_section(plane: &PlaneSpec, mesh: &Mesh, topo: &Topology, what: &str) ->
     // Best piece so far: (distance of its nearest crossing to origin, segments, closed).
     let mut best: Option<(f64, Vec<Segment>, bool)> = None;
     for f0 in 0..nf {
-        if visited[f0] {
+        // Duplicate and collapsed faces are not part of the surface's adjacency.
+        if visited[f0] || topo.ignored.get(f0).copied().unwrap_or(false) {
             continue;
         }
         let Some(sides0) = crossed_sides(f0) else {
@@ -293,11 +294,59 @@ fn plane_section(plane: &PlaneSpec, mesh: &Mesh, topo: &Topology, what: &str) ->
     }
     match best {
         Some((_, segments, closed)) => Ok(Curve { segments, closed }),
-        None => Err(Error::bad(format!(
-            "{what}: the plane (origin {:?}, normal {:?}) misses the mesh",
-            plane.origin, plane.normal
-        ))),
+        None => {
+            // Extent of the mesh along the unit normal, measured from the origin.
+            let nh = normal.normalize();
+            let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+            for t in &mesh.faces {
+                for &v in t {
+                    let h = (x[v as usize] - origin).dot(nh);
+                    lo = lo.min(h);
+                    hi = hi.max(h);
+                }
+            }
+            Err(Error::bad(format!(
+                "{what}: the plane (origin {:?}, normal {:?}) misses the mesh: the mesh \
+                 spans {} to {} along the unit normal from the origin (dot(x - origin, \
+                 n/|n|)); move the origin by a distance in that range along the unit \
+                 normal",
+                plane.origin,
+                plane.normal,
+                short(lo),
+                short(hi)
+            )))
+        }
     }
+}
+
+/// A number for messages: about 6 significant digits.
+fn short(v: f64) -> String {
+    let a = v.abs();
+    if a == 0.0 || (1e-3..1e6).contains(&a) {
+        let s = format!("{v:.6}");
+        let s = s.trim_end_matches('0').trim_end_matches('.');
+        if s == "-0" {
+            "0".into()
+        } else {
+            s.into()
+        }
+    } else {
+        format!("{v:.5e}")
+    }
+}
+
+/// `min [..] max [..]` of the vertices that faces use, for messages.
+fn bbox_text(mesh: &Mesh) -> String {
+    let mut lo = DVec3::splat(f64::INFINITY);
+    let mut hi = DVec3::splat(f64::NEG_INFINITY);
+    for t in &mesh.faces {
+        for &v in t {
+            lo = lo.min(mesh.positions[v as usize]);
+            hi = hi.max(mesh.positions[v as usize]);
+        }
+    }
+    let f = |p: DVec3| format!("[{}, {}, {}]", short(p.x), short(p.y), short(p.z));
+    format!("min {} max {}", f(lo), f(hi))
 }
 
 /// Vertex-vertex adjacency (CSR) with the connecting edge index.
@@ -308,8 +357,16 @@ struct Adjacency {
 
 impl Adjacency {
     fn build(nv: usize, topo: &Topology) -> Adjacency {
+        // Edges without faces (sides of collapsed faces only) are no path.
+        let usable = |e: usize| {
+            let [a, b] = topo.edges[e];
+            a != b && !topo.edge_faces(e).is_empty()
+        };
         let mut start = vec![0usize; nv + 1];
-        for &[a, b] in &topo.edges {
+        for (e, &[a, b]) in topo.edges.iter().enumerate() {
+            if !usable(e) {
+                continue;
+            }
             start[a as usize + 1] += 1;
             start[b as usize + 1] += 1;
         }
@@ -319,6 +376,9 @@ impl Adjacency {
         let mut fill = start.clone();
         let mut nbr = vec![(0u32, 0u32); start[nv]];
         for (e, &[a, b]) in topo.edges.iter().enumerate() {
+            if !usable(e) {
+                continue;
+            }
             nbr[fill[a as usize]] = (b, e as u32);
             fill[a as usize] += 1;
             nbr[fill[b as usize]] = (a, e as u32);
@@ -621,7 +681,8 @@ pub fn build_region(spec: &RegionSpec, mesh: &Mesh, job: &Job, what: &str) -> Re
             ))
         })?;
         let mut list = Vec::new();
-        for line in text.lines() {
+        // Lines end in LF, CRLF or a lone CR (old Mac files).
+        for line in text.split(['\n', '\r']) {
             let line = line.split('#').next().unwrap_or("");
             for tok in line.split_whitespace() {
                 let f: usize = tok.parse().map_err(|_| {
@@ -686,8 +747,35 @@ pub fn build_region(spec: &RegionSpec, mesh: &Mesh, job: &Job, what: &str) -> Re
     faces.sort_unstable();
     faces.dedup();
     if faces.is_empty() {
+        let hint = if let Some(sp) = &spec.sphere {
+            let r = sp.radius;
+            let c = sp.center;
+            format!(
+                ": no face centroid lies within the sphere (center {:?}, radius {r}, \
+                 extent [{}, {}, {}] to [{}, {}, {}]); the mesh's bounding box is {}: \
+                 move the center or enlarge the radius",
+                c,
+                short(c[0] - r),
+                short(c[1] - r),
+                short(c[2] - r),
+                short(c[0] + r),
+                short(c[1] + r),
+                short(c[2] + r),
+                bbox_text(mesh)
+            )
+        } else if let Some(b) = &spec.box_ {
+            format!(
+                ": no face centroid lies inside the box (min {:?} max {:?}); the mesh's \
+                 bounding box is {}: move or enlarge the box",
+                b.min,
+                b.max,
+                bbox_text(mesh)
+            )
+        } else {
+            ": the list is empty; give at least one face index".to_string()
+        };
         return Err(Error::bad(format!(
-            "{what}: region selects no faces ({})",
+            "{what}: region selects no faces ({}){hint}",
             spec.given().join("")
         )));
     }

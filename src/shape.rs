@@ -26,7 +26,7 @@
 //! handles: one vertex of each such component is held (its increment is zero) and
 //! the component is re-centred after each step.
 
-use crate::mesh::Mesh;
+use crate::mesh::{Mesh, COT_CAP};
 use crate::topology::Topology;
 use crate::{Error, Result};
 use glam::DVec3;
@@ -45,16 +45,37 @@ pub struct ShapeWeights {
 /// Sparse rows `delta_i = diag_i x_i - sum_j w_ij x_j`.
 pub type Laplacian = SparseRows;
 
-/// Cotangent Laplacian (weights `(cot a + cot b) / 2`) of positions `x`.
+/// Cotangent Laplacian (weights `(cot a + cot b) / 2`) of positions `x`. Zero-area,
+/// needle and cap faces ([`Mesh::degenerate_faces`]) contribute zero weights.
 pub fn cotangent_laplacian(mesh: &Mesh, x: &[DVec3]) -> Laplacian {
+    cotangent_laplacian_masked(mesh, x, &mesh.degenerate_faces(x))
+}
+
+/// [`cotangent_laplacian`] with the faces flagged in `skip` contributing zero
+/// weights (their vertex pairs stay in the pattern). Cotangents are clamped to
+/// `[-COT_CAP, COT_CAP]` (libigl's `cot = (l1^2 + l2^2 - l0^2) / (4 area)` is
+/// unbounded on needles).
+pub fn cotangent_laplacian_masked(mesh: &Mesh, x: &[DVec3], skip: &[bool]) -> Laplacian {
     let mut t = Vec::with_capacity(mesh.faces.len() * 6);
-    for f in &mesh.faces {
+    for (fi, f) in mesh.faces.iter().enumerate() {
+        let skipped = skip.get(fi).copied().unwrap_or(false);
         for k in 0..3 {
             let (a, b, c) = (f[k], f[(k + 1) % 3], f[(k + 2) % 3]);
-            let e1 = x[a as usize] - x[c as usize];
-            let e2 = x[b as usize] - x[c as usize];
-            let cr = e1.cross(e2).length();
-            let cot = if cr > 0.0 { e1.dot(e2) / cr } else { 0.0 };
+            if skipped && a == b {
+                continue; // a collapsed face's side (a, a): nothing to keep
+            }
+            let cot = if skipped {
+                0.0
+            } else {
+                let e1 = x[a as usize] - x[c as usize];
+                let e2 = x[b as usize] - x[c as usize];
+                let cr = e1.cross(e2).length();
+                if cr > 0.0 {
+                    (e1.dot(e2) / cr).clamp(-COT_CAP, COT_CAP)
+                } else {
+                    0.0
+                }
+            };
             t.push((a, b, 0.5 * cot));
             t.push((b, a, 0.5 * cot));
         }
@@ -62,12 +83,29 @@ pub fn cotangent_laplacian(mesh: &Mesh, x: &[DVec3]) -> Laplacian {
     Laplacian::from_triplets(x.len(), t, false)
 }
 
-/// Mean-value Laplacian (Floater), rows normalised to sum 1.
+/// Mean-value Laplacian (Floater), rows normalised to sum 1. Zero-area, needle and
+/// cap faces ([`Mesh::degenerate_faces`]) contribute zero weights.
 pub fn mean_value_laplacian(mesh: &Mesh, x: &[DVec3]) -> Laplacian {
+    mean_value_laplacian_masked(mesh, x, &mesh.degenerate_faces(x))
+}
+
+/// [`mean_value_laplacian`] with the faces flagged in `skip` contributing zero
+/// weights (their vertex pairs stay in the pattern).
+pub fn mean_value_laplacian_masked(mesh: &Mesh, x: &[DVec3], skip: &[bool]) -> Laplacian {
     let mut t = Vec::with_capacity(mesh.faces.len() * 6);
-    for f in &mesh.faces {
+    for (fi, f) in mesh.faces.iter().enumerate() {
+        let skipped = skip.get(fi).copied().unwrap_or(false);
         for k in 0..3 {
             let (a, b, c) = (f[k], f[(k + 1) % 3], f[(k + 2) % 3]);
+            if skipped {
+                if a != b {
+                    t.push((a, b, 0.0));
+                }
+                if a != c {
+                    t.push((a, c, 0.0));
+                }
+                continue;
+            }
             let e1 = x[b as usize] - x[a as usize];
             let e2 = x[c as usize] - x[a as usize];
             let (l1, l2) = (e1.length(), e2.length());
@@ -100,6 +138,11 @@ pub fn vertex_areas(mesh: &Mesh, x: &[DVec3]) -> Vec<f64> {
     a
 }
 
+/// Weight of the springs on the sides of faces without shape weight, relative to
+/// a frame term `(k_f + k_m + k_l) / total area`: small enough to change nothing
+/// measurable, large enough to keep the shape system positive definite.
+pub const NO_WEIGHT_SPRING: f64 = 1e-6;
+
 /// A positional handle vertex (Eq. 19).
 #[derive(Debug, Clone, Copy)]
 pub struct HandleTarget {
@@ -118,6 +161,12 @@ pub struct ShapeModel {
     mv: Arc<Laplacian>,
     vertex_area: Vec<f64>,
     face_weight: Vec<f64>,
+    /// Faces with no shape weight: zero-area, needle or cap faces of the input
+    /// ([`Mesh::degenerate_faces`]) and duplicate faces. They get no frame energy
+    /// and no Laplacian weights; instead a spring of weight [`NO_WEIGHT_SPRING`]
+    /// on each side keeps their vertices moving with the rest (without it, a
+    /// vertex used only by such faces would make the system singular).
+    no_weight: Vec<bool>,
     total_area: f64,
     mean_edge: f64,
     /// Unscaled Hessian of E_m (constant: input cotangent weights), isotropic:
@@ -157,12 +206,20 @@ impl ShapeModel {
     ) -> Result<Self> {
         let x = &mesh.positions;
         let n = x.len();
-        let cot = Arc::new(cotangent_laplacian(mesh, x));
-        let mv = Arc::new(mean_value_laplacian(mesh, x));
+        let mut no_weight = mesh.degenerate_faces(x);
+        for &(f, _) in &topo.duplicate_faces {
+            no_weight[f as usize] = true;
+        }
+        let cot = Arc::new(cotangent_laplacian_masked(mesh, x, &no_weight));
+        let mv = Arc::new(mean_value_laplacian_masked(mesh, x, &no_weight));
         let vertex_area = vertex_areas(mesh, x);
         let areas = mesh.face_areas(x);
         let total_area: f64 = areas.iter().sum();
-        let face_weight: Vec<f64> = areas.iter().map(|a| a / total_area).collect();
+        let face_weight: Vec<f64> = areas
+            .iter()
+            .zip(&no_weight)
+            .map(|(a, &skip)| if skip { 0.0 } else { a / total_area })
+            .collect();
         let mean_edge = if topo.edges.is_empty() {
             1.0
         } else {
@@ -262,6 +319,7 @@ impl ShapeModel {
             mv,
             vertex_area,
             face_weight,
+            no_weight,
             total_area,
             mean_edge,
             hm,
@@ -335,8 +393,29 @@ impl ShapeModel {
         let grad = &mut self.grad;
         grad.iter_mut().for_each(|g| *g = 0.0);
 
+        // Faces without shape weight: springs on their sides, zero gradient at xc.
+        let spring = NO_WEIGHT_SPRING * 2.0 * (w.k_f + w.k_m + w.k_l).max(1e-300)
+            / self.total_area.max(f64::MIN_POSITIVE);
+        for (f, t) in mesh.faces.iter().enumerate() {
+            if !self.no_weight[f] {
+                continue;
+            }
+            let slots = &self.face_slots[f];
+            for (k, l) in [(1usize, 0usize), (2, 0), (2, 1)] {
+                if t[k] == t[l] {
+                    continue;
+                }
+                h.iso.values[slots[k * (k + 1) / 2 + k] as usize] += spring;
+                h.iso.values[slots[l * (l + 1) / 2 + l] as usize] += spring;
+                h.iso.values[slots[k * (k + 1) / 2 + l] as usize] -= spring;
+            }
+        }
+
         // E_f (Eq. 4, fourth vertex eliminated).
         for (f, t) in mesh.faces.iter().enumerate() {
+            if self.no_weight[f] {
+                continue;
+            }
             let p = [xc[t[0] as usize], xc[t[1] as usize], xc[t[2] as usize]];
             let nrm = (p[1] - p[0]).cross(p[2] - p[0]);
             let a2 = nrm.length();

@@ -22,14 +22,57 @@ pub struct Topology {
     /// Edges with more than two faces.
     pub non_manifold_edges: Vec<usize>,
     /// Faces around each vertex, CSR: faces of v are `vf_index[vf_start[v]..vf_start[v+1]]`.
+    /// Duplicate and collapsed faces (`ignored`) are left out.
     pub vf_start: Vec<usize>,
     pub vf_index: Vec<u32>,
+    /// Duplicate faces `(f, g)`: face `f` has the same three vertices as the earlier
+    /// face `g` (in any order or orientation), in face order. A duplicate keeps its
+    /// index and its `face_edges`, but is left out of `edge_faces` and
+    /// `vertex_faces`, so it makes no edge non-manifold; `face_pairs` ties it to
+    /// `g` instead.
+    pub duplicate_faces: Vec<(u32, u32)>,
+    /// Per face: true when it duplicates an earlier face.
+    pub is_duplicate: Vec<bool>,
+    /// Faces with a repeated corner index (`[a, a, b]`, e.g. an STL triangle with two
+    /// equal corners): zero area, no triangle. Like duplicates they keep their
+    /// index and `face_edges` (a side `(a, a)` is an edge with no faces), but are
+    /// left out of `edge_faces` and `vertex_faces`; `face_pairs` ties each to a face
+    /// of one of its sides when there is one.
+    pub collapsed_faces: Vec<u32>,
+    /// Per face: a duplicate or collapsed face, left out of the adjacency.
+    pub ignored: Vec<bool>,
 }
 
 impl Topology {
     pub fn build(mesh: &Mesh) -> Topology {
         let nf = mesh.faces.len();
         let nv = mesh.positions.len();
+        // Duplicate faces: the same vertex set as an earlier face.
+        let mut first: HashMap<[u32; 3], u32> = HashMap::with_capacity(nf);
+        let mut duplicate_faces = Vec::new();
+        let mut is_duplicate = vec![false; nf];
+        let mut collapsed_faces = Vec::new();
+        let mut ignored = vec![false; nf];
+        for (f, t) in mesh.faces.iter().enumerate() {
+            let mut key = *t;
+            key.sort_unstable();
+            if key[0] == key[1] || key[1] == key[2] {
+                collapsed_faces.push(f as u32);
+                ignored[f] = true;
+                continue;
+            }
+            match first.entry(key) {
+                std::collections::hash_map::Entry::Occupied(g) => {
+                    duplicate_faces.push((f as u32, *g.get()));
+                    is_duplicate[f] = true;
+                    ignored[f] = true;
+                }
+                std::collections::hash_map::Entry::Vacant(slot) => {
+                    slot.insert(f as u32);
+                }
+            }
+        }
+        drop(first);
         let mut map: HashMap<(u32, u32), u32> = HashMap::with_capacity(nf * 3 / 2 + 16);
         let mut edges = Vec::with_capacity(nf * 3 / 2 + 16);
         let mut face_edges = Vec::with_capacity(nf);
@@ -49,7 +92,10 @@ impl Topology {
         drop(map);
         let ne = edges.len();
         let mut edge_face_start = vec![0usize; ne + 1];
-        for fe in &face_edges {
+        for (f, fe) in face_edges.iter().enumerate() {
+            if ignored[f] {
+                continue;
+            }
             for &e in fe {
                 edge_face_start[e as usize + 1] += 1;
             }
@@ -60,6 +106,9 @@ impl Topology {
         let mut fill = edge_face_start.clone();
         let mut edge_face_index = vec![0u32; edge_face_start[ne]];
         for (f, fe) in face_edges.iter().enumerate() {
+            if ignored[f] {
+                continue;
+            }
             for &e in fe {
                 edge_face_index[fill[e as usize]] = f as u32;
                 fill[e as usize] += 1;
@@ -78,11 +127,26 @@ impl Topology {
                         face_pairs.push([fs[0], fs[1]])
                     }
                 }
+                0 => {}
                 _ => non_manifold_edges.push(e),
             }
         }
+        face_pairs.extend(duplicate_faces.iter().map(|&(f, g)| [g, f]));
+        for &f in &collapsed_faces {
+            let partner = face_edges[f as usize].iter().find_map(|&e| {
+                let e = e as usize;
+                (edge_face_start[e + 1] > edge_face_start[e])
+                    .then(|| edge_face_index[edge_face_start[e]])
+            });
+            if let Some(g) = partner {
+                face_pairs.push([g, f]);
+            }
+        }
         let mut vf_start = vec![0usize; nv + 1];
-        for t in &mesh.faces {
+        for (f, t) in mesh.faces.iter().enumerate() {
+            if ignored[f] {
+                continue;
+            }
             for &v in t {
                 if (v as usize) < nv {
                     vf_start[v as usize + 1] += 1;
@@ -95,6 +159,9 @@ impl Topology {
         let mut fill = vf_start.clone();
         let mut vf_index = vec![0u32; vf_start[nv]];
         for (f, t) in mesh.faces.iter().enumerate() {
+            if ignored[f] {
+                continue;
+            }
             for &v in t {
                 if (v as usize) < nv {
                     vf_index[fill[v as usize]] = f as u32;
@@ -112,6 +179,10 @@ impl Topology {
             non_manifold_edges,
             vf_start,
             vf_index,
+            duplicate_faces,
+            is_duplicate,
+            collapsed_faces,
+            ignored,
         }
     }
 

@@ -2,12 +2,18 @@
 //! names the file and the offending elements; what it can live with is counted.
 //!
 //! Rejected ([`Error::BadInput`]): no faces, face corners out of range, non-finite
-//! coordinates on vertices used by faces, degenerate faces (a repeated vertex or zero area,
-//! `area <= 1e-14 * bbox_diagonal^2`) and non-manifold edges (more than two faces).
+//! coordinates on vertices used by faces, and non-manifold edges (more than two
+//! faces; duplicate and collapsed faces not counted).
 //!
-//! Accepted and counted ([`MeshCheck`]): boundary edges, unreferenced vertices (logged with
-//! `log::warn!`), connected components. Non-manifold vertices (two fans of faces meeting in
-//! one vertex) are logged with `log::warn!` but not rejected.
+//! Accepted and counted ([`MeshCheck`]): boundary edges, connected components. Accepted
+//! and named in [`MeshCheck::warnings`] (each also logged with `log::warn!`):
+//! zero-area (a repeated corner index included), needle and cap faces
+//! ([`Mesh::degenerate_faces`]: they get no shape weight), duplicate faces (left out of
+//! the adjacency, see [`Topology`]), unreferenced vertices and non-manifold vertices
+//! (two fans of faces meeting in one vertex).
+//!
+//! A volume constraint needs more ([`require_volume`]): a closed, consistently oriented
+//! mesh.
 //!
 //! Vertex and face indices in messages are 0-based (faces are triangles after fan
 //! triangulation, numbered in file order).
@@ -33,6 +39,14 @@ pub struct MeshCheck {
     pub components: usize,
     /// Every edge has exactly two faces.
     pub closed: bool,
+    /// Zero-area, needle and cap faces ([`Mesh::degenerate_faces`]): accepted, they
+    /// get no shape weight.
+    pub zero_area_faces: Vec<usize>,
+    /// Duplicate faces `(f, g)`: face f repeats the vertices of the earlier face g.
+    pub duplicate_faces: Vec<(usize, usize)>,
+    /// One line per tolerated defect worth telling the user (also logged with
+    /// `log::warn!`), without a `warning:` prefix.
+    pub warnings: Vec<String>,
 }
 
 /// "`what`: a, b, c, d, e and 7 more"
@@ -45,6 +59,24 @@ fn listing(items: &[String]) -> String {
         .join("; ");
     if items.len() > MAX_LISTED {
         s.push_str(&format!(" and {} more", items.len() - MAX_LISTED));
+    }
+    s
+}
+
+/// Most indices listed in a warning.
+const MAX_INDICES: usize = 10;
+
+/// "a, b, c" with at most [`MAX_INDICES`] items, then "and N more".
+fn index_listing(items: impl Iterator<Item = String>) -> String {
+    let all: Vec<String> = items.collect();
+    let mut s = all
+        .iter()
+        .take(MAX_INDICES)
+        .cloned()
+        .collect::<Vec<_>>()
+        .join(", ");
+    if all.len() > MAX_INDICES {
+        s.push_str(&format!(" and {} more", all.len() - MAX_INDICES));
     }
     s
 }
@@ -128,33 +160,58 @@ pub fn validate(mesh: &Mesh, topo: &Topology, file: &Path) -> Result<MeshCheck> 
         )));
     }
 
-    // Degenerate faces.
     let x = &mesh.positions;
-    let diag = mesh.bbox_diagonal(x);
-    let tol = 1e-14 * diag * diag;
-    let degenerate: Vec<String> = mesh
-        .faces
+
+    // Tolerated: zero-area (a repeated corner index included), needle and cap faces,
+    // and duplicate faces.
+    let mut warnings = Vec::new();
+    let zero_area_faces: Vec<usize> = mesh
+        .degenerate_faces(x)
         .iter()
         .enumerate()
-        .filter_map(|(f, t)| {
-            let [a, b, c] = *t;
-            if a == b || b == c || a == c {
-                Some(format!("face {f} ({a}, {b}, {c}) repeats a vertex"))
-            } else {
-                let area = mesh.face_area(x, f);
-                (area <= tol).then(|| format!("face {f} ({a}, {b}, {c}) has area {area:e}"))
-            }
-        })
+        .filter(|&(_, &d)| d)
+        .map(|(f, _)| f)
         .collect();
-    if !degenerate.is_empty() {
-        return Err(Error::bad(format!(
-            "{file_s}: {} (0-based triangle index (vertices), zero area means <= {tol:e} = \
-             1e-14 * bbox diagonal^2): {}",
-            plural(degenerate.len(), "degenerate face", "degenerate faces"),
-            listing(&degenerate)
-        )));
+    if !zero_area_faces.is_empty() {
+        let diag = mesh.bbox_diagonal(x);
+        let all_zero = zero_area_faces
+            .iter()
+            .all(|&f| 2.0 * mesh.face_area(x, f) <= crate::mesh::DEGENERATE_AREA * diag * diag);
+        warnings.push(format!(
+            "mesh {file_s}: {} (0-based: {}) get no shape weight",
+            plural(
+                zero_area_faces.len(),
+                if all_zero {
+                    "zero-area face"
+                } else {
+                    "zero-area or needle face"
+                },
+                if all_zero {
+                    "zero-area faces"
+                } else {
+                    "zero-area or needle faces"
+                }
+            ),
+            index_listing(zero_area_faces.iter().map(|f| f.to_string()))
+        ));
     }
-
+    let duplicate_faces: Vec<(usize, usize)> = topo
+        .duplicate_faces
+        .iter()
+        .map(|&(f, g)| (f as usize, g as usize))
+        .collect();
+    if !duplicate_faces.is_empty() {
+        warnings.push(format!(
+            "mesh {file_s}: {} (0-based: {}) ignored for adjacency and shape weight \
+             (same three vertices as an earlier face)",
+            plural(duplicate_faces.len(), "duplicate face", "duplicate faces"),
+            index_listing(
+                duplicate_faces
+                    .iter()
+                    .map(|(f, g)| format!("{f} repeats {g}"))
+            )
+        ));
+    }
     // Non-manifold edges.
     if !topo.non_manifold_edges.is_empty() {
         let items: Vec<String> = topo
@@ -182,22 +239,28 @@ pub fn validate(mesh: &Mesh, topo: &Topology, file: &Path) -> Result<MeshCheck> 
             .filter(|(_, &u)| !u)
             .map(|(v, _)| v.to_string())
             .collect();
-        log::warn!(
-            "{file_s}: {} not used by any face (ignored; 0-based): {}",
+        warnings.push(format!(
+            "mesh {file_s}: {} not used by any face (ignored; 0-based: {})",
             plural(unreferenced, "vertex is", "vertices are"),
-            listing(&first)
-        );
+            index_listing(first.into_iter())
+        ));
     }
 
     // Tolerated: non-manifold vertices (the faces around a vertex form several fans).
     let nm_vertices = non_manifold_vertices(mesh, topo);
     if !nm_vertices.is_empty() {
-        let items: Vec<String> = nm_vertices.iter().map(|v| v.to_string()).collect();
-        log::warn!(
-            "{file_s}: {} where separate fans of faces meet (0-based): {}",
-            plural(items.len(), "non-manifold vertex", "non-manifold vertices"),
-            listing(&items)
-        );
+        warnings.push(format!(
+            "mesh {file_s}: {} where separate fans of faces meet (0-based: {})",
+            plural(
+                nm_vertices.len(),
+                "non-manifold vertex",
+                "non-manifold vertices"
+            ),
+            index_listing(nm_vertices.iter().map(|v| v.to_string()))
+        ));
+    }
+    for w in &warnings {
+        log::warn!("{w}");
     }
 
     // Connected components of faces via shared vertices.
@@ -220,6 +283,9 @@ pub fn validate(mesh: &Mesh, topo: &Topology, file: &Path) -> Result<MeshCheck> 
         unreferenced_vertices: unreferenced,
         components,
         closed: topo.boundary_edges.is_empty() && topo.non_manifold_edges.is_empty(),
+        zero_area_faces,
+        duplicate_faces,
+        warnings,
     };
     log::debug!("{file_s}: {check:?}");
     Ok(check)
@@ -265,16 +331,33 @@ fn non_manifold_vertices(mesh: &Mesh, topo: &Topology) -> Vec<usize> {
 
 /// Fails unless the mesh is closed: `what` names the requirement, e.g.
 /// `volume constraint 'body'`, giving
-/// "<file>: volume constraint 'body' needs a closed mesh, but it has 223 boundary edges".
+/// "<file>: volume constraint 'body' needs a closed mesh, but it has 223 boundary edges
+/// (...): fill the holes ... or drop the volume constraint".
 pub fn require_closed(check: &MeshCheck, file: &Path, what: &str) -> Result<()> {
     if check.closed {
         return Ok(());
     }
+    Err(Error::bad(closed_message(check, file, what, None)))
+}
+
+fn closed_message(check: &MeshCheck, file: &Path, what: &str, seams: Option<&Seams>) -> String {
     let mut msg = format!(
         "{}: {what} needs a closed mesh, but it has {}",
         file.display(),
         plural(check.boundary_edges, "boundary edge", "boundary edges")
     );
+    if let Some(s) = seams {
+        if !s.examples.is_empty() {
+            msg.push_str(&format!(" (0-based vertices: {}", s.examples.join("; ")));
+            if check.boundary_edges > s.examples.len() {
+                msg.push_str(&format!(
+                    " and {} more",
+                    check.boundary_edges - s.examples.len()
+                ));
+            }
+            msg.push(')');
+        }
+    }
     if check.non_manifold_edges > 0 {
         msg.push_str(&format!(
             " and {}",
@@ -285,5 +368,140 @@ pub fn require_closed(check: &MeshCheck, file: &Path, what: &str) -> Result<()> 
             )
         ));
     }
-    Err(Error::bad(msg))
+    match seams {
+        Some(s) if s.paired > 0 && s.paired == check.boundary_edges => msg.push_str(
+            ": the mesh is open only because its seams are split (every boundary edge \
+             coincides in position with another, as after a UV or normal export): weld \
+             vertices at equal positions (e.g. MeshLab's Merge Close Vertices, trimesh's \
+             merge_vertices), or drop the volume constraint",
+        ),
+        Some(s) if s.paired > 0 => msg.push_str(&format!(
+            ": {} of them coincide in position with another (split seams: weld vertices \
+             at equal positions); fill the remaining holes (e.g. MeshLab's Close Holes) or \
+             drop the volume constraint",
+            s.paired
+        )),
+        _ if check.boundary_edges > 0 => msg.push_str(
+            ": fill the holes (e.g. MeshLab's Close Holes) or drop the volume constraint",
+        ),
+        _ => {
+            msg.push_str(": make every edge have exactly two faces, or drop the volume constraint")
+        }
+    }
+    msg
+}
+
+/// Boundary edges that coincide in position with another boundary edge.
+struct Seams {
+    paired: usize,
+    /// A few boundary edges, as "(a, b)", for the message.
+    examples: Vec<String>,
+}
+
+fn seams(mesh: &Mesh, topo: &Topology) -> Seams {
+    use std::collections::HashMap;
+    // Positions equal bit for bit (-0.0 = 0.0), else equal on a grid of 1e-9 times
+    // the bbox diagonal (exporters that print seam copies with other rounding).
+    let count_paired = |key: &dyn Fn(u32) -> [u64; 3]| -> usize {
+        let keys: Vec<([u64; 3], [u64; 3])> = topo
+            .boundary_edges
+            .iter()
+            .map(|&e| {
+                let [a, b] = topo.edges[e];
+                let (ka, kb) = (key(a), key(b));
+                if ka <= kb {
+                    (ka, kb)
+                } else {
+                    (kb, ka)
+                }
+            })
+            .collect();
+        let mut count: HashMap<([u64; 3], [u64; 3]), usize> = HashMap::new();
+        for k in &keys {
+            *count.entry(*k).or_default() += 1;
+        }
+        keys.iter().filter(|k| count[*k] >= 2).count()
+    };
+    let exact = |v: u32| -> [u64; 3] {
+        mesh.positions[v as usize]
+            .to_array()
+            .map(|c| if c == 0.0 { 0 } else { c.to_bits() })
+    };
+    let mut paired = count_paired(&exact);
+    let grid = 1e-9 * mesh.bbox_diagonal(&mesh.positions);
+    if paired < topo.boundary_edges.len() && grid > 0.0 {
+        let snapped = |v: u32| -> [u64; 3] {
+            mesh.positions[v as usize]
+                .to_array()
+                .map(|c| (c / grid).round() as i64 as u64)
+        };
+        paired = paired.max(count_paired(&snapped));
+    }
+    let examples = topo
+        .boundary_edges
+        .iter()
+        .take(MAX_LISTED)
+        .map(|&e| format!("({}, {})", topo.edges[e][0], topo.edges[e][1]))
+        .collect();
+    Seams { paired, examples }
+}
+
+/// Everything a volume constraint needs (contract: "Volume"): a closed mesh (every
+/// edge has two faces; when the mesh is open only because its seams are split, the
+/// message says to weld vertices) whose faces are consistently oriented (each
+/// interior edge runs one way in one face and the other way in the other; an
+/// inward-oriented mesh is fine). `what` names the constraint.
+pub fn require_volume(
+    mesh: &Mesh,
+    topo: &Topology,
+    check: &MeshCheck,
+    file: &Path,
+    what: &str,
+) -> Result<()> {
+    if !check.closed {
+        let s = seams(mesh, topo);
+        return Err(Error::bad(closed_message(check, file, what, Some(&s))));
+    }
+    let runs_forward = |f: u32, a: u32, b: u32| -> bool {
+        let t = mesh.faces[f as usize];
+        (0..3).any(|k| t[k] == a && t[(k + 1) % 3] == b)
+    };
+    let mut bad: Vec<String> = Vec::new();
+    let mut count = 0usize;
+    for (e, &[a, b]) in topo.edges.iter().enumerate() {
+        let fs = topo.edge_faces(e);
+        if fs.len() != 2 {
+            continue;
+        }
+        if runs_forward(fs[0], a, b) == runs_forward(fs[1], a, b) {
+            count += 1;
+            if bad.len() < MAX_LISTED {
+                bad.push(format!(
+                    "edge ({a}, {b}) runs the same way in faces {} and {}",
+                    fs[0], fs[1]
+                ));
+            }
+        }
+    }
+    if count > 0 {
+        return Err(Error::bad(format!(
+            "{}: {what} needs a consistently oriented mesh, but {} (0-based; the two \
+             faces of an edge must list it in opposite orders): {}{}: re-orient the faces \
+             consistently (e.g. MeshLab's Re-Orient all faces coherently, libigl's \
+             bfs_orient, trimesh's fix_winding), or drop the volume constraint",
+            file.display(),
+            plural(
+                count,
+                "edge has two faces that disagree on orientation",
+                "edges have two faces that disagree on orientation"
+            ),
+            bad.join("; "),
+            if count > bad.len() {
+                format!(" and {} more", count - bad.len())
+            } else {
+                String::new()
+            }
+        )));
+    }
+    Ok(())
 }

@@ -486,7 +486,12 @@ fn validation_rejections() {
             non_manifold_edges: 0,
             unreferenced_vertices: 1,
             components: 1,
-            closed: false
+            closed: false,
+            warnings: vec![format!(
+                "mesh {}: 1 vertex is not used by any face (ignored; 0-based: 4)",
+                f.display()
+            )],
+            ..MeshCheck::default()
         }
     );
     let msg = bad_msg(require_closed(&c, &f, "volume constraint 'x'"));
@@ -521,28 +526,37 @@ fn validation_rejections() {
     let msg = bad_msg(check(&m, &f));
     assert!(msg.contains("face 2") && msg.contains("vertex 9"), "{msg}");
 
-    // Repeated vertex.
+    // Repeated vertex index (an STL triangle with two equal corners reads so): a
+    // zero-area face, accepted and named.
     let mut m = quad.clone();
-    m.faces[1] = [0, 2, 2];
-    let msg = bad_msg(check(&m, &f));
+    m.faces.push([0, 2, 2]);
+    let c = check(&m, &f).unwrap();
+    assert_eq!(c.zero_area_faces, vec![2]);
     assert!(
-        msg.contains("degenerate") && msg.contains("face 1"),
-        "{msg}"
+        c.warnings.iter().any(|w| w.contains("0-based: 2)")),
+        "{:?}",
+        c.warnings
     );
+    assert_eq!(c.boundary_edges, 4);
+    assert_eq!(c.non_manifold_edges, 0);
 
-    // Zero area (collinear corners).
+    // Zero area (collinear corners): accepted, named in a warning.
     let mut m = quad.clone();
     m.positions[3] = DVec3::new(2.0, 2.0, 0.0);
-    let msg = bad_msg(check(&m, &f));
+    let c = check(&m, &f).unwrap();
+    assert_eq!(c.zero_area_faces, vec![1]);
     assert!(
-        msg.contains("degenerate") && msg.contains("face 1"),
-        "{msg}"
+        c.warnings.iter().any(|w| w.contains("t.obj")
+            && w.contains("1 zero-area face")
+            && w.contains("0-based: 1)")),
+        "{:?}",
+        c.warnings
     );
 
     // Many offenders: at most five listed, then "and N more".
     let mut m = quad.clone();
-    for _ in 0..8 {
-        m.faces.push([1, 1, 2]);
+    for i in 0..8 {
+        m.faces.push([1, 2, 9 + i]);
     }
     let msg = bad_msg(check(&m, &f));
     assert!(msg.contains("and 3 more"), "{msg}");
@@ -617,4 +631,65 @@ fn atomic_write_leaves_no_temporaries() {
     );
     assert!(r.is_err());
     assert_eq!(dir_entries(dir.path()), ["a.obj", "b.ply", "c.stl"]);
+}
+
+/// Issue 16 item 7: files with old-Mac line ends (a lone CR) read like LF files
+/// (OBJ said "no faces (1 vertex)" before).
+#[test]
+fn cr_only_line_endings_read_like_lf() {
+    let dir = tempfile::tempdir().unwrap();
+    let obj = "# cr\nv 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\ng top\nf 1 2 3 4\nf 1/1 3/1 2/1\n";
+    let lf = read_mesh(&write_file(dir.path(), "lf.obj", obj)).unwrap();
+    assert_eq!(lf.num_faces(), 3);
+    for (name, text) in [
+        ("cr.obj", obj.replace('\n', "\r")),
+        ("crlf.obj", obj.replace('\n', "\r\n")),
+    ] {
+        let m = read_mesh(&write_file(dir.path(), name, &text)).unwrap();
+        assert_eq!(m.positions, lf.positions, "{name}");
+        assert_eq!(m.faces, lf.faces, "{name}");
+        assert_eq!(m.groups, lf.groups, "{name}");
+    }
+    // Line numbers in messages count CR line ends too.
+    let bad = "v 0 0 0\rv 1 0 0\rv 0 1 0\rf 1 2 x\r";
+    let msg = bad_msg(read_mesh(&write_file(dir.path(), "bad.obj", bad)));
+    assert!(msg.contains("bad.obj line 4"), "{msg}");
+
+    let ply = "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n\
+               property float z\nelement face 1\nproperty list uchar int vertex_indices\n\
+               end_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n";
+    let p = read_mesh(&write_file(dir.path(), "cr.ply", &ply.replace('\n', "\r"))).unwrap();
+    assert_eq!(p.faces, vec![[0, 1, 2]]);
+    assert_eq!(p.positions[1], DVec3::new(1.0, 0.0, 0.0));
+
+    // Binary PLY with a CR-terminated header: the body is left alone (its bytes
+    // may contain 0x0d).
+    let mut bin = b"ply\rformat binary_little_endian 1.0\relement vertex 3\rproperty double x\r\
+property double y\rproperty double z\relement face 1\rproperty list uchar int vertex_indices\r\
+end_header\r"
+        .to_vec();
+    let coords = [
+        [13.0f64 / 1024.0, 0.0, 0.0],
+        [1.0, 0.0, 0.0],
+        [0.0, 1.0, 0.0],
+    ];
+    for c in coords {
+        for v in c {
+            bin.extend_from_slice(&v.to_le_bytes());
+        }
+    }
+    bin.push(3);
+    for i in [0i32, 1, 2] {
+        bin.extend_from_slice(&i.to_le_bytes());
+    }
+    let bp = dir.path().join("bin.ply");
+    fs::write(&bp, &bin).unwrap();
+    let b = read_mesh(&bp).unwrap();
+    assert_eq!(b.faces, vec![[0, 1, 2]]);
+    assert_eq!(b.positions[0].x, 13.0 / 1024.0);
+
+    let stl = "solid t\nfacet normal 0 0 1\nouter loop\nvertex 0 0 0\nvertex 1 0 0\n\
+               vertex 0 1 0\nendloop\nendfacet\nendsolid t\n";
+    let s = read_mesh(&write_file(dir.path(), "cr.stl", &stl.replace('\n', "\r"))).unwrap();
+    assert_eq!(s.faces, vec![[0, 1, 2]]);
 }

@@ -1,8 +1,10 @@
 //! Job file parsing/validation and selections (curves, regions, handles).
 
 use glam::DVec3;
+use metricdeform::deform::Problem;
 use metricdeform::job::{
-    CurveSpec, HandleSpec, Job, JobFormat, MetricKind, PlaneSpec, PointSpec, RegionSpec,
+    BoxSpec, CurveSpec, HandleSpec, Job, JobFormat, MetricKind, PlaneSpec, PointSpec, RegionSpec,
+    SphereSpec,
 };
 use metricdeform::mesh::{FaceGroup, Mesh};
 use metricdeform::selection::{build_curve, build_handle_vertices, build_region, Curve};
@@ -254,8 +256,9 @@ fn toml_and_json_parse_to_equal_specs() {
     assert_eq!(s.solver.max_iterations, Some(100));
     assert_eq!(t.mesh_path(), dir.path().join("spot.obj"));
     assert_eq!(t.output_path(), dir.path().join("out/spot-deformed.obj"));
-    assert_eq!(t.constraint_label(0), "constraint 0 ('neck girth')");
-    assert_eq!(t.constraint_label(1), "constraint 1 (length)");
+    // Constraints are numbered from 1 in messages (contract: "1-based number").
+    assert_eq!(t.constraint_label(0), "constraint 1 ('neck girth')");
+    assert_eq!(t.constraint_label(1), "constraint 2 (length)");
     assert_eq!(MetricKind::Area.to_string(), "area");
 }
 
@@ -336,13 +339,13 @@ fn constraint_validation() {
          [[constraint]]\nkind = \"volume\"\nname = \"neck girth\"\nscale = 1.0\nvalue = 2.0\n",
     ));
     assert!(
-        msg.contains("constraint 2 ('neck girth'): give either scale or value, not both"),
+        msg.contains("constraint 3 ('neck girth'): give either scale or value, not both"),
         "{msg}"
     );
     let cases: [(&str, &str); 9] = [
         (
             "kind = \"volume\"\nscale = -1.0",
-            "constraint 0 (volume): scale",
+            "constraint 1 (volume): scale",
         ),
         ("kind = \"volume\"\nvalue = 0.0", "value"),
         ("kind = \"volume\"\nscale = nan", "scale"),
@@ -384,7 +387,7 @@ fn constraint_validation() {
     let msg = bad_msg(toml_job(
         "mesh = \"a.obj\"\n[[handle]]\nvertices = [0]\nregion = { faces = [0] }\n",
     ));
-    assert!(msg.contains("handle 0"), "{msg}");
+    assert!(msg.contains("handle 1"), "{msg}");
     let msg = bad_msg(toml_job("mesh = \"a.obj\"\n[solver]\ntolerance = 0.0\n"));
     assert!(msg.contains("tolerance"), "{msg}");
     let msg = bad_msg(toml_job(
@@ -1159,4 +1162,170 @@ fn handle_vertices() {
         "handle 1",
     ));
     assert!(msg.contains("handle 1"), "{msg}");
+}
+
+/// Issue 16 item 7: a job file and a faces_file with old-Mac line ends (lone CR).
+#[test]
+fn cr_only_job_and_faces_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = "mesh = \"m.obj\"\n[[constraint]]\nkind = \"area\"\nname = \"ear\"\n\
+                region = { faces_file = \"ear.txt\" }\nscale = 2.0\n[solver]\ntolerance = 1e-6\n";
+    let p = dir.path().join("job.toml");
+    std::fs::write(&p, text.replace('\n', "\r")).unwrap();
+    let job = Job::load(&p).unwrap();
+    assert_eq!(job.spec.constraint.len(), 1);
+    assert_eq!(job.spec.constraint[0].name.as_deref(), Some("ear"));
+    assert_eq!(job.spec.solver.tolerance, Some(1e-6));
+    // JSON too.
+    let p = dir.path().join("job.json");
+    std::fs::write(&p, "{\"mesh\": \"m.obj\",\r\"constraint\": []\r}\r").unwrap();
+    Job::load(&p).unwrap();
+    // faces_file: a comment ends at a lone CR, like at a LF.
+    std::fs::write(dir.path().join("ear.txt"), "0 1 # first\r2\r# none\r3").unwrap();
+    let m = cube();
+    let region = job.spec.constraint[0].region.as_ref().unwrap();
+    let r = build_region(region, &m, &job, "constraint 1 ('ear')").unwrap();
+    assert_eq!(r.faces, vec![0, 1, 2, 3]);
+}
+
+/// Issue 16 item 6: weights that make a system singular or meaningless are bad
+/// input at load time naming the weight and the job file (they ended in
+/// "linear solver: matrix is not positive definite", exit 1).
+#[test]
+fn singular_or_absurd_weights_are_bad_input() {
+    let cases: [(&str, &[&str]); 7] = [
+        (
+            "k_f = 0.0, k_m = 0.0, k_l = 0.0, k_d = 0.0, k_r = 0.0, k_p = 0.0",
+            &["k_f", "> 0"],
+        ),
+        ("k_f = 0.0", &["k_f", "> 0"]),
+        ("k_f = 1e300", &["k_f = 1e300"]),
+        ("k_m = 1e13", &["k_m"]),
+        ("k_d = -1.0", &["k_d = -1"]),
+        ("k_r = inf", &["k_r = inf"]),
+        ("k_f = 1e-9, k_m = 1e6", &["k_f", "k_m", "negligible"]),
+    ];
+    for (weights, want) in cases {
+        let text = format!("mesh = \"a.obj\"\n[solver]\nweights = {{ {weights} }}\n");
+        let msg = bad_msg(toml_job(&text));
+        assert!(msg.contains("job.toml"), "{weights}: {msg}");
+        for w in want {
+            assert!(msg.contains(w), "{weights}: {msg:?} should contain {w:?}");
+        }
+        let e = toml_job(&text).unwrap_err();
+        assert_eq!(e.exit_code(), 2);
+    }
+    // Sane weights pass, k_d = k_r = 0 included (the scale-factor system keeps a floor).
+    for weights in [
+        "k_f = 1.0, k_m = 0.0, k_l = 0.0, k_p = 0.0",
+        "k_d = 0.0, k_r = 0.0",
+        "k_f = 1e12",
+    ] {
+        let text = format!("mesh = \"a.obj\"\n[solver]\nweights = {{ {weights} }}\n");
+        toml_job(&text).unwrap();
+    }
+}
+
+/// Issue 16 item 8: an empty region shows the mesh's bounding box and the sphere's
+/// or box's extent; a plane that misses the mesh shows the mesh's extent along the
+/// normal; messages from loading a job name the job file.
+#[test]
+fn empty_selections_say_where_the_mesh_is() {
+    let dir = tempfile::tempdir().unwrap();
+    let m = cube();
+    let job = job_in(dir.path());
+    let msg = bad_msg(build_region(
+        &RegionSpec {
+            sphere: Some(SphereSpec {
+                center: [5.0, 5.0, 5.0],
+                radius: 0.5,
+            }),
+            ..region()
+        },
+        &m,
+        &job,
+        "constraint 2 ('ear')",
+    ));
+    assert!(
+        msg.contains("constraint 2 ('ear')")
+            && msg.contains("min [0, 0, 0] max [1, 1, 1]")
+            && msg.contains("[4.5, 4.5, 4.5] to [5.5, 5.5, 5.5]"),
+        "{msg}"
+    );
+    let msg = bad_msg(build_region(
+        &RegionSpec {
+            box_: Some(BoxSpec {
+                min: [2.0, 2.0, 2.0],
+                max: [3.0, 3.0, 3.0],
+            }),
+            ..region()
+        },
+        &m,
+        &job,
+        "handle 1",
+    ));
+    assert!(
+        msg.contains("min [0, 0, 0] max [1, 1, 1]") && msg.contains("[2.0, 2.0, 2.0]"),
+        "{msg}"
+    );
+    let topo = Topology::build(&m);
+    let msg = bad_msg(build_curve(
+        &plane([0.0, 0.0, 5.0], [0.0, 0.0, 2.0]),
+        &m,
+        &topo,
+        "constraint 1 (length)",
+    ));
+    assert!(
+        msg.contains("spans -5 to -4 along the unit normal"),
+        "{msg}"
+    );
+
+    // Through Problem::load: the job file is named.
+    let mesh_path = dir.path().join("m.obj");
+    metricdeform::io::write_mesh(&mesh_path, &m, &m.positions, None).unwrap();
+    let p = dir.path().join("far.toml");
+    std::fs::write(
+        &p,
+        "mesh = \"m.obj\"\n[[constraint]]\nkind = \"area\"\n\
+         region = { sphere = { center = [9.0, 9.0, 9.0], radius = 1.0 } }\n",
+    )
+    .unwrap();
+    let msg = bad_msg(Problem::load(&Job::load(&p).unwrap()).map(|_| ()));
+    assert!(
+        msg.starts_with(&p.display().to_string()) && msg.contains("constraint 1 (area)"),
+        "{msg}"
+    );
+    // A missing mesh names the job too.
+    let p = dir.path().join("nomesh.toml");
+    std::fs::write(&p, "mesh = \"none.obj\"\n").unwrap();
+    let e = Problem::load(&Job::load(&p).unwrap()).err().unwrap();
+    assert_eq!(e.exit_code(), 2);
+    assert!(
+        e.to_string().contains("nomesh.toml") && e.to_string().contains("none.obj"),
+        "{e}"
+    );
+}
+
+/// An unnamed constraint's default name counts from 1 like the messages'
+/// `constraint N (kind)`: the third table, a volume, is "volume 3".
+#[test]
+fn default_constraint_names_count_from_one() {
+    let dir = tempfile::tempdir().unwrap();
+    let m = cube();
+    metricdeform::io::write_mesh(&dir.path().join("m.obj"), &m, &m.positions, None).unwrap();
+    let p = dir.path().join("names.toml");
+    std::fs::write(
+        &p,
+        "mesh = \"m.obj\"\n[[constraint]]\nkind = \"area\"\nregion = { faces = [0] }\n\
+         [[constraint]]\nkind = \"area\"\nname = \"top\"\nregion = { faces = [1] }\n\
+         [[constraint]]\nkind = \"volume\"\n",
+    )
+    .unwrap();
+    let problem = Problem::load(&Job::load(&p).unwrap()).unwrap();
+    let names: Vec<&str> = problem
+        .constraints
+        .iter()
+        .map(|c| c.name.as_str())
+        .collect();
+    assert_eq!(names, ["area 1", "top", "volume 3"]);
 }
