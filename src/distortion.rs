@@ -35,12 +35,18 @@ pub fn face_ratio(a: [DVec3; 3], b: [DVec3; 3]) -> f64 {
     (l1 / l2).sqrt()
 }
 
-/// (area-weighted mean over faces with input area as weight, max).
+/// (area-weighted mean over faces with input area as weight, max). Faces
+/// degenerate in the input ([`Mesh::degenerate_faces`]: zero area, needles)
+/// have no meaningful ratio and get no shape weight: they are left out.
 pub fn quasi_conformal(mesh: &Mesh, input: &[DVec3], output: &[DVec3]) -> (f64, f64) {
+    let degenerate = mesh.degenerate_faces(input);
     let mut sum = 0.0;
     let mut wsum = 0.0;
     let mut max = 1.0f64;
     for f in 0..mesh.num_faces() {
+        if degenerate[f] {
+            continue;
+        }
         let r = face_ratio(mesh.corners(input, f), mesh.corners(output, f));
         let a = mesh.face_area(input, f);
         if r.is_finite() {
@@ -55,6 +61,24 @@ pub fn quasi_conformal(mesh: &Mesh, input: &[DVec3], output: &[DVec3]) -> (f64, 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A zero-area input face does not make the maximum infinite; a face that
+    /// collapses in the output still does.
+    #[test]
+    fn degenerate_input_faces_are_left_out() {
+        let x = vec![DVec3::ZERO, DVec3::X, DVec3::Y, DVec3::new(2.0, 0.0, 0.0)];
+        // Face 1 is (0, 1, 3): collinear, zero area.
+        let mesh = Mesh {
+            positions: x.clone(),
+            faces: vec![[0, 1, 2], [0, 1, 3]],
+            groups: Vec::new(),
+        };
+        let (mean, max) = quasi_conformal(&mesh, &x, &x);
+        assert_eq!((mean, max), (1.0, 1.0));
+        let mut y = x.clone();
+        y[2] = DVec3::new(0.5, 0.0, 0.0);
+        assert_eq!(quasi_conformal(&mesh, &x, &y).1, f64::INFINITY);
+    }
     #[test]
     fn similarity_is_one_and_shear_is_not() {
         let a = [DVec3::ZERO, DVec3::X, DVec3::Y];

@@ -664,9 +664,12 @@ fn obj_from_source(src: &Path, positions: &[DVec3]) -> Result<Vec<u8>> {
     let mut ln = 0usize;
     while !rest.is_empty() {
         ln += 1;
+        // The line with its terminator: `\n`, `\r\n` or a lone `\r` (old Mac
+        // files, as the reader's `lines`), kept byte for byte.
         let end = rest
             .iter()
-            .position(|&b| b == b'\n')
+            .enumerate()
+            .position(|(i, &b)| b == b'\n' || (b == b'\r' && rest.get(i + 1) != Some(&b'\n')))
             .map_or(rest.len(), |p| p + 1);
         let (line, tail) = rest.split_at(end);
         rest = tail;

@@ -343,6 +343,7 @@ fn run(job: &Job, args: &RunArgs) -> Result<u8, Error> {
     let mut options = Options::from_spec(&job.spec.solver);
     options.preview = args.preview;
     let problem = Problem::load(job)?;
+    print_warnings(&problem.warnings);
     if problem.constraints.is_empty() && problem.handles.is_empty() && problem.curvature.is_empty()
     {
         return Err(Error::bad(format!(
@@ -431,6 +432,7 @@ fn run(job: &Job, args: &RunArgs) -> Result<u8, Error> {
             quasi_conformal_max: qc_max,
         },
         preview,
+        warnings: problem.warnings.clone(),
         reason: reason.clone(),
         peak_memory_mb: peak_memory_mb(),
         solver: Some(SolverWork::of(&outcome)),
@@ -472,6 +474,7 @@ fn measure(job: &Job, report_path: Option<&Path>) -> Result<u8, Error> {
     }
     let options = Options::from_spec(&job.spec.solver);
     let problem = Problem::load(job)?;
+    print_warnings(&problem.warnings);
     let x = &problem.mesh.positions;
     let rows = constraint_rows(&problem, x, options.tolerance);
     print!("{}", table(&rows));
@@ -501,6 +504,7 @@ fn measure(job: &Job, report_path: Option<&Path>) -> Result<u8, Error> {
             quasi_conformal_max: 1.0,
         },
         preview: false,
+        warnings: problem.warnings.clone(),
         reason: None,
         peak_memory_mb: peak_memory_mb(),
         solver: None,
@@ -509,6 +513,14 @@ fn measure(job: &Job, report_path: Option<&Path>) -> Result<u8, Error> {
         output::write_atomic(p, &report_json(&report)?)?;
     }
     Ok(0)
+}
+
+/// The input check's warnings (faces handled rather than refused): shown
+/// even under --quiet.
+fn print_warnings(warnings: &[String]) {
+    for w in warnings {
+        eprintln!("warning: {w}");
+    }
 }
 
 fn report_json(report: &Report) -> Result<Vec<u8>, Error> {

@@ -100,6 +100,10 @@ pub struct Report {
     /// `--preview N`: the scale-driven phase was cut after N iterations and the
     /// fine-tune skipped; constraints are not expected to be met.
     pub preview: bool,
+    /// What the input check handled rather than refused (zero-area, needle
+    /// or duplicate faces, ...), one line each.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub warnings: Vec<String>,
     /// Why some constraint was missed (exit 3), when known.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub reason: Option<String>,

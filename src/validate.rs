@@ -6,7 +6,7 @@
 //! faces; duplicate and collapsed faces not counted).
 //!
 //! Accepted and counted ([`MeshCheck`]): boundary edges, connected components. Accepted
-//! and named in [`MeshCheck::warnings`] (each also logged with `log::warn!`):
+//! and named in [`MeshCheck::warnings`] (the command line prints them as warnings):
 //! zero-area (a repeated corner index included), needle and cap faces
 //! ([`Mesh::degenerate_faces`]: they get no shape weight), duplicate faces (left out of
 //! the adjacency, see [`Topology`]), unreferenced vertices and non-manifold vertices
@@ -45,7 +45,7 @@ pub struct MeshCheck {
     /// Duplicate faces `(f, g)`: face f repeats the vertices of the earlier face g.
     pub duplicate_faces: Vec<(usize, usize)>,
     /// One line per tolerated defect worth telling the user (also logged with
-    /// `log::warn!`), without a `warning:` prefix.
+    /// the command line), without a `warning:` prefix.
     pub warnings: Vec<String>,
 }
 
@@ -260,7 +260,7 @@ pub fn validate(mesh: &Mesh, topo: &Topology, file: &Path) -> Result<MeshCheck> 
         ));
     }
     for w in &warnings {
-        log::warn!("{w}");
+        log::debug!("mesh check: {w}");
     }
 
     // Connected components of faces via shared vertices.

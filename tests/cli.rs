@@ -698,3 +698,46 @@ fn contract_copy_is_in_step_with_the_shared_contract() {
         Err(_) => eprintln!("skipped the comparison: no ../shared/CONTRACT.md"),
     }
 }
+
+/// Faces handled rather than refused (a duplicate face, a face with a repeated
+/// corner) are named in `warning:` lines even under --quiet and in the report's
+/// `warnings`; the distortion stays finite (degenerate input faces have no
+/// ratio and are left out).
+#[test]
+fn handled_faces_are_warned_on_stderr_and_in_the_report() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut obj = std::fs::read_to_string(meshes().join("spot.obj")).unwrap();
+    let first_face = obj
+        .lines()
+        .find(|l| l.starts_with("f "))
+        .unwrap()
+        .to_string();
+    obj.push_str(&format!("{first_face}\nf 1 1 2\n"));
+    std::fs::write(dir.path().join("spot.obj"), obj).unwrap();
+    std::fs::write(dir.path().join("job.toml"), SPOT_LENGTH_JOB).unwrap();
+    let out = bin()
+        .args([
+            "deform",
+            "job.toml",
+            "--quiet",
+            "--backend",
+            "cpu",
+            "--report",
+            "r.json",
+        ])
+        .current_dir(dir.path())
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(0), "{stderr}");
+    let warned: Vec<&str> = stderr
+        .lines()
+        .filter(|l| l.starts_with("warning: "))
+        .collect();
+    assert!(warned.iter().any(|l| l.contains("duplicate")), "{stderr}");
+    assert!(warned.iter().any(|l| l.contains("zero-area")), "{stderr}");
+    let report = read_json(dir.path(), "r.json");
+    assert_eq!(report["warnings"].as_array().unwrap().len(), warned.len());
+    let qc = report["distortion"]["quasi_conformal_max"].as_f64();
+    assert!(qc.is_some_and(|q| q.is_finite() && q >= 1.0), "{report}");
+}

@@ -693,3 +693,19 @@ end_header\r"
     let s = read_mesh(&write_file(dir.path(), "cr.stl", &stl.replace('\n', "\r"))).unwrap();
     assert_eq!(s.faces, vec![[0, 1, 2]]);
 }
+
+/// A deformed copy of an OBJ with lone-CR line ends keeps them and replaces
+/// each vertex's coordinates (the writer splits lines as the reader does).
+#[test]
+fn cr_only_obj_is_written_back_with_its_line_ends() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = "# cr\rv 0 0 0\rv 1 0 0\rv 1 1 0\rf 1 2 3\r";
+    let src = write_file(dir.path(), "cr.obj", text);
+    let m = read_mesh(&src).unwrap();
+    let x: Vec<DVec3> = m.positions.iter().map(|p| *p * 2.0).collect();
+    let out = dir.path().join("out.obj");
+    write_mesh(&out, &m, &x, Some(&src)).unwrap();
+    let written = std::fs::read_to_string(&out).unwrap();
+    assert_eq!(written, "# cr\rv 0 0 0\rv 2 0 0\rv 2 2 0\rf 1 2 3\r");
+    assert_eq!(read_mesh(&out).unwrap().positions, x);
+}
