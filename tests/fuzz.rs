@@ -982,7 +982,25 @@ fn mutate_once(
 // job_build: jobs generated field by field against the fixed mesh
 // ---------------------------------------------------------------------------------------
 
+thread_local! {
+    /// Whether the job being generated stays mostly valid (so that Problem::build gets
+    /// past the first field and the selections and report rows run).
+    static SANE: Cell<bool> = const { Cell::new(false) };
+}
+
+/// True for a wild value: always outside sane jobs, rarely inside them.
+fn wild(u: &mut Unstructured<'_>) -> arbitrary::Result<bool> {
+    if SANE.with(|s| s.get()) {
+        u.ratio(1, 150)
+    } else {
+        Ok(true)
+    }
+}
+
 fn gen_f64(u: &mut Unstructured<'_>) -> arbitrary::Result<f64> {
+    if !wild(u)? {
+        return Ok(u.int_in_range(-1500..=1500)? as f64 / 1000.0);
+    }
     Ok(match u.int_in_range(0..=9)? {
         0 => *u.choose(&[
             0.0,
@@ -1003,11 +1021,22 @@ fn gen_f64(u: &mut Unstructured<'_>) -> arbitrary::Result<f64> {
     })
 }
 
+/// A positive number in sane jobs (scales, values, radii), anything otherwise.
+fn gen_pos(u: &mut Unstructured<'_>) -> arbitrary::Result<f64> {
+    if !wild(u)? {
+        return Ok(u.int_in_range(1..=3000)? as f64 / 1000.0);
+    }
+    gen_f64(u)
+}
+
 fn gen_vec3(u: &mut Unstructured<'_>) -> arbitrary::Result<Value> {
     Ok(json!([gen_f64(u)?, gen_f64(u)?, gen_f64(u)?]))
 }
 
 fn gen_index(u: &mut Unstructured<'_>, n: usize) -> arbitrary::Result<Value> {
+    if !wild(u)? {
+        return Ok(json!(u.int_in_range(0..=n - 1)?));
+    }
     Ok(match u.int_in_range(0..=15)? {
         0 => json!(*u.choose(&[
             u64::MAX,
@@ -1033,6 +1062,11 @@ fn gen_indices(u: &mut Unstructured<'_>, n: usize) -> arbitrary::Result<Value> {
 }
 
 fn gen_name(u: &mut Unstructured<'_>) -> arbitrary::Result<Value> {
+    if !wild(u)? && u.ratio(9, 10)? {
+        return Ok(json!(
+            *u.choose(&["neck", "top", "ear", "bottom", "a b", "é😀"])?
+        ));
+    }
     Ok(match u.int_in_range(0..=7)? {
         0 => json!("x".repeat(LONG)),
         1 => json!("é".repeat(u.int_in_range(1..=40_000)?)),
@@ -1048,9 +1082,10 @@ fn gen_curve(u: &mut Unstructured<'_>, fx: &Fixture) -> arbitrary::Result<Value>
     let nv = fx.sphere.positions.len();
     let nf = fx.sphere.faces.len();
     let mut m = serde_json::Map::new();
-    let k = if u.ratio(1, 10)? { 2 } else { 1 };
+    let k = if wild(u)? && u.ratio(1, 10)? { 2 } else { 1 };
+    let last = if wild(u)? { 3 } else { 2 };
     for _ in 0..k {
-        match u.int_in_range(0..=3)? {
+        match u.int_in_range(0..=last)? {
             0 => {
                 m.insert(
                     "plane".into(),
@@ -1103,31 +1138,36 @@ fn gen_region(
     let nv = fx.sphere.positions.len();
     let nf = fx.sphere.faces.len();
     let mut m = serde_json::Map::new();
-    let k = if u.ratio(1, 10)? { 2 } else { 1 };
+    let k = if wild(u)? && u.ratio(1, 10)? { 2 } else { 1 };
+    let last = if wild(u)? { 6 } else { 4 };
     for _ in 0..k {
-        match u.int_in_range(0..=6)? {
+        match u.int_in_range(0..=last)? {
             0 => {
                 m.insert("faces".into(), gen_indices(u, nf)?);
             }
             1 => {
-                let f = *u.choose(&[
-                    "ear.txt",
-                    "bad.txt",
-                    "huge.txt",
-                    "empty.txt",
-                    "crlf.txt",
-                    "long.txt",
-                    "missing.txt",
-                    "",
-                    ".",
-                    "/",
-                ])?;
+                let f = if !wild(u)? {
+                    "ear.txt"
+                } else {
+                    *u.choose(&[
+                        "ear.txt",
+                        "bad.txt",
+                        "huge.txt",
+                        "empty.txt",
+                        "crlf.txt",
+                        "long.txt",
+                        "missing.txt",
+                        "",
+                        ".",
+                        "/",
+                    ])?
+                };
                 m.insert("faces_file".into(), json!(f));
             }
             2 => {
                 m.insert(
                     "sphere".into(),
-                    json!({"center": gen_vec3(u)?, "radius": gen_f64(u)?}),
+                    json!({"center": gen_vec3(u)?, "radius": gen_pos(u)?}),
                 );
             }
             3 => {
@@ -1160,12 +1200,17 @@ fn gen_solver(u: &mut Unstructured<'_>) -> arbitrary::Result<Value> {
     ];
     for (key, values) in strings {
         if u.ratio(1, 4)? {
-            m.insert((*key).into(), json!(*u.choose(values)?));
+            let v = if wild(u)? {
+                *u.choose(values)?
+            } else {
+                values[0]
+            };
+            m.insert((*key).into(), json!(v));
         }
     }
     for key in ["tolerance", "scale_threshold"] {
         if u.ratio(1, 3)? {
-            m.insert(key.into(), json!(gen_f64(u)?));
+            m.insert(key.into(), json!(gen_pos(u)?));
         }
     }
     for key in ["max_iterations", "fine_tune_iterations"] {
@@ -1177,7 +1222,7 @@ fn gen_solver(u: &mut Unstructured<'_>) -> arbitrary::Result<Value> {
         let mut w = serde_json::Map::new();
         for key in ["k_f", "k_m", "k_l", "k_d", "k_r", "k_p"] {
             if u.ratio(1, 2)? {
-                w.insert(key.into(), json!(gen_f64(u)?));
+                w.insert(key.into(), json!(gen_pos(u)?));
             }
         }
         m.insert("weights".into(), Value::Object(w));
@@ -1186,15 +1231,22 @@ fn gen_solver(u: &mut Unstructured<'_>) -> arbitrary::Result<Value> {
 }
 
 fn gen_job_value(u: &mut Unstructured<'_>, fx: &Fixture) -> arbitrary::Result<Value> {
+    let sane = u.ratio(2, 3)?;
+    SANE.with(|s| s.set(sane));
     let mut root = serde_json::Map::new();
-    let mesh = *u.choose(&[
+    let meshes = [
         "icosphere.obj",
         "open.obj",
         "flat.obj",
         "x.stl",
         "",
         "a/b.ply",
-    ])?;
+    ];
+    let mesh = if wild(u)? {
+        *u.choose(&meshes)?
+    } else {
+        *u.choose(&meshes[..2])?
+    };
     root.insert("mesh".into(), json!(mesh));
     if u.ratio(1, 5)? {
         root.insert(
@@ -1206,7 +1258,7 @@ fn gen_job_value(u: &mut Unstructured<'_>, fx: &Fixture) -> arbitrary::Result<Va
     let mut cons = Vec::new();
     for _ in 0..u.int_in_range(0..=4)? {
         let mut c = serde_json::Map::new();
-        let kind = if u.ratio(1, 30)? {
+        let kind = if wild(u)? && u.ratio(1, 30)? {
             *u.choose(&kinds)?
         } else {
             *u.choose(&kinds[..3])?
@@ -1215,18 +1267,26 @@ fn gen_job_value(u: &mut Unstructured<'_>, fx: &Fixture) -> arbitrary::Result<Va
         if u.ratio(1, 2)? {
             c.insert("name".into(), gen_name(u)?);
         }
-        let wrong = u.ratio(1, 15)?;
+        let wrong = wild(u)? && u.ratio(1, 15)?;
         if (kind == "length") != wrong {
             c.insert("curve".into(), gen_curve(u, fx)?);
         }
         if (kind == "area") != wrong {
             c.insert("region".into(), gen_region(u, fx, false)?);
         }
-        if u.ratio(1, 2)? {
-            c.insert("scale".into(), json!(gen_f64(u)?));
-        }
-        if u.ratio(1, 4)? {
-            c.insert("value".into(), json!(gen_f64(u)?));
+        match u.int_in_range(0..=3)? {
+            0 => {}
+            1 => {
+                c.insert("scale".into(), json!(gen_pos(u)?));
+            }
+            2 => {
+                c.insert("value".into(), json!(gen_pos(u)?));
+            }
+            _ if wild(u)? => {
+                c.insert("scale".into(), json!(gen_f64(u)?));
+                c.insert("value".into(), json!(gen_f64(u)?));
+            }
+            _ => {}
         }
         cons.push(Value::Object(c));
     }
@@ -1250,7 +1310,7 @@ fn gen_job_value(u: &mut Unstructured<'_>, fx: &Fixture) -> arbitrary::Result<Va
     root.insert("handle".into(), Value::Array(handles));
     let mut curv = Vec::new();
     for _ in 0..u.int_in_range(0..=2)? {
-        curv.push(json!({"region": gen_region(u, fx, false)?, "scale": gen_f64(u)?}));
+        curv.push(json!({"region": gen_region(u, fx, false)?, "scale": gen_pos(u)?}));
     }
     root.insert("curvature".into(), Value::Array(curv));
     if u.ratio(1, 3)? {
@@ -1583,11 +1643,39 @@ const TARGETS: &[Target] = &[
     },
 ];
 
+/// Not a fuzz target: allocates 100 MiB whatever the input, which the guard must catch.
+fn run_alloc_hog(_: &[u8], _: &Fixture) -> bool {
+    let v = vec![1u8; 100 << 20];
+    std::hint::black_box(&v);
+    true
+}
+
+const SELF_TEST: Target = Target {
+    name: "selftest",
+    ext: "bin",
+    slot: 8,
+    run: run_alloc_hog,
+};
+
+/// The memory guard works: an input of 4 bytes that makes its thread hold 100 MiB fails.
+#[test]
+fn guard_catches_memory_blowup() {
+    install_panic_hook();
+    let _ = target("obj");
+    let r = catch_unwind(AssertUnwindSafe(|| {
+        exec(&SELF_TEST, fixture(), b"tiny", &mut Stats::default())
+    }));
+    let err = r.expect_err("the memory guard did not fire");
+    let msg = err.downcast_ref::<String>().cloned().unwrap_or_default();
+    assert!(msg.contains("made its thread hold"), "{msg}");
+}
+
 fn target(name: &str) -> &'static Target {
     static INIT: Once = Once::new();
     INIT.call_once(|| {
         let mut r = RUNNING.lock().unwrap();
-        for t in TARGETS {
+        // One slot per target, and one for the guard's self-test.
+        for t in TARGETS.iter().chain([&SELF_TEST]) {
             r.push(Running {
                 target: t.name,
                 ext: t.ext,
