@@ -15,15 +15,22 @@
 //! * Short run (CI default, ~6 s per target): `cargo test --release -p metricdeform --test fuzz`
 //! * Long run: `METRICDEFORM_FUZZ_SECONDS=600 cargo test --release -p metricdeform --test fuzz
 //!   -- --nocapture` (seconds per target; the executions per target are printed).
-//! * Reproduce one search: the failing target prints `ARBTEST_SEED=0x...`; run that target
-//!   alone with that variable set.
-//! * `METRICDEFORM_FUZZ_STRICT=1` also fails on the known bugs listed in [`KNOWN`].
+//! * Reproduce one search: a failing target prints `arbtest failed! Seed: 0x...`; run that
+//!   target alone with `ARBTEST_SEED=0x...` set.
+//! * `METRICDEFORM_FUZZ_STRICT=1` also fails on the known bugs (panics listed in [`KNOWN`],
+//!   hangs recognised by [`known_hang`], which are otherwise counted and not run).
+//! * `METRICDEFORM_FUZZ_STACK=<bytes>`: stack of the fuzzing threads (default 8 MiB, as the
+//!   CLI's main thread).
 //!
 //! On a failure the input is printed (escaped) and written to `target/fuzz-failures/`. If the
 //! process dies without a word from the harness (a stack overflow aborts it), the input it
-//! died on is `target/fuzz-failures/inflight/<target>.<ext>` (written before every input,
-//! removed when a target finishes). Targets run on 8 MiB-stack threads, like the CLI's main
-//! thread.
+//! died on is in `target/fuzz-failures/inflight/<target>.<ext>` (a first line with its length
+//! in bytes, then the input; rewritten in place before every input, removed when a target
+//! finishes); the next run of that target saves it as `<target>-unfinished-<hash>.<ext>`.
+//! The first input of each known bug found in a run is saved there too, as
+//! `<target>-<bug id>-<hash>.<ext>`, and the slowest input of each target as
+//! `<target>-slowest-<hash>.<ext>`.
+//!
 //! Known, not yet fixed bugs have a reproducer in `tests/fuzz-corpus/known/` with a note,
 //! and an `#[ignore]`d test each that replays it; un-ignore when fixed.
 
