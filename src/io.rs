@@ -480,6 +480,10 @@ fn parse_ply(bytes: &[u8], path: &Path) -> Result<Mesh> {
                     .read_payload_for_element(&mut reader, def, &header)
                     .map_err(perr)?
             }
+            // A binary element without properties holds no bytes: reading its
+            // `count` (up to 2^64 - 1) empty records would loop for ever.
+            _ if def.properties.is_empty()
+                && header.encoding != ply_rs_bw::ply::Encoding::Ascii => {}
             _ => {
                 sparser
                     .read_payload_for_element(&mut reader, def, &header)

@@ -31,8 +31,9 @@
 //! `<target>-<bug id>-<hash>.<ext>`, and the slowest input of each target as
 //! `<target>-slowest-<hash>.<ext>`.
 //!
-//! Known, not yet fixed bugs have a reproducer in `tests/fuzz-corpus/known/` with a note,
-//! and an `#[ignore]`d test each that replays it; un-ignore when fixed.
+//! Every bug found has a reproducer in `tests/fuzz-corpus/regressions/` with a note and a
+//! `regression_*` test that replays it. A bug found and not yet fixed goes in [`KNOWN`] (or
+//! `known_hang`) with its test `#[ignore]`d, so that the suite still runs.
 
 use arbitrary::Unstructured;
 use glam::DVec3;
@@ -325,56 +326,19 @@ struct Known {
     message: &'static str,
 }
 
-const KNOWN: &[Known] = &[Known {
-    id: "report-table-long-name",
-    location: "src/report.rs",
-    message: "Formatting argument out of range",
-}];
+/// None open: the two found so far (report-table-long-name, ply-binary-empty-element-hang)
+/// are fixed and replayed by the `regression_*` tests.
+const KNOWN: &[Known] = &[];
 
 /// Known hangs cannot be caught after the fact (the stuck thread cannot be stopped), so
-/// their inputs are recognised before they run and counted, not run (unless strict, or
-/// when a `known_*` test replays them).
-fn known_hang(target: &Target, input: &[u8]) -> Option<&'static str> {
-    if target.ext == "ply" && ply_binary_empty_element(input) {
-        return Some("ply-binary-empty-element-hang");
-    }
+/// their inputs are recognised here before they run and counted, not run (unless strict,
+/// or when a `regression_*` test replays them). None is open.
+fn known_hang(_target: &Target, _input: &[u8]) -> Option<&'static str> {
     None
 }
 
-/// A binary PLY header with an element other than `vertex`/`face` that has no properties
-/// and a count of 2^26 or more: the reader loops `count` times reading nothing.
-fn ply_binary_empty_element(input: &[u8]) -> bool {
-    let Some(end) = input.windows(10).position(|w| w == b"end_header") else {
-        return false;
-    };
-    let mut binary = false;
-    let mut elements: Vec<(String, Option<u64>, usize)> = Vec::new();
-    for line in input[..end].split(|&c| c == b'\n') {
-        let line = String::from_utf8_lossy(line);
-        let t: Vec<&str> = line.split_whitespace().collect();
-        match t.first().copied() {
-            Some("format") => binary = t.get(1).is_some_and(|f| f.starts_with("binary")),
-            Some("element") => elements.push((
-                t.get(1).unwrap_or(&"").to_string(),
-                t.get(2).and_then(|c| c.parse().ok()),
-                0,
-            )),
-            Some("property") => {
-                if let Some(e) = elements.last_mut() {
-                    e.2 += 1;
-                }
-            }
-            _ => {}
-        }
-    }
-    binary
-        && elements.iter().any(|(name, count, props)| {
-            *props == 0 && count.is_some_and(|c| c >= 1 << 26) && name != "vertex" && name != "face"
-        })
-}
-
 thread_local! {
-    /// Set while a `known_*` test replays a reproducer: nothing is skipped.
+    /// Set while a `regression_*` test replays a reproducer: nothing is skipped.
     static REPLAY: Cell<bool> = const { Cell::new(false) };
 }
 
@@ -1940,12 +1904,13 @@ fn job_build() {
 // Known bugs: deterministic reproducers (un-ignore when fixed)
 // ---------------------------------------------------------------------------------------
 
-/// Replays `tests/fuzz-corpus/known/<file>` through `target` under the guards, strictly.
+/// Replays `tests/fuzz-corpus/regressions/<file>` through `target` under the guards,
+/// strictly.
 fn replay_known(target_name: &str, file: &str) {
     install_panic_hook();
     start_watchdog();
     let t = target(target_name);
-    let input = std::fs::read(corpus_dir("known").join(file)).unwrap();
+    let input = std::fs::read(corpus_dir("regressions").join(file)).unwrap();
     let mut stats = Stats::default();
     QUIET.with(|q| q.set(false));
     REPLAY.with(|r| r.set(true));
@@ -1957,16 +1922,17 @@ fn replay_known(target_name: &str, file: &str) {
     );
 }
 
-/// Still buggy, this hangs: the watchdog then ends the test process after 5 s (exit 101)
-/// with the input printed.
+/// A binary PLY element without properties and a count of 2^64 - 1 made `read_mesh` loop
+/// for ever (fixed: such an element holds no bytes and is skipped). Were it back, the
+/// watchdog would end the test process after 5 s (exit 101) with the input printed.
 #[test]
-#[ignore = "issue 16: a binary PLY element without properties and a huge count makes read_mesh loop for ever"]
-fn known_ply_binary_empty_element_hang() {
+fn regression_ply_binary_empty_element_hang() {
     replay_known("ply_binary", "ply-binary-empty-element-hang.ply");
 }
 
+/// A constraint name of 65,536+ bytes panicked in `report::table` (fixed: names are
+/// padded by hand).
 #[test]
-#[ignore = "issue 16: a constraint name of 65,536+ characters panics in report::table (Formatting argument out of range)"]
-fn known_report_table_long_name() {
+fn regression_report_table_long_name() {
     replay_known("job_build", "report-table-long-name.toml");
 }
