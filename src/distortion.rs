@@ -43,8 +43,8 @@ pub fn quasi_conformal(mesh: &Mesh, input: &[DVec3], output: &[DVec3]) -> (f64, 
     let mut sum = 0.0;
     let mut wsum = 0.0;
     let mut max = 1.0f64;
-    for f in 0..mesh.num_faces() {
-        if degenerate[f] {
+    for (f, &skip) in degenerate.iter().enumerate() {
+        if skip {
             continue;
         }
         let r = face_ratio(mesh.corners(input, f), mesh.corners(output, f));
