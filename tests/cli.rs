@@ -431,6 +431,36 @@ fn auto_follows_the_crossover_and_reports_the_solver_work() {
 
 const SPOT_LENGTH_JOB: &str = "mesh = \"spot.obj\"\noutput = \"out.obj\"\n[[constraint]]\nkind = \"length\"\ncurve = { plane = { origin = [0.0, -0.1, 0.3], normal = [0.0, 0.0, 1.0] } }\nscale = 1.05\n";
 
+/// `deform job.toml` on the CPU, quiet, with the report in r.json.
+const DEFORM_CPU_REPORTED: [&str; 7] = [
+    "deform",
+    "job.toml",
+    "--quiet",
+    "--backend",
+    "cpu",
+    "--report",
+    "r.json",
+];
+
+/// A fresh directory holding spot.obj, job.toml (`job`) and a previous output
+/// out.obj ("previous").
+fn spot_dir(job: &str) -> tempfile::TempDir {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::copy(meshes().join("spot.obj"), dir.path().join("spot.obj")).unwrap();
+    std::fs::write(dir.path().join("job.toml"), job).unwrap();
+    std::fs::write(dir.path().join("out.obj"), "previous").unwrap();
+    dir
+}
+
+/// The previous output is intact and nothing was added (no temporary file).
+fn assert_previous_output_kept(dir: &Path) {
+    assert_eq!(
+        std::fs::read_to_string(dir.join("out.obj")).unwrap(),
+        "previous"
+    );
+    assert_eq!(files(dir), ["job.toml", "out.obj", "spot.obj"]);
+}
+
 /// `--report` and `--out` never overwrite an input (mesh, job, faces file) or
 /// each other, in any spelling: exit 2, nothing written, inputs intact.
 #[test]
@@ -495,10 +525,7 @@ fn unwritable_report_writes_no_mesh() {
         eprintln!("skipped: no /proc");
         return;
     }
-    let dir = tempfile::tempdir().unwrap();
-    std::fs::copy(meshes().join("spot.obj"), dir.path().join("spot.obj")).unwrap();
-    std::fs::write(dir.path().join("job.toml"), SPOT_LENGTH_JOB).unwrap();
-    std::fs::write(dir.path().join("out.obj"), "previous").unwrap();
+    let dir = spot_dir(SPOT_LENGTH_JOB);
     let out = bin()
         .args(["deform", "job.toml", "--quiet", "--backend", "cpu"])
         .args(["--report", "/proc/self/report.json"])
@@ -508,11 +535,7 @@ fn unwritable_report_writes_no_mesh() {
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert_eq!(out.status.code(), Some(2), "{stderr}");
     assert!(stderr.contains("/proc/self/report.json"), "{stderr}");
-    assert_eq!(
-        std::fs::read_to_string(dir.path().join("out.obj")).unwrap(),
-        "previous"
-    );
-    assert_eq!(files(dir.path()), ["job.toml", "out.obj", "spot.obj"]);
+    assert_previous_output_kept(dir.path());
 }
 
 /// A temporary file left by a killed run (its process gone) is removed by the
@@ -552,21 +575,10 @@ fn interrupts_stop_promptly_and_leave_no_temporary_files() {
     // A job that runs for minutes: 100,000 scale-driven iterations (about 300 s
     // on the 2-core CI machine), stopped by the signal after 1.5 s.
     for (signal, code) in [("TERM", 143), ("INT", 130)] {
-        let dir = tempfile::tempdir().unwrap();
-        std::fs::copy(meshes().join("spot.obj"), dir.path().join("spot.obj")).unwrap();
         let job = "mesh = \"spot.obj\"\noutput = \"out.obj\"\n[[constraint]]\nkind = \"volume\"\nscale = 1.5\n[[constraint]]\nkind = \"length\"\ncurve = { plane = { origin = [0.0, -0.1, 0.3], normal = [0.0, 0.0, 1.0] } }\nscale = 0.9\n[solver]\nmax_iterations = 100000\nscale_threshold = 0.0\ntolerance = 1e-12\n";
-        std::fs::write(dir.path().join("job.toml"), job).unwrap();
-        std::fs::write(dir.path().join("out.obj"), "previous").unwrap();
+        let dir = spot_dir(job);
         let mut child = bin()
-            .args([
-                "deform",
-                "job.toml",
-                "--quiet",
-                "--backend",
-                "cpu",
-                "--report",
-                "r.json",
-            ])
+            .args(DEFORM_CPU_REPORTED)
             .current_dir(dir.path())
             .stdout(std::process::Stdio::null())
             .stderr(std::process::Stdio::piped())
@@ -603,11 +615,7 @@ fn interrupts_stop_promptly_and_leave_no_temporary_files() {
             "SIG{signal}: {waited:?}"
         );
         assert!(stderr.contains("interrupted"), "{stderr}");
-        assert_eq!(
-            std::fs::read_to_string(dir.path().join("out.obj")).unwrap(),
-            "previous"
-        );
-        assert_eq!(files(dir.path()), ["job.toml", "out.obj", "spot.obj"]);
+        assert_previous_output_kept(dir.path());
     }
 }
 
@@ -716,15 +724,7 @@ fn handled_faces_are_warned_on_stderr_and_in_the_report() {
     std::fs::write(dir.path().join("spot.obj"), obj).unwrap();
     std::fs::write(dir.path().join("job.toml"), SPOT_LENGTH_JOB).unwrap();
     let out = bin()
-        .args([
-            "deform",
-            "job.toml",
-            "--quiet",
-            "--backend",
-            "cpu",
-            "--report",
-            "r.json",
-        ])
+        .args(DEFORM_CPU_REPORTED)
         .current_dir(dir.path())
         .output()
         .unwrap();

@@ -176,16 +176,25 @@ fn instance() -> wgpu::Instance {
     wgpu::Instance::new(desc.with_env())
 }
 
-fn summary(a: &wgpu::Adapter) -> AdapterSummary {
-    let i = a.get_info();
-    AdapterSummary {
-        name: i.name.clone(),
-        backend: format!("{:?}", i.backend),
-        device_type: format!("{:?}", i.device_type),
-        driver: i.driver.clone(),
-        driver_info: i.driver_info.clone(),
-        shader_f64: a.features().contains(wgpu::Features::SHADER_F64),
+impl AdapterSummary {
+    /// From wgpu's adapter info and whether the device has `SHADER_F64`.
+    pub(crate) fn of(i: &wgpu::AdapterInfo, shader_f64: bool) -> AdapterSummary {
+        AdapterSummary {
+            name: i.name.clone(),
+            backend: format!("{:?}", i.backend),
+            device_type: format!("{:?}", i.device_type),
+            driver: i.driver.clone(),
+            driver_info: i.driver_info.clone(),
+            shader_f64,
+        }
     }
+}
+
+fn summary(a: &wgpu::Adapter) -> AdapterSummary {
+    AdapterSummary::of(
+        &a.get_info(),
+        a.features().contains(wgpu::Features::SHADER_F64),
+    )
 }
 
 pub(crate) fn list_adapters() -> Vec<AdapterSummary> {

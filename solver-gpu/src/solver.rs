@@ -332,15 +332,7 @@ impl GpuSolver {
 
     /// The adapter in use.
     pub fn adapter(&self) -> AdapterSummary {
-        let i = &self.ctx.info;
-        AdapterSummary {
-            name: i.name.clone(),
-            backend: format!("{:?}", i.backend),
-            device_type: format!("{:?}", i.device_type),
-            driver: i.driver.clone(),
-            driver_info: i.driver_info.clone(),
-            shader_f64: self.ctx.shader_f64,
-        }
+        AdapterSummary::of(&self.ctx.info, self.ctx.shader_f64)
     }
 
     /// The limits the device was opened with.
