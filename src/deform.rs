@@ -519,6 +519,14 @@ impl SolverSummary {
         self.phases().iter().map(|w| w.device_seconds).sum()
     }
 
+    /// Seconds the device spent in the PCG passes, by timestamp queries; None
+    /// where no pass was timed (CPU backend, or an adapter without them).
+    pub fn device_timed_seconds(&self) -> Option<f64> {
+        let phases = self.phases();
+        (phases.iter().map(|w| w.device_timed_passes).sum::<u64>() > 0)
+            .then(|| phases.iter().map(|w| w.device_timed_seconds).sum())
+    }
+
     /// Bytes moved between host and device, both ways.
     pub fn transfer_bytes(&self) -> u64 {
         self.phases()
@@ -543,6 +551,8 @@ fn work_sum(a: WorkCounters, b: Option<WorkCounters>) -> WorkCounters {
         device_dispatches: a.device_dispatches + b.device_dispatches,
         device_bytes: a.device_bytes + b.device_bytes,
         device_bytes_minimal: a.device_bytes_minimal + b.device_bytes_minimal,
+        device_timed_passes: a.device_timed_passes + b.device_timed_passes,
+        device_timed_seconds: a.device_timed_seconds + b.device_timed_seconds,
     }
 }
 
@@ -559,7 +569,8 @@ fn log_work(phase: &str, w: &WorkCounters, seconds: Option<f64>) {
         "{phase}: {time}{:.3} s waiting for the GPU in {} waits), \
          {} preconditioner set-ups, {} solves, {} iterations (most in one solve {}), \
          {} bytes to and {} from the device; kernels: {} dispatches, {} bytes modelled \
-         ({} for the operator applications in their least storage)",
+         ({} for the operator applications in their least storage); \
+         {:.3} s of device time in {} timed passes",
         w.device_seconds,
         w.device_waits,
         w.preconditioner_setups,
@@ -570,7 +581,9 @@ fn log_work(phase: &str, w: &WorkCounters, seconds: Option<f64>) {
         w.bytes_from_device,
         w.device_dispatches,
         w.device_bytes,
-        w.device_bytes_minimal
+        w.device_bytes_minimal,
+        w.device_timed_seconds,
+        w.device_timed_passes
     );
 }
 

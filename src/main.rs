@@ -128,13 +128,14 @@ fn adapters() -> Result<u8, Error> {
     }
     for a in &list {
         println!(
-            "{} ({}, {}, driver {} {}, SHADER_F64: {})",
+            "{} ({}, {}, driver {} {}, SHADER_F64: {}, TIMESTAMP_QUERY: {})",
             a.name,
             a.backend,
             a.device_type,
             a.driver,
             a.driver_info,
-            if a.shader_f64 { "yes" } else { "no" }
+            if a.shader_f64 { "yes" } else { "no" },
+            if a.timestamp_query { "yes" } else { "no" }
         );
     }
     match solver_gpu::default_adapter() {

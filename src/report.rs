@@ -62,8 +62,12 @@ pub struct SolverWork {
     /// Seconds of the deformation (scale-driven phase and fine-tune) not
     /// spent waiting for the GPU.
     pub host_seconds: f64,
-    /// Seconds the host waited for the GPU (0 on the CPU backend).
+    /// Seconds the GPU spent in the PCG's passes, by timestamp queries where
+    /// the adapter has them, else the seconds the host waited for the GPU (0
+    /// on the CPU backend).
     pub gpu_seconds: f64,
+    /// How `gpu_seconds` was measured: "timestamps", "host waits" or "none".
+    pub gpu_seconds_from: &'static str,
     /// Bytes moved between host and GPU, both ways.
     pub transfer_bytes: u64,
 }
@@ -71,7 +75,12 @@ pub struct SolverWork {
 impl SolverWork {
     pub fn of(o: &Outcome) -> SolverWork {
         let w = &o.solver;
-        let gpu = w.device_seconds();
+        let waits = w.device_seconds();
+        let (gpu, from) = match w.device_timed_seconds() {
+            Some(t) => (t, "timestamps"),
+            None if waits > 0.0 => (waits, "host waits"),
+            None => (0.0, "none"),
+        };
         SolverWork {
             preconditioner_setups: PreconditionerSetups {
                 scale_factors: w.scale_factors.preconditioner_setups,
@@ -79,8 +88,9 @@ impl SolverWork {
                 fine_tune: w.fine_tune.preconditioner_setups,
             },
             pcg_iterations_max: w.iterations_max(),
-            host_seconds: (o.seconds_scale_driven + o.seconds_fine_tune - gpu).max(0.0),
+            host_seconds: (o.seconds_scale_driven + o.seconds_fine_tune - waits).max(0.0),
             gpu_seconds: gpu,
+            gpu_seconds_from: from,
             transfer_bytes: w.transfer_bytes(),
         }
     }

@@ -85,6 +85,29 @@ fn gpu_sets_up_each_preconditioner_once_and_moves_one_value_set_per_outer_iterat
     let first = w.outer[0].work.bytes_to_device;
     assert!(first > w.outer[1].work.bytes_to_device);
     assert!(w.transfer_bytes() >= first);
+    // GPU seconds from timestamp queries where the adapter has them: every
+    // PCG batch's pass is timed and read back with the batch's states (so no
+    // more timed passes than waits), and the device time lies within the run.
+    let phases = [&w.scale_factors, &w.scale_driven, &w.fine_tune];
+    let passes: u64 = phases.iter().map(|p| p.device_timed_passes).sum();
+    let waits: usize = phases.iter().map(|p| p.device_waits).sum();
+    if solver_gpu::default_adapter().unwrap().timestamp_query {
+        let timed = w.device_timed_seconds().expect("timed passes");
+        let run = out.seconds_scale_driven + out.seconds_fine_tune;
+        eprintln!(
+            "{passes} timed passes, {timed:.3} s of device time in a {run:.3} s run, {waits} waits"
+        );
+        assert!(
+            passes > 0 && passes <= waits as u64,
+            "{passes} passes, {waits} waits"
+        );
+        assert!(
+            timed > 0.0 && timed <= run,
+            "{timed} s timed in a {run} s run"
+        );
+    } else {
+        assert_eq!((passes, w.device_timed_seconds()), (0, None));
+    }
     // And the result is still the method's.
     let rows = metricdeform::report::constraint_rows(&problem, &out.positions, options.tolerance);
     assert!(rows.iter().all(|r| r.met), "{rows:?}");

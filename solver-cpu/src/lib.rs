@@ -87,6 +87,10 @@ pub struct WorkCounters {
     /// The least bytes of the operator applications among those kernels
     /// (each matrix in its least storage, its vectors once).
     pub device_bytes_minimal: u64,
+    /// Compute passes timed on the device with timestamp queries (0 where
+    /// the adapter has none) and the device seconds they took.
+    pub device_timed_passes: u64,
+    pub device_timed_seconds: f64,
 }
 
 impl WorkCounters {
@@ -112,6 +116,8 @@ impl WorkCounters {
             device_dispatches: self.device_dispatches - earlier.device_dispatches,
             device_bytes: self.device_bytes - earlier.device_bytes,
             device_bytes_minimal: self.device_bytes_minimal - earlier.device_bytes_minimal,
+            device_timed_passes: self.device_timed_passes - earlier.device_timed_passes,
+            device_timed_seconds: self.device_timed_seconds - earlier.device_timed_seconds,
         }
     }
 }

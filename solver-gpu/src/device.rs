@@ -41,6 +41,9 @@ pub struct AdapterSummary {
     /// Whether the adapter offers `SHADER_F64` (the solver's kernels do not
     /// need it; the f64 variants of the precision comparison do).
     pub shader_f64: bool,
+    /// Whether the adapter offers `TIMESTAMP_QUERY`: the PCG's passes are
+    /// then timed on the device (the report's `gpu_seconds`).
+    pub timestamp_query: bool,
 }
 
 /// Adjusts the limits requested from the adapter.
@@ -70,6 +73,20 @@ pub(crate) struct Context {
     lost: Arc<Mutex<Option<String>>>,
     /// Host-device traffic and waits since the device was opened.
     traffic: Traffic,
+    /// Timestamps around the PCG's passes, where the adapter has them.
+    timer: Option<PassTimer>,
+}
+
+/// Timestamp queries written at the start and end of a compute pass
+/// (`TIMESTAMP_QUERY`), resolved into a buffer that the pass's read-back
+/// brings home with the PCG's column states: seconds the device spent on
+/// the pass, measured on the device, at no extra wait.
+struct PassTimer {
+    set: wgpu::QuerySet,
+    /// Two u64 ticks (`QUERY_RESOLVE | COPY_SRC`).
+    resolved: wgpu::Buffer,
+    /// Nanoseconds per tick (`Queue::get_timestamp_period`).
+    period_ns: f64,
 }
 
 /// Running counts of what crosses between host and device: every write and
@@ -84,6 +101,8 @@ struct Traffic {
     dispatches: AtomicU64,
     bytes_accessed: AtomicU64,
     bytes_minimal: AtomicU64,
+    timed_passes: AtomicU64,
+    timed_nanos: AtomicU64,
 }
 
 /// Modelled device work of recorded kernels, what a discrete GPU pays for:
@@ -162,6 +181,11 @@ pub struct TrafficCounts {
     pub wait_seconds: f64,
     /// Kernels submitted, with their modelled bytes ([`KernelWork`]).
     pub kernels: KernelWork,
+    /// Compute passes timed with timestamp queries (0 where the adapter has
+    /// no `TIMESTAMP_QUERY`) and the device seconds between their start and
+    /// end timestamps.
+    pub timed_passes: u64,
+    pub timed_seconds: f64,
 }
 
 /// Vulkan (Linux, Windows), Metal (macOS) and DX12 (Windows): the backends
@@ -177,24 +201,23 @@ fn instance() -> wgpu::Instance {
 }
 
 impl AdapterSummary {
-    /// From wgpu's adapter info and whether the device has `SHADER_F64`.
-    pub(crate) fn of(i: &wgpu::AdapterInfo, shader_f64: bool) -> AdapterSummary {
+    /// From wgpu's adapter info and the features of the adapter (or of the
+    /// device opened on it).
+    pub(crate) fn of(i: &wgpu::AdapterInfo, features: wgpu::Features) -> AdapterSummary {
         AdapterSummary {
             name: i.name.clone(),
             backend: format!("{:?}", i.backend),
             device_type: format!("{:?}", i.device_type),
             driver: i.driver.clone(),
             driver_info: i.driver_info.clone(),
-            shader_f64,
+            shader_f64: features.contains(wgpu::Features::SHADER_F64),
+            timestamp_query: features.contains(wgpu::Features::TIMESTAMP_QUERY),
         }
     }
 }
 
 fn summary(a: &wgpu::Adapter) -> AdapterSummary {
-    AdapterSummary::of(
-        &a.get_info(),
-        a.features().contains(wgpu::Features::SHADER_F64),
-    )
+    AdapterSummary::of(&a.get_info(), a.features())
 }
 
 pub(crate) fn list_adapters() -> Vec<AdapterSummary> {
@@ -250,9 +273,10 @@ impl Context {
         }
         check_min(&limits)?;
         let f64_feature = adapter.features() & wgpu::Features::SHADER_F64;
+        let timestamps = adapter.features() & wgpu::Features::TIMESTAMP_QUERY;
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
             label: Some("metricdeform pcg"),
-            required_features: f64_feature,
+            required_features: f64_feature | timestamps,
             required_limits: limits.clone(),
             memory_hints: wgpu::MemoryHints::Performance,
             ..Default::default()
@@ -278,6 +302,20 @@ impl Context {
             info.device_type,
             info.driver
         );
+        let timer = (!timestamps.is_empty()).then(|| PassTimer {
+            set: device.create_query_set(&wgpu::QuerySetDescriptor {
+                label: Some("pass timestamps"),
+                ty: wgpu::QueryType::Timestamp,
+                count: 2,
+            }),
+            resolved: device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("pass timestamps resolved"),
+                size: 16,
+                usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
+                mapped_at_creation: false,
+            }),
+            period_ns: queue.get_timestamp_period() as f64,
+        });
         Ok(Context {
             device,
             queue,
@@ -287,6 +325,7 @@ impl Context {
             errors,
             lost,
             traffic: Traffic::default(),
+            timer,
         })
     }
 
@@ -303,7 +342,50 @@ impl Context {
                 bytes: t.bytes_accessed.load(Ordering::Relaxed),
                 minimal: t.bytes_minimal.load(Ordering::Relaxed),
             },
+            timed_passes: t.timed_passes.load(Ordering::Relaxed),
+            timed_seconds: t.timed_nanos.load(Ordering::Relaxed) as f64 * 1e-9,
         }
+    }
+
+    /// Timestamp writes for a compute pass to be timed, where the adapter
+    /// has timestamp queries: pass it as the descriptor's `timestamp_writes`,
+    /// then [`Context::resolve_pass_time`] after the pass and read
+    /// [`Context::pass_time_buffer`] back with the pass's results.
+    pub fn pass_timestamps(&self) -> Option<wgpu::ComputePassTimestampWrites<'_>> {
+        self.timer
+            .as_ref()
+            .map(|t| wgpu::ComputePassTimestampWrites {
+                query_set: &t.set,
+                beginning_of_pass_write_index: Some(0),
+                end_of_pass_write_index: Some(1),
+            })
+    }
+
+    /// Records the resolution of the timed pass's timestamps.
+    pub fn resolve_pass_time(&self, enc: &mut wgpu::CommandEncoder) {
+        if let Some(t) = &self.timer {
+            enc.resolve_query_set(&t.set, 0..2, &t.resolved, 0);
+        }
+    }
+
+    /// The buffer holding the resolved timestamps (16 bytes), to read back.
+    pub fn pass_time_buffer(&self) -> Option<(&wgpu::Buffer, u64)> {
+        self.timer.as_ref().map(|t| (&t.resolved, 16))
+    }
+
+    /// Counts the pass time in the read-back `bytes` of
+    /// [`Context::pass_time_buffer`] (two u64 ticks). Ticks that go backwards
+    /// (a device that reset its counter) count nothing.
+    pub fn count_pass_time(&self, bytes: &[u8]) {
+        let (Some(t), Some(b)) = (&self.timer, bytes.get(..16)) else {
+            return;
+        };
+        let ticks: [u64; 2] = bytemuck::pod_read_unaligned(b);
+        let nanos = ticks[1].saturating_sub(ticks[0]) as f64 * t.period_ns;
+        self.traffic.timed_passes.fetch_add(1, Ordering::Relaxed);
+        self.traffic
+            .timed_nanos
+            .fetch_add(nanos as u64, Ordering::Relaxed);
     }
 
     /// Count kernels recorded for submission ([`KernelWork`]).

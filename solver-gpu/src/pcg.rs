@@ -613,7 +613,7 @@ impl Pcg {
             {
                 let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
                     label: Some("pcg iterations"),
-                    timestamp_writes: None,
+                    timestamp_writes: ctx.pass_timestamps(),
                 });
                 for _ in 0..k {
                     dispatch(&mut pass, &k_spmv, &ws.bg_spmv, ws.row_dims);
@@ -626,16 +626,22 @@ impl Pcg {
             }
             dispatched += k;
             ctx.count_kernels(iteration_work.times(k as u64));
+            ctx.resolve_pass_time(&mut enc);
             let bytes = (ncols * self.precision.col_state_bytes()) as u64;
-            let parts: &[(&wgpu::Buffer, u64)] = if with_x {
-                &[(&ws.cols, bytes), (&ws.x, x_bytes)]
-            } else {
-                &[(&ws.cols, bytes)]
-            };
-            let mut read = match ctx.read_parts(parts, &mut staging, Some(enc)) {
-                Ok(b) => b.into_iter(),
+            // Column states, then x when asked for, then the pass's timestamps.
+            let mut parts: Vec<(&wgpu::Buffer, u64)> = vec![(&ws.cols, bytes)];
+            if with_x {
+                parts.push((&ws.x, x_bytes));
+            }
+            parts.extend(ctx.pass_time_buffer());
+            let mut read = match ctx.read_parts(&parts, &mut staging, Some(enc)) {
+                Ok(b) => b,
                 Err(e) => break Err(e),
             };
+            if ctx.pass_time_buffer().is_some() {
+                ctx.count_pass_time(&read.pop().unwrap_or_default());
+            }
+            let mut read = read.into_iter();
             let cols = self
                 .precision
                 .read_col_states(&read.next().unwrap_or_default());

@@ -332,7 +332,7 @@ impl GpuSolver {
 
     /// The adapter in use.
     pub fn adapter(&self) -> AdapterSummary {
-        AdapterSummary::of(&self.ctx.info, self.ctx.shader_f64)
+        AdapterSummary::of(&self.ctx.info, self.ctx.device.features())
     }
 
     /// The limits the device was opened with.
@@ -1120,6 +1120,8 @@ impl SpdSolver for GpuSolver {
             device_dispatches: t.kernels.dispatches,
             device_bytes: t.kernels.bytes,
             device_bytes_minimal: t.kernels.minimal,
+            device_timed_passes: t.timed_passes,
+            device_timed_seconds: t.timed_seconds,
             ..self.work
         }
     }
