@@ -7,7 +7,8 @@ use crate::device::Context;
 use crate::precision::Precision;
 use crate::GpuError;
 use rayon::prelude::*;
-use solver_cpu::{BlockSym3, SolverError, SymCsc};
+use solver_cpu::{BlockSym3, IsoRingSym3, SolverError, SparseRows, SymCsc};
+use std::sync::Arc;
 
 /// Full block-CSR pattern and f64 values (host side).
 pub(crate) struct HostMatrix {
@@ -148,12 +149,66 @@ impl HostMatrix {
     /// Values of a block matrix; rows/columns of fixed vertices become identity
     /// (as `BlockSym3::fill_scalar`).
     pub fn fill_blocks(&mut self, a: &BlockSym3, fixed: &[bool]) {
+        self.fill_lower(&a.col_ptr, &a.row_idx, &a.blocks, fixed);
+    }
+
+    /// Values of a shape matrix in isotropic-plus-ring form, `K (x) I3 + sum_i
+    /// R_i^T C_i R_i`, without its explicit [`BlockSym3`]: the lower blocks are
+    /// summed in `scratch` (kept by the caller, so no allocation after the
+    /// first) with the ring pairs' slots from `slots`, in the order and with
+    /// the arithmetic of [`IsoRingSym3::to_blocks`] (the same values to the
+    /// bit), then expanded as [`Self::fill_blocks`].
+    pub fn fill_shape(
+        &mut self,
+        a: &IsoRingSym3,
+        slots: &RingSlots,
+        fixed: &[bool],
+        scratch: &mut Vec<[f64; 9]>,
+    ) {
+        scratch.clear();
+        scratch.extend(
+            a.iso
+                .values
+                .iter()
+                .map(|&v| [v, 0.0, 0.0, 0.0, v, 0.0, 0.0, 0.0, v]),
+        );
+        let rings = &a.rings;
+        for (i, c) in a.ring_c.iter().enumerate() {
+            let pairs = &slots.slot[slots.start[i] as usize..slots.start[i + 1] as usize];
+            if *c == [0.0; 6] {
+                continue;
+            }
+            let m = [c[0], c[3], c[4], c[3], c[1], c[5], c[4], c[5], c[2]];
+            let mut t = pairs.iter();
+            for (p, wp) in rings.row(i) {
+                for (q, wq) in rings.row(i) {
+                    if p >= q {
+                        let s = *t.next().expect("one slot per ring pair") as usize;
+                        let f = wp * wq;
+                        for (o, me) in scratch[s].iter_mut().zip(&m) {
+                            *o += f * me;
+                        }
+                    }
+                }
+            }
+        }
+        self.fill_lower(&a.iso.col_ptr, &a.iso.row_idx, scratch, fixed);
+    }
+
+    /// Values from lower-CSC 3x3 blocks (the input pattern of [`Self::pattern`]).
+    fn fill_lower(
+        &mut self,
+        col_ptr: &[usize],
+        row_idx: &[usize],
+        blocks: &[[f64; 9]],
+        fixed: &[bool],
+    ) {
         debug_assert_eq!(self.bs, 3);
         let mut k = 0;
-        for j in 0..a.n {
-            for kk in a.col_ptr[j]..a.col_ptr[j + 1] {
-                let i = a.row_idx[kk];
-                let b = &a.blocks[kk];
+        for j in 0..self.rows {
+            for kk in col_ptr[j]..col_ptr[j + 1] {
+                let i = row_idx[kk];
+                let b = &blocks[kk];
                 let (lo, up) = self.lower_to_full[k];
                 k += 1;
                 let cut = fixed[i] || fixed[j];
@@ -237,6 +292,134 @@ impl HostMatrix {
                     }
                 });
         }
+    }
+}
+
+/// Where [`HostMatrix::fill_shape`] adds each ring pair: for every row `i` of
+/// the rings, the lower-CSC slot of each pair `(p, q)` of its entries with
+/// `p >= q`, in the order of [`SparseRows::row`] twice nested. Found once per
+/// pattern and rings (binary searches), then reused by every matrix of the
+/// pattern: the rings are the input's Laplacian, fixed for a run.
+pub(crate) struct RingSlots {
+    /// The rings the slots were found for (kept to recognise them).
+    rings: Arc<SparseRows>,
+    /// Per row `i`, its pairs' slots are `slot[start[i]..start[i + 1]]`.
+    start: Vec<u32>,
+    slot: Vec<u32>,
+}
+
+impl RingSlots {
+    /// The slots of `rings`' pairs in the lower pattern `(col_ptr, row_idx)`;
+    /// an error names the first pair outside it.
+    pub fn new(
+        rings: &Arc<SparseRows>,
+        col_ptr: &[usize],
+        row_idx: &[usize],
+    ) -> Result<RingSlots, SolverError> {
+        let n = col_ptr.len().saturating_sub(1);
+        let mut start = Vec::with_capacity(rings.len() + 1);
+        let mut slot = Vec::new();
+        start.push(0u32);
+        for i in 0..rings.len() {
+            for (p, _) in rings.row(i) {
+                for (q, _) in rings.row(i) {
+                    if p < q {
+                        continue;
+                    }
+                    let found = (q < n)
+                        .then(|| {
+                            let (s, e) = (col_ptr[q], col_ptr[q + 1]);
+                            row_idx[s..e].binary_search(&p).ok().map(|k| s + k)
+                        })
+                        .flatten();
+                    let Some(k) = found else {
+                        return Err(SolverError::DimensionMismatch(format!(
+                            "ring pair ({p}, {q}) of row {i} is outside the matrix pattern"
+                        )));
+                    };
+                    slot.push(k as u32);
+                }
+            }
+            start.push(slot.len() as u32);
+        }
+        Ok(RingSlots {
+            rings: rings.clone(),
+            start,
+            slot,
+        })
+    }
+
+    /// Whether these are the slots of `rings` (the same rows, by identity).
+    pub fn of(&self, rings: &Arc<SparseRows>) -> bool {
+        Arc::ptr_eq(&self.rings, rings)
+    }
+}
+
+#[cfg(test)]
+mod shape_fill_tests {
+    use super::*;
+
+    /// A shape matrix on a strip of `n` vertices: rings of each vertex and its
+    /// two neighbours, `K` on their 2-ring pattern, `C_i` nonzero on most rows.
+    fn strip(n: usize) -> IsoRingSym3 {
+        let mut t = Vec::new();
+        for i in 0..n {
+            for (j, w) in [(i + 1, 1.0 + 0.1 * i as f64), (i + n - 1, 0.7)] {
+                t.push((i as u32, (j % n) as u32, w));
+            }
+        }
+        let rings = Arc::new(SparseRows::from_triplets(n, t, true));
+        let pairs = (0..n).flat_map(|i| [(i, (i + 1) % n), (i, (i + 2) % n)]);
+        let pat = SymCsc::from_pattern(n, pairs);
+        let mut a = IsoRingSym3::new(n, pat.col_ptr, pat.row_idx, rings);
+        for (k, v) in a.iso.values.iter_mut().enumerate() {
+            *v = 1.0 + (k as f64 * 0.37).sin();
+        }
+        for (i, c) in a.ring_c.iter_mut().enumerate() {
+            if i % 5 != 3 {
+                let s = (i as f64).cos();
+                *c = [0.3 * s, -0.1, -0.2 - 0.3 * s, 0.05 * s, -0.02, 0.04];
+            }
+        }
+        a
+    }
+
+    #[test]
+    fn shape_fill_equals_the_explicit_blocks_to_the_bit() {
+        let a = strip(11);
+        let mut fixed = vec![false; 11];
+        fixed[4] = true;
+        let (col_ptr, row_idx) = (&a.iso.col_ptr, &a.iso.row_idx);
+        let mut want = HostMatrix::pattern(11, 3, col_ptr, row_idx).unwrap();
+        want.fill_blocks(&a.to_blocks(), &fixed);
+        let slots = RingSlots::new(&a.rings, col_ptr, row_idx).unwrap();
+        assert!(slots.of(&a.rings));
+        let mut got = HostMatrix::pattern(11, 3, col_ptr, row_idx).unwrap();
+        let mut scratch = vec![[9.0; 9]; 2]; // stale contents are discarded
+        got.fill_shape(&a, &slots, &fixed, &mut scratch);
+        assert_eq!(got.vals, want.vals);
+        // New values, the same slots: still equal.
+        let mut b = a.clone();
+        b.ring_c[2] = [1.0, 0.0, -1.0, 0.5, 0.0, 0.0];
+        b.iso.values[0] += 2.0;
+        want.fill_blocks(&b.to_blocks(), &fixed);
+        got.fill_shape(&b, &slots, &fixed, &mut scratch);
+        assert_eq!(got.vals, want.vals);
+        // Different rings (equal values, another allocation) are not these.
+        assert!(!slots.of(&Arc::new((*a.rings).clone())));
+    }
+
+    #[test]
+    fn ring_pairs_outside_the_pattern_are_an_error() {
+        let a = strip(9);
+        // The pattern of K without its second off-diagonals: (i, i+2) pairs
+        // of the rings fall outside.
+        let pat = SymCsc::from_pattern(9, (0..9).map(|i| (i, (i + 1) % 9)));
+        let e = RingSlots::new(&a.rings, &pat.col_ptr, &pat.row_idx).err();
+        assert!(
+            matches!(&e, Some(SolverError::DimensionMismatch(m)) if m.contains("outside the matrix pattern")),
+            "{e:?}"
+        );
     }
 }
 

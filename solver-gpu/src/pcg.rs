@@ -650,6 +650,14 @@ impl Pcg {
                 cols,
                 x: read.next(),
             };
+            log::trace!(
+                "PCG ({:?}) batch to {dispatched}: rr / thr per column {:?}",
+                self.precision,
+                run.cols
+                    .iter()
+                    .map(|c| (c.rr, c.thr, c.done))
+                    .collect::<Vec<_>>()
+            );
             if run.all_done() || run.breakdown() || dispatched >= max_iters {
                 break Ok(run);
             }

@@ -13,6 +13,7 @@
 //! solver's first choice is f32 kernels with residuals in f64 on the host
 //! (iterative refinement), see `BENCHMARKS.md`.
 
+use solver_cpu::SystemKind;
 use std::borrow::Cow;
 
 /// Floating-point type of the GPU vectors, matrix values and PCG scalars.
@@ -113,10 +114,50 @@ pub enum MixedPrecision {
     /// every later solve of the same matrix pattern starts in mixed precision.
     #[default]
     Fallback,
+    /// The shape systems ([`SystemKind::ScaleDriven`], [`SystemKind::FineTune`])
+    /// in mixed precision from their first solve; the scale-factor systems as
+    /// [`MixedPrecision::Fallback`].
+    ByKind,
     /// Every solve (where the adapter has `SHADER_F64`).
     Always,
     /// Never: stagnation is `NoConvergence`.
     Never,
+}
+
+impl MixedPrecision {
+    /// Whether a solve of `kind` starts in mixed precision (before any
+    /// fallback).
+    pub fn starts_mixed(self, kind: SystemKind) -> bool {
+        match self {
+            MixedPrecision::Always => true,
+            MixedPrecision::ByKind => kind != SystemKind::ScaleFactors,
+            MixedPrecision::Fallback | MixedPrecision::Never => false,
+        }
+    }
+}
+
+impl MixedPrecision {
+    /// From `METRICDEFORM_GPU_PRECISION` (`fallback`, `by-kind`, `mixed` for
+    /// [`MixedPrecision::Always`] or `f32` for [`MixedPrecision::Never`]), else
+    /// the default.
+    pub fn from_env() -> MixedPrecision {
+        let v = std::env::var("METRICDEFORM_GPU_PRECISION").unwrap_or_default();
+        match v.to_lowercase().as_str() {
+            "" => MixedPrecision::default(),
+            "fallback" => MixedPrecision::Fallback,
+            "by-kind" | "by_kind" => MixedPrecision::ByKind,
+            "mixed" | "always" => MixedPrecision::Always,
+            "f32" | "never" => MixedPrecision::Never,
+            other => {
+                let d = MixedPrecision::default();
+                log::warn!(
+                    "METRICDEFORM_GPU_PRECISION={other} is not a precision policy \
+                     (fallback, by-kind, mixed or f32); using {d:?}"
+                );
+                d
+            }
+        }
+    }
 }
 
 /// Tells when f32 refinement rounds are limited by f32 rounding. A round whose

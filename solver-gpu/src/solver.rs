@@ -4,11 +4,11 @@
 //! (f32 PCG, f64 residuals on the host; mixed precision where f32 stalls).
 
 use device::Context;
-use matrix::{GpuMatrix, HostMatrix};
+use matrix::{GpuMatrix, HostMatrix, RingSlots};
 use pcg::{Spmv, Workspace};
 use solver_cpu::{
-    BlockSym3, ShapeOperatorModel, SolveInfo, SolverError, SpdSolver, SymCsc, SystemKind,
-    WorkCounters,
+    BlockSym3, IsoRingSym3, ShapeOperatorModel, SolveInfo, SolverError, SpdSolver, SymCsc,
+    SystemKind, WorkCounters,
 };
 
 use crate::precision::{MixedPrecision, RoundWatch};
@@ -21,7 +21,8 @@ use crate::{GpuError, Preconditioner, CMAX, SQUARED_LAPLACIAN_SWEEPS, SQUARED_LA
 /// One refinement round on the GPU: the scaled residuals `r` (bytes in the
 /// workspace's precision) in, PCG to the squared thresholds `thr`, then
 /// `x_c += scale_c d_c` for the columns with a nonzero `scale` (their residual
-/// norm). Returns the iterations.
+/// norm). Returns the iterations, and whether the PCG broke down (then `x`
+/// is left as it was).
 struct Round<'a> {
     pub(crate) ctx: &'a Context,
     pcg: &'a pcg::Pcg,
@@ -42,7 +43,7 @@ impl Round<'_> {
         thr: &[f64],
         scale: &[f64],
         x: &mut [f64],
-    ) -> Result<usize, GpuError> {
+    ) -> Result<(usize, bool), GpuError> {
         let (n, ncols) = (ws.n(), thr.len());
         self.ctx.write_buffer(&ws.r, 0, r);
         let mut run = self.pcg.run(
@@ -59,7 +60,7 @@ impl Round<'_> {
             self.convert,
         )?;
         if run.breakdown() {
-            return Err(GpuError::NotPositiveDefinite);
+            return Ok((run.iterations(), true));
         }
         let d = self.pcg.read_x(self.ctx, ws, ncols, &mut run)?;
         for (c, &s) in scale.iter().enumerate() {
@@ -70,7 +71,7 @@ impl Round<'_> {
                 }
             }
         }
-        Ok(run.iterations())
+        Ok((run.iterations(), false))
     }
 }
 
@@ -190,7 +191,7 @@ pub fn open_with(opts: OpenOptions) -> Result<GpuSolver, GpuError> {
         amg_fine_upload: 0,
         amg_setup_seconds: 0.0,
         positions: None,
-        mixed_precision: MixedPrecision::default(),
+        mixed_precision: MixedPrecision::from_env(),
         mixed_kernels: None,
         mixed: None,
         mixed_sticky: false,
@@ -203,6 +204,8 @@ pub fn open_with(opts: OpenOptions) -> Result<GpuSolver, GpuError> {
         shape_model: None,
         fixed: Vec::new(),
         squared: None,
+        ring_slots: None,
+        lower_scratch: Vec::new(),
     })
 }
 
@@ -289,6 +292,10 @@ pub struct GpuSolver {
     /// `amg_host` / `amg_gpu`): the model it was built from and `Mt` per
     /// block row on the GPU.
     pub(crate) squared: Option<(std::sync::Arc<ShapeOperatorModel>, wgpu::Buffer)>,
+    /// The ring pairs' slots of the shape matrices' pattern
+    /// ([`SpdSolver::prepare_shape_owned`]), and the lower blocks summed there.
+    ring_slots: Option<RingSlots>,
+    lower_scratch: Vec<[f64; 9]>,
 }
 
 /// The f64 kernels of the mixed-precision solve.
@@ -535,11 +542,14 @@ impl GpuSolver {
             let active: Vec<f64> = (0..ncols)
                 .map(|c| if rel[c] > target[c] { rnorm[c] } else { 0.0 })
                 .collect();
-            let it = round.run(ws, bytemuck::cast_slice(&r), &thr, &active, x)?;
-            self.hints.record(self.kind, true, round_no, it);
+            let (it, broke_down) = round.run(ws, bytemuck::cast_slice(&r), &thr, &active, x)?;
             total += it;
             self.stats.rounds += 1;
             self.stats.iterations = total;
+            if broke_down {
+                return Err(GpuError::NotPositiveDefinite);
+            }
+            self.hints.record(self.kind, true, round_no, it);
         }
         unreachable!()
     }
@@ -824,7 +834,7 @@ impl GpuSolver {
                 x[c * n..(c + 1) * n].fill(0.0);
             }
         }
-        let start_mixed = self.mixed_precision == MixedPrecision::Always || self.mixed_sticky;
+        let start_mixed = self.mixed_precision.starts_mixed(self.kind) || self.mixed_sticky;
         if start_mixed && self.mixed_available() {
             return self.solve_batch_mixed(b, x, ncols, 0);
         }
@@ -925,25 +935,25 @@ impl GpuSolver {
             let active: Vec<f64> = (0..ncols)
                 .map(|c| if rel[c] > target[c] { rnorm[c] } else { 0.0 })
                 .collect();
-            let done = round.run(ws, bytemuck::cast_slice(&r32), &thr, &active, x);
+            let (iterations, broke_down) =
+                round.run(ws, bytemuck::cast_slice(&r32), &thr, &active, x)?;
             self.stats.rounds += 1;
             self.stats.f32_rounds += 1;
-            total += match done {
-                Ok(iterations) => {
-                    self.hints.record(self.kind, false, round_no, iterations);
-                    iterations
-                }
+            // The iterations of a round that broke down count too: they were run.
+            total += iterations;
+            self.stats.iterations = total;
+            if broke_down {
                 // An f32 breakdown on a matrix whose diagonal blocks passed the
                 // SPD check can be rounding (p.Ap or r.z <= 0 in f32 on a very
                 // ill-conditioned system): the f64 iteration decides.
-                Err(GpuError::NotPositiveDefinite) if self.mixed_available() => {
-                    log::info!("f32 PCG broke down after {total} iterations");
-                    self.mixed_sticky = true;
-                    return self.solve_batch_mixed(b, x, ncols, total);
+                if !self.mixed_available() {
+                    return Err(GpuError::NotPositiveDefinite);
                 }
-                Err(e) => return Err(e),
-            };
-            self.stats.iterations = total;
+                log::info!("f32 PCG broke down after {total} iterations");
+                self.mixed_sticky = true;
+                return self.solve_batch_mixed(b, x, ncols, total);
+            }
+            self.hints.record(self.kind, false, round_no, iterations);
         }
         unreachable!()
     }
@@ -1076,6 +1086,50 @@ impl SpdSolver for GpuSolver {
         self.fixed.clear();
         self.fixed.extend_from_slice(fixed);
         self.upload(h, same).map_err(Into::into)
+    }
+
+    /// The shape matrix's blocks go straight into the prepared matrix
+    /// ([`HostMatrix::fill_shape`]): no [`BlockSym3`] is built, and the ring
+    /// pairs' slots are found once per pattern, not per matrix. Hands `a` back.
+    fn prepare_shape_owned(
+        &mut self,
+        a: IsoRingSym3,
+        fixed: &[bool],
+    ) -> Result<Option<IsoRingSym3>, SolverError> {
+        let n = a.n();
+        if fixed.len() != n
+            || a.iso.values.len() != a.iso.row_idx.len()
+            || a.ring_c.len() != a.rings.len()
+            || a.rings.len() != n
+        {
+            return Err(SolverError::DimensionMismatch(format!(
+                "{} fixed flags, {} values for {} pattern entries, {} ring matrices \
+                 for {} rings, for {n} block rows",
+                fixed.len(),
+                a.iso.values.len(),
+                a.iso.row_idx.len(),
+                a.ring_c.len(),
+                a.rings.len(),
+            )));
+        }
+        let (col_ptr, row_idx) = (&a.iso.col_ptr, &a.iso.row_idx);
+        let same = self
+            .host
+            .as_ref()
+            .is_some_and(|h| h.same_pattern(3, col_ptr, row_idx));
+        if !(same && self.ring_slots.as_ref().is_some_and(|r| r.of(&a.rings))) {
+            self.ring_slots = Some(RingSlots::new(&a.rings, col_ptr, row_idx)?);
+        }
+        let mut h = match (same, self.host.take()) {
+            (true, Some(h)) => h,
+            _ => HostMatrix::pattern(n, 3, col_ptr, row_idx)?,
+        };
+        let slots = self.ring_slots.as_ref().unwrap();
+        h.fill_shape(&a, slots, fixed, &mut self.lower_scratch);
+        self.fixed.clear();
+        self.fixed.extend_from_slice(fixed);
+        self.upload(h, same)?;
+        Ok(Some(a))
     }
 
     fn solve_in_place(&mut self, rhs: &mut [f64], ncols: usize) -> Result<SolveInfo, SolverError> {
