@@ -107,16 +107,23 @@ mod tests {
 
 /// When the solver runs the PCG iteration in f64 with the f32 AMG V-cycle as
 /// its preconditioner (needs `SHADER_F64` and the AMG preconditioner).
+///
+/// The default, [`MixedPrecision::ByKind`], is measured (BENCHMARKS.md, "GPU
+/// precision policy"): on the shape systems the f32 PCG converges far slower
+/// than the f64 one with the same f32 preconditioner (its recurrence loses
+/// conjugacy, and each refinement round restarts it), so those start in mixed
+/// precision; the scale-factor systems converge in f32 in one or two rounds
+/// of 8-18 iterations and keep the f32 kernels, which move fewer bytes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum MixedPrecision {
     /// After f32 refinement stagnates (the system is too ill-conditioned for
     /// f32: `cond(A) 2^-24` near 1), where the adapter has `SHADER_F64`; then
     /// every later solve of the same matrix pattern starts in mixed precision.
-    #[default]
     Fallback,
     /// The shape systems ([`SystemKind::ScaleDriven`], [`SystemKind::FineTune`])
     /// in mixed precision from their first solve; the scale-factor systems as
     /// [`MixedPrecision::Fallback`].
+    #[default]
     ByKind,
     /// Every solve (where the adapter has `SHADER_F64`).
     Always,
