@@ -21,27 +21,29 @@
 // hierarchy, one invocation per scalar row: modes 0-2 only, so its levels
 // sweep unfused, spmv mode 1 then jacobi mode 1.)
 //
+// A matrix whose values pass one storage binding (max_storage_buffer_binding_size)
+// is split by block rows into chunks (solver-gpu/src/matrix.rs, split_rows):
+// each product step is then one dispatch per chunk, each with its own
+// parameters (`row0`, `block0`) and bind group (its `vals` and `block_cols`).
+//
 // Bindings (group 0), shared by every entry point:
-//   0  P        uniform   rows = output rows (block rows; scalar rows for
-//                         `dense`), n = column stride of y and b, nx = column
-//                         stride of x, groups = ceil(rows / WG) (2-D dispatch,
+//   0  P        uniform   rows = end of this dispatch's output rows (block
+//                         rows; scalar rows for `spmv_wide` and `dense`), row0
+//                         = its first row (0 unless the matrix is chunked), n
+//                         = column stride of y and b, nx = column stride of x,
+//                         groups = ceil((rows - row0) / WG) (2-D dispatch,
 //                         linear workgroup index wid.x + wid.y * nwg.x, rows
 //                         past `rows` do nothing), mode (see above), omega =
-//                         Jacobi weight.
-//   1  row_ptr  read      rows + 1 offsets (block units) of the BSR matrix.
-//   2  vals     read      f32 values read from a buffer: the row-major
-//                         rows x rows inverse of the coarsest matrix (`dense`),
-//                         or the values of a scalar CSR matrix
-//                         (`spmv3`, one per stored entry).
-//   3  blocks   texture   RGBA32F, TW texels per texture row: the blocks of the
-//                         step's matrix (A_l, P_l or R_l; rectangular for P and
-//                         R), BS texels per block: texel BS k + q holds row q of
-//                         block k in .xyz (BS values) and, in the .w of its first
-//                         texel, the block column as an f32 value. (The
-//                         layout of the PCG's block matrix, bsr_spmv.wgsl.) A
-//                         texel fetch is a vector gather on llvmpipe, and a
-//                         texture is not bound by the storage-buffer binding
-//                         limit.
+//                         Jacobi weight, block0 = the chunk's first block
+//                         (block k of the matrix is at k - block0 in 2 and 8).
+//   1  row_ptr  read      block rows + 1 offsets (block units, of the whole
+//                         matrix).
+//   2  vals     read      f32: the values of the step's matrix (A_l, P_l or
+//                         R_l; rectangular for P and R), its chunk's blocks
+//                         one after another, each row-major: BS x BS values a
+//                         block (`spmv`), BR x BC (`spmv_wide`), one a stored
+//                         entry (`spmv3`); or the row-major rows x rows
+//                         inverse of the coarsest matrix (`dense`).
 //   4  x        read      NCOLS input columns, column-major, stride nx.
 //   5  b        read      right-hand side (spmv mode 1) or residual (jacobi),
 //                         stride n.
@@ -51,16 +53,18 @@
 //   7  dinv     read      omega times the inverted diagonal blocks, BS * BS f32
 //                         per block row (`jacobi`, and `spmv` / `spmv3` in
 //                         mode 3).
-//   8  block_cols read    block columns of a wide-block matrix (`spmv_wide`),
-//                         or the columns of a scalar CSR matrix (`spmv3`).
-// Unused bindings hold a small placeholder buffer or a 1x1 texture.
+//   8  block_cols read    u32 block column per block of the chunk (`spmv`,
+//                         `spmv_wide`), or per entry of a scalar CSR matrix
+//                         (`spmv3`).
+// Unused bindings hold a small placeholder buffer. A block costs its values
+// and one u32 column (40 bytes for 3x3), the least it can be stored in.
 //
 // A scalar hierarchy applied to 3-vectors (the squared-Laplacian
 // preconditioner's `B (x) I3`: x, y and z of a vertex interleaved, the PCG's
 // layout) runs `spmv3` in place of `spmv`, and `jacobi` and `dense` with
 // KRON = 3, same modes: each scalar entry acts on the three components, so
-// a stored entry costs 8 bytes (value and column, storage buffers) where its
-// `v I3` block would cost 48 (three texels).
+// a stored entry costs 8 bytes (value and column) where its `v I3` block
+// would cost 40.
 
 struct AmgParams {
     rows: u32,
@@ -69,27 +73,23 @@ struct AmgParams {
     groups: u32,
     mode: u32,
     omega: f32,
-    pad0: u32,
-    pad1: u32,
+    row0: u32,
+    block0: u32,
 }
 
 const WG: u32 = 128u;
 // Columns handled by this pipeline (1..=8) and the block size (`spmv`: 3 or 1,
-// the matrix's texture layout; `jacobi`: 1, 3 or 12, its diagonal blocks),
+// the matrix's blocks; `jacobi`: 1, 3 or 12, its diagonal blocks),
 // fixed when the pipeline is created: the loops unroll.
 override NCOLS: u32 = 1u;
 override BS: u32 = 3u;
 // Components each scalar row acts on (`jacobi`, `dense`): 1, or 3 for a
 // scalar hierarchy on interleaved 3-vectors (x, y, z of a vertex).
 override KRON: u32 = 1u;
-// Texels per row of `blocks`: a power of two set by the host from the device's
-// max_texture_dimension_2d.
-override TW: u32 = 4096u;
 
 @group(0) @binding(0) var<uniform> P: AmgParams;
 @group(0) @binding(1) var<storage, read> row_ptr: array<u32>;
 @group(0) @binding(2) var<storage, read> vals: array<f32>;
-@group(0) @binding(3) var blocks: texture_2d<f32>;
 @group(0) @binding(4) var<storage, read> x: array<f32>;
 @group(0) @binding(5) var<storage, read> b: array<f32>;
 @group(0) @binding(6) var<storage, read_write> y: array<f32>;
@@ -106,7 +106,7 @@ fn row_of(wid: vec3<u32>, nwg: vec3<u32>, lid: u32) -> u32 {
     if g >= P.groups {
         return 0xffffffffu;
     }
-    return g * WG + lid;
+    return P.row0 + g * WG + lid;
 }
 
 // Output `v` (a row of A x) at `i` by mode: y = A x (0), y = b - A x (1),
@@ -135,20 +135,13 @@ fn spmv(
     }
     let bs = min(BS, 3u);
     var acc: array<f32, 24>; // NCOLS * BS <= 8 * 3
-    let k0 = row_ptr[row];
-    let k1 = row_ptr[row + 1u];
+    let k0 = row_ptr[row] - P.block0;
+    let k1 = row_ptr[row + 1u] - P.block0;
     for (var k = k0; k < k1; k++) {
         var m: array<f32, 9>;
-        var j = 0u;
-        for (var q = 0u; q < bs; q++) {
-            let t = bs * k + q;
-            let v = textureLoad(blocks, vec2<u32>(t % TW, t / TW), 0);
-            if q == 0u {
-                j = u32(v.w);
-            }
-            for (var u = 0u; u < bs; u++) {
-                m[q * bs + u] = v[u];
-            }
+        let j = block_cols[k];
+        for (var e = 0u; e < bs * bs; e++) {
+            m[e] = vals[bs * bs * k + e];
         }
         for (var c = 0u; c < NCOLS; c++) {
             let o = c * P.nx + j * bs;
@@ -190,10 +183,9 @@ fn spmv(
     }
 }
 
-// As `spmv`, for BR x BC blocks, one invocation per scalar row (`P.rows` =
-// block rows x BR): row q of a block takes ceil(BC / 4) texels (values packed
-// four to a texel, zero-padded), ceil(BC / 4) BR texels per block; block
-// columns from `block_cols`.
+// As `spmv`, for BR x BC blocks (BR x BC values a block, row-major), one
+// invocation per scalar row (`P.row0`, `P.rows` in scalar rows: block rows x
+// BR).
 @compute @workgroup_size(128)
 fn spmv_wide(
     @builtin(workgroup_id) wid: vec3<u32>,
@@ -206,24 +198,18 @@ fn spmv_wide(
     }
     let br = min(BR, 12u);
     let bc = min(BC, 12u);
-    let tpr = (bc + 3u) / 4u;
     let row = r / br;
     let q = r % br;
     var acc: array<f32, 8>;
-    let k0 = row_ptr[row];
-    let k1 = row_ptr[row + 1u];
+    let k0 = row_ptr[row] - P.block0;
+    let k1 = row_ptr[row + 1u] - P.block0;
     for (var k = k0; k < k1; k++) {
         let j = block_cols[k];
-        for (var e = 0u; e < tpr; e++) {
-            let t = (k * br + q) * tpr + e;
-            let v = textureLoad(blocks, vec2<u32>(t % TW, t / TW), 0);
-            for (var u = 0u; u < 4u; u++) {
-                let s = 4u * e + u;
-                if s < bc {
-                    for (var c = 0u; c < NCOLS; c++) {
-                        acc[c] += v[u] * x[c * P.nx + j * bc + s];
-                    }
-                }
+        let o = (k * br + q) * bc;
+        for (var s = 0u; s < bc; s++) {
+            let v = vals[o + s];
+            for (var c = 0u; c < NCOLS; c++) {
+                acc[c] += v * x[c * P.nx + j * bc + s];
             }
         }
     }
@@ -314,8 +300,8 @@ fn spmv3(
         return;
     }
     var acc: array<vec3<f32>, 8>;
-    let k0 = row_ptr[row];
-    let k1 = row_ptr[row + 1u];
+    let k0 = row_ptr[row] - P.block0;
+    let k1 = row_ptr[row + 1u] - P.block0;
     for (var k = k0; k < k1; k++) {
         let a = vals[k];
         let j = 3u * block_cols[k];

@@ -3,41 +3,41 @@
 //
 // Driven by solver-gpu/src/bsr_spmv.rs.
 //
-// Bindings (group 0):
-//   0  P        uniform   rows = block rows, ncols (= NCOLS), n = 3 * rows (length
-//                         of one column), groups = number of workgroups that hold
-//                         rows (ceil(rows / WG)); the dispatch is 2-D, so the
-//                         linear workgroup index is wid.x + wid.y * nwg.x and
-//                         workgroups past `groups` return at once.
-//   1  row_ptr  read      rows + 1 offsets into the blocks (block units).
-//   3  blocks   texture   RGBA32F, TW texels per texture row; block k is texels
-//                         3k, 3k+1, 3k+2 (texel t at (t % TW, t / TW)) holding
-//                         its rows (m_q0, m_q1, m_q2, .) and, in the .w of its
-//                         first texel, its block column as an f32 value (exact:
-//                         columns stay below 2^24; a value, not bit pattern,
-//                         so no driver's denormal flush can touch it).
-//                         Both triangles are stored (the lower CSC is expanded
-//                         on upload); rows/columns of fixed vertices are already
-//                         the identity.
-//   4  x        texture   RGBA32F, TW texels per row: column c, vertex j at
-//                         texel t = c * rows + j holding (x_3j, x_3j+1, x_3j+2,
-//                         .) (the search direction p in PCG, stored there by
-//                         pcg.wgsl's direction_tex).
-//   5  y        write     y = A x, same layout (Ap in PCG). Every entry of the
-//                         first ncols columns is written.
-//   6  partials write     partials[c * groups + g] = sum over the rows of
-//                         workgroup g of x_c . y_c; reduced by a second pass
-//                         (dot.wgsl or pcg.wgsl).
+// The matrix is split by block rows into chunks whose values each fit one
+// storage binding (one chunk unless the matrix passes the adapter's
+// max_storage_buffer_binding_size); one dispatch per chunk, each with its own
+// bind group (its `vals`, `cols` and `C`), the rest shared.
 //
-// One invocation per block row: it reads each block of its row once and applies
-// it to all ncols columns (the matrix, the dominant memory traffic, is read once
-// per iteration whatever the number of right-hand sides). The blocks are read
-// from a texture: on llvmpipe a texel fetch is a vector gather, while a
-// storage-buffer load with a per-invocation address is a loop over the lanes
-// with a bounds check per component (1.7-2x slower SpMV at 50k block rows in a
-// side-by-side test of the two layouts); and a texture is not bound by the
-// storage-buffer binding limit. The gathered x is read from a texture too, for
-// the same reason.
+// Bindings (group 0):
+//   0  P        uniform   n = 3 x block rows (length and stride of one column),
+//                         ncols (= NCOLS), groups = partial-sum slots per
+//                         column (the stride of `partials`).
+//   1  row_ptr  read      block rows + 1 offsets into the blocks (block units,
+//                         of the whole matrix).
+//   2  C        uniform   this chunk: block rows row0..row1, group0 = the
+//                         partial slot of its first workgroup, block0 = its
+//                         first block (block k is at k - block0 in 3 and 7).
+//                         The dispatch is 2-D: local workgroup index
+//                         wid.x + wid.y * nwg.x, slot group0 + that index;
+//                         workgroups past P.groups return at once, those past
+//                         row1 write zero partials.
+//   3  vals     read      9 f32 per block of the chunk, row-major (36 bytes).
+//                         Both triangles are stored (the lower CSC is expanded
+//                         on upload); rows/columns of fixed vertices are
+//                         already the identity.
+//   4  x        read      f32, ncols columns of length n, column-major (the
+//                         search direction p in PCG, read in place).
+//   5  y        write     y = A x, same layout (Ap in PCG). Every entry of the
+//                         chunk's rows in the first ncols columns is written.
+//   6  partials write     partials[c * groups + g] = sum over the rows of
+//                         workgroup (slot) g of x_c . y_c; reduced by a second
+//                         pass (dot.wgsl or pcg.wgsl).
+//   7  cols     read      u32 block column per block of the chunk.
+//
+// One invocation per block row: it reads each block of its row once (40
+// bytes: 9 values and a column, the least a block can be stored in) and
+// applies it to all ncols columns, so the matrix, the dominant memory
+// traffic, is read once per product whatever the number of right-hand sides.
 
 struct Params {
     rows: u32,
@@ -50,32 +50,34 @@ struct Params {
     pad2: u32,
 }
 
+struct Chunk {
+    row0: u32,
+    row1: u32,
+    group0: u32,
+    block0: u32,
+}
+
 const WG: u32 = 128u;
 const CMAX: u32 = 8u;
 // Columns handled by this pipeline (1..=CMAX), fixed when the pipeline is
 // created: the column loops unroll and the per-column accumulators stay in
 // registers. P.ncols must equal it.
 override NCOLS: u32 = 1u;
-// Texels per texture row: a power of two set by the host from the device's
-// max_texture_dimension_2d.
-override TW: u32 = 4096u;
 
 @group(0) @binding(0) var<uniform> P: Params;
 @group(0) @binding(1) var<storage, read> row_ptr: array<u32>;
-@group(0) @binding(3) var blocks: texture_2d<f32>;
-@group(0) @binding(4) var xt: texture_2d<f32>;
+@group(0) @binding(2) var<uniform> C: Chunk;
+@group(0) @binding(3) var<storage, read> vals: array<f32>;
+@group(0) @binding(4) var<storage, read> x: array<f32>;
 @group(0) @binding(5) var<storage, read_write> y: array<f32>;
 @group(0) @binding(6) var<storage, read_write> partials: array<f32>;
+@group(0) @binding(7) var<storage, read> cols: array<u32>;
 
 var<workgroup> red: array<f32, 1024>; // CMAX * WG
 
-fn texel(t: u32) -> vec4<f32> {
-    return textureLoad(blocks, vec2<u32>(t % TW, t / TW), 0);
-}
-
 fn xv(c: u32, j: u32) -> vec3<f32> {
-    let t = c * P.rows + j;
-    return textureLoad(xt, vec2<u32>(t % TW, t / TW), 0).xyz;
+    let o = c * P.n + 3u * j;
+    return vec3<f32>(x[o], x[o + 1u], x[o + 2u]);
 }
 
 @compute @workgroup_size(128)
@@ -84,23 +86,24 @@ fn main(
     @builtin(num_workgroups) nwg: vec3<u32>,
     @builtin(local_invocation_index) lid: u32,
 ) {
-    let g = wid.x + wid.y * nwg.x;
+    let gl = wid.x + wid.y * nwg.x;
+    let g = C.group0 + gl;
     if g >= P.groups {
         return;
     }
     let ncols = NCOLS;
-    let row = g * WG + lid;
+    let row = C.row0 + gl * WG + lid;
     var acc: array<f32, 8>;
-    if row < P.rows {
+    if row < C.row1 {
         var yv: array<vec3<f32>, 8>;
-        let k0 = row_ptr[row];
-        let k1 = row_ptr[row + 1u];
+        let k0 = row_ptr[row] - C.block0;
+        let k1 = row_ptr[row + 1u] - C.block0;
         for (var k = k0; k < k1; k++) {
-            let t0 = texel(3u * k);
-            let j = u32(t0.w);
-            let m0 = t0.xyz;
-            let m1 = texel(3u * k + 1u).xyz;
-            let m2 = texel(3u * k + 2u).xyz;
+            let j = cols[k];
+            let o = 9u * k;
+            let m0 = vec3<f32>(vals[o], vals[o + 1u], vals[o + 2u]);
+            let m1 = vec3<f32>(vals[o + 3u], vals[o + 4u], vals[o + 5u]);
+            let m2 = vec3<f32>(vals[o + 6u], vals[o + 7u], vals[o + 8u]);
             for (var c = 0u; c < ncols; c++) {
                 let v = xv(c, j);
                 yv[c] += vec3<f32>(dot(m0, v), dot(m1, v), dot(m2, v));
@@ -119,8 +122,7 @@ fn main(
         red[c * WG + lid] = acc[c];
     }
     // Two-level sum: 16 invocations add 8 values each, then one adds the 16
-    // (two barriers instead of the seven of a tree: on llvmpipe every barrier
-    // suspends and resumes each SIMD slice of the workgroup).
+    // (two barriers instead of the seven of a tree).
     workgroupBarrier();
     if lid < 16u {
         for (var c = 0u; c < ncols; c++) {

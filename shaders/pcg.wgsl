@@ -10,8 +10,7 @@
 //                partials slot 0 = r . z, slot 1 = r . r            (one pass)
 //   finish_beta  rz' = sum slot 0, rr = sum slot 1; beta = rz' / rz; rz = rz';
 //                done when rr <= thr                                (1 workgroup)
-//   direction    p = z + beta p; for the block matrix (`direction_tex`) p is
-//                also stored in the texture p_tex, which the block SpMV reads
+//   direction    p = z + beta p (the SpMV reads p in place)
 // With the AMG preconditioner, `update` is replaced by `update_amg` (no z, no
 // r . z), the V-cycle (amg.wgsl) writes z = M^-1 r, and `dot_rz` adds r . z.
 // Start: x = p = Ap = 0, r = b, alpha = rz = 0; then update, finish_beta and
@@ -20,8 +19,10 @@
 // Bindings (group 0), each entry point uses a subset:
 //   0  P        uniform  rows = block rows, bs = block size (1 or 3), n = rows * bs
 //                        (length of one column), ncols (= NCOLS), groups =
-//                        ceil(rows / WG) = workgroups of `update` (and of the
-//                        SpMV, whose partials finish_alpha reduces).
+//                        workgroups of `update` and partial slots per column:
+//                        ceil(rows / WG), or more where the SpMV of a chunked
+//                        block matrix writes more (one set per chunk; `update`'s
+//                        workgroups past the rows write zero partials).
 //                        2-D dispatch: linear workgroup index wid.x + wid.y * nwg.x.
 //   1  cols     rw       one ColState per column (see below).
 //   2  partials rw       slot s, column c, workgroup g at (s * ncols + c) * groups + g.
@@ -31,16 +32,9 @@
 //   6  x        rw       solution (starts at 0).
 //   7  r        rw       residual (starts at b).
 //   8  z        rw       preconditioned residual.
-//   9  p_tex    write    RGBA32F storage texture, TW texels per row: the copy
-//                        of p the block SpMV reads (bsr_spmv.wgsl): column c,
-//                        vertex j at texel t = c * rows + j, (t % TW, t / TW),
-//                        holding (p_3j, p_3j+1, p_3j+2, 0). On llvmpipe a texel
-//                        fetch is a vector gather, a storage-buffer load with a
-//                        per-invocation address a loop over the lanes.
-//                        (A 1x1 placeholder with the scalar matrix.)
-//   update uses 0-8; finish_alpha, finish_beta 0-2; direction 0, 1, 4, 8;
-//   direction_tex 0, 1, 4, 8, 9. The host binds all ten through one explicit
-//   layout shared by every entry point.
+//   update uses 0-8; finish_alpha, finish_beta 0-2; direction 0, 1, 4, 8.
+//   The host binds all nine through one explicit layout shared by every
+//   entry point.
 
 struct Params {
     rows: u32,
@@ -74,8 +68,6 @@ const CMAX: u32 = 8u;
 // created: the column loops unroll and the per-column accumulators stay in
 // registers. P.ncols must equal it.
 override NCOLS: u32 = 1u;
-// Texels per row of p_tex (a power of two set by the host; direction_tex only).
-override TW: u32 = 4096u;
 // Squared residual norm (columns are scaled to unit norm on upload) below which
 // a breakdown is taken for stagnation at the working precision, not
 // indefiniteness. (The f64 variant, made by solver-gpu/src/precision.rs, drops
@@ -95,9 +87,6 @@ const HUGE: f32 = 1e37;
 @group(0) @binding(6) var<storage, read_write> x: array<f32>;
 @group(0) @binding(7) var<storage, read_write> r: array<f32>;
 @group(0) @binding(8) var<storage, read_write> z: array<f32>;
-// f32-only begin
-@group(0) @binding(9) var p_tex: texture_storage_2d<rgba32float, write>;
-// f32-only end
 
 var<workgroup> red: array<f32, 2048>; // 2 * CMAX * WG
 var<workgroup> fred: array<f32, 512>; // 2 * FWG
@@ -105,8 +94,7 @@ var<workgroup> fred: array<f32, 512>; // 2 * FWG
 // Workgroup sums of `red` in two levels, between barriers the caller places:
 // fold16 (invocations 0..16) leaves red[base + i] = sum over q of
 // red[base + i + 16 q]; sum16 then adds those 16. Two barriers instead of the
-// seven of a tree: on llvmpipe every barrier suspends and resumes each SIMD
-// slice of the workgroup.
+// seven of a tree.
 fn fold16(lid: u32, base: u32) {
     var s: f32 = 0.0;
     for (var q = 0u; q < WG; q += 16u) {
@@ -375,31 +363,3 @@ fn direction(
     let c = i / P.n;
     p[i] = z[i] + cols[c].beta * p[i];
 }
-
-// f32-only begin
-// `direction` for 3x3 blocks, one invocation per vertex: p = z + beta p, and the
-// same three values into p_tex for the block SpMV.
-@compute @workgroup_size(128)
-fn direction_tex(
-    @builtin(workgroup_id) wid: vec3<u32>,
-    @builtin(num_workgroups) nwg: vec3<u32>,
-    @builtin(local_invocation_index) lid: u32,
-) {
-    let g = wid.x + wid.y * nwg.x;
-    let row = g * WG + lid;
-    if g >= P.groups || row >= P.rows {
-        return;
-    }
-    let ncols = NCOLS;
-    for (var c = 0u; c < ncols; c++) {
-        let beta = cols[c].beta;
-        let o = c * P.n + 3u * row;
-        let v = vec3<f32>(z[o], z[o + 1u], z[o + 2u]) + beta * vec3<f32>(p[o], p[o + 1u], p[o + 2u]);
-        p[o] = v.x;
-        p[o + 1u] = v.y;
-        p[o + 2u] = v.z;
-        let t = c * P.rows + row;
-        textureStore(p_tex, vec2<u32>(t % TW, t / TW), vec4<f32>(v, 0.0));
-    }
-}
-// f32-only end

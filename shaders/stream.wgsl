@@ -1,27 +1,25 @@
 // The read-bandwidth ceiling of the adapter: the least work a kernel can do per
-// byte read. Each invocation sums a run of RGBA32F texels (or, with
-// FROM_TEXTURE false, vec4<f32> storage elements) and writes one partial, so
-// its time is the floor of any kernel that must read those bytes the same way. The benchmark
-// (`pcg_kernels`) compares it with the PCG iteration, whose matrix read alone
-// is most of the bytes it must move.
+// byte read. Each invocation sums a run of vec4<f32> storage-buffer elements and
+// writes one partial, so its time is the floor of any kernel that must read
+// those bytes the same way. The benchmark (`pcg_kernels`) compares it with the
+// PCG iteration, whose matrix read alone is most of the bytes it must move.
 //
 // Driven by solver-gpu/src/stream.rs.
 //
 // Bindings (group 0):
-//   0  P        uniform   texels = elements to read, groups = workgroups
-//                         holding them (each reads WG * PER texels); 2-D
+//   0  P        uniform   elements = vec4 elements to read, groups = workgroups
+//                         holding them (each reads WG * PER elements); 2-D
 //                         dispatch, linear index wid.x + wid.y * nwg.x.
-//   1  src      texture   RGBA32F, TW texels per texture row (the layout of the
-//                         block matrix texture, bsr_spmv.wgsl).
-//   2  src_buf  read      the same values as vec4<f32> in a storage buffer.
+//   2  src      read      the values as vec4<f32> in a storage buffer (the
+//                         storage the solver's matrices live in).
 //   3  partials write     one sum per invocation (groups * WG), so that the
 //                         reads cannot be optimised away.
 //
 // Invocation `lid` of workgroup g reads elements g * WG * PER + k * WG + lid,
-// k < PER: neighbouring invocations read neighbouring elements.
+// k < PER: neighbouring invocations read neighbouring elements (coalesced).
 
 struct Params {
-    texels: u32,
+    elements: u32,
     groups: u32,
     pad0: u32,
     pad1: u32,
@@ -31,16 +29,10 @@ const WG: u32 = 128u;
 const PER: u32 = 16u;
 // Column count of the shared pipeline cache (unused: one pass reads once).
 override NCOLS: u32 = 1u;
-override TW: u32 = 4096u;
 
 @group(0) @binding(0) var<uniform> P: Params;
-@group(0) @binding(1) var src: texture_2d<f32>;
-@group(0) @binding(2) var<storage, read> src_buf: array<vec4<f32>>;
+@group(0) @binding(2) var<storage, read> src: array<vec4<f32>>;
 @group(0) @binding(3) var<storage, read_write> partials: array<f32>;
-
-// Read from the texture (true) or the storage buffer (false): a pipeline
-// constant, so each pipeline keeps only its own load.
-override FROM_TEXTURE: bool = true;
 
 @compute @workgroup_size(128)
 fn main(
@@ -55,12 +47,8 @@ fn main(
     var s = vec4<f32>(0.0);
     for (var k = 0u; k < PER; k++) {
         let t = g * WG * PER + k * WG + lid;
-        if t < P.texels {
-            if FROM_TEXTURE {
-                s += textureLoad(src, vec2<u32>(t % TW, t / TW), 0);
-            } else {
-                s += src_buf[t];
-            }
+        if t < P.elements {
+            s += src[t];
         }
     }
     partials[g * WG + lid] = s.x + s.y + s.z + s.w;

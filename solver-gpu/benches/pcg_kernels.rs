@@ -390,12 +390,12 @@ fn main() {
     if !ceiling_rows.is_empty() {
         println!();
         println!("read ceiling over the bytes of a minimal PCG iteration (1 rhs): the least work per byte \
-                  (sum 16-byte elements, one partial per invocation; shaders/stream.wgsl) through a texture and \
-                  through a storage buffer; a plain single-thread CPU sum of as many f32; the PCG iteration and the \
-                  texture ceiling as a share of the single-thread CPU SpMV (f32)");
+                  (sum 16-byte elements, one partial per invocation; shaders/stream.wgsl) from a storage buffer \
+                  (over at most one storage binding); a plain single-thread CPU sum of as many f32; the PCG \
+                  iteration and the storage-buffer ceiling as a share of the single-thread CPU SpMV (f32)");
         println!();
-        println!("| block rows | MB per iteration | {wg} texture read GB/s | {wg} storage-buffer read GB/s | cpu 1-thread read GB/s | cpu SpMV f32 GB/s | {wg} PCG iteration / cpu SpMV | {wg} texture read / cpu SpMV |");
-        println!("|---|---|---|---|---|---|---|---|");
+        println!("| block rows | MB per iteration | {wg} storage-buffer read GB/s | cpu 1-thread read GB/s | cpu SpMV f32 GB/s | {wg} PCG iteration / cpu SpMV | {wg} storage-buffer read / cpu SpMV |");
+        println!("|---|---|---|---|---|---|---|");
         for r in ceiling_rows {
             println!("{r}");
         }
@@ -462,7 +462,7 @@ fn ceiling_row(
 ) -> String {
     let c = match kernels::read_ceiling(g, bytes as u64, 20) {
         Ok(c) => c,
-        Err(e) => return format!("| {rows} | {:.1} | error: {e} | | | | | |", bytes / 1e6),
+        Err(e) => return format!("| {rows} | {:.1} | error: {e} | | | | |", bytes / 1e6),
     };
     // A single-thread CPU read of as many f32 (eight accumulators, so it
     // vectorises), best of five.
@@ -484,18 +484,13 @@ fn ceiling_row(
     let cpu_read = gb(bytes, best);
     let pct = |v: f64| format!("{:.0} %", 100.0 * v / spmv_cpu);
     format!(
-        "| {rows} | {:.1} | {:.2} | {} | {:.2} | {:.2} | {} | {} |",
+        "| {rows} | {:.1} | {:.2} | {:.2} | {:.2} | {} | {} |",
         bytes / 1e6,
-        c.texture_bandwidth() / 1e9,
-        c.buffer_bandwidth()
-            .map_or("over the binding limit".into(), |v| format!(
-                "{:.2}",
-                v / 1e9
-            )),
+        c.bandwidth() / 1e9,
         cpu_read,
         spmv_cpu,
         iteration.map_or("-".into(), pct),
-        pct(c.texture_bandwidth() / 1e9)
+        pct(c.bandwidth() / 1e9)
     )
 }
 

@@ -15,26 +15,27 @@
 //! (the sequence is in the shader's header). Every dispatch is one invocation per
 //! (block) row, 2-D.
 //!
-//! Bindings of `amg.wgsl` (group 0): 0 `P` uniform [`AmgParams`]; 1 `row_ptr`
-//! and 3 `blocks` (RGBA32F texture, `bs` texels per block, the layout of
-//! [`crate::matrix::block_texel`]): the matrix of the step; 2 `vals` (the
-//! dense coarse inverse, or a scalar CSR matrix's values); 4 `x` (read); 5 `b`
-//! (read); 6 `y` (written); 7 `dinv`; 8 `block_cols` (the block columns of a
-//! wide-block matrix, [`Layout::Wide`]: an affine hierarchy's `P`, `R` and
-//! coarse `A`; or a scalar CSR matrix's columns, [`Layout::Scalar3`]).
+//! Bindings of `amg.wgsl` (group 0): 0 `P` uniform [`AmgParams`]; 1 `row_ptr`,
+//! 2 `vals` (f32, the values of the step's matrix block after block, each
+//! row-major; or the dense coarse inverse) and 8 `block_cols` (u32 per block):
+//! the matrix of the step; 4 `x` (read); 5 `b` (read); 6 `y` (written);
+//! 7 `dinv`. Every matrix lives in storage buffers split by block rows into
+//! chunks that each fit one binding ([`crate::matrix::split_rows`]); a step
+//! on a chunked matrix is one dispatch per chunk.
 
-use crate::amg::{Bsr, Hierarchy, WideBlocks, AFFINE_MODES};
+use crate::amg::{Bsr, Hierarchy, AFFINE_MODES};
 use crate::device::{dispatch, Bind, Context, Kernel, KernelWork, Shader, ROW_WG};
-use crate::matrix::{block_texel, check_texture_columns, GpuMatrix, MatrixStorage};
+use crate::matrix::{
+    high_part, upload_chunks, write_chunk_values, Chunk, GpuMatrix, MatrixStorage,
+};
 use crate::{GpuError, CMAX};
 
 pub(crate) const SOURCE: &str = include_str!("../../shaders/amg.wgsl");
 
-const BINDINGS: [(u32, Bind); 9] = [
+const BINDINGS: [(u32, Bind); 8] = [
     (0, Bind::Uniform),
     (1, Bind::Read),
     (2, Bind::Read),
-    (3, Bind::Texture),
     (4, Bind::Read),
     (5, Bind::Read),
     (6, Bind::ReadWrite),
@@ -52,12 +53,15 @@ pub(crate) struct AmgParams {
     pub groups: u32,
     pub mode: u32,
     pub omega: f32,
-    pub pad: [u32; 2],
+    /// First output row of the dispatch (a chunk's), and the chunk's first
+    /// block.
+    pub row0: u32,
+    pub block0: u32,
 }
 
 pub(crate) struct AmgKernels {
     shader: Shader,
-    /// Texture layouts `bs` = 3, 1.
+    /// Block layouts `bs` = 3, 1.
     spmv: [Kernel; 2],
     /// Diagonal blocks of 3, 1 and [`AFFINE_MODES`].
     jacobi: [Kernel; 3],
@@ -86,11 +90,9 @@ enum Op {
 impl AmgKernels {
     pub fn new(ctx: &Context) -> Result<Self, GpuError> {
         let shader = Shader::new(ctx, "amg.wgsl", SOURCE, &BINDINGS)?;
-        let tw = ctx.texture_width() as f64;
         const K: usize = AFFINE_MODES;
-        let k = |label, entry, bs: f64| {
-            Kernel::with_constants(&shader, label, entry, &[("BS", bs), ("TW", tw)])
-        };
+        let k =
+            |label, entry, bs: f64| Kernel::with_constants(&shader, label, entry, &[("BS", bs)]);
         Ok(AmgKernels {
             spmv: [
                 k("amg_spmv_bs3", "spmv", 3.0),
@@ -119,7 +121,7 @@ impl AmgKernels {
             ]
             .into_iter()
             .map(|((br, bc), label)| {
-                let c = [("BR", br as f64), ("BC", bc as f64), ("TW", tw)];
+                let c = [("BR", br as f64), ("BC", bc as f64)];
                 (
                     (br, bc),
                     Kernel::with_constants(&shader, label, "spmv_wide", &c),
@@ -156,32 +158,47 @@ impl AmgKernels {
 /// How a [`GpuBsr`] is stored, and which kernel reads it.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 enum Layout {
-    /// `bs` x `bs` blocks (`bs` = 3 or 1), `bs` texels per block, the block
-    /// column in the first texel's `.w` ([`block_texel`]): `spmv`.
+    /// `bs` x `bs` blocks (`bs` = 3 or 1), `bs * bs` f32 values and a u32
+    /// column per block: `spmv`.
     Blocks(usize),
-    /// `br` x `bc` blocks, each row packed four values to a texel, block
-    /// columns in a buffer: `spmv_wide`, one invocation per scalar row (the
-    /// affine hierarchy's `P`, `R` and coarse `A`).
+    /// `br` x `bc` blocks, `br * bc` f32 values and a u32 column per block:
+    /// `spmv_wide`, one invocation per scalar row (the affine hierarchy's
+    /// `P`, `R` and coarse `A`).
     Wide(usize, usize),
-    /// A scalar matrix as CSR, values and columns in storage buffers, applied
-    /// to interleaved 3-vectors: `spmv3`, one invocation per scalar row.
+    /// A scalar matrix as CSR (a value and a column per entry), applied to
+    /// interleaved 3-vectors: `spmv3`, one invocation per scalar row.
     Scalar3,
 }
 
-/// One block-CSR matrix on the GPU: row pointers (and, wide or scalar, block
-/// columns) in buffers, the blocks (f32) in a texture, or (scalar) the values
-/// in a buffer.
+impl Layout {
+    /// f32 values per stored block.
+    fn per_block(self) -> usize {
+        match self {
+            Layout::Blocks(bs) => bs * bs,
+            Layout::Wide(br, bc) => br * bc,
+            Layout::Scalar3 => 1,
+        }
+    }
+
+    /// Rows of its kernel's dispatch per block row.
+    fn row_scale(self) -> usize {
+        match self {
+            Layout::Wide(br, _) => br,
+            _ => 1,
+        }
+    }
+}
+
+/// One block-CSR matrix on the GPU: row pointers in a buffer, the blocks
+/// (values and columns) in chunks of block rows that each fit one storage
+/// binding.
 struct GpuBsr {
     layout: Layout,
     row_ptr: wgpu::Buffer,
-    /// Block columns ([`Layout::Wide`], [`Layout::Scalar3`]).
-    cols: Option<wgpu::Buffer>,
-    /// `None`: the PCG's own matrix ([`GpuMatrix`], same layout), whose values
-    /// are written with it; or a [`Layout::Scalar3`] matrix.
-    texture: Option<wgpu::Texture>,
-    view: Option<wgpu::TextureView>,
-    /// The values of a [`Layout::Scalar3`] matrix.
-    vals: Option<wgpu::Buffer>,
+    chunks: Vec<Chunk>,
+    /// The PCG's own matrix ([`GpuMatrix`], same layout), whose values are
+    /// written with it.
+    shared: bool,
     /// Bytes a product reads of it, as stored and in its least storage
     /// ([`KernelWork`]).
     stored: (u64, u64),
@@ -193,133 +210,66 @@ fn f32s(v: &[f64]) -> Vec<f32> {
     v.iter().map(|&a| a as f32).collect()
 }
 
-/// Texels per `br` x `bc` block of the wide layout: `ceil(bc / 4)` per row.
-fn wide_texels(br: usize, bc: usize) -> usize {
-    br * bc.div_ceil(4)
-}
-
-/// Texel `t` of the wide layout: values `4 e..4 e + 4` of row `q` of block `k`
-/// (`t = (k br + q) ceil(bc / 4) + e`), zero-padded.
-fn wide_texel(w: &WideBlocks, t: usize, out: &mut [f32]) {
-    let tpr = w.bc.div_ceil(4);
-    let (kq, e) = (t / tpr, t % tpr);
-    let row = &w.vals[kq * w.bc..(kq + 1) * w.bc];
-    for (u, o) in out.iter_mut().enumerate() {
-        *o = row.get(4 * e + u).map_or(0.0, |&v| v as f32);
-    }
-}
-
-/// Write the values of a wide-block matrix into its texture.
-fn write_wide(ctx: &Context, t: &wgpu::Texture, w: &WideBlocks) {
-    let texels = wide_texels(w.br, w.bc) * w.col_idx.len();
-    ctx.write_data_texture(t, texels, |t, out| wide_texel(w, t, out));
-}
-
 impl GpuBsr {
-    /// Upload `m` in `layout` (`Blocks(m.bs)`, or `Wide` with shapes that
-    /// divide `m`'s scalar rows and columns).
+    /// Upload `m` in `layout` (`Blocks(m.bs)`, `Scalar3` for a scalar `m`,
+    /// or `Wide` with shapes that divide `m`'s scalar rows and columns).
     fn upload(ctx: &Context, what: &str, m: &Bsr, layout: Layout) -> Result<GpuBsr, GpuError> {
-        let mut wide = None;
-        let least = |blocks: usize, br: usize, bc: usize, rows: usize| {
-            (blocks * (4 * br * bc + 4) + 4 * (rows + 1)) as u64
-        };
-        let (texels, row_ptr, cols, rows, stored) = match layout {
+        let what = format!("AMG {what} ({layout:?})");
+        let wide = match layout {
+            Layout::Wide(br, bc) => Some(m.regroup(br, bc)),
             Layout::Blocks(bs) => {
                 debug_assert_eq!(bs, m.bs);
-                check_texture_columns(&format!("AMG {what}"), m.cols)?;
-                let texels = bs * m.nnz_blocks();
-                let stored = (
-                    (16 * texels + 4 * (m.rows + 1)) as u64,
-                    least(m.nnz_blocks(), bs, bs, m.rows),
-                );
-                (texels, m.row_ptr.clone(), None, m.rows, stored)
+                None
             }
-            Layout::Scalar3 => return Self::upload_scalar(ctx, what, m),
-            Layout::Wide(br, bc) => {
-                let w = wide.insert(m.regroup(br, bc));
-                let cols = ctx.storage_init(&format!("AMG {what} block columns"), &w.col_idx)?;
-                // spmv_wide runs one invocation per scalar row.
-                let blocks = w.col_idx.len();
-                let texels = wide_texels(br, bc) * blocks;
-                let stored = (
-                    (16 * texels + 4 * blocks + 4 * (w.rows + 1)) as u64,
-                    least(blocks, br, bc, w.rows),
-                );
-                (texels, w.row_ptr.clone(), Some(cols), w.rows * br, stored)
+            Layout::Scalar3 => {
+                debug_assert_eq!(m.bs, 1);
+                None
             }
         };
-        let texture = ctx.data_texture(
-            &format!("AMG {what} ({texels} texels, {layout:?})"),
-            texels as u64,
-            false,
-        )?;
-        let g = GpuBsr {
-            layout,
-            row_ptr: ctx.storage_init(&format!("AMG {what} row pointers"), &row_ptr)?,
-            cols,
-            view: Some(texture.create_view(&Default::default())),
-            texture: Some(texture),
-            vals: None,
-            stored,
-            rows,
+        let (row_ptr, col_idx, vals, rows) = match &wide {
+            Some(w) => (&w.row_ptr, &w.col_idx, &w.vals, w.rows),
+            None => (&m.row_ptr, &m.col_idx, &m.vals, m.rows),
         };
-        // The wide layout is regrouped once, for the pattern and the values.
-        match (&wide, &g.texture) {
-            (Some(w), Some(t)) => write_wide(ctx, t, w),
-            _ => g.write(ctx, m),
-        }
-        Ok(g)
-    }
-
-    /// Upload the scalar matrix `m` as CSR in storage buffers
-    /// ([`Layout::Scalar3`]).
-    fn upload_scalar(ctx: &Context, what: &str, m: &Bsr) -> Result<GpuBsr, GpuError> {
-        debug_assert_eq!(m.bs, 1);
+        let per_block = layout.per_block();
+        let chunks = upload_chunks(ctx, &what, row_ptr, col_idx, per_block, vals)?;
+        // Values and a u32 column per block, and the row pointers: the least.
+        let least = (col_idx.len() * (4 * per_block + 4) + 4 * (rows + 1)) as u64;
         Ok(GpuBsr {
-            layout: Layout::Scalar3,
-            row_ptr: ctx.storage_init(&format!("AMG {what} row pointers"), &m.row_ptr)?,
-            cols: Some(ctx.storage_init(&format!("AMG {what} columns"), &m.col_idx)?),
-            texture: None,
-            view: None,
-            vals: Some(ctx.storage_init(&format!("AMG {what} values"), &f32s(&m.vals))?),
-            stored: {
-                let b = (8 * m.nnz_blocks() + 4 * (m.rows + 1)) as u64;
-                (b, b)
-            },
-            rows: m.rows,
+            layout,
+            row_ptr: ctx.storage_init(&format!("{what} row pointers"), row_ptr)?,
+            chunks,
+            shared: false,
+            stored: (least, least),
+            rows: rows * layout.row_scale(),
         })
     }
 
     /// The PCG's block matrix as the finest `A` (no second copy on the GPU).
     fn shared(m: &GpuMatrix, rows: usize) -> Option<GpuBsr> {
         match &m.storage {
-            MatrixStorage::BlockTexture { view, .. } => Some(GpuBsr {
+            MatrixStorage::Blocks { chunks, .. } => Some(GpuBsr {
                 layout: Layout::Blocks(3),
                 row_ptr: m.row_ptr.clone(),
-                cols: None,
-                texture: None,
-                view: Some(view.clone()),
-                vals: None,
+                chunks: chunks.clone(),
+                shared: true,
                 stored: m.stored,
                 rows,
             }),
-            MatrixStorage::Csr { .. } | MatrixStorage::SplitBlockTexture { .. } => None,
+            MatrixStorage::Csr { .. } | MatrixStorage::SplitBlocks { .. } => None,
         }
     }
 
     fn write(&self, ctx: &Context, m: &Bsr) {
-        if let Some(v) = &self.vals {
-            ctx.write_buffer(v, 0, bytemuck::cast_slice(&f32s(&m.vals)));
-        }
-        let Some(t) = &self.texture else {
+        if self.shared {
             return;
-        };
+        }
+        let per_block = self.layout.per_block();
         match self.layout {
-            Layout::Blocks(bs) => ctx.write_data_texture(t, bs * m.nnz_blocks(), |t, out| {
-                block_texel(bs, &m.col_idx, &m.vals, t, out)
-            }),
-            Layout::Wide(br, bc) => write_wide(ctx, t, &m.regroup(br, bc)),
-            Layout::Scalar3 => {}
+            Layout::Wide(br, bc) => {
+                let w = m.regroup(br, bc);
+                write_chunk_values(ctx, &self.chunks, per_block, &w.vals, high_part);
+            }
+            _ => write_chunk_values(ctx, &self.chunks, per_block, &m.vals, high_part),
         }
     }
 }
@@ -348,9 +298,6 @@ pub(crate) struct GpuHierarchy {
     on3: bool,
     sweeps: usize,
     dummy: wgpu::Buffer,
-    #[allow(dead_code)]
-    dummy_texture: wgpu::Texture,
-    dummy_view: wgpu::TextureView,
 }
 
 /// Whether two hierarchies have the same level patterns (values-only upload).
@@ -367,7 +314,7 @@ pub(crate) fn same_patterns(a: &Hierarchy, b: &Hierarchy) -> bool {
 
 impl GpuHierarchy {
     /// Upload `h`. `fine`: the PCG's matrix on the GPU, the same as the finest
-    /// `A`; a block matrix (texture) is used in place of a second copy.
+    /// `A`; a block matrix is used in place of a second copy.
     pub fn upload(
         ctx: &Context,
         h: &Hierarchy,
@@ -426,7 +373,6 @@ impl GpuHierarchy {
                 dinv_bs: if on3 { 3 } else { bs },
             });
         }
-        let dummy_texture = ctx.data_texture("AMG unused texture binding", 1, false)?;
         Ok(GpuHierarchy {
             levels,
             coarse_inv: ctx.storage_init("AMG coarsest inverse", &f32s(&h.coarse_inv))?,
@@ -438,8 +384,6 @@ impl GpuHierarchy {
             on3,
             sweeps: h.opts.sweeps.max(1),
             dummy: ctx.storage("AMG unused binding", 16)?,
-            dummy_view: dummy_texture.create_view(&Default::default()),
-            dummy_texture,
         })
     }
 
@@ -607,36 +551,9 @@ impl VcycleWorkspace {
                         y: &wgpu::Buffer,
                         dinv: Option<&wgpu::Buffer>|
          -> Result<(), GpuError> {
-            let groups = (rows as u64).div_ceil(ROW_WG as u64).max(1);
-            let params = ctx.uniform_of(
-                "AMG step params",
-                &AmgParams {
-                    rows: rows as u32,
-                    n: n as u32,
-                    nx: nx as u32,
-                    groups: groups as u32,
-                    mode,
-                    omega,
-                    pad: [0; 2],
-                },
-            )?;
-            let d = &h.dummy;
-            let bg = k.shader.bind_with_views(
-                ctx,
-                &[
-                    (0, &params),
-                    (1, m.map_or(d, |m| &m.row_ptr)),
-                    (2, vals.or(m.and_then(|m| m.vals.as_ref())).unwrap_or(d)),
-                    (4, x.unwrap_or(d)),
-                    (5, b.unwrap_or(d)),
-                    (6, y),
-                    (7, dinv.unwrap_or(d)),
-                    (8, m.and_then(|m| m.cols.as_ref()).unwrap_or(d)),
-                ],
-                &[(3, m.and_then(|m| m.view.as_ref()).unwrap_or(&h.dummy_view))],
-            )?;
             // Modelled bytes: the matrix (or diagonal, or dense inverse) once,
-            // x, b, y once each per column as the mode reads and writes them.
+            // x, b, y once each per column as the mode reads and writes them
+            // (all on the first dispatch of a chunked matrix).
             let fixed = match (m, dinv, vals) {
                 (Some(m), Some(d), _) => (m.stored.0 + d.size(), m.stored.1 + d.size()),
                 (Some(m), _, _) => m.stored,
@@ -658,15 +575,62 @@ impl VcycleWorkspace {
                 (Op::Jacobi, _) => (op, (n / rows, n / rows)),
                 _ => (op, (1, 1)),
             };
-            steps.push(Step {
-                op,
-                shape,
-                bg,
-                fixed,
-                per_column,
-                dims: ctx.dims("AMG kernels", groups)?,
-                params,
-            });
+            // One dispatch per chunk of the matrix: (rows, first block, values,
+            // columns); one over `rows` for a step without a matrix.
+            let d = &h.dummy;
+            let parts: Vec<(std::ops::Range<usize>, usize, &wgpu::Buffer, &wgpu::Buffer)> = match m
+            {
+                Some(m) => {
+                    let sc = m.layout.row_scale();
+                    m.chunks
+                        .iter()
+                        .map(|c| {
+                            let r = c.rows.start * sc..c.rows.end * sc;
+                            (r, c.blocks.start, &c.vals, &c.cols)
+                        })
+                        .collect()
+                }
+                None => vec![(0..rows, 0, vals.unwrap_or(d), d)],
+            };
+            for (i, (r, block0, vals, cols)) in parts.into_iter().enumerate() {
+                let groups = (r.len() as u64).div_ceil(ROW_WG as u64).max(1);
+                let params = ctx.uniform_of(
+                    "AMG step params",
+                    &AmgParams {
+                        rows: r.end as u32,
+                        n: n as u32,
+                        nx: nx as u32,
+                        groups: groups as u32,
+                        mode,
+                        omega,
+                        row0: r.start as u32,
+                        block0: block0 as u32,
+                    },
+                )?;
+                let bg = k.shader.bind(
+                    ctx,
+                    &[
+                        (0, &params),
+                        (1, m.map_or(d, |m| &m.row_ptr)),
+                        (2, vals),
+                        (4, x.unwrap_or(d)),
+                        (5, b.unwrap_or(d)),
+                        (6, y),
+                        (7, dinv.unwrap_or(d)),
+                        (8, cols),
+                    ],
+                )?;
+                let first = i == 0;
+                steps.push(Step {
+                    op,
+                    shape,
+                    bg,
+                    fixed: if first { fixed } else { (0, 0) },
+                    per_column: if first { per_column } else { 0 },
+                    dims: ctx.dims("AMG kernels", groups)?,
+                    params,
+                });
+            }
             Ok(())
         };
         // A level's smoothing sweep: fused (`spmv` mode 3, `u = v + w D^-1 (b -

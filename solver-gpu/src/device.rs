@@ -90,8 +90,7 @@ struct PassTimer {
 }
 
 /// Running counts of what crosses between host and device: every write and
-/// read-back goes through [`Context::write_buffer`], [`Context::write_data_texture`]
-/// and [`Context::read`], every wait through [`Context::wait`].
+/// read-back goes through [`Context::write_buffer`] and [`Context::read`], every wait through [`Context::wait`].
 #[derive(Default)]
 struct Traffic {
     to_device: AtomicU64,
@@ -108,7 +107,7 @@ struct Traffic {
 /// Modelled device work of recorded kernels, what a discrete GPU pays for:
 /// dispatches, and bytes moved between its memory and its cores. `bytes`
 /// counts what each kernel reads and writes as stored (every stored matrix
-/// entry or texel once, every vector entry once: repeated gathers of a
+/// entry once, every vector entry once: repeated gathers of a
 /// vector are taken to hit the cache); `minimal` counts the operator
 /// applications among them (products, smoothing steps, transfers, coarse
 /// solves, scalings) with each matrix in its least storage at its precision
@@ -189,7 +188,7 @@ pub struct TrafficCounts {
 }
 
 /// Vulkan (Linux, Windows), Metal (macOS) and DX12 (Windows): the backends
-/// with compute shaders and the storage and texture limits the kernels need.
+/// with compute shaders and the storage limits the kernels need.
 const BACKENDS: wgpu::Backends = wgpu::Backends::VULKAN
     .union(wgpu::Backends::METAL)
     .union(wgpu::Backends::DX12);
@@ -465,113 +464,6 @@ impl Context {
         Ok(b)
     }
 
-    /// Width of the RGBA32F data textures: the largest power of two within
-    /// `max_texture_dimension_2d`, at most 16384.
-    pub fn texture_width(&self) -> u32 {
-        let m = self.limits.max_texture_dimension_2d.clamp(1, 16384);
-        1 << (31 - m.leading_zeros())
-    }
-
-    /// An RGBA32F texture (`texture_width()` texels wide) with room for
-    /// `texels` texels, checked against `max_texture_dimension_2d`; allocation
-    /// failures become typed errors. `writable`: shaders may also write it
-    /// (storage texture).
-    pub fn data_texture(
-        &self,
-        what: &str,
-        texels: u64,
-        writable: bool,
-    ) -> Result<wgpu::Texture, GpuError> {
-        let w = self.texture_width() as u64;
-        let h = texels.div_ceil(w).max(1);
-        let limit = self.limits.max_texture_dimension_2d as u64;
-        if h > limit {
-            return Err(GpuError::LimitExceeded {
-                what: format!("{what}: {texels} texels of 16 bytes, {h} rows of {w}"),
-                limit_name: "max_texture_dimension_2d",
-                needed: h,
-                limit,
-            });
-        }
-        self.allocate(|| {
-            self.device.create_texture(&wgpu::TextureDescriptor {
-                label: Some(what),
-                size: wgpu::Extent3d {
-                    width: w as u32,
-                    height: h as u32,
-                    depth_or_array_layers: 1,
-                },
-                mip_level_count: 1,
-                sample_count: 1,
-                dimension: wgpu::TextureDimension::D2,
-                format: wgpu::TextureFormat::Rgba32Float,
-                usage: if writable {
-                    wgpu::TextureUsages::TEXTURE_BINDING
-                        | wgpu::TextureUsages::COPY_DST
-                        | wgpu::TextureUsages::STORAGE_BINDING
-                } else {
-                    wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST
-                },
-                view_formats: &[],
-            })
-        })
-    }
-
-    /// Write `texels` (4 f32 each, in texel order) into a data texture from
-    /// texel 0, one band of whole rows at a time (the tail of the last row is
-    /// padded with zeros); `texel(t, out)` fills texel `t`.
-    pub fn write_data_texture(
-        &self,
-        t: &wgpu::Texture,
-        texels: usize,
-        texel: impl Fn(usize, &mut [f32]) + Sync,
-    ) {
-        use rayon::prelude::*;
-        let w = t.width() as usize;
-        let rows = texels.div_ceil(w);
-        let band = (1usize << 22).div_ceil(w).max(1); // ~64 MiB of f32 per band
-        let mut buf: Vec<f32> = Vec::new();
-        let mut r0 = 0;
-        while r0 < rows {
-            let r1 = (r0 + band).min(rows);
-            buf.clear();
-            buf.resize((r1 - r0) * w * 4, 0.0);
-            buf.par_chunks_mut(4).enumerate().for_each(|(i, out)| {
-                let ti = r0 * w + i;
-                if ti < texels {
-                    texel(ti, out);
-                }
-            });
-            self.traffic
-                .to_device
-                .fetch_add(std::mem::size_of_val(&buf[..]) as u64, Ordering::Relaxed);
-            self.queue.write_texture(
-                wgpu::TexelCopyTextureInfo {
-                    texture: t,
-                    mip_level: 0,
-                    origin: wgpu::Origin3d {
-                        x: 0,
-                        y: r0 as u32,
-                        z: 0,
-                    },
-                    aspect: wgpu::TextureAspect::All,
-                },
-                bytemuck::cast_slice(&buf),
-                wgpu::TexelCopyBufferLayout {
-                    offset: 0,
-                    bytes_per_row: Some((w * 16) as u32),
-                    rows_per_image: Some((r1 - r0) as u32),
-                },
-                wgpu::Extent3d {
-                    width: w as u32,
-                    height: (r1 - r0) as u32,
-                    depth_or_array_layers: 1,
-                },
-            );
-            r0 = r1;
-        }
-    }
-
     pub fn uniform(&self, what: &str, p: &Params) -> Result<wgpu::Buffer, GpuError> {
         self.uniform_of(what, p)
     }
@@ -642,28 +534,13 @@ impl Context {
         layout: &wgpu::BindGroupLayout,
         entries: &[(u32, &wgpu::Buffer)],
     ) -> Result<wgpu::BindGroup, GpuError> {
-        self.bind_with_views(label, layout, entries, &[])
-    }
-
-    /// Bind group with buffer and texture-view entries for `layout`.
-    pub fn bind_with_views(
-        &self,
-        label: &str,
-        layout: &wgpu::BindGroupLayout,
-        buffers: &[(u32, &wgpu::Buffer)],
-        views: &[(u32, &wgpu::TextureView)],
-    ) -> Result<wgpu::BindGroup, GpuError> {
         let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
-        let e: Vec<wgpu::BindGroupEntry> = buffers
+        let e: Vec<wgpu::BindGroupEntry> = entries
             .iter()
             .map(|(i, b)| wgpu::BindGroupEntry {
                 binding: *i,
                 resource: b.as_entire_binding(),
             })
-            .chain(views.iter().map(|(i, v)| wgpu::BindGroupEntry {
-                binding: *i,
-                resource: wgpu::BindingResource::TextureView(v),
-            }))
             .collect();
         let bg = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some(label),
@@ -806,7 +683,7 @@ impl Context {
 
 /// Limits every kernel relies on, checked before the device is requested.
 fn check_min(l: &wgpu::Limits) -> Result<(), GpuError> {
-    let need: [(&'static str, u64, u64); 5] = [
+    let need: [(&'static str, u64, u64); 4] = [
         (
             "max_storage_buffers_per_shader_stage",
             8,
@@ -826,11 +703,6 @@ fn check_min(l: &wgpu::Limits) -> Result<(), GpuError> {
             "max_compute_workgroup_storage_size",
             8192,
             l.max_compute_workgroup_storage_size as u64,
-        ),
-        (
-            "max_storage_textures_per_shader_stage",
-            1,
-            l.max_storage_textures_per_shader_stage as u64,
         ),
     ];
     for (name, needed, limit) in need {
@@ -859,10 +731,6 @@ pub(crate) enum Bind {
     Uniform,
     Read,
     ReadWrite,
-    /// `texture_2d<f32>` read with `textureLoad` (unfilterable float).
-    Texture,
-    /// `texture_storage_2d<rgba32float, write>` written with `textureStore`.
-    StorageTexture,
 }
 
 /// A shader module with the explicit bind group layout (group 0) that all its
@@ -888,28 +756,14 @@ impl Shader {
             .map(|&(binding, kind)| wgpu::BindGroupLayoutEntry {
                 binding,
                 visibility: wgpu::ShaderStages::COMPUTE,
-                ty: match kind {
-                    Bind::Texture => wgpu::BindingType::Texture {
-                        sample_type: wgpu::TextureSampleType::Float { filterable: false },
-                        view_dimension: wgpu::TextureViewDimension::D2,
-                        multisampled: false,
+                ty: wgpu::BindingType::Buffer {
+                    ty: match kind {
+                        Bind::Uniform => wgpu::BufferBindingType::Uniform,
+                        Bind::ReadWrite => wgpu::BufferBindingType::Storage { read_only: false },
+                        Bind::Read => wgpu::BufferBindingType::Storage { read_only: true },
                     },
-                    Bind::StorageTexture => wgpu::BindingType::StorageTexture {
-                        access: wgpu::StorageTextureAccess::WriteOnly,
-                        format: wgpu::TextureFormat::Rgba32Float,
-                        view_dimension: wgpu::TextureViewDimension::D2,
-                    },
-                    _ => wgpu::BindingType::Buffer {
-                        ty: match kind {
-                            Bind::Uniform => wgpu::BufferBindingType::Uniform,
-                            Bind::ReadWrite => {
-                                wgpu::BufferBindingType::Storage { read_only: false }
-                            }
-                            _ => wgpu::BufferBindingType::Storage { read_only: true },
-                        },
-                        has_dynamic_offset: false,
-                        min_binding_size: None,
-                    },
+                    has_dynamic_offset: false,
+                    min_binding_size: None,
                 },
                 count: None,
             })
@@ -945,16 +799,6 @@ impl Shader {
         entries: &[(u32, &wgpu::Buffer)],
     ) -> Result<wgpu::BindGroup, GpuError> {
         ctx.bind(self.label, &self.layout, entries)
-    }
-
-    /// Bind group 0 with buffers and texture views.
-    pub fn bind_with_views(
-        &self,
-        ctx: &Context,
-        buffers: &[(u32, &wgpu::Buffer)],
-        views: &[(u32, &wgpu::TextureView)],
-    ) -> Result<wgpu::BindGroup, GpuError> {
-        ctx.bind_with_views(self.label, &self.layout, buffers, views)
     }
 }
 

@@ -5,7 +5,7 @@
 use crate::csr_spmv;
 use crate::device::{dispatch, Params, ROW_WG};
 use crate::matrix::GpuMatrix;
-use crate::pcg::{vector_texture, Pcg, PcgRun, Spmv};
+use crate::pcg::{Pcg, PcgRun, Spmv};
 pub use crate::precision::Precision;
 use crate::{GpuError, GpuSolver, CMAX};
 
@@ -53,7 +53,10 @@ fn poisoned(s: &GpuSolver, what: &str, len: usize) -> Result<wgpu::Buffer, GpuEr
 pub fn spmv(s: &GpuSolver, x: &[f32], ncols: usize) -> Result<(Vec<f32>, Vec<f64>), GpuError> {
     let (rows, bs, n) = check_cols(s, x.len(), ncols)?;
     let ctx = &s.ctx;
-    let groups = (rows as u64).div_ceil(ROW_WG as u64).max(1);
+    let m = s.gpu.as_ref().unwrap();
+    let groups = (rows as u64)
+        .div_ceil(ROW_WG as u64)
+        .max(m.partial_slots(rows));
     let params = ctx.uniform(
         "spmv params",
         &Params {
@@ -66,31 +69,17 @@ pub fn spmv(s: &GpuSolver, x: &[f32], ncols: usize) -> Result<(Vec<f32>, Vec<f64
         },
     )?;
     let xb = ctx.storage_init("x", x)?;
-    let (xt, xv) = vector_texture(ctx, "x texture", rows, bs, ncols)?;
-    if bs == 3 {
-        ctx.write_data_texture(&xt, rows * ncols, |t, out| {
-            let o = (t / rows) * n + 3 * (t % rows);
-            out[..3].copy_from_slice(&x[o..o + 3]);
-        });
-    }
     let y = poisoned(s, "y", x.len())?;
     let partials = poisoned(s, "partials", ncols * groups as usize)?;
     let spmv = s.spmv();
-    let bg = spmv.bind(
-        ctx,
-        &params,
-        s.gpu.as_ref().unwrap(),
-        &xb,
-        &xv,
-        &y,
-        &partials,
-    )?;
-    let dims = ctx.dims("spmv", groups)?;
+    let dispatches = spmv.bind(ctx, &params, m, &xb, &y, &partials, groups)?;
     let pipeline = spmv.kernel().pipeline(ctx, ncols)?;
     let mut enc = ctx.encoder("spmv");
     {
         let mut pass = enc.begin_compute_pass(&Default::default());
-        dispatch(&mut pass, &pipeline, &bg, dims);
+        for (bg, dims) in &dispatches {
+            dispatch(&mut pass, &pipeline, bg, *dims);
+        }
     }
     ctx.submit_wait(enc)?;
     let yv: Vec<f32> = ctx.read(&y, x.len(), &mut None, None)?;
@@ -100,6 +89,23 @@ pub fn spmv(s: &GpuSolver, x: &[f32], ncols: usize) -> Result<(Vec<f32>, Vec<f64
         .map(|c| c.iter().map(|&v| v as f64).sum())
         .collect();
     Ok((yv, dots))
+}
+
+/// Chunks the prepared matrix is stored in on the GPU (block rows whose
+/// values fit one storage binding; one for a scalar matrix), with the block
+/// rows of each.
+pub fn matrix_chunks(s: &GpuSolver) -> Vec<std::ops::Range<usize>> {
+    use crate::matrix::MatrixStorage;
+    match s.gpu.as_ref().map(|m| &m.storage) {
+        Some(MatrixStorage::Blocks { chunks, .. })
+        | Some(MatrixStorage::SplitBlocks { hi: chunks, .. }) => {
+            chunks.iter().map(|c| c.rows.clone()).collect()
+        }
+        Some(MatrixStorage::Csr { .. }) => {
+            s.host.as_ref().map(|h| vec![0..h.rows]).unwrap_or_default()
+        }
+        None => Vec::new(),
+    }
 }
 
 /// `a_c . b_c` for `ncols` columns of length `len / ncols` (two-pass reduction).
@@ -392,8 +398,8 @@ pub fn profile_iteration(
 
 #[cfg(feature = "bench-kernels")]
 /// The adapter's read-bandwidth ceiling over `bytes` bytes (rounded up to
-/// 16-byte texels), through a texture and through a storage buffer, `reps`
-/// timed passes each (see [`crate::stream`]).
+/// 16-byte elements, at most one storage binding) read from a storage
+/// buffer, `reps` timed passes (see [`crate::stream`]).
 pub fn read_ceiling(
     s: &GpuSolver,
     bytes: u64,

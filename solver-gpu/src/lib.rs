@@ -31,7 +31,7 @@
 //! without halving the residual) or run out, and the adapter has `SHADER_F64`,
 //! the solve goes on in **mixed precision** ([`MixedPrecision`]): PCG with f64
 //! vectors, scalars and SpMV (3x3 blocks as high and low f32 parts in two
-//! textures, `shaders/bsr_spmv_f64.wgsl`; a scalar matrix as f64 CSR),
+//! storage buffers, `shaders/bsr_spmv_f64.wgsl`; a scalar matrix as f64 CSR),
 //! preconditioned by the same f32 AMG V-cycle on f32 copies of `r` and `z`
 //! (`shaders/convert.wgsl`).
 //!
@@ -83,6 +83,14 @@
 //! The matrix pattern is uploaded once per pattern; a new matrix with the same
 //! pattern only rewrites the values. Vector buffers are sized for the largest
 //! number of columns seen and reused.
+//!
+//! Every matrix and vector lives in storage buffers (no textures): a 3x3
+//! block is its 9 f32 values and a u32 column (40 bytes, the least it can be
+//! stored in), and the block SpMV reads the search direction `p` in place.
+//! A block matrix whose values pass the adapter's
+//! `max_storage_buffer_binding_size` is split by block rows into chunks that
+//! each fit one binding (`matrix::split_rows`), one dispatch per chunk; only a
+//! single block row over the limit is a [`GpuError::LimitExceeded`].
 
 pub mod amg;
 pub mod amg_gpu;

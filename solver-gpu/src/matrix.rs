@@ -435,21 +435,13 @@ pub(crate) struct GpuMatrix {
 }
 
 /// [`GpuMatrix::stored`] for `entries` stored entries (blocks of `bs x bs`)
-/// of `value_bytes` each, `rows` (block) rows and `texel_bytes` per block in
-/// textures (0: values and columns in buffers).
-fn stored_bytes(
-    rows: usize,
-    entries: usize,
-    bs: u64,
-    value_bytes: u64,
-    texel_bytes: u64,
-) -> (u64, u64) {
+/// of `value_bytes` each and `rows` (block) rows: every layout stores one
+/// value per entry and one u32 column per block, so the bytes as stored are
+/// the least bytes.
+fn stored_bytes(rows: usize, entries: usize, bs: u64, value_bytes: u64) -> (u64, u64) {
     let (rows, entries) = (rows as u64, entries as u64);
     let least = entries * (bs * bs * value_bytes + 4) + 4 * (rows + 1);
-    match texel_bytes {
-        0 => (least, least),
-        t => (entries * t + 4 * (rows + 1), least),
-    }
+    (least, least)
 }
 
 /// Where the stored entries live.
@@ -459,68 +451,193 @@ pub(crate) enum MatrixStorage {
         col_idx: wgpu::Buffer,
         vals: wgpu::Buffer,
     },
-    /// 3x3 blocks: three RGBA32F texels per block, `(m00 m01 m02 j)`,
-    /// `(m10 m11 m12 0)`, `(m20 m21 m22 0)` with the block column `j` stored as
-    /// an f32 value (see [`block_texel`], `bsr_spmv.wgsl`). A texture is not bound by the
-    /// storage-buffer binding limit (128 MiB on lavapipe), and llvmpipe reads it
-    /// with vector gathers where a storage buffer costs one checked scalar load
-    /// per invocation and component.
-    BlockTexture {
-        texture: wgpu::Texture,
-        view: wgpu::TextureView,
+    /// 3x3 blocks in storage buffers, split by block rows into [`Chunk`]s
+    /// that each fit one storage binding: per block its 9 f32 values
+    /// (row-major, 36 bytes) and its u32 block column (4 bytes). One
+    /// [`ChunkParams`] uniform per chunk.
+    Blocks {
+        chunks: Vec<Chunk>,
+        uniforms: Vec<wgpu::Buffer>,
     },
-    /// 3x3 blocks in f64 as two f32 textures, `hi = f32(v)` (the f32 matrix's
-    /// own texture, shared) and `lo = f32(v - hi)` texel for texel: the f64
-    /// product of the mixed-precision solve (`bsr_spmv_f64.wgsl`).
-    SplitBlockTexture {
-        hi: wgpu::TextureView,
-        #[allow(dead_code)] // kept alive for `lo_view`
-        lo: wgpu::Texture,
-        lo_view: wgpu::TextureView,
+    /// 3x3 blocks in f64 as two f32 parts, `hi = f32(v)` (the f32 matrix's
+    /// own value buffers, shared, with its columns and uniforms) and
+    /// `lo = f32(v - hi)` in buffers of the same chunks: the f64 product of
+    /// the mixed-precision solve (`bsr_spmv_f64.wgsl`).
+    SplitBlocks {
+        hi: Vec<Chunk>,
+        lo: Vec<wgpu::Buffer>,
+        uniforms: Vec<wgpu::Buffer>,
     },
 }
 
-/// Block columns a block texture can name: f32 holds every integer below 2^24
-/// exactly.
-pub(crate) fn check_texture_columns(what: &str, cols: usize) -> Result<(), GpuError> {
-    const EXACT: u64 = 1 << 24;
-    if cols as u64 > EXACT {
-        return Err(GpuError::LimitExceeded {
-            what: format!("{what}: {cols} block columns stored as f32 in a texture"),
-            limit_name: "2^24 (integers exact in f32)",
-            needed: cols as u64,
-            limit: EXACT,
+/// A range of block rows of a block-CSR matrix with its blocks in storage
+/// buffers: `cols` (one u32 per block) and `vals` (`per_block` f32 per block,
+/// row-major), block `k` of the matrix at `k - blocks.start`. The row
+/// pointers stay global (one buffer for the matrix).
+#[derive(Clone)]
+pub(crate) struct Chunk {
+    pub rows: std::ops::Range<usize>,
+    pub blocks: std::ops::Range<usize>,
+    pub cols: wgpu::Buffer,
+    pub vals: wgpu::Buffer,
+}
+
+/// The uniform of one chunk's product (`C` in `bsr_spmv.wgsl`): its block
+/// rows `row0..row1`, the partial-sum slot of its first workgroup, and its
+/// first block (subtracted from the global row pointers).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub(crate) struct ChunkParams {
+    pub row0: u32,
+    pub row1: u32,
+    pub group0: u32,
+    pub block0: u32,
+}
+
+/// The largest storage binding a chunk may take: the binding limit and the
+/// buffer limit, rounded down to 4 bytes.
+pub(crate) fn binding_limit(ctx: &Context) -> u64 {
+    let l = &ctx.limits;
+    l.max_storage_buffer_binding_size.min(l.max_buffer_size) / 4 * 4
+}
+
+/// Split the block rows of `row_ptr` into ranges `(rows, blocks)` whose
+/// values (`block_bytes` per block) fit `limit` bytes: greedy, as many whole
+/// rows per chunk as fit. One chunk when the whole matrix fits. A single
+/// block row over the limit is a [`GpuError::LimitExceeded`] naming
+/// `max_storage_buffer_binding_size`.
+pub(crate) fn split_rows(
+    what: &str,
+    row_ptr: &[u32],
+    block_bytes: u64,
+    limit: u64,
+) -> Result<Vec<(std::ops::Range<usize>, std::ops::Range<usize>)>, GpuError> {
+    let rows = row_ptr.len() - 1;
+    let max_blocks = (limit / block_bytes.max(1)) as usize;
+    let mut out = Vec::new();
+    let mut r0 = 0;
+    while r0 < rows || out.is_empty() {
+        let k0 = row_ptr[r0] as usize;
+        // The last row end r1 with row_ptr[r1] - k0 <= max_blocks.
+        let end = row_ptr[r0..].partition_point(|&p| p as usize - k0 <= max_blocks) + r0 - 1;
+        let r1 = end.min(rows);
+        if r1 == r0 && r0 < rows {
+            let blocks = (row_ptr[r0 + 1] - row_ptr[r0]) as u64;
+            return Err(GpuError::LimitExceeded {
+                what: format!("{what}: block row {r0} of {blocks} blocks of {block_bytes} bytes"),
+                limit_name: "max_storage_buffer_binding_size",
+                needed: blocks * block_bytes,
+                limit,
+            });
+        }
+        out.push((r0..r1, k0..row_ptr[r1] as usize));
+        r0 = r1;
+    }
+    Ok(out)
+}
+
+/// Upload a block-CSR matrix (`per_block` f64 values per block in `vals`) as
+/// chunks that each fit one storage binding, the values as `f32` through
+/// `part` (`hi`: `v as f32`).
+pub(crate) fn upload_chunks(
+    ctx: &Context,
+    what: &str,
+    row_ptr: &[u32],
+    col_idx: &[u32],
+    per_block: usize,
+    vals: &[f64],
+) -> Result<Vec<Chunk>, GpuError> {
+    let ranges = split_rows(what, row_ptr, 4 * per_block as u64, binding_limit(ctx))?;
+    let mut chunks = Vec::with_capacity(ranges.len());
+    for (i, (rows, blocks)) in ranges.into_iter().enumerate() {
+        let part = |p: &str| format!("{what} {p}, chunk {i} (block rows {rows:?})");
+        let vals_buf = ctx.storage(&part("values"), (4 * per_block * blocks.len()) as u64)?;
+        let cols = ctx.storage_init(&part("block columns"), &col_idx[blocks.clone()])?;
+        chunks.push(Chunk {
+            rows,
+            blocks,
+            cols,
+            vals: vals_buf,
         });
     }
-    Ok(())
+    write_chunk_values(ctx, &chunks, per_block, vals, high_part);
+    Ok(chunks)
 }
 
-/// Texel `t` of a block texture (`bs` texels per block, `bs` <= 3): row
-/// `q = t % bs` of block `k = t / bs` in the first `bs` components (zeros after),
-/// and in `.w` of the block's first texel its column as an f32 value: exact,
-/// since [`check_texture_columns`] keeps columns below 2^24, and a value rather
-/// than a bit pattern (small integers' bits are f32 denormals, which a driver
-/// may flush to zero).
-/// The layout `bsr_spmv.wgsl` and `amg.wgsl` read.
-pub(crate) fn block_texel(bs: usize, col_idx: &[u32], vals: &[f64], t: usize, out: &mut [f32]) {
-    let (k, q) = (t / bs, t % bs);
-    let row = &vals[bs * (bs * k + q)..bs * (bs * k + q + 1)];
-    out[..3].fill(0.0);
-    for (o, &v) in out.iter_mut().zip(row) {
-        *o = v as f32;
-    }
-    out[3] = if q == 0 { col_idx[k] as f32 } else { 0.0 };
+/// `f32(v)`, the high part of an f64 value.
+pub(crate) fn high_part(v: f64) -> f32 {
+    v as f32
 }
 
-/// Texel `t` of the low-part texture of a 3x3 block matrix: row `t % 3` of
-/// block `t / 3`, each value's remainder `v - f64(f32(v))` rounded to f32
-/// (`.w` zero). With [`block_texel`]'s high parts, `hi + lo` equals `v` to a
-/// relative 2^-48.
-pub(crate) fn low_texel(vals: &[f64], t: usize, out: &mut [f32]) {
-    for (o, &v) in out[..3].iter_mut().zip(&vals[3 * t..3 * t + 3]) {
-        *o = (v - (v as f32) as f64) as f32;
+/// `f32(v - f64(f32(v)))`, the low part: with [`high_part`], `hi + lo`
+/// equals `v` to a relative 2^-48.
+pub(crate) fn low_part(v: f64) -> f32 {
+    (v - (v as f32) as f64) as f32
+}
+
+/// Write `part(v)` of the values into `bufs` (one per chunk, the chunks'
+/// value buffers or the low parts), a band of at most 4M values at a time so
+/// the host holds no full f32 copy of the matrix.
+pub(crate) fn write_chunk_parts(
+    ctx: &Context,
+    chunks: &[Chunk],
+    bufs: &[&wgpu::Buffer],
+    per_block: usize,
+    vals: &[f64],
+    part: fn(f64) -> f32,
+) {
+    const BAND: usize = 1 << 22;
+    let mut out: Vec<f32> = Vec::new();
+    for (c, buf) in chunks.iter().zip(bufs) {
+        let v = &vals[per_block * c.blocks.start..per_block * c.blocks.end];
+        for (b, band) in v.chunks(BAND).enumerate() {
+            out.clear();
+            out.par_extend(band.par_iter().map(|&x| part(x)));
+            ctx.write_buffer(buf, (4 * b * BAND) as u64, bytemuck::cast_slice(&out));
+        }
     }
-    out[3] = 0.0;
+}
+
+/// [`write_chunk_parts`] into the chunks' own value buffers.
+pub(crate) fn write_chunk_values(
+    ctx: &Context,
+    chunks: &[Chunk],
+    per_block: usize,
+    vals: &[f64],
+    part: fn(f64) -> f32,
+) {
+    let bufs: Vec<&wgpu::Buffer> = chunks.iter().map(|c| &c.vals).collect();
+    write_chunk_parts(ctx, chunks, &bufs, per_block, vals, part);
+}
+
+/// Workgroups of 128 block rows each chunk's product runs, and their total:
+/// the partial-sum slots a chunked product writes (chunk `i`'s first slot is
+/// the sum of the counts before it).
+pub(crate) fn chunk_groups(chunks: &[Chunk]) -> Vec<u32> {
+    let wg = crate::device::ROW_WG as usize;
+    chunks
+        .iter()
+        .map(|c| c.rows.len().div_ceil(wg).max(1) as u32)
+        .collect()
+}
+
+/// One [`ChunkParams`] uniform per chunk.
+fn chunk_uniforms(ctx: &Context, chunks: &[Chunk]) -> Result<Vec<wgpu::Buffer>, GpuError> {
+    let mut group0 = 0;
+    chunks
+        .iter()
+        .zip(chunk_groups(chunks))
+        .map(|(c, g)| {
+            let p = ChunkParams {
+                row0: c.rows.start as u32,
+                row1: c.rows.end as u32,
+                group0,
+                block0: c.blocks.start as u32,
+            };
+            group0 += g;
+            ctx.uniform_of("block matrix chunk params", &p)
+        })
+        .collect()
 }
 
 /// The scalar inverse diagonal `1 / a_ii` of a 3x3 block matrix.
@@ -533,18 +650,11 @@ fn split_inverse_diagonal(h: &HostMatrix) -> Vec<f64> {
 impl GpuMatrix {
     pub fn upload(ctx: &Context, h: &HostMatrix, minv: &[f32]) -> Result<GpuMatrix, GpuError> {
         let storage = if h.bs == 3 {
-            check_texture_columns("block matrix", h.rows)?;
-            let texels = 3 * h.nnz_blocks();
-            let texture = ctx.data_texture(
-                &format!("block matrix ({} blocks of 3 texels)", h.nnz_blocks()),
-                texels as u64,
-                false,
-            )?;
-            ctx.write_data_texture(&texture, texels, |t, out| {
-                block_texel(3, &h.col_idx, &h.vals, t, out)
-            });
-            let view = texture.create_view(&Default::default());
-            MatrixStorage::BlockTexture { texture, view }
+            let chunks = upload_chunks(ctx, "block matrix", &h.row_ptr, &h.col_idx, 9, &h.vals)?;
+            MatrixStorage::Blocks {
+                uniforms: chunk_uniforms(ctx, &chunks)?,
+                chunks,
+            }
         } else {
             // Check every size first so the error names the first buffer over a limit.
             ctx.check_storage(
@@ -558,16 +668,25 @@ impl GpuMatrix {
                 vals: ctx.storage_init("matrix values", &vals32)?,
             }
         };
-        let stored = match h.bs {
-            3 => stored_bytes(h.rows, h.nnz_blocks(), 3, 4, 48),
-            _ => stored_bytes(h.rows, h.nnz_blocks(), 1, 4, 0),
-        };
         Ok(GpuMatrix {
             row_ptr: ctx.storage_init("matrix row pointers", &h.row_ptr)?,
             storage,
             minv: ctx.storage_init("inverted diagonal blocks", minv)?,
-            stored,
+            stored: stored_bytes(h.rows, h.nnz_blocks(), h.bs as u64, 4),
         })
+    }
+
+    /// Partial-sum slots (workgroups) the product writes per column: one per
+    /// 128 rows, per chunk for a block matrix.
+    pub fn partial_slots(&self, rows: usize) -> u64 {
+        match &self.storage {
+            MatrixStorage::Csr { .. } => (rows as u64).div_ceil(crate::device::ROW_WG as u64),
+            MatrixStorage::Blocks { chunks, .. }
+            | MatrixStorage::SplitBlocks { hi: chunks, .. } => {
+                chunk_groups(chunks).iter().map(|&g| g as u64).sum()
+            }
+        }
+        .max(1)
     }
 
     /// The host matrix as scalar CSR (every `bs x bs` block as `bs^2` entries)
@@ -598,46 +717,60 @@ impl GpuMatrix {
                 "scalar expansion inverse diagonal",
                 &precision.encode(&dinv),
             )?,
-            stored: stored_bytes(row_ptr.len() - 1, col_idx.len(), 1, fp, 0),
+            stored: stored_bytes(row_ptr.len() - 1, col_idx.len(), 1, fp),
         })
     }
 
-    /// The f64 block matrix of the mixed-precision solve: the f32 matrix `f32`'s
-    /// texture as the high parts and a new texture of the low parts
-    /// (`v - f64(f32(v))` rounded to f32, so `hi + lo` carries 48 bits), its row
-    /// pointers shared, and the scalar inverse diagonal in f64. Textures only:
-    /// no storage-buffer binding limit applies to the matrix.
+    /// The f64 block matrix of the mixed-precision solve: the f32 matrix
+    /// `f32_matrix`'s value buffers as the high parts (with its columns, row
+    /// pointers and chunk uniforms), new buffers of the low parts
+    /// (`v - f64(f32(v))` rounded to f32, so `hi + lo` carries 48 bits) in
+    /// the same chunks, and the scalar inverse diagonal in f64.
     pub fn upload_split_f64(
         ctx: &Context,
         h: &HostMatrix,
         f32_matrix: &GpuMatrix,
     ) -> Result<GpuMatrix, GpuError> {
-        let MatrixStorage::BlockTexture { view: hi, .. } = &f32_matrix.storage else {
+        let MatrixStorage::Blocks { chunks, uniforms } = &f32_matrix.storage else {
             return Err(GpuError::Backend(
-                "the f64 block product needs the f32 block texture".into(),
+                "the f64 block product needs the f32 block matrix".into(),
             ));
         };
         assert_eq!(h.bs, 3);
-        let texels = 3 * h.nnz_blocks();
-        let lo = ctx.data_texture(
-            &format!(
-                "f64 block matrix, low parts ({} blocks of 3 texels)",
-                h.nnz_blocks()
-            ),
-            texels as u64,
-            false,
-        )?;
-        ctx.write_data_texture(&lo, texels, |t, out| low_texel(&h.vals, t, out));
+        let lo = chunks
+            .iter()
+            .enumerate()
+            .map(|(i, c)| {
+                ctx.storage(
+                    &format!(
+                        "f64 block matrix, low parts, chunk {i} ({} blocks)",
+                        c.blocks.len()
+                    ),
+                    (36 * c.blocks.len()) as u64,
+                )
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        write_chunk_parts(
+            ctx,
+            chunks,
+            &lo.iter().collect::<Vec<_>>(),
+            9,
+            &h.vals,
+            low_part,
+        );
         let dinv = split_inverse_diagonal(h);
+        let (rows, blocks) = (h.rows as u64, h.nnz_blocks() as u64);
+        // hi and lo, 36 bytes each, are the 72 bytes of the f64 values: the
+        // least storage at f64.
+        let stored = blocks * (36 + 36 + 4) + 4 * (rows + 1);
         Ok(GpuMatrix {
             row_ptr: f32_matrix.row_ptr.clone(),
-            storage: MatrixStorage::SplitBlockTexture {
-                hi: hi.clone(),
-                lo_view: lo.create_view(&Default::default()),
+            storage: MatrixStorage::SplitBlocks {
+                hi: chunks.clone(),
                 lo,
+                uniforms: uniforms.clone(),
             },
-            // hi and lo: six texels a block, against 72 bytes of f64 values.
-            stored: stored_bytes(h.rows, h.nnz_blocks(), 3, 8, 96),
+            stored: (stored, stored_bytes(h.rows, h.nnz_blocks(), 3, 8).1),
             minv: ctx.storage_init(
                 "scalar inverse diagonal (f64)",
                 &Precision::F64.encode(&dinv),
@@ -652,15 +785,20 @@ impl GpuMatrix {
                 let vals32: Vec<f32> = h.vals.iter().map(|&v| v as f32).collect();
                 ctx.write_buffer(vals, 0, bytemuck::cast_slice(&vals32));
             }
-            MatrixStorage::BlockTexture { texture, .. } => {
-                ctx.write_data_texture(texture, 3 * h.nnz_blocks(), |t, out| {
-                    block_texel(3, &h.col_idx, &h.vals, t, out)
-                });
+            MatrixStorage::Blocks { chunks, .. } => {
+                write_chunk_values(ctx, chunks, 9, &h.vals, high_part);
             }
-            // The high parts are the f32 matrix's texture (rewritten there);
+            // The high parts are the f32 matrix's buffers (rewritten there);
             // the inverse diagonal is f64 here, computed from `h`.
-            MatrixStorage::SplitBlockTexture { lo, .. } => {
-                ctx.write_data_texture(lo, 3 * h.nnz_blocks(), |t, out| low_texel(&h.vals, t, out));
+            MatrixStorage::SplitBlocks { hi, lo, .. } => {
+                write_chunk_parts(
+                    ctx,
+                    hi,
+                    &lo.iter().collect::<Vec<_>>(),
+                    9,
+                    &h.vals,
+                    low_part,
+                );
                 ctx.write_buffer(
                     &self.minv,
                     0,
@@ -674,26 +812,43 @@ impl GpuMatrix {
 }
 
 #[cfg(test)]
-mod texel_tests {
+mod layout_tests {
     use super::*;
 
     #[test]
-    fn block_texels_hold_rows_and_the_column_as_a_value() {
-        // Two 3x3 blocks, columns 7 and 2^24 (the largest exact one).
-        let vals: Vec<f64> = (0..18).map(|v| v as f64 + 0.5).collect();
-        let cols = [7u32, 1 << 24];
-        let mut out = [f32::NAN; 4];
-        block_texel(3, &cols, &vals, 4, &mut out); // block 1, row 1
-        assert_eq!(out, [12.5, 13.5, 14.5, 0.0]);
-        block_texel(3, &cols, &vals, 3, &mut out); // block 1, row 0
-        assert_eq!(out, [9.5, 10.5, 11.5, (1u32 << 24) as f32]);
-        assert_eq!(out[3] as u32, 1 << 24);
-        // Scalar (bs = 1): one texel per entry.
-        block_texel(1, &cols, &vals[..2], 0, &mut out);
-        assert_eq!(out, [0.5, 0.0, 0.0, 7.0]);
-        assert!(check_texture_columns("m", 1 << 24).is_ok());
-        let e = check_texture_columns("m", (1 << 24) + 1).unwrap_err();
-        assert!(e.to_string().contains("2^24"), "{e}");
+    fn rows_split_into_chunks_that_fit_the_limit() {
+        // Rows of 2, 3, 1, 4, 2 blocks of 36 bytes.
+        let row_ptr = [0u32, 2, 5, 6, 10, 12];
+        // Everything fits: one chunk.
+        let one = split_rows("m", &row_ptr, 36, 12 * 36).unwrap();
+        assert_eq!(one, vec![(0..5, 0..12)]);
+        // At most 5 blocks a chunk: whole rows, greedily.
+        let five = split_rows("m", &row_ptr, 36, 5 * 36 + 35).unwrap();
+        assert_eq!(five, vec![(0..2, 0..5), (2..4, 5..10), (4..5, 10..12)]);
+        // Every block is in exactly one chunk, the chunks in row order.
+        for limit in [4, 5, 6, 7, 12] {
+            let c = split_rows("m", &row_ptr, 36, limit * 36).unwrap();
+            assert_eq!(c.first().unwrap().0.start, 0);
+            assert_eq!(c.last().unwrap().0.end, 5);
+            for w in c.windows(2) {
+                assert_eq!(w[0].0.end, w[1].0.start);
+                assert_eq!(w[0].1.end, w[1].1.start);
+            }
+            for (rows, blocks) in &c {
+                assert!(blocks.len() as u64 <= limit);
+                assert_eq!(blocks.start, row_ptr[rows.start] as usize);
+                assert_eq!(blocks.end, row_ptr[rows.end] as usize);
+            }
+        }
+        // A row of 4 blocks cannot fit 3: a typed error naming the limit.
+        let e = split_rows("block matrix", &row_ptr, 36, 3 * 36).unwrap_err();
+        let msg = e.to_string();
+        assert!(
+            msg.contains("max_storage_buffer_binding_size") && msg.contains("block row 3"),
+            "{msg}"
+        );
+        // An empty matrix is one empty chunk.
+        assert_eq!(split_rows("m", &[0], 36, 36).unwrap(), vec![(0..0, 0..0)]);
     }
 
     #[test]
@@ -704,23 +859,16 @@ mod texel_tests {
                 (1.0 + i as f64).sqrt() * 10f64.powi(i - 4) * if i % 2 == 0 { 1.0 } else { -1.0 }
             })
             .collect();
-        let cols = [0u32];
-        let (mut hi, mut lo) = ([0f32; 4], [f32::NAN; 4]);
         let mut worst_f32 = 0f64;
-        for t in 0..3 {
-            block_texel(3, &cols, &vals, t, &mut hi);
-            low_texel(&vals, t, &mut lo);
-            assert_eq!(lo[3], 0.0);
-            for q in 0..3 {
-                let v = vals[3 * t + q];
-                let f32_err = ((hi[q] as f64 - v) / v).abs();
-                let split_err = ((hi[q] as f64 + lo[q] as f64 - v) / v).abs();
-                worst_f32 = worst_f32.max(f32_err);
-                assert!(
-                    split_err <= 2f64.powi(-48),
-                    "value {v}: hi + lo {split_err:e}"
-                );
-            }
+        for &v in &vals {
+            let (hi, lo) = (high_part(v), low_part(v));
+            let f32_err = ((hi as f64 - v) / v).abs();
+            let split_err = ((hi as f64 + lo as f64 - v) / v).abs();
+            worst_f32 = worst_f32.max(f32_err);
+            assert!(
+                split_err <= 2f64.powi(-48),
+                "value {v}: hi + lo {split_err:e}"
+            );
         }
         // The low parts matter: f32 alone is off by ~2^-25 somewhere.
         assert!(worst_f32 > 1e-8, "f32 alone {worst_f32:e}");

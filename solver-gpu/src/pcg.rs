@@ -7,8 +7,10 @@
 //! 3. `update`: `x += alpha p`, `r -= alpha Ap`, `z = M^-1 r` (block-Jacobi),
 //!    partials of `r . z` and `r . r`;
 //! 4. `finish_beta` (1 workgroup): `beta = rz' / rz`, convergence flag `rr <= thr`;
-//! 5. `direction`: `p = z + beta p` (for the block matrix `direction_tex`, which
-//!    also stores `p` in the texture `p_tex` the block SpMV gathers from).
+//! 5. `direction`: `p = z + beta p` (the SpMV reads `p` in place).
+//!
+//! A block matrix split into chunks ([`crate::matrix::split_rows`], past the
+//! storage binding limit) makes step 1 one dispatch per chunk.
 //!
 //! With the AMG preconditioner, step 3 is `update_amg` (no `z`, partials of
 //! `r . r` only), then the recorded V-cycle ([`crate::amg_gpu`], reading `r`,
@@ -25,15 +27,13 @@
 //! Bindings of `pcg.wgsl` (group 0): 0 `P` uniform [`Params`]; 1 `cols`
 //! ([`ColState`] per column); 2 `partials` (slot s, column c, workgroup g at
 //! `(s ncols + c) groups + g`); 3 `minv` (inverted diagonal blocks); 4 `p`;
-//! 5 `ap`; 6 `x`; 7 `r`; 8 `z` (vectors column-major, stride n); 9 `p_tex`
-//! (RGBA32F storage texture, column c, vertex j at texel `c rows + j`; a 1x1
-//! placeholder for a scalar matrix). `update` uses 0-8, `finish_alpha`/
-//! `finish_beta` 0-2, `direction` 0, 1, 4, 8, `direction_tex` those and 9; one
+//! 5 `ap`; 6 `x`; 7 `r`; 8 `z` (vectors column-major, stride n). `update`
+//! uses 0-8, `finish_alpha`/`finish_beta` 0-2, `direction` 0, 1, 4, 8; one
 //! bind group through one explicit layout serves them all. Every pipeline is
 //! specialised for the number of columns (`NCOLS` override, compiled on first use).
 
 use crate::amg_gpu::{AmgKernels, SquaredSteps, VcycleWorkspace};
-use crate::bsr_spmv::BsrSpmv;
+use crate::bsr_spmv::{BsrSpmv, SpmvDispatch};
 use crate::convert::{Convert, ConvertParams};
 use crate::csr_spmv::CsrSpmv;
 use crate::device::{dispatch, Bind, Context, Kernel, KernelWork, Params, Shader, FLAT_WG, ROW_WG};
@@ -135,7 +135,7 @@ pub(crate) const DONE_BREAKDOWN: u32 = 2;
 pub(crate) const FIRST_BATCH: usize = 8;
 
 /// Layout of `pcg.wgsl` (group 0), shared by its four entry points.
-const BINDINGS: [(u32, Bind); 10] = [
+const BINDINGS: [(u32, Bind); 9] = [
     (0, Bind::Uniform),
     (1, Bind::ReadWrite),
     (2, Bind::ReadWrite),
@@ -145,7 +145,6 @@ const BINDINGS: [(u32, Bind); 10] = [
     (6, Bind::ReadWrite),
     (7, Bind::ReadWrite),
     (8, Bind::ReadWrite),
-    (9, Bind::StorageTexture),
 ];
 
 pub(crate) struct Pcg {
@@ -155,7 +154,6 @@ pub(crate) struct Pcg {
     pub finish_alpha: Kernel,
     pub finish_beta: Kernel,
     pub direction: Kernel,
-    pub direction_tex: Kernel,
     pub update_amg: Kernel,
     pub dot_rz: Kernel,
 }
@@ -181,35 +179,15 @@ impl Spmv<'_> {
         params: &wgpu::Buffer,
         m: &GpuMatrix,
         x: &wgpu::Buffer,
-        x_tex: &wgpu::TextureView,
         y: &wgpu::Buffer,
         partials: &wgpu::Buffer,
-    ) -> Result<wgpu::BindGroup, GpuError> {
+        groups: u64,
+    ) -> Result<Vec<SpmvDispatch>, GpuError> {
         match self {
-            Spmv::Block(k) => k.bind(ctx, params, m, x, x_tex, y, partials),
-            Spmv::Scalar(k) => k.bind(ctx, params, m, x, x_tex, y, partials),
+            Spmv::Block(k) => k.bind(ctx, params, m, x, y, partials, groups),
+            Spmv::Scalar(k) => k.bind(ctx, params, m, x, y, partials, groups),
         }
     }
-}
-
-/// The texture copy of a vector that the block SpMV gathers from: `cmax`
-/// columns of `rows` vertices, one RGBA32F texel per vertex (texel `c rows + j`).
-/// A 1x1 placeholder when `bs` is not 3 (the scalar SpMV reads a buffer).
-pub(crate) fn vector_texture(
-    ctx: &Context,
-    what: &str,
-    rows: usize,
-    bs: usize,
-    cmax: usize,
-) -> Result<(wgpu::Texture, wgpu::TextureView), GpuError> {
-    let texels = if bs == 3 { rows * cmax } else { 1 };
-    let t = ctx.data_texture(
-        &format!("{what} ({rows} vertices x {cmax} columns)"),
-        texels as u64,
-        true,
-    )?;
-    let v = t.create_view(&Default::default());
-    Ok((t, v))
 }
 
 /// Vector buffers and bind groups for one prepared matrix and up to `cmax`
@@ -231,11 +209,10 @@ pub(crate) struct Workspace {
     #[allow(dead_code)]
     pub z: wgpu::Buffer,
     pub p: wgpu::Buffer,
-    /// `p` as the block SpMV reads it (see [`vector_texture`]).
-    #[allow(dead_code)]
-    pub p_tex: (wgpu::Texture, wgpu::TextureView),
     pub ap: wgpu::Buffer,
-    bg_spmv: wgpu::BindGroup,
+    /// The product `Ap = A p`: one dispatch, or one per chunk of a block
+    /// matrix.
+    spmv: Vec<SpmvDispatch>,
     bg_pcg: wgpu::BindGroup,
     row_dims: (u32, u32),
     pub staging_cols: Option<wgpu::Buffer>,
@@ -350,12 +327,6 @@ impl Pcg {
             finish_alpha: Kernel::new(&shader, "pcg_finish_alpha", "finish_alpha"),
             finish_beta: Kernel::new(&shader, "pcg_finish_beta", "finish_beta"),
             direction: Kernel::new(&shader, "pcg_direction", "direction"),
-            direction_tex: Kernel::with_constants(
-                &shader,
-                "pcg_direction_tex",
-                "direction_tex",
-                &[("TW", ctx.texture_width() as f64)],
-            ),
             update_amg: Kernel::new(&shader, "pcg_update_amg", "update_amg"),
             dot_rz: Kernel::new(&shader, "pcg_dot_rz", "dot_rz"),
             shader,
@@ -376,7 +347,10 @@ impl Pcg {
     ) -> Result<Workspace, GpuError> {
         let cmax = cmax.clamp(1, CMAX);
         let n = rows * bs;
-        let groups = (rows as u64).div_ceil(ROW_WG as u64).max(1);
+        // Partial slots: one per workgroup of rows, or the chunked product's.
+        let groups = (rows as u64)
+            .div_ceil(ROW_WG as u64)
+            .max(m.partial_slots(rows));
         let row_dims = ctx.dims("row kernels", groups)?;
         ctx.dims(
             "element-wise kernels",
@@ -400,9 +374,8 @@ impl Pcg {
         let z = ctx.storage(&what("z"), vec_bytes)?;
         let p = ctx.storage(&what("p"), vec_bytes)?;
         let ap = ctx.storage(&what("Ap"), vec_bytes)?;
-        let p_tex = vector_texture(ctx, "PCG direction p texture", rows, bs, cmax)?;
-        let bg_spmv = spmv.bind(ctx, &params, m, &p, &p_tex.1, &ap, &partials)?;
-        let bg_pcg = self.shader.bind_with_views(
+        let spmv = spmv.bind(ctx, &params, m, &p, &ap, &partials, groups)?;
+        let bg_pcg = self.shader.bind(
             ctx,
             &[
                 (0, &params),
@@ -415,7 +388,6 @@ impl Pcg {
                 (7, &r),
                 (8, &z),
             ],
-            &[(9, &p_tex.1)],
         )?;
         Ok(Workspace {
             stored: m.stored,
@@ -431,9 +403,8 @@ impl Pcg {
             r,
             z,
             p,
-            p_tex,
             ap,
-            bg_spmv,
+            spmv,
             bg_pcg,
             row_dims,
             staging_cols: None,
@@ -518,7 +489,11 @@ impl Pcg {
         // preconditioner's kernels.
         let nv = (n * ncols) as u64 * self.precision.bytes();
         let partials = 2 * u64::from(ws.groups) * ncols as u64 * self.precision.bytes();
-        let spmv_work = KernelWork::operator(ws.stored.0 + 2 * nv + partials, ws.stored.1 + 2 * nv);
+        // One dispatch per chunk: the matrix once, p and Ap once in all.
+        let spmv_work = KernelWork {
+            dispatches: ws.spmv.len() as u64,
+            ..KernelWork::operator(ws.stored.0 + 2 * nv + partials, ws.stored.1 + 2 * nv)
+        };
         let scalars = KernelWork::other(partials);
         let jacobi_update = vcycle.is_none() && squared.is_none();
         let update_work = match jacobi_update {
@@ -543,15 +518,8 @@ impl Pcg {
             // dot_rz: r and z read.
             precondition_work = precondition_work + KernelWork::other(2 * nv + partials);
         }
-        // direction: z (or r) and p read, p written (and its texture copy).
-        let direction_work = KernelWork::other(
-            3 * nv
-                + if ws.bs == 3 {
-                    (16 * ws.rows * ncols) as u64
-                } else {
-                    0
-                },
-        );
+        // direction: z and p read, p written.
+        let direction_work = KernelWork::other(3 * nv);
         let iteration_work =
             spmv_work + scalars + update_work + precondition_work + scalars + direction_work;
         let precondition = |pass: &mut wgpu::ComputePass| {
@@ -578,7 +546,7 @@ impl Pcg {
             }
         };
         let k_beta = self.finish_beta.pipeline(ctx, ncols)?;
-        let (dir, dir_dims) = self.direction_for(ws, flat_dims);
+        let (dir, dir_dims) = (&self.direction, flat_dims);
         let k_dir = dir.pipeline(ctx, ncols)?;
         let mut enc = ctx.encoder("pcg init");
         for b in [&ws.x, &ws.p, &ws.ap] {
@@ -616,7 +584,9 @@ impl Pcg {
                     timestamp_writes: ctx.pass_timestamps(),
                 });
                 for _ in 0..k {
-                    dispatch(&mut pass, &k_spmv, &ws.bg_spmv, ws.row_dims);
+                    for (bg, dims) in &ws.spmv {
+                        dispatch(&mut pass, &k_spmv, bg, *dims);
+                    }
                     dispatch(&mut pass, &k_alpha, &ws.bg_pcg, (1, 1));
                     dispatch(&mut pass, &k_update, &ws.bg_pcg, ws.row_dims);
                     precondition(&mut pass);
@@ -689,21 +659,26 @@ impl Pcg {
             "element-wise kernels",
             ((ws.n() * ncols) as u64).div_ceil(FLAT_WG as u64),
         )?;
-        let dir = self.direction_for(ws, flat_dims);
-        let kernels: [(&Kernel, &wgpu::BindGroup, (u32, u32)); 5] = [
-            (spmv.kernel(), &ws.bg_spmv, ws.row_dims),
-            (&self.finish_alpha, &ws.bg_pcg, (1, 1)),
-            (&self.update, &ws.bg_pcg, ws.row_dims),
-            (&self.finish_beta, &ws.bg_pcg, (1, 1)),
-            (dir.0, &ws.bg_pcg, dir.1),
+        let one = |bg, dims| vec![(bg, dims)];
+        let kernels: [(&Kernel, Vec<(&wgpu::BindGroup, (u32, u32))>); 5] = [
+            (
+                spmv.kernel(),
+                ws.spmv.iter().map(|(bg, d)| (bg, *d)).collect(),
+            ),
+            (&self.finish_alpha, one(&ws.bg_pcg, (1, 1))),
+            (&self.update, one(&ws.bg_pcg, ws.row_dims)),
+            (&self.finish_beta, one(&ws.bg_pcg, (1, 1))),
+            (&self.direction, one(&ws.bg_pcg, flat_dims)),
         ];
         let mut out = Vec::new();
-        for (k, bg, dims) in kernels {
+        for (k, bgs) in kernels {
             let pipeline = k.pipeline(ctx, ncols)?;
             let mut enc = ctx.encoder("profile");
             {
                 let mut pass = enc.begin_compute_pass(&Default::default());
-                dispatch(&mut pass, &pipeline, bg, dims);
+                for &(bg, dims) in &bgs {
+                    dispatch(&mut pass, &pipeline, bg, dims);
+                }
             }
             ctx.submit_wait(enc)?;
             let t = std::time::Instant::now();
@@ -711,23 +686,15 @@ impl Pcg {
             {
                 let mut pass = enc.begin_compute_pass(&Default::default());
                 for _ in 0..reps {
-                    dispatch(&mut pass, &pipeline, bg, dims);
+                    for &(bg, dims) in &bgs {
+                        dispatch(&mut pass, &pipeline, bg, dims);
+                    }
                 }
             }
             ctx.submit_wait(enc)?;
             out.push((k.label, t.elapsed().as_secs_f64() / reps as f64));
         }
         Ok(out)
-    }
-
-    /// The `direction` step and its dispatch: one invocation per vertex storing
-    /// `p` in the texture too for the block matrix, else one per entry.
-    fn direction_for(&self, ws: &Workspace, flat_dims: (u32, u32)) -> (&Kernel, (u32, u32)) {
-        if ws.bs == 3 {
-            (&self.direction_tex, ws.row_dims)
-        } else {
-            (&self.direction, flat_dims)
-        }
     }
 
     /// Read the first `ncols` columns of `x` (as f64 whatever the precision).

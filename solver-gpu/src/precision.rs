@@ -2,8 +2,8 @@
 //! `SHADER_F64` the PCG shaders (`pcg.wgsl`, `csr_spmv.wgsl`) also compile in
 //! f64 after a small text transform of the same source ([`f64_source`]):
 //!
-//! 1. the lines from `// f32-only begin` to `// f32-only end` are dropped (the
-//!    texture paths: textures hold f32, so the f64 kernels read buffers);
+//! 1. the lines from `// f32-only begin` to `// f32-only end` are dropped
+//!    (constants that only hold in f32, such as `TINY`);
 //! 2. a line `// f64-only: CODE` becomes `CODE`;
 //! 3. every `f32` becomes `f64`.
 //!
@@ -88,7 +88,7 @@ mod tests {
     fn f64_source_drops_f32_sections_and_uncomments_f64_lines() {
         let src = "var<storage> a: array<f32>;\n\
                    // f32-only begin\n\
-                   var t: texture_2d<f32>;\n\
+                   const HALF: f32 = 0.5;\n\
                    // f32-only end\n\
                    // f32-only begin\n\
                    const TINY: f32 = 1e-12;\n\

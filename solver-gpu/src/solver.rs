@@ -303,7 +303,7 @@ struct MixedKernels {
     pcg: pcg::Pcg,
     /// Scalar matrices (the face system).
     csr: csr_spmv::CsrSpmv,
-    /// 3x3 block matrices: high and low f32 parts in textures.
+    /// 3x3 block matrices: high and low f32 parts in storage buffers.
     bsr: bsr_spmv::BsrSpmv,
     convert: convert::Convert,
 }
@@ -319,7 +319,7 @@ impl MixedKernels {
 }
 
 /// The mixed-precision solve's data: the matrix in f64 (3x3 blocks as high and
-/// low f32 parts in textures, the high part shared with the f32 matrix; a
+/// low f32 parts in storage buffers, the high part shared with the f32 matrix; a
 /// scalar matrix as f64 CSR) and a scalar workspace whose V-cycle runs on f32
 /// copies of r and z.
 struct MixedData {
@@ -636,7 +636,7 @@ impl GpuSolver {
                 return Ok(());
             }
         };
-        // The finest A on the GPU is the PCG's matrix itself (block texture):
+        // The finest A on the GPU is the PCG's matrix itself (its buffers):
         // a new upload of that matrix means a new hierarchy upload too.
         let fine_current = self.amg_fine_upload == self.pattern_uploads;
         match (&self.amg_gpu, &prev) {
