@@ -100,6 +100,7 @@ mod convert;
 pub mod csr_spmv;
 mod device;
 pub mod dot;
+mod expand_blocks;
 pub mod kernels;
 mod matrix;
 pub mod pcg;

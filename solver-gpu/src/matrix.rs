@@ -133,6 +133,12 @@ impl HostMatrix {
         })
     }
 
+    /// For each lower-triangle input entry: its position in the full pattern,
+    /// and the position of its transpose (`u32::MAX` on the diagonal).
+    pub fn lower_to_full(&self) -> &[(u32, u32)] {
+        &self.lower_to_full
+    }
+
     pub fn same_pattern(&self, bs: usize, col_ptr: &[usize], row_idx: &[usize]) -> bool {
         self.bs == bs && self.key.0 == col_ptr && self.key.1 == row_idx
     }
@@ -776,6 +782,31 @@ impl GpuMatrix {
                 &Precision::F64.encode(&dinv),
             )?,
         })
+    }
+
+    /// The value storage of a block matrix: its chunks (the f32 values, or the
+    /// high parts) and, for the f64 split matrix, the low parts' buffers.
+    pub fn block_parts(&self) -> Option<(&[Chunk], Option<&[wgpu::Buffer]>)> {
+        match &self.storage {
+            MatrixStorage::Csr { .. } => None,
+            MatrixStorage::Blocks { chunks, .. } => Some((chunks, None)),
+            MatrixStorage::SplitBlocks { hi, lo, .. } => Some((hi, Some(lo))),
+        }
+    }
+
+    /// Rewrite the inverse diagonal only (`minv` for an f32 matrix; the f64
+    /// scalar inverse diagonal of `h` for the split matrix): with the values
+    /// expanded on the GPU ([`crate::expand_blocks`]), what [`Self::write_values`]
+    /// leaves to the host.
+    pub fn write_diagonal(&self, ctx: &Context, h: &HostMatrix, minv: &[f32]) {
+        match &self.storage {
+            MatrixStorage::SplitBlocks { .. } => ctx.write_buffer(
+                &self.minv,
+                0,
+                &Precision::F64.encode(&split_inverse_diagonal(h)),
+            ),
+            _ => ctx.write_buffer(&self.minv, 0, bytemuck::cast_slice(minv)),
+        }
     }
 
     /// New values, same pattern.

@@ -13,8 +13,8 @@ use solver_cpu::{
 
 use crate::precision::{MixedPrecision, RoundWatch};
 use crate::{
-    amg, amg_gpu, block_jacobi, bsr_spmv, convert, csr_spmv, default_adapter, device, dot, matrix,
-    pcg, precision, AdapterSummary, OpenOptions,
+    amg, amg_gpu, block_jacobi, bsr_spmv, convert, csr_spmv, default_adapter, device, dot,
+    expand_blocks, matrix, pcg, precision, AdapterSummary, OpenOptions,
 };
 use crate::{GpuError, Preconditioner, CMAX, SQUARED_LAPLACIAN_SWEEPS, SQUARED_LAPLACIAN_VCYCLES};
 
@@ -206,6 +206,9 @@ pub fn open_with(opts: OpenOptions) -> Result<GpuSolver, GpuError> {
         squared: None,
         ring_slots: None,
         lower_scratch: Vec::new(),
+        expand: None,
+        expansion: None,
+        mixed_builds: 0,
     })
 }
 
@@ -265,7 +268,7 @@ pub struct GpuSolver {
     /// The f64 kernels of the mixed-precision solve (compiled on first use).
     mixed_kernels: Option<MixedKernels>,
     /// Its matrix and workspace, for the stamp's matrix.
-    mixed: Option<MixedData>,
+    pub(crate) mixed: Option<MixedData>,
     /// A solve of the current pattern fell back to mixed precision: the next
     /// ones start there (reset by a new pattern).
     mixed_sticky: bool,
@@ -296,6 +299,15 @@ pub struct GpuSolver {
     /// ([`SpdSolver::prepare_shape_owned`]), and the lower blocks summed there.
     ring_slots: Option<RingSlots>,
     lower_scratch: Vec<[f64; 9]>,
+    /// New values of a prepared block pattern go up as their lower triangle
+    /// in f64 and are expanded on the GPU (needs `SHADER_F64`): the kernel,
+    /// and the recorded expansion with what it was recorded for
+    /// (`pattern_uploads`, whether it writes the mixed matrix's low parts,
+    /// the held rows).
+    expand: Option<expand_blocks::ExpandBlocks>,
+    pub(crate) expansion: Option<(expand_blocks::Expansion, usize, Option<usize>, Vec<bool>)>,
+    /// Mixed-precision matrices built (each has its own low-part buffers).
+    mixed_builds: usize,
 }
 
 /// The f64 kernels of the mixed-precision solve.
@@ -322,12 +334,11 @@ impl MixedKernels {
 /// low f32 parts in storage buffers, the high part shared with the f32 matrix; a
 /// scalar matrix as f64 CSR) and a scalar workspace whose V-cycle runs on f32
 /// copies of r and z.
-struct MixedData {
+pub(crate) struct MixedData {
     /// `(pattern_uploads, value_uploads)` of the matrix it was built from.
     stamp: (usize, usize),
     /// Read through the workspace's bind groups only.
-    #[allow(dead_code)]
-    matrix: GpuMatrix,
+    pub(crate) matrix: GpuMatrix,
     pub(crate) ws: Workspace,
 }
 
@@ -473,6 +484,7 @@ impl GpuSolver {
         }
         ws.narrow = Some(narrow);
         self.mixed = Some(MixedData { stamp, matrix, ws });
+        self.mixed_builds += 1;
         Ok(())
     }
 
@@ -726,14 +738,26 @@ impl GpuSolver {
         }
     }
 
-    /// Upload a prepared host matrix (pattern if new, else values only).
-    fn upload(&mut self, h: HostMatrix, same: bool) -> Result<(), GpuError> {
+    /// Upload a prepared host matrix (pattern if new, else values only);
+    /// `lower`: a block matrix's lower-triangle blocks in input order, which
+    /// carry new values of the same pattern (see [`Self::expand_values`]).
+    fn upload(
+        &mut self,
+        h: HostMatrix,
+        same: bool,
+        lower: Option<&[[f64; 9]]>,
+    ) -> Result<(), GpuError> {
         let minv = block_jacobi::inverse_diagonal(&h).map_err(|e| match e {
             SolverError::NotPositiveDefinite => GpuError::NotPositiveDefinite,
             other => GpuError::Backend(other.to_string()),
         })?;
         let mut same_values_only = false;
+        let expanded = match (same && self.gpu.is_some(), lower) {
+            (true, Some(lower)) => self.expand_values(&h, lower, &minv)?,
+            _ => false,
+        };
         match (same, self.gpu.as_ref()) {
+            (true, Some(_)) if expanded => same_values_only = true,
             (true, Some(gpu)) => {
                 gpu.write_values(&self.ctx, &h, &minv);
                 self.value_uploads += 1;
@@ -781,6 +805,68 @@ impl GpuSolver {
             _ => self.setup_amg()?,
         }
         self.ctx.check()
+    }
+
+    /// New values of the uploaded block pattern from their lower triangle:
+    /// the f64 lower blocks go up (72 bytes a lower block) and
+    /// `expand_blocks.wgsl` writes both triangles, held rows, f32 high parts
+    /// and, once the mixed-precision matrix exists, its low parts; the host
+    /// writes only the inverse diagonals. `false` (nothing done) where the
+    /// adapter lacks `SHADER_F64`, or the lower values would not fit one
+    /// storage binding: then the host writes the values.
+    fn expand_values(
+        &mut self,
+        h: &HostMatrix,
+        lower: &[[f64; 9]],
+        minv: &[f32],
+    ) -> Result<bool, GpuError> {
+        if !self.ctx.shader_f64
+            || h.bs != 3
+            || 72 * lower.len() as u64 > matrix::binding_limit(&self.ctx)
+        {
+            return Ok(false);
+        }
+        let stamp = self.pattern_uploads;
+        let mixed = self.mixed.as_ref().filter(|m| m.stamp.0 == stamp);
+        // Which mixed matrix's low parts it writes (each build has its own).
+        let split = mixed.map(|_| self.mixed_builds);
+        let current = self.expansion.as_ref().is_some_and(|(_, p, s, f)| {
+            *p == stamp && *s == split && f.as_slice() == self.fixed.as_slice()
+        });
+        if !current {
+            self.expansion = None;
+            let Some(map) = expand_blocks::block_map(h, &self.fixed) else {
+                return Ok(false);
+            };
+            if self.expand.is_none() {
+                self.expand = Some(expand_blocks::ExpandBlocks::new(&self.ctx)?);
+            }
+            let gpu = self.gpu.as_ref().unwrap();
+            let Some((chunks, None)) = gpu.block_parts() else {
+                return Ok(false);
+            };
+            let lo = mixed.and_then(|m| m.matrix.block_parts()).and_then(|p| p.1);
+            let e = self.expand.as_ref().unwrap().expansion(
+                &self.ctx,
+                lower.len(),
+                &map,
+                chunks,
+                lo,
+            )?;
+            self.expansion = Some((e, stamp, split, self.fixed.clone()));
+        }
+        let (e, ..) = self.expansion.as_ref().unwrap();
+        self.expand.as_ref().unwrap().run(&self.ctx, e, lower)?;
+        self.gpu
+            .as_ref()
+            .unwrap()
+            .write_diagonal(&self.ctx, h, minv);
+        self.value_uploads += 1;
+        if let Some(m) = self.mixed.as_mut().filter(|m| m.stamp.0 == stamp) {
+            m.matrix.write_diagonal(&self.ctx, h, &[]);
+            m.stamp = (stamp, self.value_uploads);
+        }
+        Ok(true)
     }
 
     /// The workspace for at least `ncols` columns.
@@ -1061,7 +1147,7 @@ impl SpdSolver for GpuSolver {
             )));
         }
         h.fill_scalar(a);
-        self.upload(h, same).map_err(Into::into)
+        self.upload(h, same, None).map_err(Into::into)
     }
 
     fn prepare_blocks(&mut self, a: &BlockSym3, fixed: &[bool]) -> Result<(), SolverError> {
@@ -1085,7 +1171,7 @@ impl SpdSolver for GpuSolver {
         h.fill_blocks(a, fixed);
         self.fixed.clear();
         self.fixed.extend_from_slice(fixed);
-        self.upload(h, same).map_err(Into::into)
+        self.upload(h, same, Some(&a.blocks)).map_err(Into::into)
     }
 
     /// The shape matrix's blocks go straight into the prepared matrix
@@ -1128,7 +1214,10 @@ impl SpdSolver for GpuSolver {
         h.fill_shape(&a, slots, fixed, &mut self.lower_scratch);
         self.fixed.clear();
         self.fixed.extend_from_slice(fixed);
-        self.upload(h, same)?;
+        let lower = std::mem::take(&mut self.lower_scratch);
+        let done = self.upload(h, same, Some(&lower));
+        self.lower_scratch = lower;
+        done?;
         Ok(Some(a))
     }
 
