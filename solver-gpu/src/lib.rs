@@ -3,9 +3,12 @@
 //!
 //! # The math
 //!
-//! For an SPD matrix `A` (3x3-block vertex systems, or the scalar face system),
-//! each right-hand side `b` is solved by **mixed-precision iterative refinement**
-//! around an **f32 PCG** on the GPU:
+//! The precision follows the system kind ([`MixedPrecision::ByKind`], the
+//! default, measured in `BENCHMARKS.md`, "GPU precision policy"): the shape
+//! systems (Eqs. 7 and 8) run as the **mixed-precision PCG** below from their
+//! first solve, the scale-factor system (Eq. 3) as **iterative refinement**
+//! around an **f32 PCG**. For an SPD matrix `A` (3x3-block vertex systems, or
+//! the scalar face system), refinement solves each right-hand side `b` as:
 //!
 //! ```text
 //! x = x0 (0, or the caller's guess)                        host, f64
@@ -28,12 +31,24 @@
 //! Where the rounds are limited by f32 rounding (two rounds in a row whose f64
 //! residual gained less than `(1/eta)^(1/3)` where the f32 PCG reached its
 //! tolerance `eta`), stagnate (three
-//! without halving the residual) or run out, and the adapter has `SHADER_F64`,
-//! the solve goes on in **mixed precision** ([`MixedPrecision`]): PCG with f64
+//! without halving the residual), break down or run out, and the adapter has
+//! `SHADER_F64`, the solve goes on in **mixed precision** ([`MixedPrecision`]),
+//! as the shape systems do from the start: PCG with f64
 //! vectors, scalars and SpMV (3x3 blocks as high and low f32 parts in two
 //! storage buffers, `shaders/bsr_spmv_f64.wgsl`; a scalar matrix as f64 CSR),
 //! preconditioned by the same f32 AMG V-cycle on f32 copies of `r` and `z`
-//! (`shaders/convert.wgsl`).
+//! (`shaders/convert.wgsl`). On the shape systems the f32 PCG converges far
+//! slower than this one with the same preconditioner (homer, 12k faces: 112
+//! against 41 PCG iterations per scale-driven solve, 446 against 182 in the
+//! fine-tune; at 108k faces the first f32 round broke down after ~480).
+//!
+//! New values of a prepared 3x3-block pattern go up as their lower triangle
+//! in f64 (the host converts nothing) and `shaders/expand_blocks.wgsl` writes
+//! both triangles, the held rows and the f32 high and low parts on the GPU
+//! (where the adapter has `SHADER_F64`; else the host writes f32 values). A
+//! shape matrix in isotropic-plus-ring form ([`solver_cpu::IsoRingSym3`]) is
+//! summed into those lower blocks with its ring pairs' slots found once per
+//! pattern, without an explicit [`solver_cpu::BlockSym3`].
 //!
 //! The **scale-driven shape systems** (Eq. 7) are preconditioned by default by
 //! the **squared Laplacian** ([`Preconditioner::SquaredLaplacian`]): their
