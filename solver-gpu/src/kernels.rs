@@ -101,9 +101,11 @@ pub fn matrix_chunks(s: &GpuSolver) -> Vec<std::ops::Range<usize>> {
         | Some(MatrixStorage::SplitBlocks { hi: chunks, .. }) => {
             chunks.iter().map(|c| c.rows.clone()).collect()
         }
-        Some(MatrixStorage::Csr { .. }) => {
-            s.host.as_ref().map(|h| vec![0..h.rows]).unwrap_or_default()
-        }
+        Some(MatrixStorage::Csr { .. }) => s
+            .host
+            .as_ref()
+            .map(|h| std::iter::once(0..h.rows).collect())
+            .unwrap_or_default(),
         None => Vec::new(),
     }
 }

@@ -507,6 +507,9 @@ pub(crate) fn binding_limit(ctx: &Context) -> u64 {
     l.max_storage_buffer_binding_size.min(l.max_buffer_size) / 4 * 4
 }
 
+/// A chunk's block rows and its blocks.
+pub(crate) type RowsAndBlocks = (std::ops::Range<usize>, std::ops::Range<usize>);
+
 /// Split the block rows of `row_ptr` into ranges `(rows, blocks)` whose
 /// values (`block_bytes` per block) fit `limit` bytes: greedy, as many whole
 /// rows per chunk as fit. One chunk when the whole matrix fits. A single
@@ -517,7 +520,7 @@ pub(crate) fn split_rows(
     row_ptr: &[u32],
     block_bytes: u64,
     limit: u64,
-) -> Result<Vec<(std::ops::Range<usize>, std::ops::Range<usize>)>, GpuError> {
+) -> Result<Vec<RowsAndBlocks>, GpuError> {
     let rows = row_ptr.len() - 1;
     let max_blocks = (limit / block_bytes.max(1)) as usize;
     let mut out = Vec::new();

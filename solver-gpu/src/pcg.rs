@@ -660,7 +660,8 @@ impl Pcg {
             ((ws.n() * ncols) as u64).div_ceil(FLAT_WG as u64),
         )?;
         let one = |bg, dims| vec![(bg, dims)];
-        let kernels: [(&Kernel, Vec<(&wgpu::BindGroup, (u32, u32))>); 5] = [
+        type Dispatches<'a> = Vec<(&'a wgpu::BindGroup, (u32, u32))>;
+        let kernels: [(&Kernel, Dispatches); 5] = [
             (
                 spmv.kernel(),
                 ws.spmv.iter().map(|(bg, d)| (bg, *d)).collect(),

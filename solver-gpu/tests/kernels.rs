@@ -540,6 +540,9 @@ fn amg_solves_a_block_matrix_past_the_storage_binding_limit() {
     let value_bytes = |m: &solver_gpu::amg::Bsr| m.vals.len() as u64 * 4;
     let fine = &h.levels[0];
     assert!(value_bytes(&fine.a) > 4 * limit && value_bytes(&fine.p) > limit);
+    // The chunked V-cycle against the f64 reference of the hierarchy.
+    let e = vcycle_error(&mut s, &h, 2, &mut rng);
+    assert!(e < 1e-4, "chunked V-cycle: {e:e} (levels {:?})", h.sizes());
     let n = 3 * a.n;
     let b = rng.vec(n);
     let mut x = b.clone();
@@ -550,6 +553,43 @@ fn amg_solves_a_block_matrix_past_the_storage_binding_limit() {
     cpu.solve_in_place(&mut want, 1).unwrap();
     let e = rel_err(&x, &want);
     assert!(e < 1e-8, "AMG past the binding limit vs Cholesky: {e:e}");
+}
+
+#[test]
+fn affine_amg_vcycle_past_the_storage_binding_limit_matches_the_reference() {
+    // The wide blocks of an affine hierarchy (3 x 12 P, 12 x 3 R, 12 x 12
+    // coarse A) split into chunks like the 3x3 ones: the V-cycle still
+    // matches the f64 reference.
+    let limit = 48 * 1024;
+    let Some(mut s) = gpu_with_limits(move |l| l.max_storage_buffer_binding_size = limit) else {
+        return;
+    };
+    let (nx, ny) = (24, 20);
+    let a = biharmonic_blocks(nx, ny);
+    let fixed = fixed_every(a.n, 97);
+    s.set_amg_options(solver_gpu::amg::AmgOptions {
+        max_coarse: 60,
+        ..Default::default()
+    });
+    s.set_preconditioner(Preconditioner::AffineAmg).unwrap();
+    s.set_vertex_positions(&sheet_positions(nx, ny));
+    s.prepare_blocks(&a, &fixed).unwrap();
+    assert_eq!(s.active_preconditioner(), Preconditioner::AffineAmg);
+    let h = s.amg_hierarchy().unwrap().clone();
+    assert!(h.affine && h.levels.len() >= 2, "levels {:?}", h.sizes());
+    let value_bytes = |m: &solver_gpu::amg::Bsr| m.vals.len() as u64 * 4;
+    let fine = &h.levels[0];
+    assert!(
+        value_bytes(&fine.a) > 2 * limit && value_bytes(&fine.p) > limit,
+        "A {} P {} bytes",
+        value_bytes(&fine.a),
+        value_bytes(&fine.p)
+    );
+    let mut rng = Rng(43);
+    for ncols in [1, 3] {
+        let e = vcycle_error(&mut s, &h, ncols, &mut rng);
+        assert!(e < 1e-4, "{ncols} columns: {e:e} (levels {:?})", h.sizes());
+    }
 }
 
 #[test]
