@@ -55,7 +55,7 @@
 //! isotropic part is close to `S Mt^-1 S + c S` (`S` the input's cotangent
 //! Laplacian; E_m's bi-Laplacian and E_f's Laplacian,
 //! [`solver_cpu::ShapeOperatorModel`], handed over by
-//! [`SpdSolver::set_shape_model`]), and
+//! [`SpdSolver::set_shape_model`](solver_cpu::SpdSolver::set_shape_model)), and
 //!
 //! ```text
 //! z = B^-1 Mt B^-1 r,   B = S + eps Mt   (held rows identity)
@@ -73,13 +73,13 @@
 //! Every other system is preconditioned by one **smoothed-aggregation AMG
 //! V-cycle** ([`Preconditioner::AffineAmg`]:
 //! hierarchy built on the CPU in f64 by [`amg`] once per system kind
-//! ([`SpdSolver::set_system_kind`]: scale factors, scale-driven shape,
+//! ([`SpdSolver::set_system_kind`](solver_cpu::SpdSolver::set_system_kind): scale factors, scale-driven shape,
 //! fine-tune), applied by `shaders/amg.wgsl` through [`amg_gpu`]; a later
 //! matrix of the same kind and pattern rewrites only the PCG's matrix values
 //! and the finest smoother's diagonal and keeps the coarse levels, a fixed SPD
 //! preconditioner (a solve that fails with it rebuilds it, once);
 //! its near-null space is the vertices' affine motions where their positions
-//! were given by [`SpdSolver::set_vertex_positions`], else the translations),
+//! were given by [`SpdSolver::set_vertex_positions`](solver_cpu::SpdSolver::set_vertex_positions), else the translations),
 //! or by block Jacobi `M = blockdiag(A)` ([`Preconditioner::BlockJacobi`]: 3x3
 //! blocks inverted on the CPU in f64; plain Jacobi for the scalar system; also
 //! the fallback when AMG coarsening stalls). [`GpuSolver::set_preconditioner`] or
@@ -92,8 +92,8 @@
 //! with the state). Up to
 //! [`CMAX`] right-hand sides run together, so the matrix is read once per
 //! iteration for all of them. Breakdown (`p.Ap <= 0`, NaN) means the matrix is
-//! not positive definite ([`SolverError::NotPositiveDefinite`]); running out of
-//! rounds or iterations gives [`SolverError::NoConvergence`], never a hang.
+//! not positive definite ([`SolverError::NotPositiveDefinite`](solver_cpu::SolverError::NotPositiveDefinite)); running out of
+//! rounds or iterations gives [`SolverError::NoConvergence`](solver_cpu::SolverError::NoConvergence), never a hang.
 //!
 //! The matrix pattern is uploaded once per pattern; a new matrix with the same
 //! pattern only rewrites the values. Vector buffers are sized for the largest
