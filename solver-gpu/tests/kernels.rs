@@ -564,19 +564,7 @@ fn affine_amg_vcycle_past_the_storage_binding_limit_matches_the_reference() {
     let Some(mut s) = gpu_with_limits(move |l| l.max_storage_buffer_binding_size = limit) else {
         return;
     };
-    let (nx, ny) = (24, 20);
-    let a = biharmonic_blocks(nx, ny);
-    let fixed = fixed_every(a.n, 97);
-    s.set_amg_options(solver_gpu::amg::AmgOptions {
-        max_coarse: 60,
-        ..Default::default()
-    });
-    s.set_preconditioner(Preconditioner::AffineAmg).unwrap();
-    s.set_vertex_positions(&sheet_positions(nx, ny));
-    s.prepare_blocks(&a, &fixed).unwrap();
-    assert_eq!(s.active_preconditioner(), Preconditioner::AffineAmg);
-    let h = s.amg_hierarchy().unwrap().clone();
-    assert!(h.affine && h.levels.len() >= 2, "levels {:?}", h.sizes());
+    let (_, _, h) = affine_amg_on_sheet(&mut s, 24, 20, 60);
     let value_bytes = |m: &solver_gpu::amg::Bsr| m.vals.len() as u64 * 4;
     let fine = &h.levels[0];
     assert!(
@@ -1096,6 +1084,30 @@ fn amg_vcycle_matches_the_cpu_reference() {
 }
 
 /// Positions of `biharmonic_blocks`' grid nodes on a gently curved sheet.
+/// The biharmonic sheet `nx x ny` (every 97th vertex held) prepared with the
+/// affine AMG (coarsest level at most `max_coarse` rows): the matrix, the
+/// held flags and the hierarchy, which has two levels at least.
+fn affine_amg_on_sheet(
+    s: &mut GpuSolver,
+    nx: usize,
+    ny: usize,
+    max_coarse: usize,
+) -> (BlockSym3, Vec<bool>, solver_gpu::amg::Hierarchy) {
+    let a = biharmonic_blocks(nx, ny);
+    let fixed = fixed_every(a.n, 97);
+    s.set_amg_options(solver_gpu::amg::AmgOptions {
+        max_coarse,
+        ..Default::default()
+    });
+    s.set_preconditioner(Preconditioner::AffineAmg).unwrap();
+    s.set_vertex_positions(&sheet_positions(nx, ny));
+    s.prepare_blocks(&a, &fixed).unwrap();
+    assert_eq!(s.active_preconditioner(), Preconditioner::AffineAmg);
+    let h = s.amg_hierarchy().unwrap().clone();
+    assert!(h.affine && h.levels.len() >= 2, "levels {:?}", h.sizes());
+    (a, fixed, h)
+}
+
 fn sheet_positions(nx: usize, ny: usize) -> Vec<[f64; 3]> {
     (0..nx * ny)
         .map(|v| {
@@ -1111,19 +1123,8 @@ fn affine_amg_vcycle_matches_the_cpu_reference_and_cuts_iterations() {
     let (nx, ny) = (36, 30);
     // Linear functions of the positions are near-null for the biharmonic
     // operator: the affine near-null space pays off.
-    let a = biharmonic_blocks(nx, ny);
-    let fixed = fixed_every(a.n, 97);
+    let (a, fixed, h) = affine_amg_on_sheet(&mut s, nx, ny, 300);
     let n = 3 * a.n;
-    s.set_amg_options(solver_gpu::amg::AmgOptions {
-        max_coarse: 300,
-        ..Default::default()
-    });
-    s.set_preconditioner(Preconditioner::AffineAmg).unwrap();
-    s.set_vertex_positions(&sheet_positions(nx, ny));
-    s.prepare_blocks(&a, &fixed).unwrap();
-    assert_eq!(s.active_preconditioner(), Preconditioner::AffineAmg);
-    let h = s.amg_hierarchy().unwrap().clone();
-    assert!(h.affine && h.levels.len() >= 2, "levels {:?}", h.sizes());
     // Every wide kernel (3 x 12, 12 x 3, 12 x 12) and the 12 x 12 Jacobi run.
     let mut rng = Rng(41);
     for ncols in [1, 3] {
