@@ -1125,20 +1125,37 @@ impl GpuSolver {
     }
 }
 
+impl GpuSolver {
+    /// Whether the prepared matrix has this lower pattern and block size.
+    fn same_pattern(&self, bs: usize, col_ptr: &[usize], row_idx: &[usize]) -> bool {
+        self.host
+            .as_ref()
+            .is_some_and(|h| h.same_pattern(bs, col_ptr, row_idx))
+    }
+
+    /// The host matrix to fill: the prepared one when `same`, else a new
+    /// pattern.
+    fn take_host(
+        &mut self,
+        same: bool,
+        n: usize,
+        bs: usize,
+        col_ptr: &[usize],
+        row_idx: &[usize],
+    ) -> Result<HostMatrix, SolverError> {
+        match (same, self.host.take()) {
+            (true, Some(h)) => Ok(h),
+            _ => HostMatrix::pattern(n, bs, col_ptr, row_idx),
+        }
+    }
+}
+
 fn norm(v: &[f64]) -> f64 {
     v.iter().map(|a| a * a).sum::<f64>().sqrt()
 }
 
 impl SpdSolver for GpuSolver {
     fn prepare(&mut self, a: &SymCsc) -> Result<(), SolverError> {
-        let same = self
-            .host
-            .as_ref()
-            .is_some_and(|h| h.same_pattern(1, &a.col_ptr, &a.row_idx));
-        let mut h = match (same, self.host.take()) {
-            (true, Some(h)) => h,
-            _ => HostMatrix::pattern(a.n, 1, &a.col_ptr, &a.row_idx)?,
-        };
         if a.values.len() != a.row_idx.len() {
             return Err(SolverError::DimensionMismatch(format!(
                 "{} values for {} entries",
@@ -1146,6 +1163,8 @@ impl SpdSolver for GpuSolver {
                 a.row_idx.len()
             )));
         }
+        let same = self.same_pattern(1, &a.col_ptr, &a.row_idx);
+        let mut h = self.take_host(same, a.n, 1, &a.col_ptr, &a.row_idx)?;
         h.fill_scalar(a);
         self.upload(h, same, None).map_err(Into::into)
     }
@@ -1160,14 +1179,8 @@ impl SpdSolver for GpuSolver {
                 a.row_idx.len()
             )));
         }
-        let same = self
-            .host
-            .as_ref()
-            .is_some_and(|h| h.same_pattern(3, &a.col_ptr, &a.row_idx));
-        let mut h = match (same, self.host.take()) {
-            (true, Some(h)) => h,
-            _ => HostMatrix::pattern(a.n, 3, &a.col_ptr, &a.row_idx)?,
-        };
+        let same = self.same_pattern(3, &a.col_ptr, &a.row_idx);
+        let mut h = self.take_host(same, a.n, 3, &a.col_ptr, &a.row_idx)?;
         h.fill_blocks(a, fixed);
         self.fixed.clear();
         self.fixed.extend_from_slice(fixed);
@@ -1199,17 +1212,11 @@ impl SpdSolver for GpuSolver {
             )));
         }
         let (col_ptr, row_idx) = (&a.iso.col_ptr, &a.iso.row_idx);
-        let same = self
-            .host
-            .as_ref()
-            .is_some_and(|h| h.same_pattern(3, col_ptr, row_idx));
+        let same = self.same_pattern(3, col_ptr, row_idx);
         if !(same && self.ring_slots.as_ref().is_some_and(|r| r.of(&a.rings))) {
             self.ring_slots = Some(RingSlots::new(&a.rings, col_ptr, row_idx)?);
         }
-        let mut h = match (same, self.host.take()) {
-            (true, Some(h)) => h,
-            _ => HostMatrix::pattern(n, 3, col_ptr, row_idx)?,
-        };
+        let mut h = self.take_host(same, n, 3, col_ptr, row_idx)?;
         let slots = self.ring_slots.as_ref().unwrap();
         h.fill_shape(&a, slots, fixed, &mut self.lower_scratch);
         self.fixed.clear();
