@@ -72,8 +72,8 @@ fn row(
         100.0 * max_error(&problem, &out.positions),
         peak
     );
-    if backend == SolverBackend::Cpu {
-        proxies(name, "cpu", &out.solver, None);
+    if backend == SolverBackend::Cpu || std::env::args().any(|a| a == "--gpu-only") {
+        proxies(name, backend.name(), &out.solver, None);
     } else {
         options.backend = SolverBackend::Cpu;
         let cpu = deform(&problem, &options, &mut |_| {}).unwrap();
@@ -227,8 +227,9 @@ fn main() {
             None => SolverBackend::Cpu,
             Some(j) => match args[j + 1].as_str() {
                 "cpu" => SolverBackend::Cpu,
+                "cpu-direct" => SolverBackend::CpuDirect,
                 "gpu" => SolverBackend::Gpu,
-                other => panic!("--backend {other}: expected cpu or gpu"),
+                other => panic!("--backend {other}: expected cpu, cpu-direct or gpu"),
             },
         };
         row(name, &job, refine, mult, preview, backend);

@@ -28,11 +28,13 @@
 //!
 //! The last column is what the GPU runs (`solver_gpu::Preconditioner::
 //! SquaredLaplacian`): held rows identity in `B` (Dirichlet) instead of `Pi`,
-//! `SQUARED_LAPLACIAN_VCYCLES` V-cycles of `SQUARED_LAPLACIAN_SWEEPS` sweeps
+//! `squared_laplacian_vcycles(n)` V-cycles of `SQUARED_LAPLACIAN_SWEEPS` sweeps
 //! per `B^-1` (`SWEEPS=.. VCYCLES=..` in the environment override them).
 //!
 //! `cargo bench --bench shape_preconditioner` (`-- --quick`: spot refined 1
-//! and 2 times only; `-- --homer`: homer only).
+//! and 2 times only; `-- --homer`: homer only; `-- --homer --homer-1m`: homer
+//! with every edge cut in 10, 1.2M faces; `--gpu-form-only`: B alone and the
+//! GPU's form only).
 
 use metricdeform::shape::{vertex_areas, ShapeModel, ShapeWeights};
 use metricdeform::Mesh;
@@ -43,9 +45,10 @@ use std::path::Path;
 /// edge cut in 3 (`k` = 0: the pipeline bench's 108k-face row).
 fn load(k: usize) -> (String, Mesh) {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/meshes");
-    if k == 0 {
+    if k == 0 || k == 10 {
+        let cut = if k == 0 { 3 } else { 10 };
         let mesh = metricdeform::io::read_mesh(&dir.join("homer.obj")).unwrap();
-        return ("homer x9".into(), mesh.subdivide_uniform(3));
+        return (format!("homer x{}", cut * cut), mesh.subdivide_uniform(cut));
     }
     let mut mesh = metricdeform::io::read_mesh(&dir.join("spot.obj")).unwrap();
     for _ in 0..k {
@@ -92,7 +95,7 @@ fn per_component(n: usize, scalar: &dyn Fn(&[f64]) -> Vec<f64>, r: &[f64]) -> Ve
 
 fn main() {
     let quick = std::env::args().any(|a| a == "--quick");
-    // The GPU's form: sweeps and V-cycles per B^-1 (the solver's constants,
+    // The GPU's form: sweeps and V-cycles per B^-1 (the solver's choices,
     // or SWEEPS / VCYCLES from the environment to compare others).
     let env = |k: &str, d: usize| {
         std::env::var(k)
@@ -101,8 +104,6 @@ fn main() {
             .unwrap_or(d)
     };
     let gpu_sweeps = env("SWEEPS", solver_gpu::SQUARED_LAPLACIAN_SWEEPS);
-    let gpu_vcycles = env("VCYCLES", solver_gpu::SQUARED_LAPLACIAN_VCYCLES);
-    eprintln!("the GPU's form: {gpu_vcycles} V-cycles of {gpu_sweeps} sweeps per B^-1");
     let w = ShapeWeights {
         k_f: 1000.0,
         k_m: 1.0,
@@ -115,6 +116,7 @@ fn main() {
     println!("|---|---|---|---|---|---|---|---|---|---|---|");
     let only_homer = std::env::args().any(|a| a == "--homer");
     let levels: &[usize] = match (quick, only_homer) {
+        (_, true) if std::env::args().any(|a| a == "--homer-1m") => &[10],
         (_, true) => &[0],
         (true, _) => &[1, 2],
         _ => &[1, 2, 3, 0],
@@ -124,6 +126,8 @@ fn main() {
         let topo = metricdeform::topology::Topology::build(&mesh);
         let mut model = ShapeModel::new(&mesh, &topo, Vec::new()).unwrap();
         let (nf, n) = (mesh.num_faces(), mesh.num_vertices());
+        let gpu_vcycles = env("VCYCLES", solver_gpu::squared_laplacian_vcycles(n));
+        eprintln!("{name}, the GPU's form: {gpu_vcycles} V-cycles of {gpu_sweeps} sweeps per B^-1");
         model
             .assemble_and_factor(&mesh, &mesh.positions, &vec![1.1; nf], &vec![1.1; n], &w)
             .unwrap();
@@ -164,8 +168,13 @@ fn main() {
         }
         let kb = Bsr::scalar_from_rows(rows);
         let hk = Hierarchy::build(kb, &AmgOptions::default(), None).unwrap();
-        let k_amg = pcg(&op, &b, 1e-8, 3000, &|r| {
-            per_component(n, &|q| hk.vcycle(q), r)
+        // `--gpu-form-only`: B alone and the GPU's form (the other columns
+        // take hours at 1.2M faces on two cores).
+        let full = !std::env::args().any(|a| a == "--gpu-form-only");
+        let k_amg = full.then(|| {
+            pcg(&op, &b, 1e-8, 3000, &|r| {
+                per_component(n, &|q| hk.vcycle(q), r)
+            })
         });
 
         // Factored.
@@ -217,7 +226,7 @@ fn main() {
             };
             pcg(&op, &b, 1e-8, 3000, &|r| per_component(n, &scalar, r))
         };
-        let factored = |v: usize| factored_with(&hb, v);
+        let factored = |v: usize| full.then(|| factored_with(&hb, v));
         // What the GPU runs: held rows identity in B instead of Pi, 4 sweeps.
         let model = solver_cpu::ShapeOperatorModel {
             laplacian: std::sync::Arc::new(cot.clone()),
@@ -234,6 +243,40 @@ fn main() {
             None,
         )
         .unwrap();
+        if std::env::args().any(|a| a == "--rho") {
+            // The V-cycle's contraction on B: Richardson on B e = 0 from a
+            // pseudo-random e, the B-norm of e per cycle.
+            let bn = |e: &[f64]| {
+                let mut t = vec![0.0; e.len()];
+                bg.matvec(e, &mut t);
+                t.iter().zip(e).map(|(a, b)| a * b).sum::<f64>().sqrt()
+            };
+            let mut e: Vec<f64> = (0..n)
+                .map(|i| ((i as f64 * 12.9898).sin() * 43758.5453).fract() - 0.5)
+                .collect();
+            let mut t = vec![0.0; n];
+            let mut last = bn(&e);
+            let levels: Vec<String> = hg
+                .levels
+                .iter()
+                .map(|l| format!("{:.3}", l.omega))
+                .collect();
+            eprintln!(
+                "{name}: B sizes {:?}, operator complexity {:.2}, omegas {levels:?}, eps-screened",
+                hg.sizes(),
+                hg.operator_complexity()
+            );
+            for k in 0..12 {
+                bg.matvec(&e, &mut t);
+                t.iter_mut().for_each(|v| *v = -*v);
+                let d = hg.vcycle(&t);
+                e.iter_mut().zip(&d).for_each(|(e, d)| *e += d);
+                let now = bn(&e);
+                eprintln!("{name}: V-cycle {}: B-norm ratio {:.4}", k + 1, now / last);
+                last = now;
+            }
+            continue;
+        }
         let gpu_form = {
             let scalar = |r: &[f64]| -> Vec<f64> {
                 let t: Vec<f64> = (0..n).map(|i| if held(i) { 0.0 } else { r[i] }).collect();
@@ -245,16 +288,17 @@ fn main() {
             pcg(&op, &b, 1e-8, 3000, &|r| per_component(n, &scalar, r))
         };
         let f = |it: Option<usize>| it.map_or("> 3000".to_string(), |i| i.to_string());
+        let g = |it: Option<Option<usize>>| it.map_or("-".to_string(), f);
         println!(
             "| {name} | {nf} | {} | {} | {} | {} | {} | {} | {} | {} | {} |",
-            f(k_amg),
+            g(k_amg),
             f(b_alone),
-            f(factored(1)),
-            f(factored(2)),
-            f(factored(3)),
-            f(factored(4)),
-            f(factored(8)),
-            f(factored_with(&hb4, 1)),
+            g(factored(1)),
+            g(factored(2)),
+            g(factored(3)),
+            g(factored(4)),
+            g(factored(8)),
+            g(full.then(|| factored_with(&hb4, 1))),
             f(gpu_form),
         );
     }

@@ -71,7 +71,7 @@ pub(crate) struct AmgKernels {
     /// `spmv3`, `jacobi` and `dense` with `KRON` = 3: a scalar hierarchy on
     /// 3-vectors.
     on3: [Kernel; 3],
-    /// The row scaling between the two V-cycles of the squared-Laplacian
+    /// The row scaling between the two `B^-1` of the squared-Laplacian
     /// preconditioner.
     pub scale: crate::scale_rows::ScaleRows,
 }
@@ -881,7 +881,8 @@ impl SquaredSteps {
     }
 
     /// Record for the PCG's `r` and `z` (f32, `n x cmax`); `mt`: one f32 per
-    /// vertex (`h`: the hierarchy of `B` on 3-vectors).
+    /// vertex (`h`: the hierarchy of `B` on 3-vectors); each `B^-1`
+    /// [`crate::squared_laplacian_vcycles`] V-cycles for `B`'s rows.
     #[allow(clippy::too_many_arguments)]
     pub fn new(
         ctx: &Context,
@@ -891,9 +892,9 @@ impl SquaredSteps {
         r: &wgpu::Buffer,
         z: &wgpu::Buffer,
         cmax: usize,
-        vcycles: usize,
     ) -> Result<SquaredSteps, GpuError> {
         let n = h.sizes[0];
+        let vcycles = crate::squared_laplacian_vcycles(if h.on3 { n / 3 } else { n });
         let bs = h.levels.first().map_or(1, |l| l.dinv_bs);
         let t = ctx.storage(
             &format!("squared-Laplacian middle vector ({n} x {cmax} f32)"),

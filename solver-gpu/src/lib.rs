@@ -62,8 +62,9 @@
 //! P^-1 = S Mt^-1 S + 2 eps S + eps^2 Mt
 //! ```
 //!
-//! each `B^-1` two V-cycles (Richardson from zero, a fixed symmetric
-//! operator) of a scalar SA-AMG hierarchy of `B` (4 Jacobi sweeps each way)
+//! each `B^-1` `v` V-cycles (Richardson from zero, a fixed symmetric
+//! operator; `v` grows as the square root of `B`'s rows, 3 at 54k and 10 at
+//! 600k: [`squared_laplacian_vcycles`]) of a scalar SA-AMG hierarchy of `B` (4 Jacobi sweeps each way)
 //! applied to x, y and z at once (`B (x) I3`, by scalar CSR kernels on
 //! interleaved 3-vectors: 8 bytes a stored entry), the rows
 //! scaled by `Mt` in between (`shaders/scale_rows.wgsl`). `B` depends on the
@@ -134,7 +135,7 @@ mod solver;
 
 pub use error::GpuError;
 pub use precision::MixedPrecision;
-pub use preconditioner::{Preconditioner, SQUARED_LAPLACIAN_SWEEPS, SQUARED_LAPLACIAN_VCYCLES};
+pub use preconditioner::{squared_laplacian_vcycles, Preconditioner, SQUARED_LAPLACIAN_SWEEPS};
 pub use solver::{gpu_available, open, open_with, GpuSolver, SolveStats};
 
 /// Most right-hand sides one PCG batch carries (more are solved in batches).

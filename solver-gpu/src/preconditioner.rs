@@ -8,12 +8,25 @@
 pub const SQUARED_LAPLACIAN_SWEEPS: usize = 4;
 
 /// V-cycles per `B^-1` of the squared-Laplacian preconditioner (Richardson
-/// from zero: symmetric, a fixed linear operator). The preconditioner is only
-/// as good as `B^-1` squared: with exact solves PCG needs 19-30 iterations at
-/// any size, with one V-cycle 39 / 59 / 125 on spot x4 / x16 / x64 and 252 on
-/// homer's 108k faces, with two 32 / 38 on spot x4 / x16 and 110 on homer
-/// (f64, `benches/shape_preconditioner.rs`).
-pub const SQUARED_LAPLACIAN_VCYCLES: usize = 2;
+/// from zero: symmetric, a fixed linear operator) for a `B` of `n` rows:
+/// `ceil(3 sqrt(n / 54,000))`, at least 2, at most 24.
+///
+/// The preconditioner is only as good as `B^-1` squared: with exact solves the
+/// PCG needs 19-30 iterations at any size, but one V-cycle's contraction on
+/// `B` worsens with the mesh (its B-norm ratio after 12 cycles: 0.47 on spot
+/// x4, 0.56 on spot x16, 0.75 on homer's 108k faces; `cargo bench --bench
+/// shape_preconditioner -- --homer --gpu-form-only --rho`), and the count with
+/// it. Homer 108k (54k rows of `B`), f64: 252 / 110 / 69 / 51 / 39 PCG
+/// iterations with 1 / 2 / 3 / 4 / 6 V-cycles; with an iteration costing
+/// `0.5 + 1.4 v` ms (the H100's fit at 1.2M, below, scaled) the least work is
+/// at 3-4.
+/// Homer 1.2M (600k rows), the first scale-driven solve on an NVIDIA H100:
+/// 2366 / 875 / 296 / 168 iterations with 2 / 4 / 8 / 12 V-cycles, 7.8 / 5.2 /
+/// 3.6 / 2.9 s of GPU time. Hence V-cycles growing as the square root of the
+/// rows (3 at 54k, 10 at 600k, 19 at 2.2M).
+pub fn squared_laplacian_vcycles(n: usize) -> usize {
+    ((3.0 * (n as f64 / 54_000.0).sqrt()).ceil() as usize).clamp(2, 24)
+}
 
 /// The preconditioner of the f32 PCG.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -30,7 +43,7 @@ pub enum Preconditioner {
     AffineAmg,
     /// For the scale-driven shape systems with a model
     /// ([`solver_cpu::SpdSolver::set_shape_model`]): `z = B^-1 Mt B^-1 r`, each `B^-1`
-    /// [`SQUARED_LAPLACIAN_VCYCLES`] V-cycles of the screened Laplacian `B = S + eps Mt`
+    /// [`squared_laplacian_vcycles`] V-cycles of the screened Laplacian `B = S + eps Mt`
     /// ([`crate::amg::squared_laplacian`]) applied to x, y and z at once. `B` depends
     /// on the input mesh and the weights only: built once per run, never
     /// refreshed. Every other system (the fine-tune's, whose E_l is as heavy
@@ -61,5 +74,25 @@ impl Preconditioner {
                 Preconditioner::SquaredLaplacian
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::squared_laplacian_vcycles;
+
+    /// More V-cycles as `B` grows, from 2 up to 24: 3 at homer's 108k faces
+    /// (54k rows), 10 at its 1.2M (600k rows).
+    #[test]
+    fn vcycles_grow_with_the_rows() {
+        assert_eq!(squared_laplacian_vcycles(0), 2);
+        assert_eq!(squared_laplacian_vcycles(5_000), 2);
+        assert_eq!(squared_laplacian_vcycles(54_000), 3);
+        assert_eq!(squared_laplacian_vcycles(600_000), 10);
+        assert_eq!(squared_laplacian_vcycles(usize::MAX), 24);
+        let v: Vec<usize> = (0..60)
+            .map(|k| squared_laplacian_vcycles(k * 50_000))
+            .collect();
+        assert!(v.windows(2).all(|w| w[0] <= w[1]), "{v:?}");
     }
 }

@@ -16,7 +16,7 @@ use crate::{
     amg, amg_gpu, block_jacobi, bsr_spmv, convert, csr_spmv, default_adapter, device, dot,
     expand_blocks, matrix, pcg, precision, AdapterSummary, OpenOptions,
 };
-use crate::{GpuError, Preconditioner, CMAX, SQUARED_LAPLACIAN_SWEEPS, SQUARED_LAPLACIAN_VCYCLES};
+use crate::{GpuError, Preconditioner, CMAX, SQUARED_LAPLACIAN_SWEEPS};
 
 /// One refinement round on the GPU: the scaled residuals `r` (bytes in the
 /// workspace's precision) in, PCG to the squared thresholds `thr`, then
@@ -468,7 +468,6 @@ impl GpuSolver {
                     &narrow.r32,
                     &narrow.z32,
                     ws.cmax,
-                    SQUARED_LAPLACIAN_VCYCLES,
                 )?)
             }
             None => {
@@ -895,7 +894,6 @@ impl GpuSolver {
                 &ws.r,
                 &ws.z,
                 ws.cmax,
-                SQUARED_LAPLACIAN_VCYCLES,
             )?);
         } else if let Some(g) = &self.amg_gpu {
             ws.amg = Some(amg_gpu::VcycleWorkspace::new(

@@ -1317,7 +1317,7 @@ fn squared_laplacian_on_3_vectors_is_the_scalar_vcycle_per_component() {
     // B^-1 as the GPU runs it: a V-cycle, then Richardson steps x += V(b - B x).
     let b_inv = |rhs: &[f64]| {
         let mut x = h.vcycle(rhs);
-        for _ in 1..solver_gpu::SQUARED_LAPLACIAN_VCYCLES {
+        for _ in 1..solver_gpu::squared_laplacian_vcycles(b.rows) {
             let mut bx = vec![0.0; n];
             b.matvec(&x, &mut bx);
             let res: Vec<f64> = rhs.iter().zip(&bx).map(|(r, q)| r - q).collect();
