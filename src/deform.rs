@@ -951,8 +951,9 @@ fn fine_tune(
     crate::report::release_free_memory();
     model.solver().set_system_kind(SystemKind::FineTune);
     // The fine-tune Hessian (k_m = k_l = 100 k_f) is nearly blind to local
-    // affine motions: an iterative backend's AMG takes them as its near-null
-    // space (measured: 4-7x fewer GPU PCG iterations on spot, BENCHMARKS.md).
+    // affine motions: an AMG of the matrix itself (the GPU's `affine-amg`)
+    // takes them as its near-null space (4-7x fewer GPU PCG iterations on
+    // spot, BENCHMARKS.md); the GPU's default squared Laplacian ignores them.
     assemble_with_positions(model, mesh, xstart, &ones_f, &ones_v, &o.fine_tune, true)?;
     let goal = 0.01 * o.tolerance;
     let mut dx = vec![0.0; 3 * n];

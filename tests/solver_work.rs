@@ -144,33 +144,42 @@ fn auto_follows_the_measured_crossover() {
     }
 }
 
-/// The squared-Laplacian preconditioner of the scale-driven shape systems
-/// (`solver_gpu::Preconditioner::SquaredLaplacian`, the default): on spot
-/// refined once, the GPU solve agrees with the CPU backend's, in fewer PCG
-/// iterations than the affine AMG; a second matrix of the kind (new
-/// reference positions) keeps it (no set-up, nothing rebuilt) and still
-/// agrees.
+/// The squared-Laplacian preconditioner of the shape systems
+/// (`solver_gpu::Preconditioner::SquaredLaplacian`, the default), for the
+/// scale-driven kind (the pipeline's scale-driven weights) and the fine-tune
+/// kind (its weights, `Options::default().fine_tune`): on spot refined once,
+/// the GPU solve agrees with the CPU backend's, in fewer PCG iterations than
+/// the affine AMG; a second matrix of the kind (new reference positions)
+/// keeps it (no set-up, nothing rebuilt) and still agrees.
 #[test]
-fn squared_laplacian_preconditions_the_scale_driven_systems() {
-    use metricdeform::shape::{ShapeModel, ShapeWeights};
-    use solver_cpu::{SpdSolver, SystemKind};
-    use solver_gpu::Preconditioner;
+fn squared_laplacian_preconditions_the_shape_systems() {
+    use metricdeform::shape::ShapeWeights;
+    use solver_cpu::SystemKind;
     if !gpu_available() {
         return;
     }
     let _ = env_logger::builder().is_test(true).try_init();
+    let scale_driven = ShapeWeights {
+        k_f: 1000.0,
+        k_m: 1.0,
+        k_l: 1.0,
+        k_p: 1000.0,
+    };
+    let fine_tune = metricdeform::deform::Options::default().fine_tune;
+    squared_laplacian_on(SystemKind::ScaleDriven, scale_driven);
+    squared_laplacian_on(SystemKind::FineTune, fine_tune);
+}
+
+fn squared_laplacian_on(kind: solver_cpu::SystemKind, w: metricdeform::shape::ShapeWeights) {
+    use metricdeform::shape::ShapeModel;
+    use solver_cpu::SpdSolver;
+    use solver_gpu::Preconditioner;
     let path = meshes().join("spot.obj");
     let mesh = metricdeform::io::read_mesh(&path)
         .unwrap()
         .subdivide_midpoint();
     let topo = metricdeform::topology::Topology::build(&mesh);
     let (nf, n) = (mesh.num_faces(), mesh.num_vertices());
-    let w = ShapeWeights {
-        k_f: 1000.0,
-        k_m: 1.0,
-        k_l: 1.0,
-        k_p: 1000.0,
-    };
     let s = vec![1.1; nf];
     let c = vec![1.1; n];
     // Reference positions of a later outer iteration: the input, bulged.
@@ -181,7 +190,7 @@ fn squared_laplacian_preconditions_the_scale_driven_systems() {
         .collect();
     let solve = |solver: Box<dyn SpdSolver>| {
         let mut model = ShapeModel::with_solver(&mesh, &topo, Vec::new(), solver).unwrap();
-        model.solver().set_system_kind(SystemKind::ScaleDriven);
+        model.solver().set_system_kind(kind);
         let mut out = Vec::new();
         for x in [&mesh.positions, &moved] {
             model.assemble_and_factor(&mesh, x, &s, &c, &w).unwrap();
@@ -216,16 +225,16 @@ fn squared_laplacian_preconditions_the_scale_driven_systems() {
     for k in 0..2 {
         let e = rel(&squared[k].0, &cpu[k].0);
         eprintln!(
-            "system {k}: squared Laplacian {} iterations, affine AMG {}, GPU - CPU {e:.1e}",
+            "{kind:?} system {k}: squared Laplacian {} iterations, affine AMG {}, GPU - CPU {e:.1e}",
             squared[k].1, affine[k].1
         );
         assert!(
             e < 1e-6,
-            "system {k}: GPU and CPU solutions differ by {e:e}"
+            "{kind:?} system {k}: GPU and CPU solutions differ by {e:e}"
         );
         assert!(
             squared[k].1 < affine[k].1,
-            "system {k}: {} iterations against {} with the affine AMG",
+            "{kind:?} system {k}: {} iterations against {} with the affine AMG",
             squared[k].1,
             affine[k].1
         );
@@ -241,7 +250,7 @@ fn squared_laplacian_preconditions_the_scale_driven_systems() {
         let w = &run.4;
         let its = run.1 as u64;
         eprintln!(
-            "system {k}: {} dispatches, {:.2} MB modelled, {:.2} MB least, {} iterations",
+            "{kind:?} system {k}: {} dispatches, {:.2} MB modelled, {:.2} MB least, {} iterations",
             w.device_dispatches,
             w.device_bytes as f64 / 1e6,
             w.device_bytes_minimal as f64 / 1e6,
@@ -250,7 +259,7 @@ fn squared_laplacian_preconditions_the_scale_driven_systems() {
         assert!(w.device_bytes_minimal > 0 && w.device_dispatches > its);
         assert!(
             w.device_bytes <= 2 * w.device_bytes_minimal,
-            "system {k}: {} bytes modelled against {} least",
+            "{kind:?} system {k}: {} bytes modelled against {} least",
             w.device_bytes,
             w.device_bytes_minimal
         );

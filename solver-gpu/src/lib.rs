@@ -50,8 +50,8 @@
 //! summed into those lower blocks with its ring pairs' slots found once per
 //! pattern, without an explicit [`solver_cpu::BlockSym3`].
 //!
-//! The **scale-driven shape systems** (Eq. 7) are preconditioned by default by
-//! the **squared Laplacian** ([`Preconditioner::SquaredLaplacian`]): their
+//! The **shape systems** (the scale-driven ones, Eq. 7, and the fine-tune's,
+//! Eq. 8) are preconditioned by default by the **squared Laplacian** ([`Preconditioner::SquaredLaplacian`]): their
 //! isotropic part is close to `S Mt^-1 S + c S` (`S` the input's cotangent
 //! Laplacian; E_m's bi-Laplacian and E_f's Laplacian,
 //! [`solver_cpu::ShapeOperatorModel`], handed over by

@@ -689,7 +689,7 @@ impl GpuSolver {
         let h = self.host.as_ref()?;
         let m = self.shape_model.as_ref()?;
         (self.preconditioner == Preconditioner::SquaredLaplacian
-            && self.kind == SystemKind::ScaleDriven
+            && matches!(self.kind, SystemKind::ScaleDriven | SystemKind::FineTune)
             && h.bs == 3
             && m.laplacian.len() == h.rows
             && m.mt.len() == h.rows
