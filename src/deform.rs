@@ -107,14 +107,6 @@ pub const CPU_TOLERANCE: f64 = 1e-10;
 /// homer Table-1 job drifted 2e-4 % of the bbox diagonal apart (2e-7 % at 1e-8).
 pub const SCALE_DRIVEN_TOLERANCE: f64 = 1e-8;
 
-/// Relative residual of the scale-factor solves (Eq. 3) on iterative backends
-/// (the CPU backend solves them directly). They are cheap (0.4 s of GPU time
-/// for all 21 at 1.2M faces) and their error is carried into every shape
-/// solve: at 1e-8 the GPU result at 1.2M faces stood 4e-3 % of the bbox
-/// diagonal from the CPU's, whatever the shape solves' tolerance (1e-8 or
-/// 1e-10), where the CPU's PCG and direct results stand 3e-6 % apart.
-pub const SCALE_FACTOR_TOLERANCE: f64 = 1e-12;
-
 /// Default depth of the Anderson acceleration of the scale-driven phase.
 pub const ANDERSON_DEPTH: usize = 3;
 
@@ -690,7 +682,6 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
                 {
                     let mut solver = o.backend.scale_solver()?;
                     solver.set_system_kind(SystemKind::ScaleFactors);
-                    solver.set_tolerance(SCALE_FACTOR_TOLERANCE);
                     if let Some(order) = face_ordering {
                         solver.set_fill_ordering(FillOrdering::Given(order.into()));
                     }
