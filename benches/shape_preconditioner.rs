@@ -137,6 +137,34 @@ fn main() {
         for v in (0..n).filter(|&v| held(v)) {
             b[3 * v..3 * v + 3].fill(0.0);
         }
+        if std::env::args().any(|a| a == "--floor") {
+            // The GPU solver's f64 rounding floor eps ||A|| ||x|| / ||b|| of
+            // this system (||A||_2 by power iterations, <= ||A||_inf).
+            let mut q: Vec<f64> = (0..3 * n).map(|i| ((i as f64 * 12.9898).sin() * 43758.5453).fract() - 0.5).collect();
+            let mut aq = vec![0.0; 3 * n];
+            let mut a2 = 0.0;
+            for _ in 0..30 {
+                let qn = q.iter().map(|v| v * v).sum::<f64>().sqrt();
+                q.iter_mut().for_each(|v| *v /= qn);
+                iso.mul_vec(&q, &mut aq);
+                a2 = aq.iter().map(|v| v * v).sum::<f64>().sqrt();
+                std::mem::swap(&mut q, &mut aq);
+            }
+            let mut x = b.clone();
+            let mut model2 = ShapeModel::new(&mesh, &topo, Vec::new()).unwrap();
+            model2
+                .assemble_and_factor(&mesh, &mesh.positions, &vec![1.1; nf], &vec![1.1; n], &w)
+                .unwrap();
+            model2.solver().solve_in_place(&mut x, 1).unwrap();
+            let nrm = |v: &[f64]| v.iter().map(|v| v * v).sum::<f64>().sqrt();
+            eprintln!(
+                "{name}: ||A||_2 ~ {a2:.3e}, ||x|| {:.3e}, ||b|| {:.3e}, floor eps ||A|| ||x|| / ||b|| = {:.3e}",
+                nrm(&x),
+                nrm(&b),
+                f64::EPSILON * a2 * nrm(&x) / nrm(&b)
+            );
+            continue;
+        }
         // The shape system with held rows and columns identity.
         let op = |x: &[f64], y: &mut [f64]| {
             let mut xm = x.to_vec();
