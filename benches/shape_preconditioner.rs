@@ -140,7 +140,9 @@ fn main() {
         if std::env::args().any(|a| a == "--floor") {
             // The GPU solver's f64 rounding floor eps ||A|| ||x|| / ||b|| of
             // this system (||A||_2 by power iterations, <= ||A||_inf).
-            let mut q: Vec<f64> = (0..3 * n).map(|i| ((i as f64 * 12.9898).sin() * 43758.5453).fract() - 0.5).collect();
+            let mut q: Vec<f64> = (0..3 * n)
+                .map(|i| ((i as f64 * 12.9898).sin() * 43758.5453).fract() - 0.5)
+                .collect();
             let mut aq = vec![0.0; 3 * n];
             let mut a2 = 0.0;
             for _ in 0..30 {
@@ -287,10 +289,16 @@ fn main() {
             let levels: Vec<String> = hg
                 .levels
                 .iter()
-                .map(|l| format!("{:.3}", l.omega))
+                .map(|l| {
+                    format!(
+                        "omega {:.3}, {} rows in no aggregate",
+                        l.omega,
+                        l.agg.iter().filter(|&&g| g == u32::MAX).count()
+                    )
+                })
                 .collect();
             eprintln!(
-                "{name}: B sizes {:?}, operator complexity {:.2}, omegas {levels:?}, eps-screened",
+                "{name}: B sizes {:?}, operator complexity {:.2}, levels {levels:?}",
                 hg.sizes(),
                 hg.operator_complexity()
             );
