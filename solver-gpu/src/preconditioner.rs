@@ -48,10 +48,12 @@ pub enum Preconditioner {
     /// on the input mesh and the weights only: built once per run, never
     /// refreshed. The fine-tune's (weights 1/100/100) too: on an NVIDIA H100,
     /// homer 1.2M, 1255 PCG iterations in its two solves against 2305 with
-    /// `AffineAmg`, 9 s of host time against 42 s, 3.4 GB host peak for the
-    /// whole run against 14.5 GB (the affine hierarchy's 12x12 blocks); 108k:
-    /// at most 300 iterations against 541. Every other system (the scale
-    /// factors') as `AffineAmg`.
+    /// `AffineAmg`, 9 s of host time against 42 s, a host peak of 3380 MiB
+    /// for the whole run against 14148 MiB (the affine hierarchy's 12x12
+    /// blocks), but 63.8 s for the phase against 57.6 s (each iteration applies
+    /// 2 x 11 V-cycles to its 4 right-hand sides); 108k: at most 300
+    /// iterations against 541, 3.1 s against 6.9 s. Every other system (the
+    /// scale factors') as `AffineAmg`.
     #[default]
     SquaredLaplacian,
 }
