@@ -246,10 +246,7 @@ fn block_matrix_past_the_binding_limit_is_split_into_chunks_that_match_cpu() {
     let b = rng.vec(3 * a.n * 2);
     let mut x = b.clone();
     s.solve_in_place(&mut x, 2).unwrap();
-    let mut cpu = CholeskySolver::new();
-    cpu.prepare_blocks(&a, &fixed).unwrap();
-    let mut want = b;
-    cpu.solve_in_place(&mut want, 2).unwrap();
+    let want = cholesky_solution(&a, &fixed, &b, 2);
     let e = rel_err(&x, &want);
     assert!(e < 1e-8, "PCG on the chunked matrix vs Cholesky: {e:e}");
     // Without the lowered limit the same matrix is one chunk.
@@ -547,10 +544,7 @@ fn amg_solves_a_block_matrix_past_the_storage_binding_limit() {
     let b = rng.vec(n);
     let mut x = b.clone();
     s.solve_in_place(&mut x, 1).unwrap();
-    let mut cpu = CholeskySolver::new();
-    cpu.prepare_blocks(&a, &fixed).unwrap();
-    let mut want = b;
-    cpu.solve_in_place(&mut want, 1).unwrap();
+    let want = cholesky_solution(&a, &fixed, &b, 1);
     let e = rel_err(&x, &want);
     assert!(e < 1e-8, "AMG past the binding limit vs Cholesky: {e:e}");
 }
@@ -687,10 +681,7 @@ fn f64_kernels_converge_past_f32_precision() {
     let f64_run =
         kernels::scalar_pcg(&mut s, kernels::Precision::F64, &b, 2, 1e-11, 20_000).unwrap();
     assert_eq!(f64_run.status, vec![1, 1]);
-    let mut cpu = CholeskySolver::new();
-    cpu.prepare_blocks(&a, &fixed).unwrap();
-    let mut want = b.clone();
-    cpu.solve_in_place(&mut want, 2).unwrap();
+    let want = cholesky_solution(&a, &fixed, &b, 2);
     for c in 0..2 {
         let r = true_residual(&f64_run.x, c);
         assert!(r < 1e-10, "f64 column {c}: true residual {r:e}");
@@ -761,6 +752,16 @@ fn biharmonic_blocks(nx: usize, ny: usize) -> BlockSym3 {
     a
 }
 
+/// The CPU Cholesky solution of `a` (held vertices `fixed`) for the `ncols`
+/// column-major right-hand sides `b`: the reference of the GPU solves.
+fn cholesky_solution(a: &BlockSym3, fixed: &[bool], b: &[f64], ncols: usize) -> Vec<f64> {
+    let mut cpu = CholeskySolver::new();
+    cpu.prepare_blocks(a, fixed).unwrap();
+    let mut x = b.to_vec();
+    cpu.solve_in_place(&mut x, ncols).unwrap();
+    x
+}
+
 /// An adapter with SHADER_F64, or None (skipped with a message).
 fn gpu_f64() -> Option<GpuSolver> {
     let s = gpu()?;
@@ -783,10 +784,7 @@ fn a_tolerance_below_the_f64_rounding_floor_ends_at_the_floor() {
     let b: Vec<f64> = (0..n)
         .map(|i| 1.0 + 0.1 * ((i / 3) as f64 * 0.01).sin())
         .collect();
-    let mut cpu = CholeskySolver::new();
-    cpu.prepare_blocks(&a, &fixed).unwrap();
-    let mut xc = b.clone();
-    cpu.solve_in_place(&mut xc, 1).unwrap();
+    let xc = cholesky_solution(&a, &fixed, &b, 1);
     let norm = |v: &[f64]| v.iter().map(|t| t * t).sum::<f64>().sqrt();
     let anorm = 64.0; // ||A||_inf of the biharmonic stencil: 20 + 4 x 8 + 4 x 2 + 4 x 1
     let floor = f64::EPSILON * anorm * norm(&xc) / norm(&b);
@@ -875,10 +873,7 @@ fn mixed_precision_solve_past_the_storage_binding_limit() {
     s.solve_in_place(&mut x, 1).unwrap();
     assert!(s.last_solve_mixed());
     assert_eq!(s.last_stats().f32_rounds, 0);
-    let mut cpu = CholeskySolver::new();
-    cpu.prepare_blocks(&a, &fixed).unwrap();
-    let mut want = b;
-    cpu.solve_in_place(&mut want, 1).unwrap();
+    let want = cholesky_solution(&a, &fixed, &b, 1);
     let e = rel_err(&x, &want);
     assert!(
         e < 1e-8,
