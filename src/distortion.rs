@@ -35,19 +35,50 @@ pub fn face_ratio(a: [DVec3; 3], b: [DVec3; 3]) -> f64 {
     (l1 / l2).sqrt()
 }
 
+/// Per face, [`face_ratio`] from `input` to `output`; faces degenerate in the
+/// input ([`Mesh::degenerate_faces`]: zero area, needles) have no meaningful
+/// ratio and get 1.0.
+pub fn face_distortions(mesh: &Mesh, input: &[DVec3], output: &[DVec3]) -> Vec<f64> {
+    let degenerate = mesh.degenerate_faces(input);
+    (0..mesh.num_faces())
+        .map(|f| {
+            if degenerate[f] {
+                1.0
+            } else {
+                face_ratio(mesh.corners(input, f), mesh.corners(output, f))
+            }
+        })
+        .collect()
+}
+
+/// Per face, the scale factor the result realised: `sqrt(area out / area in)`
+/// (paper Eq. 3's `s`); 1.0 for faces of zero input area.
+pub fn face_scales(mesh: &Mesh, input: &[DVec3], output: &[DVec3]) -> Vec<f64> {
+    (0..mesh.num_faces())
+        .map(|f| {
+            let a = mesh.face_area(input, f);
+            if a > 0.0 {
+                (mesh.face_area(output, f) / a).sqrt()
+            } else {
+                1.0
+            }
+        })
+        .collect()
+}
+
 /// (area-weighted mean over faces with input area as weight, max). Faces
 /// degenerate in the input ([`Mesh::degenerate_faces`]: zero area, needles)
 /// have no meaningful ratio and get no shape weight: they are left out.
 pub fn quasi_conformal(mesh: &Mesh, input: &[DVec3], output: &[DVec3]) -> (f64, f64) {
     let degenerate = mesh.degenerate_faces(input);
+    let ratios = face_distortions(mesh, input, output);
     let mut sum = 0.0;
     let mut wsum = 0.0;
     let mut max = 1.0f64;
-    for (f, &skip) in degenerate.iter().enumerate() {
-        if skip {
+    for (f, &r) in ratios.iter().enumerate() {
+        if degenerate[f] {
             continue;
         }
-        let r = face_ratio(mesh.corners(input, f), mesh.corners(output, f));
         let a = mesh.face_area(input, f);
         if r.is_finite() {
             sum += a * r;
@@ -78,6 +109,31 @@ mod tests {
         let mut y = x.clone();
         y[2] = DVec3::new(0.5, 0.0, 0.0);
         assert_eq!(quasi_conformal(&mesh, &x, &y).1, f64::INFINITY);
+    }
+    /// A face scaled by 2 in both directions has scale 2 and distortion 1;
+    /// one stretched by 3 in one direction has scale sqrt(3) and distortion 3.
+    #[test]
+    fn per_face_fields_follow_the_map() {
+        let x = vec![DVec3::ZERO, DVec3::X, DVec3::Y, DVec3::new(1.0, 1.0, 0.0)];
+        let mesh = Mesh {
+            positions: x.clone(),
+            faces: vec![[0, 1, 2], [1, 3, 2]],
+            groups: Vec::new(),
+        };
+        let y: Vec<DVec3> = x.iter().map(|p| 2.0 * *p).collect();
+        for s in face_scales(&mesh, &x, &y) {
+            assert!((s - 2.0).abs() < 1e-12);
+        }
+        for d in face_distortions(&mesh, &x, &y) {
+            assert!((d - 1.0).abs() < 1e-12);
+        }
+        let z: Vec<DVec3> = x.iter().map(|p| DVec3::new(3.0 * p.x, p.y, p.z)).collect();
+        for s in face_scales(&mesh, &x, &z) {
+            assert!((s - 3f64.sqrt()).abs() < 1e-12);
+        }
+        for d in face_distortions(&mesh, &x, &z) {
+            assert!((d - 3.0).abs() < 1e-12);
+        }
     }
     #[test]
     fn similarity_is_one_and_shear_is_not() {
