@@ -17,6 +17,7 @@ pub mod deform;
 pub mod distortion;
 pub mod metrics;
 pub mod output;
+pub mod render;
 pub mod report;
 pub mod scale_factors;
 pub mod schur;

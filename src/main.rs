@@ -8,10 +8,11 @@ use metricdeform::report::{
     constraint_rows, explain_miss, peak_memory_mb, table, Distortion, Iterations, MeshInfo, Report,
     Seconds, SolverWork,
 };
-use metricdeform::{distortion, io, output, Error};
+use metricdeform::{distortion, io, output, render, Error};
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
+use std::str::FromStr;
 use std::time::Instant;
 
 const DEMO_JOB: &str = include_str!("../examples/spot-demo.toml");
@@ -49,12 +50,41 @@ struct RunArgs {
     /// Stop the scale-driven phase after N iterations and skip the fine-tune.
     #[arg(long, value_name = "N")]
     preview: Option<usize>,
-    /// Write a PNG of input and result side by side (not available yet).
-    #[arg(long)]
-    render: Option<PathBuf>,
+    #[command(flatten)]
+    picture: PictureArgs,
     /// No progress output (warnings still go to stderr).
     #[arg(long)]
     quiet: bool,
+}
+
+/// `--render` and how the picture is made (CPU only, no GPU needed).
+#[derive(clap::Args, Clone)]
+struct PictureArgs {
+    /// Write a PNG picture: for deform, input and result side by side,
+    /// coloured by --color, with every constraint drawn and named; for
+    /// measure, the input with every selection.
+    #[arg(long, value_name = "PATH")]
+    render: Option<PathBuf>,
+    /// The picture's size in pixels.
+    #[arg(long, value_name = "WxH", default_value = "1600x800", value_parser = render::parse_size)]
+    render_size: (u32, u32),
+    /// The camera: three-quarter (front-right, a little above), front, side, top or iso.
+    #[arg(long, default_value = "three-quarter", value_parser = render::View::from_str)]
+    view: render::View,
+    /// What colours the result's faces: scale (sqrt of the area ratio), distortion (quasi-conformal) or displacement.
+    #[arg(long, default_value = "scale", value_parser = render::ColorBy::from_str)]
+    color: render::ColorBy,
+}
+
+impl PictureArgs {
+    fn params(&self) -> render::RenderParams {
+        render::RenderParams {
+            width: self.render_size.0,
+            height: self.render_size.1,
+            view: self.view,
+            color: self.color,
+        }
+    }
 }
 
 #[derive(Subcommand)]
@@ -71,6 +101,8 @@ enum Command {
         job: PathBuf,
         #[arg(long)]
         report: Option<PathBuf>,
+        #[command(flatten)]
+        picture: PictureArgs,
     },
     /// List the GPU adapters and which one `--backend gpu` would use.
     Adapters,
@@ -90,9 +122,11 @@ fn main() -> ExitCode {
     }
     let result = match cli.command {
         Command::Deform { job, args } => Job::load(&job).and_then(|j| run(&j, &args)),
-        Command::Measure { job, report } => {
-            Job::load(&job).and_then(|j| measure(&j, report.as_deref()))
-        }
+        Command::Measure {
+            job,
+            report,
+            picture,
+        } => Job::load(&job).and_then(|j| measure(&j, report.as_deref(), &picture)),
         Command::Adapters => adapters(),
         Command::Demo { args } => demo(&args),
     };
@@ -332,13 +366,13 @@ fn check_outputs(job: &Job, outputs: &[(&str, &Path)]) -> Result<(), Error> {
 
 fn run(job: &Job, args: &RunArgs) -> Result<u8, Error> {
     let t0 = Instant::now();
-    if args.render.is_some() {
-        return Err(Error::bad("--render is not available in this version"));
-    }
     let out_path = args.out.clone().unwrap_or_else(|| job.output_path());
     let mut outputs = vec![("output mesh", out_path.as_path())];
     if let Some(r) = &args.report {
         outputs.push(("report", r.as_path()));
+    }
+    if let Some(r) = &args.picture.render {
+        outputs.push(("picture", r.as_path()));
     }
     check_outputs(job, &outputs)?;
     let mut options = Options::from_spec(&job.spec.solver);
@@ -443,6 +477,23 @@ fn run(job: &Job, args: &RunArgs) -> Result<u8, Error> {
     if let Some(path) = &args.report {
         staged.push(output::stage(path, &report_json(&report)?)?);
     }
+    if let Some(path) = &args.picture.render {
+        let notes = annotations(&problem, |i| {
+            format!(
+                "{} -> {}",
+                render::format_value(rows[i].original),
+                render::format_value(rows[i].result)
+            )
+        });
+        let png = render::render_deformation(
+            &problem.mesh,
+            &problem.mesh.positions,
+            &x,
+            &notes,
+            &args.picture.params(),
+        )?;
+        staged.push(output::stage(path, &png)?);
+    }
     output::commit(staged)?;
     print!("{}", table(&rows));
     println!(
@@ -451,6 +502,9 @@ fn run(job: &Job, args: &RunArgs) -> Result<u8, Error> {
     );
     println!("wrote {}", out_path.display());
     if let Some(path) = &args.report {
+        println!("wrote {}", path.display());
+    }
+    if let Some(path) = &args.picture.render {
         println!("wrote {}", path.display());
     }
     if preview {
@@ -468,11 +522,16 @@ fn run(job: &Job, args: &RunArgs) -> Result<u8, Error> {
     Ok(if satisfied { 0 } else { 3 })
 }
 
-fn measure(job: &Job, report_path: Option<&Path>) -> Result<u8, Error> {
+fn measure(job: &Job, report_path: Option<&Path>, picture: &PictureArgs) -> Result<u8, Error> {
     let t0 = Instant::now();
+    let mut outputs = Vec::new();
     if let Some(r) = report_path {
-        check_outputs(job, &[("report", r)])?;
+        outputs.push(("report", r));
     }
+    if let Some(r) = &picture.render {
+        outputs.push(("picture", r.as_path()));
+    }
+    check_outputs(job, &outputs)?;
     let options = Options::from_spec(&job.spec.solver);
     let problem = Problem::load(job)?;
     print_warnings(&problem.warnings);
@@ -510,10 +569,59 @@ fn measure(job: &Job, report_path: Option<&Path>) -> Result<u8, Error> {
         peak_memory_mb: peak_memory_mb(),
         solver: None,
     };
+    let mut staged = Vec::new();
     if let Some(p) = report_path {
-        output::write_atomic(p, &report_json(&report)?)?;
+        staged.push(output::stage(p, &report_json(&report)?)?);
+    }
+    if let Some(path) = &picture.render {
+        let notes = annotations(&problem, |i| {
+            render::format_value(report.constraints[i].original)
+        });
+        let png = render::render_selections(&problem.mesh, x, &notes, &picture.params())?;
+        staged.push(output::stage(path, &png)?);
+    }
+    output::commit(staged)?;
+    if let Some(path) = &picture.render {
+        println!("wrote {}", path.display());
     }
     Ok(0)
+}
+
+/// Every selection of the problem for a picture: each constraint named with
+/// its kind and `values(i)` (constraint `i`'s numbers), then each handle and
+/// curvature region.
+fn annotations(problem: &Problem, values: impl Fn(usize) -> String) -> Vec<render::Annotation<'_>> {
+    use metricdeform::metrics::Selection;
+    let mut notes: Vec<render::Annotation> = problem
+        .constraints
+        .iter()
+        .enumerate()
+        .map(|(i, c)| render::Annotation {
+            name: c.name.clone(),
+            legend: format!("{} ({}): {}", c.name, c.kind, values(i)),
+            marked: match &c.selection {
+                Selection::Curve(curve) => render::Marked::Curve(curve),
+                Selection::Region(region) => render::Marked::Faces(&region.faces),
+                Selection::Whole => render::Marked::Whole,
+            },
+        })
+        .collect();
+    if !problem.handles.is_empty() {
+        notes.push(render::Annotation {
+            name: "handles".into(),
+            legend: format!("handles: {} vertices", problem.handles.len()),
+            marked: render::Marked::Vertices(problem.handles.iter().map(|h| h.vertex).collect()),
+        });
+    }
+    for (i, c) in problem.curvature.iter().enumerate() {
+        let name = metricdeform::job::curvature_label(i);
+        notes.push(render::Annotation {
+            legend: format!("{name}: mean curvature x {}", render::format_value(c.scale)),
+            name,
+            marked: render::Marked::Vertices(c.vertices.clone()),
+        });
+    }
+    notes
 }
 
 /// The input check's warnings (faces handled rather than refused): shown
