@@ -50,7 +50,8 @@ fn main() {
             .iter()
             .map(|c| Annotation {
                 name: c.name.clone(),
-                legend: c.name.clone(),
+                kind: c.kind.to_string(),
+                values: String::new(),
                 marked: match &c.selection {
                     Selection::Curve(curve) => Marked::Curve(curve),
                     Selection::Region(r) => Marked::Faces(&r.faces),

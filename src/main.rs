@@ -598,7 +598,8 @@ fn annotations(problem: &Problem, values: impl Fn(usize) -> String) -> Vec<rende
         .enumerate()
         .map(|(i, c)| render::Annotation {
             name: c.name.clone(),
-            legend: format!("{} ({}): {}", c.name, c.kind, values(i)),
+            kind: c.kind.to_string(),
+            values: values(i),
             marked: match &c.selection {
                 Selection::Curve(curve) => render::Marked::Curve(curve),
                 Selection::Region(region) => render::Marked::Faces(&region.faces),
@@ -609,15 +610,17 @@ fn annotations(problem: &Problem, values: impl Fn(usize) -> String) -> Vec<rende
     if !problem.handles.is_empty() {
         notes.push(render::Annotation {
             name: "handles".into(),
-            legend: format!("handles: {} vertices", problem.handles.len()),
+            kind: "handle".into(),
+            values: format!("{} vertices", problem.handles.len()),
             marked: render::Marked::Vertices(problem.handles.iter().map(|h| h.vertex).collect()),
         });
     }
     for (i, c) in problem.curvature.iter().enumerate() {
         let name = metricdeform::job::curvature_label(i);
         notes.push(render::Annotation {
-            legend: format!("{name}: mean curvature x {}", render::format_value(c.scale)),
             name,
+            kind: "curvature".into(),
+            values: format!("mean curvature x {}", render::format_value(c.scale)),
             marked: render::Marked::Vertices(c.vertices.clone()),
         });
     }

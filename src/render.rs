@@ -144,12 +144,15 @@ pub enum Marked<'a> {
     Whole,
 }
 
-/// One selection to draw, with its name and the text the legend gives it
-/// (e.g. `neck girth (length)  1.23 -> 1.476`).
+/// One selection to draw: its name, what it is (`length`, `handle`, ...) and
+/// its numbers (`1.23 -> 1.476` for a result, `1.23` for an input). The
+/// result panel labels the selection `name: values`, the input panel `name`,
+/// and the legend `name (kind): values`.
 #[derive(Clone, Debug)]
 pub struct Annotation<'a> {
     pub name: String,
-    pub legend: String,
+    pub kind: String,
+    pub values: String,
     pub marked: Marked<'a>,
 }
 
@@ -400,24 +403,8 @@ pub fn render_deformation(
         &cam,
         layout.origin(1),
     );
-    draw_annotations(
-        &mut pix,
-        mesh,
-        input,
-        annotations,
-        &cam,
-        layout.origin(0),
-        false,
-    );
-    draw_annotations(
-        &mut pix,
-        mesh,
-        output,
-        annotations,
-        &cam,
-        layout.origin(1),
-        true,
-    );
+    draw_annotations(&mut pix, mesh, input, annotations, &cam, &layout, 0, false);
+    draw_annotations(&mut pix, mesh, output, annotations, &cam, &layout, 1, true);
     let font = &FONT_10X20;
     text(&mut pix, "input", (10, 6), font, None);
     text(
@@ -448,15 +435,7 @@ pub fn render_selections(
         .map(|t| t.map_or(NEUTRAL, |c| mix(NEUTRAL, c, 0.6)))
         .collect();
     draw_surface(&mut pix, mesh, input, &colors, &cam, layout.origin(0));
-    draw_annotations(
-        &mut pix,
-        mesh,
-        input,
-        annotations,
-        &cam,
-        layout.origin(0),
-        false,
-    );
+    draw_annotations(&mut pix, mesh, input, annotations, &cam, &layout, 0, false);
     text(&mut pix, "input", (10, 6), &FONT_10X20, None);
     draw_legend(&mut pix, &layout, annotations, 20.0);
     encode(pix)
@@ -567,17 +546,22 @@ fn draw_surface(
     }
 }
 
-/// Curves as polylines, region outlines (`outline`: the result panel) and
-/// vertex dots, each with its name beside it.
+/// Curves as polylines, region outlines and vertex dots, each labelled
+/// beside it: with its name, and on the result panel (`result`, where
+/// regions are outlined rather than tinted) with its values too.
 fn draw_annotations(
     pix: &mut Pixmap,
     mesh: &Mesh,
     x: &[DVec3],
     annotations: &[Annotation],
     cam: &Camera,
-    origin: (f64, f64),
-    outline: bool,
+    layout: &Layout,
+    panel: u32,
+    result: bool,
 ) {
+    let origin = layout.origin(panel);
+    // Labels stay inside their panel.
+    let right_edge = origin.0 + 0.5 * layout.panel.0;
     for (i, a) in annotations.iter().enumerate() {
         let color = annotation_color(i);
         let mut segments: Vec<[(f32, f32); 2]> = Vec::new();
@@ -589,7 +573,7 @@ fn draw_annotations(
                     segments.push([cam.project(p, origin), cam.project(q, origin)]);
                 }
             }
-            Marked::Faces(faces) if outline => {
+            Marked::Faces(faces) if result => {
                 for [p, q] in boundary_edges(mesh, faces) {
                     segments.push([
                         cam.project(x[p as usize], origin),
@@ -630,10 +614,17 @@ fn draw_annotations(
                 .max_by(|a, b| a.0.total_cmp(&b.0)),
         };
         if let Some((ax, ay)) = anchor {
+            let label = if result && !a.values.is_empty() {
+                format!("{}: {}", a.name, a.values)
+            } else {
+                a.name.clone()
+            };
+            let width = label.len() as f64 * FONT_9X15.character_size.width as f64;
+            let x = (ax as f64 + 8.0).min(right_edge - width - 4.0).max(0.0);
             text(
                 pix,
-                &a.name,
-                (ax as i32 + 8, ay as i32 - 8),
+                &label,
+                (x as i32, ay as i32 - 8),
                 &FONT_9X15,
                 Some(color),
             );
@@ -755,7 +746,8 @@ fn draw_legend(pix: &mut Pixmap, layout: &Layout, annotations: &[Annotation], x0
             paint.set_color(rgb(annotation_color(i)));
             pix.fill_rect(r, &paint, Transform::identity(), None);
         }
-        text(pix, &a.legend, (x0 as i32 + 18, y as i32), &FONT_9X15, None);
+        let legend = format!("{} ({}): {}", a.name, a.kind, a.values);
+        text(pix, &legend, (x0 as i32 + 18, y as i32), &FONT_9X15, None);
     }
 }
 
