@@ -17,7 +17,7 @@
 use crate::mesh::Mesh;
 use crate::selection::Curve;
 use crate::Error;
-use embedded_graphics::mono_font::ascii::{FONT_10X20, FONT_9X15};
+use embedded_graphics::mono_font::ascii::{FONT_10X20, FONT_6X13, FONT_9X15};
 use embedded_graphics::mono_font::{MonoFont, MonoTextStyle};
 use embedded_graphics::pixelcolor::Rgb888;
 use embedded_graphics::prelude::{DrawTarget, OriginDimensions, Point, RgbColor, Size};
@@ -334,6 +334,9 @@ struct Layout {
     panel: (f64, f64),
     /// Top of the bottom band.
     band: f64,
+    /// Titles, and labels and legend (smaller on pictures under 1200 pixels wide).
+    title_font: &'static MonoFont<'static>,
+    label_font: &'static MonoFont<'static>,
 }
 
 impl Layout {
@@ -341,11 +344,18 @@ impl Layout {
         let (w, h) = (p.width as f64, p.height as f64);
         let band = (h * 0.2).clamp(90.0, 160.0);
         let title = 30.0;
+        let (title_font, label_font) = if w >= 1200.0 {
+            (&FONT_10X20, &FONT_9X15)
+        } else {
+            (&FONT_9X15, &FONT_6X13)
+        };
         Layout {
             width: w,
             height: h,
             panel: (w / panels as f64, h - band - title),
             band: h - band,
+            title_font,
+            label_font,
         }
     }
 
@@ -405,7 +415,7 @@ pub fn render_deformation(
     );
     draw_annotations(&mut pix, mesh, input, annotations, &cam, &layout, 0, false);
     draw_annotations(&mut pix, mesh, output, annotations, &cam, &layout, 1, true);
-    let font = &FONT_10X20;
+    let font = layout.title_font;
     text(&mut pix, "input", (10, 6), font, None);
     text(
         &mut pix,
@@ -436,7 +446,7 @@ pub fn render_selections(
         .collect();
     draw_surface(&mut pix, mesh, input, &colors, &cam, layout.origin(0));
     draw_annotations(&mut pix, mesh, input, annotations, &cam, &layout, 0, false);
-    text(&mut pix, "input", (10, 6), &FONT_10X20, None);
+    text(&mut pix, "input", (10, 6), layout.title_font, None);
     draw_legend(&mut pix, &layout, annotations, 20.0);
     encode(pix)
 }
@@ -619,15 +629,10 @@ fn draw_annotations(
             } else {
                 a.name.clone()
             };
-            let width = label.len() as f64 * FONT_9X15.character_size.width as f64;
+            let font = layout.label_font;
+            let width = label.len() as f64 * font.character_size.width as f64;
             let x = (ax as f64 + 8.0).min(right_edge - width - 4.0).max(0.0);
-            text(
-                pix,
-                &label,
-                (x as i32, ay as i32 - 8),
-                &FONT_9X15,
-                Some(color),
-            );
+            text(pix, &label, (x as i32, ay as i32 - 8), font, Some(color));
         }
     }
 }
@@ -695,15 +700,24 @@ fn draw_color_bar(pix: &mut Pixmap, layout: &Layout, field: &Field, color: Color
     text(
         pix,
         field.title,
-        (x0 as i32, y0 as i32 - 24),
-        &FONT_10X20,
+        (
+            x0 as i32,
+            y0 as i32 - 4 - layout.title_font.character_size.height as i32,
+        ),
+        layout.title_font,
         None,
     );
     for t in [0.0, 0.5, 1.0] {
         let label = format_value(field.value_at(t));
-        let w = label.len() as f64 * 9.0;
+        let w = label.len() as f64 * layout.label_font.character_size.width as f64;
         let x = (x0 + t * (width - 1.0) - t * w).round() as i32;
-        text(pix, &label, (x, (y0 + height) as i32 + 4), &FONT_9X15, None);
+        text(
+            pix,
+            &label,
+            (x, (y0 + height) as i32 + 4),
+            layout.label_font,
+            None,
+        );
     }
 }
 
@@ -723,7 +737,7 @@ pub fn format_value(v: f64) -> String {
 /// One line per annotation in the bottom band from `x0`: a swatch of its
 /// colour and its legend text.
 fn draw_legend(pix: &mut Pixmap, layout: &Layout, annotations: &[Annotation], x0: f64) {
-    let line = 17.0;
+    let line = layout.label_font.character_size.height as f64 + 2.0;
     let lines = ((layout.height - layout.band - 12.0) / line)
         .floor()
         .max(1.0) as usize;
@@ -737,7 +751,13 @@ fn draw_legend(pix: &mut Pixmap, layout: &Layout, annotations: &[Annotation], x0
                 paint.set_color(rgb(BACKGROUND));
                 pix.fill_rect(r, &paint, Transform::identity(), None);
             }
-            text(pix, &more, (x0 as i32 + 18, y as i32), &FONT_9X15, None);
+            text(
+                pix,
+                &more,
+                (x0 as i32 + 18, y as i32),
+                layout.label_font,
+                None,
+            );
             break;
         }
         let y = layout.band + 8.0 + i as f64 * line;
@@ -747,7 +767,13 @@ fn draw_legend(pix: &mut Pixmap, layout: &Layout, annotations: &[Annotation], x0
             pix.fill_rect(r, &paint, Transform::identity(), None);
         }
         let legend = format!("{} ({}): {}", a.name, a.kind, a.values);
-        text(pix, &legend, (x0 as i32 + 18, y as i32), &FONT_9X15, None);
+        text(
+            pix,
+            &legend,
+            (x0 as i32 + 18, y as i32),
+            layout.label_font,
+            None,
+        );
     }
 }
 
