@@ -286,3 +286,32 @@ fn the_largest_scale_gets_the_top_colour() {
     let l = rightmost(0, 400).expect("the input is drawn");
     assert_eq!(rgb(&p, l - 2, y), [200, 200, 200]);
 }
+
+/// The gallery's jobs (`scripts/gallery.sh`) stay valid: each measures, and
+/// names each of its constraints.
+#[test]
+fn the_gallery_jobs_measure() {
+    let examples = Path::new(env!("CARGO_MANIFEST_DIR")).join("examples");
+    for (job, names) in [
+        ("bunny-ears.toml", &["ears", "body girth"][..]),
+        (
+            "homer-table1.toml",
+            &["waist", "head girth", "upper body", "volume"][..],
+        ),
+    ] {
+        let out = bin()
+            .arg("measure")
+            .arg(examples.join(job))
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "{job}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let stdout = String::from_utf8_lossy(&out.stdout);
+        for name in names {
+            assert!(stdout.contains(name), "{job}: no {name} in\n{stdout}");
+        }
+    }
+}
