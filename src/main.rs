@@ -406,7 +406,10 @@ fn run(job: &Job, args: &RunArgs) -> Result<u8, Error> {
     } else {
         explain_miss(&problem, &rows, Some(&outcome))
     };
-    let (qc_mean, qc_max) = distortion::quasi_conformal(&problem.mesh, &problem.mesh.positions, &x);
+    let input = &problem.mesh.positions;
+    let (qc_mean, qc_max) = distortion::quasi_conformal(&problem.mesh, input, &x);
+    let displacement =
+        distortion::displacement_percent(input, &x, problem.mesh.bbox_diagonal(input));
     let report = Report {
         mesh: MeshInfo {
             path: problem.mesh_path.display().to_string(),
@@ -432,6 +435,7 @@ fn run(job: &Job, args: &RunArgs) -> Result<u8, Error> {
             quasi_conformal_mean: qc_mean,
             quasi_conformal_max: qc_max,
         },
+        displacement,
         preview,
         warnings: problem.warnings.clone(),
         reason: reason.clone(),
@@ -446,8 +450,16 @@ fn run(job: &Job, args: &RunArgs) -> Result<u8, Error> {
     output::commit(staged)?;
     print!("{}", table(&rows));
     println!(
-        "distortion: quasi-conformal mean {:.4}, max {:.4}; iterations: {} scale-driven, {} fine-tune; {:.2} s",
-        qc_mean, qc_max, report.iterations.scale_driven, report.iterations.fine_tune, report.seconds.total
+        "distortion: quasi-conformal mean {:.4}, max {:.4}; displacement (% of the bbox diagonal): \
+         max {:.4}, mean {:.4}, p99 {:.4}; iterations: {} scale-driven, {} fine-tune; {:.2} s",
+        qc_mean,
+        qc_max,
+        displacement.max_percent,
+        displacement.mean_percent,
+        displacement.p99_percent,
+        report.iterations.scale_driven,
+        report.iterations.fine_tune,
+        report.seconds.total
     );
     println!("wrote {}", out_path.display());
     if let Some(path) = &args.report {
@@ -504,6 +516,7 @@ fn measure(job: &Job, report_path: Option<&Path>) -> Result<u8, Error> {
             quasi_conformal_mean: 1.0,
             quasi_conformal_max: 1.0,
         },
+        displacement: distortion::DisplacementStats::default(),
         preview: false,
         warnings: problem.warnings.clone(),
         reason: None,

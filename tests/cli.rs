@@ -741,3 +741,335 @@ fn handled_faces_are_warned_on_stderr_and_in_the_report() {
     let qc = report["distortion"]["quasi_conformal_max"].as_f64();
     assert!(qc.is_some_and(|q| q.is_finite() && q >= 1.0), "{report}");
 }
+
+/// The `v` positions and the `f` triangles (0-based) of an OBJ of triangles,
+/// read here independently of the crate's reader.
+fn read_obj(path: &Path) -> (Vec<[f64; 3]>, Vec<[usize; 3]>) {
+    let text = std::fs::read_to_string(path).unwrap();
+    let (mut v, mut f) = (Vec::new(), Vec::new());
+    for line in text.lines() {
+        let t: Vec<&str> = line.split_whitespace().collect();
+        match t.first() {
+            Some(&"v") => v.push([1, 2, 3].map(|k| t[k].parse::<f64>().unwrap())),
+            Some(&"f") => {
+                assert_eq!(t.len(), 4, "not a triangle: {line}");
+                f.push(
+                    [1, 2, 3]
+                        .map(|k| t[k].split('/').next().unwrap().parse::<usize>().unwrap() - 1),
+                );
+            }
+            _ => {}
+        }
+    }
+    (v, f)
+}
+
+fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+
+fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+fn norm(a: [f64; 3]) -> f64 {
+    dot(a, a).sqrt()
+}
+
+fn tri_area(v: &[[f64; 3]], t: [usize; 3]) -> f64 {
+    let (e1, e2) = (sub(v[t[1]], v[t[0]]), sub(v[t[2]], v[t[0]]));
+    let c = [
+        e1[1] * e2[2] - e1[2] * e2[1],
+        e1[2] * e2[0] - e1[0] * e2[2],
+        e1[0] * e2[1] - e1[1] * e2[0],
+    ];
+    0.5 * norm(c)
+}
+
+fn close(a: f64, b: f64, rel: f64) -> bool {
+    (a - b).abs() <= rel * a.abs().max(b.abs()).max(1e-300)
+}
+
+/// The report's displacement statistics are those of the written mesh against
+/// the input: recomputed here from the two OBJ files, as % of the input's
+/// bbox diagonal (max, mean, nearest-rank 99th percentile); the stdout
+/// summary line gives them too.
+#[test]
+fn displacement_statistics_match_the_written_mesh() {
+    let job = "mesh = \"spot.obj\"\noutput = \"out.obj\"\n[[constraint]]\nkind = \"volume\"\nscale = 1.3\n";
+    let (out, dir) = deform_job("spot.obj", job, &["--report", "r.json"]);
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{stdout}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let (x, faces) = read_obj(&dir.path().join("spot.obj"));
+    let (y, faces_out) = read_obj(&dir.path().join("out.obj"));
+    assert_eq!(faces, faces_out);
+    let (mut lo, mut hi) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
+    for t in &faces {
+        for &i in t {
+            for k in 0..3 {
+                lo[k] = lo[k].min(x[i][k]);
+                hi[k] = hi[k].max(x[i][k]);
+            }
+        }
+    }
+    let diagonal = norm(sub(hi, lo));
+    let mut d: Vec<f64> = x
+        .iter()
+        .zip(&y)
+        .map(|(a, b)| norm(sub(*b, *a)) / diagonal * 100.0)
+        .collect();
+    d.sort_by(f64::total_cmp);
+    let n = d.len();
+    let max = d[n - 1];
+    let mean = d.iter().sum::<f64>() / n as f64;
+    let p99 = d[(99 * n).div_ceil(100) - 1];
+    // A volume x1.3 moves the surface by several % of the diagonal.
+    assert!(max > 1.0, "max {max}");
+    let r = read_json(dir.path(), "r.json");
+    let disp = &r["displacement"];
+    for (key, want) in [
+        ("max_percent", max),
+        ("mean_percent", mean),
+        ("p99_percent", p99),
+    ] {
+        let got = disp[key].as_f64().unwrap();
+        assert!(
+            close(got, want, 1e-9),
+            "{key}: report {got}, recomputed {want}"
+        );
+    }
+    let line = stdout
+        .lines()
+        .find(|l| l.contains("displacement"))
+        .unwrap_or_else(|| panic!("no displacement on stdout: {stdout}"));
+    assert!(line.contains(&format!("max {max:.4}")), "{line}");
+    assert!(line.contains(&format!("p99 {p99:.4}")), "{line}");
+}
+
+/// The pieces a plane cuts from a triangle mesh, found here independently of
+/// the crate's section walk: the faces with corners on both sides (signed
+/// distance >= 0 counts as positive, as the contract says) joined by union-find
+/// across the edges that change sides. Returns, per piece in order of its
+/// smallest face index, (its crossed edges, the distance from `origin` to its
+/// nearest crossing point).
+fn plane_pieces(
+    v: &[[f64; 3]],
+    faces: &[[usize; 3]],
+    origin: [f64; 3],
+    normal: [f64; 3],
+) -> Vec<(usize, f64)> {
+    use std::collections::{BTreeMap, HashMap, HashSet};
+    let d: Vec<f64> = v.iter().map(|p| dot(sub(*p, origin), normal)).collect();
+    let pos = |i: usize| d[i] >= 0.0;
+    let mut parent: HashMap<usize, usize> = HashMap::new();
+    fn find(p: &mut HashMap<usize, usize>, mut a: usize) -> usize {
+        while p[&a] != a {
+            let up = p[&p[&a]];
+            p.insert(a, up);
+            a = up;
+        }
+        a
+    }
+    let mut edge_faces: HashMap<(usize, usize), Vec<usize>> = HashMap::new();
+    for (fi, t) in faces.iter().enumerate() {
+        for k in 0..3 {
+            let (a, b) = (t[k], t[(k + 1) % 3]);
+            if pos(a) != pos(b) {
+                parent.insert(fi, fi);
+                edge_faces.entry((a.min(b), a.max(b))).or_default().push(fi);
+            }
+        }
+    }
+    for fs in edge_faces.values() {
+        for &g in &fs[1..] {
+            let (ra, rb) = (find(&mut parent, fs[0]), find(&mut parent, g));
+            parent.insert(rb, ra);
+        }
+    }
+    /// A piece: (smallest face, crossed edges, nearest crossing).
+    type Piece = (usize, HashSet<(usize, usize)>, f64);
+    let mut pieces: BTreeMap<usize, Piece> = BTreeMap::new();
+    let keys: Vec<usize> = parent.keys().copied().collect();
+    for f in keys {
+        let r = find(&mut parent, f);
+        let e = pieces
+            .entry(r)
+            .or_insert((usize::MAX, HashSet::new(), f64::INFINITY));
+        e.0 = e.0.min(f);
+    }
+    for (&(a, b), fs) in &edge_faces {
+        let r = find(&mut parent, fs[0]);
+        let t = d[a] / (d[a] - d[b]);
+        let p = [0, 1, 2].map(|k| v[a][k] + t * (v[b][k] - v[a][k]));
+        let e = pieces.get_mut(&r).unwrap();
+        e.1.insert((a, b));
+        e.2 = e.2.min(norm(sub(p, origin)));
+    }
+    let mut list: Vec<(usize, usize, f64)> = pieces
+        .into_values()
+        .map(|(f, e, dist)| (f, e.len(), dist))
+        .collect();
+    list.sort_by_key(|p| p.0);
+    list.into_iter().map(|(_, e, dist)| (e, dist)).collect()
+}
+
+/// `measure` reports and prints each constraint's selection on spot, checked
+/// against counts made here from the OBJ: a sphere's faces (centroid within),
+/// their area and bounding box; a plane through the four legs (4 loops, the
+/// chosen one holding the crossing nearest the origin) and one through the
+/// body (1 loop); a curve's points (one per crossed edge of its loop). No
+/// constraint has a target: each is just measured (target = original, met).
+#[test]
+fn measure_reports_selection_facts() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::copy(meshes().join("spot.obj"), dir.path().join("spot.obj")).unwrap();
+    let legs = ([-0.2, -0.6, -0.1], [0.0, 1.0, 0.0]);
+    let body = ([0.0, 0.0, 0.3], [0.0, 1.0, 0.0]);
+    let (center, radius) = ([0.0, 0.55, -0.4], 0.35);
+    let job = format!(
+        "mesh = \"spot.obj\"\n\
+         [[constraint]]\nkind = \"length\"\nname = \"legs\"\n\
+         curve = {{ plane = {{ origin = {:?}, normal = {:?} }} }}\n\
+         [[constraint]]\nkind = \"length\"\nname = \"body\"\n\
+         curve = {{ plane = {{ origin = {:?}, normal = {:?} }} }}\n\
+         [[constraint]]\nkind = \"area\"\nname = \"head\"\n\
+         region = {{ sphere = {{ center = {center:?}, radius = {radius:?} }} }}\n",
+        legs.0, legs.1, body.0, body.1
+    );
+    std::fs::write(dir.path().join("job.toml"), job).unwrap();
+    let out = bin()
+        .args(["measure", "job.toml", "--report", "m.json"])
+        .current_dir(dir.path())
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{stdout}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let (v, faces) = read_obj(&dir.path().join("spot.obj"));
+    // The sphere: faces whose centroid is within it, none near its surface.
+    let mut region = Vec::new();
+    for (fi, t) in faces.iter().enumerate() {
+        let c = [0, 1, 2].map(|k| (v[t[0]][k] + v[t[1]][k] + v[t[2]][k]) / 3.0);
+        let r = norm(sub(c, center));
+        assert!((r - radius).abs() > 1e-9, "face {fi} on the sphere");
+        if r <= radius {
+            region.push(fi);
+        }
+    }
+    let area: f64 = region.iter().map(|&f| tri_area(&v, faces[f])).sum();
+    let (mut lo, mut hi) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
+    for &f in &region {
+        for &i in &faces[f] {
+            for k in 0..3 {
+                lo[k] = lo[k].min(v[i][k]);
+                hi[k] = hi[k].max(v[i][k]);
+            }
+        }
+    }
+    let leg_pieces = plane_pieces(&v, &faces, legs.0, legs.1);
+    let body_pieces = plane_pieces(&v, &faces, body.0, body.1);
+    // Spot stands on four legs: a cut at y = -0.6 crosses each once.
+    assert_eq!(leg_pieces.len(), 4);
+    assert_eq!(body_pieces.len(), 1);
+    let nearest = |p: &[(usize, f64)]| {
+        (0..p.len())
+            .min_by(|&a, &b| p[a].1.total_cmp(&p[b].1))
+            .unwrap()
+    };
+    let leg_chosen = nearest(&leg_pieces);
+    // The origin is beside a leg other than the first in face order, so that
+    // the choice is not the first piece found.
+    assert_ne!(leg_chosen, 0);
+
+    let r = read_json(dir.path(), "m.json");
+    let rows = r["constraints"].as_array().unwrap();
+    assert_eq!(rows.len(), 3);
+    for row in rows {
+        assert_eq!(row["target"], row["original"], "{row}");
+        assert_eq!(row["met"], true, "{row}");
+    }
+    let (lr, br, hr) = (&rows[0], &rows[1], &rows[2]);
+    assert_eq!(lr["loops"], 4, "{lr}");
+    assert_eq!(lr["chosen_loop"], leg_chosen + 1, "{lr}");
+    assert_eq!(lr["points"], leg_pieces[leg_chosen].0, "{lr}");
+    assert_eq!(br["loops"], 1, "{br}");
+    assert_eq!(br["chosen_loop"], 1, "{br}");
+    assert_eq!(br["points"], body_pieces[0].0, "{br}");
+    assert!(lr.get("faces").is_none() && hr.get("loops").is_none());
+    assert_eq!(hr["faces"], region.len(), "{hr}");
+    assert!(
+        close(hr["area"].as_f64().unwrap(), area, 1e-12),
+        "{hr} vs {area}"
+    );
+    assert!(close(hr["original"].as_f64().unwrap(), area, 1e-12), "{hr}");
+    for k in 0..3 {
+        assert_eq!(hr["bbox"]["min"][k].as_f64(), Some(lo[k]), "{hr}");
+        assert_eq!(hr["bbox"]["max"][k].as_f64(), Some(hi[k]), "{hr}");
+    }
+    // The same facts on stdout, one line per constraint under the table.
+    let line = |name: &str| {
+        stdout
+            .lines()
+            .find(|l| l.starts_with(&format!("  {name}: ")))
+            .unwrap_or_else(|| panic!("no line for {name}: {stdout}"))
+            .to_string()
+    };
+    let l = line("legs");
+    assert!(
+        l.contains("4 loops")
+            && l.contains(&format!("loop {}", leg_chosen + 1))
+            && l.contains(&format!("{} points", leg_pieces[leg_chosen].0)),
+        "{l}"
+    );
+    assert!(line("body").contains("1 loop,"), "{stdout}");
+    assert!(
+        line("head").contains(&format!("{} faces", region.len())),
+        "{stdout}"
+    );
+}
+
+/// `measure` takes a job without any target (constraints with neither scale
+/// nor value) and a job with no constraint at all: it measures, exit 0.
+#[test]
+fn measure_needs_no_targets() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::copy(meshes().join("spot.obj"), dir.path().join("spot.obj")).unwrap();
+    std::fs::write(dir.path().join("bare.toml"), "mesh = \"spot.obj\"\n").unwrap();
+    std::fs::write(
+        dir.path().join("kept.json"),
+        r#"{"mesh": "spot.obj", "constraint": [{"kind": "volume"}, {"kind": "area", "region": {"faces": [0, 1, 2]}}]}"#,
+    )
+    .unwrap();
+    for job in ["bare.toml", "kept.json"] {
+        let out = bin()
+            .args(["measure", job, "--report", "m.json"])
+            .current_dir(dir.path())
+            .output()
+            .unwrap();
+        assert_eq!(
+            out.status.code(),
+            Some(0),
+            "{job}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let r = read_json(dir.path(), "m.json");
+        let rows = r["constraints"].as_array().unwrap();
+        assert_eq!(rows.len(), if job == "bare.toml" { 0 } else { 2 });
+        for row in rows {
+            assert_eq!(row["target"], row["original"], "{row}");
+            assert_eq!(row["error_percent"], 0.0, "{row}");
+        }
+        if job == "kept.json" {
+            assert_eq!(rows[1]["faces"], 3);
+        }
+    }
+}
