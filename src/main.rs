@@ -392,11 +392,21 @@ fn run(job: &Job, args: &RunArgs) -> Result<u8, Error> {
             *p = p.as_vec3().as_dvec3();
         }
     }
-    let mesh_bytes = io::encode_mesh(
+    let input = &problem.mesh.positions;
+    // PLY output carries per-face scale and distortion and per-vertex
+    // displacement (of the positions written: PLY stores f64) unless the job
+    // says `[output] attributes = false`; OBJ and STL stay plain geometry.
+    let ply = out_path
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("ply"));
+    let attributes = (ply && job.output_attributes())
+        .then(|| io::PlyAttributes::deformation(&problem.mesh, input, &outcome.positions));
+    let mesh_bytes = io::encode_mesh_with(
         &out_path,
         &problem.mesh,
         &outcome.positions,
         Some(&problem.mesh_path),
+        attributes.as_ref(),
     )?;
     let rows = constraint_rows(&problem, &x, options.tolerance);
     let satisfied = rows.iter().all(|r| r.met);
@@ -406,7 +416,6 @@ fn run(job: &Job, args: &RunArgs) -> Result<u8, Error> {
     } else {
         explain_miss(&problem, &rows, Some(&outcome))
     };
-    let input = &problem.mesh.positions;
     let (qc_mean, qc_max) = distortion::quasi_conformal(&problem.mesh, input, &x);
     let displacement =
         distortion::displacement_percent(input, &x, problem.mesh.bbox_diagonal(input));

@@ -1073,3 +1073,358 @@ fn measure_needs_no_targets() {
         }
     }
 }
+
+/// A binary little-endian PLY read here by hand (independently of the crate's
+/// reader): per element, its property names and, per record, the values
+/// (a list property's entries first, then the scalars, in header order).
+struct Ply {
+    vertex_props: Vec<String>,
+    face_props: Vec<String>,
+    vertex: Vec<Vec<f64>>,
+    face_indices: Vec<Vec<usize>>,
+    face: Vec<Vec<f64>>,
+}
+
+fn read_ply(path: &Path) -> Ply {
+    let bytes = std::fs::read(path).unwrap();
+    let end = b"end_header\n";
+    let hlen = bytes.windows(end.len()).position(|w| w == end).unwrap() + end.len();
+    let header = std::str::from_utf8(&bytes[..hlen]).unwrap();
+    assert!(
+        header.contains("format binary_little_endian 1.0"),
+        "{header}"
+    );
+    /// (element name, count, [(type, property name)]).
+    type Element = (String, usize, Vec<(String, String)>);
+    let mut elems: Vec<Element> = Vec::new();
+    for line in header.lines() {
+        let t: Vec<&str> = line.split_whitespace().collect();
+        match t.first() {
+            Some(&"element") => elems.push((t[1].into(), t[2].parse().unwrap(), Vec::new())),
+            Some(&"property") => {
+                let (ty, name) = if t[1] == "list" {
+                    (format!("list {} {}", t[2], t[3]), t[4])
+                } else {
+                    (t[1].to_string(), t[2])
+                };
+                elems.last_mut().unwrap().2.push((ty, name.into()));
+            }
+            _ => {}
+        }
+    }
+    let mut at = hlen;
+    let mut take = |n: usize| {
+        let s = &bytes[at..at + n];
+        at += n;
+        s.to_vec()
+    };
+    let mut ply = Ply {
+        vertex_props: Vec::new(),
+        face_props: Vec::new(),
+        vertex: Vec::new(),
+        face_indices: Vec::new(),
+        face: Vec::new(),
+    };
+    for (name, count, props) in &elems {
+        let names: Vec<String> = props.iter().map(|p| p.1.clone()).collect();
+        for _ in 0..*count {
+            let mut scalars = Vec::new();
+            for (ty, _) in props {
+                match ty.as_str() {
+                    "double" => scalars.push(f64::from_le_bytes(take(8).try_into().unwrap())),
+                    "list uchar int" => {
+                        let n = take(1)[0] as usize;
+                        let idx = (0..n)
+                            .map(|_| i32::from_le_bytes(take(4).try_into().unwrap()) as usize)
+                            .collect();
+                        ply.face_indices.push(idx);
+                    }
+                    other => panic!("unexpected PLY type {other}"),
+                }
+            }
+            match name.as_str() {
+                "vertex" => ply.vertex.push(scalars),
+                "face" => ply.face.push(scalars),
+                other => panic!("unexpected element {other}"),
+            }
+        }
+        match name.as_str() {
+            "vertex" => ply.vertex_props = names,
+            _ => ply.face_props = names,
+        }
+    }
+    assert_eq!(at, bytes.len(), "trailing bytes");
+    ply
+}
+
+/// PLY output carries per face `scale` and `distortion` and per vertex
+/// `dx dy dz` (the string form of `output`): the distortion's area-weighted
+/// mean and max are the report's quasi-conformal figures, the scale is
+/// sqrt(area out / area in) of the written positions, the displacement is
+/// written minus input. The file reads back as an input mesh.
+#[test]
+fn ply_output_carries_scale_distortion_and_displacement() {
+    let job = "mesh = \"spot.obj\"\noutput = \"out.ply\"\n[[constraint]]\nkind = \"area\"\nregion = { sphere = { center = [0.0, 0.55, -0.4], radius = 0.35 } }\nscale = 1.5\n";
+    let (out, dir) = deform_job("spot.obj", job, &["--report", "r.json"]);
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let (x, faces) = read_obj(&dir.path().join("spot.obj"));
+    let ply = read_ply(&dir.path().join("out.ply"));
+    assert_eq!(ply.vertex_props, ["x", "y", "z", "dx", "dy", "dz"]);
+    assert_eq!(ply.face_props, ["vertex_indices", "scale", "distortion"]);
+    assert_eq!(ply.vertex.len(), x.len());
+    let fi: Vec<Vec<usize>> = faces.iter().map(|t| t.to_vec()).collect();
+    assert_eq!(ply.face_indices, fi);
+    let y: Vec<[f64; 3]> = ply.vertex.iter().map(|r| [r[0], r[1], r[2]]).collect();
+    for (i, r) in ply.vertex.iter().enumerate() {
+        assert_eq!([r[3], r[4], r[5]], sub(y[i], x[i]), "vertex {i}");
+    }
+    let mut moved = 0.0f64;
+    for r in &ply.vertex {
+        moved = moved.max(norm([r[3], r[4], r[5]]));
+    }
+    assert!(moved > 1e-3, "nothing moved: {moved}");
+    let (mut sum, mut wsum, mut max) = (0.0, 0.0, 1.0f64);
+    let (mut s_lo, mut s_hi) = (f64::INFINITY, 0.0f64);
+    for (f, t) in faces.iter().enumerate() {
+        let (a_in, a_out) = (tri_area(&x, *t), tri_area(&y, *t));
+        let (scale, dist) = (ply.face[f][0], ply.face[f][1]);
+        assert!(
+            close(scale, (a_out / a_in).sqrt(), 1e-9),
+            "face {f}: {scale}"
+        );
+        s_lo = s_lo.min(scale);
+        s_hi = s_hi.max(scale);
+        sum += a_in * dist;
+        wsum += a_in;
+        max = max.max(dist);
+    }
+    // The head grew by 1.5 in area: some faces scale up, by sqrt(1.5) on average.
+    assert!(s_hi > 1.1 && s_lo < s_hi, "scales {s_lo} .. {s_hi}");
+    let r = read_json(dir.path(), "r.json");
+    let qc = &r["distortion"];
+    let (mean_r, max_r) = (
+        qc["quasi_conformal_mean"].as_f64().unwrap(),
+        qc["quasi_conformal_max"].as_f64().unwrap(),
+    );
+    assert!(
+        close(sum / wsum, mean_r, 1e-9),
+        "{} vs {mean_r}",
+        sum / wsum
+    );
+    assert!(close(max, max_r, 1e-9), "{max} vs {max_r}");
+    assert!(max > 1.0);
+
+    // The PLY written is an input again: measure it, and deform it to PLY.
+    let job2 = "mesh = \"out.ply\"\noutput = \"again.ply\"\n[[constraint]]\nkind = \"volume\"\nscale = 1.1\n";
+    std::fs::write(dir.path().join("again.toml"), job2).unwrap();
+    let out = bin()
+        .args(["measure", "again.toml", "--report", "m.json"])
+        .current_dir(dir.path())
+        .output()
+        .unwrap();
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let m = read_json(dir.path(), "m.json");
+    assert_eq!(m["mesh"]["vertices"], x.len());
+    assert_eq!(m["mesh"]["faces"], faces.len());
+    let out = bin()
+        .args(["deform", "again.toml", "--backend", "cpu", "--quiet"])
+        .current_dir(dir.path())
+        .output()
+        .unwrap();
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let again = read_ply(&dir.path().join("again.ply"));
+    assert_eq!(again.face_indices, fi);
+    // Displacements are against out.ply's positions, not spot.obj's.
+    for (i, r) in again.vertex.iter().enumerate() {
+        assert_eq!(
+            [r[3], r[4], r[5]],
+            sub([r[0], r[1], r[2]], y[i]),
+            "vertex {i}"
+        );
+    }
+}
+
+/// `[output] attributes = false` writes plain geometry (x y z and
+/// vertex_indices only); the table's `path` is the output path, in TOML and
+/// in JSON; `[output]` with `attributes` only keeps the default path; OBJ
+/// output stays plain whatever `attributes` says.
+#[test]
+fn output_table_switches_attributes_off() {
+    let constraint = "[[constraint]]\nkind = \"volume\"\nscale = 1.1\n";
+    let job = format!(
+        "mesh = \"spot.obj\"\n[output]\npath = \"flat.ply\"\nattributes = false\n{constraint}"
+    );
+    let (out, dir) = deform_job("spot.obj", &job, &[]);
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let ply = read_ply(&dir.path().join("flat.ply"));
+    assert_eq!(ply.vertex_props, ["x", "y", "z"]);
+    assert_eq!(ply.face_props, ["vertex_indices"]);
+    assert_eq!(ply.face.len(), 5856);
+
+    // Table with the path only: attributes on (the default).
+    let job = format!("mesh = \"spot.obj\"\n[output]\npath = \"full.ply\"\n{constraint}");
+    let (out, dir) = deform_job("spot.obj", &job, &[]);
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let ply = read_ply(&dir.path().join("full.ply"));
+    assert_eq!(ply.face_props, ["vertex_indices", "scale", "distortion"]);
+
+    // Table without a path: the default name beside the job.
+    let job = format!("mesh = \"spot.obj\"\n[output]\nattributes = false\n{constraint}");
+    let (out, dir) = deform_job("spot.obj", &job, &[]);
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(dir.path().join("spot.deformed.obj").exists());
+
+    // JSON, and `--out` with a .ply keeps the job's attributes = false.
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::copy(meshes().join("spot.obj"), dir.path().join("spot.obj")).unwrap();
+    std::fs::write(
+        dir.path().join("job.json"),
+        r#"{"mesh": "spot.obj", "output": {"path": "j.ply", "attributes": false},
+            "constraint": [{"kind": "volume", "scale": 1.1}]}"#,
+    )
+    .unwrap();
+    for extra in [&[][..], &["--out", "o.ply"][..]] {
+        let out = bin()
+            .args(["deform", "job.json", "--backend", "cpu", "--quiet"])
+            .args(extra)
+            .current_dir(dir.path())
+            .output()
+            .unwrap();
+        assert_eq!(
+            out.status.code(),
+            Some(0),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+    for name in ["j.ply", "o.ply"] {
+        let ply = read_ply(&dir.path().join(name));
+        assert_eq!(ply.vertex_props, ["x", "y", "z"], "{name}");
+        assert_eq!(ply.face_props, ["vertex_indices"], "{name}");
+    }
+}
+
+/// A misspelt key in `[output]`, or an `output` that is neither a path nor a
+/// table, is bad input naming the job file and what is expected.
+#[test]
+fn bad_output_table_is_refused() {
+    assert_bad_input(
+        "spot.obj",
+        "mesh = \"spot.obj\"\n[output]\natributes = false\n[[constraint]]\nkind = \"volume\"\n",
+        &["job.toml", "atributes", "attributes"],
+    );
+    assert_bad_input(
+        "spot.obj",
+        "mesh = \"spot.obj\"\noutput = 3\n[[constraint]]\nkind = \"volume\"\n",
+        &["job.toml", "output", "path"],
+    );
+    assert_bad_input(
+        "spot.obj",
+        "mesh = \"spot.obj\"\n[output]\nattributes = \"no\"\n[[constraint]]\nkind = \"volume\"\n",
+        &["job.toml", "bool"],
+    );
+}
+
+/// trimesh (`process=False`, which keeps the vertices as in the file) loads
+/// our PLY with its extra properties: same vertex and face counts, same first
+/// vertex, and the face properties are there. Skipped with a message when
+/// python3 with trimesh is not available, unless REQUIRE_TRIMESH=1 (CI).
+#[test]
+fn trimesh_loads_the_ply_output() {
+    let required = std::env::var("REQUIRE_TRIMESH").is_ok_and(|v| v == "1");
+    let probe = Command::new("python3")
+        .args(["-c", "import trimesh, numpy"])
+        .output();
+    let available = probe.as_ref().is_ok_and(|o| o.status.success());
+    if !available {
+        let why = match &probe {
+            // The exception's line (the last of a traceback).
+            Ok(o) => String::from_utf8_lossy(&o.stderr)
+                .lines()
+                .last()
+                .unwrap_or("")
+                .to_string(),
+            Err(e) => format!("python3: {e}"),
+        };
+        assert!(
+            !required,
+            "REQUIRE_TRIMESH=1 but trimesh is not importable: {why}"
+        );
+        eprintln!(
+            "skipped: python3 with trimesh is not available ({})",
+            why.trim()
+        );
+        return;
+    }
+    let job = "mesh = \"spot.obj\"\noutput = \"out.ply\"\n[[constraint]]\nkind = \"volume\"\nscale = 1.2\n";
+    let (out, dir) = deform_job("spot.obj", job, &[]);
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let ply = read_ply(&dir.path().join("out.ply"));
+    assert_eq!(ply.face_props, ["vertex_indices", "scale", "distortion"]);
+    let script = "import sys, trimesh\n\
+                  m = trimesh.load(sys.argv[1], process=False)\n\
+                  raw = m.metadata.get('_ply_raw', {}).get('face', {}).get('data', {})\n\
+                  names = raw.dtype.names if hasattr(raw, 'dtype') else tuple(raw)\n\
+                  print(len(m.vertices), len(m.faces), *map(repr, m.vertices[0].tolist()), \
+                  'scale' in names and 'distortion' in names)\n";
+    let run = Command::new("python3")
+        .args(["-c", script])
+        .arg(dir.path().join("out.ply"))
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&run.stdout);
+    assert!(
+        run.status.success(),
+        "trimesh failed: {}{stdout}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let fields: Vec<&str> = stdout.split_whitespace().collect();
+    assert_eq!(
+        fields[0].parse::<usize>().unwrap(),
+        ply.vertex.len(),
+        "{stdout}"
+    );
+    assert_eq!(
+        fields[1].parse::<usize>().unwrap(),
+        ply.face_indices.len(),
+        "{stdout}"
+    );
+    let v0: Vec<f64> = fields[2..5].iter().map(|t| t.parse().unwrap()).collect();
+    assert_eq!(v0, ply.vertex[0][..3], "first vertex: {stdout}");
+    assert_eq!(fields.last(), Some(&"True"), "face properties: {stdout}");
+}
