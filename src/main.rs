@@ -76,6 +76,9 @@ enum Command {
     Adapters,
     /// Run the bundled job on spot (no files needed).
     Demo {
+        /// Print the demo's job file (examples/spot-demo.toml) and exit, running nothing.
+        #[arg(long)]
+        print_job: bool,
         #[command(flatten)]
         args: RunArgs,
     },
@@ -94,7 +97,13 @@ fn main() -> ExitCode {
             Job::load(&job).and_then(|j| measure(&j, report.as_deref()))
         }
         Command::Adapters => adapters(),
-        Command::Demo { args } => demo(&args),
+        Command::Demo {
+            print_job: true, ..
+        } => {
+            print!("{DEMO_JOB}");
+            Ok(0)
+        }
+        Command::Demo { args, .. } => demo(&args),
     };
     match result {
         Ok(code) => ExitCode::from(code),

@@ -1428,3 +1428,56 @@ fn trimesh_loads_the_ply_output() {
     assert_eq!(v0, ply.vertex[0][..3], "first vertex: {stdout}");
     assert_eq!(fields.last(), Some(&"True"), "face properties: {stdout}");
 }
+
+/// `demo --print-job` prints the bundled job file as it is in the repository,
+/// writes nothing, and the text is a job: beside spot.obj at the path it
+/// names, `measure` runs it and finds its three constraints.
+#[test]
+fn demo_prints_its_job() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = bin()
+        .args(["demo", "--print-job"])
+        .current_dir(dir.path())
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(0));
+    assert!(
+        files(dir.path()).is_empty(),
+        "wrote {:?}",
+        files(dir.path())
+    );
+    let text = String::from_utf8(out.stdout).unwrap();
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    assert_eq!(
+        text,
+        std::fs::read_to_string(root.join("examples/spot-demo.toml")).unwrap()
+    );
+    let parsed: toml::Table = toml::from_str(&text).unwrap();
+    let mesh = parsed["mesh"].as_str().unwrap();
+    // Lay out the mesh where the job says (relative to the job file).
+    let jobs = dir.path().join("jobs");
+    std::fs::create_dir_all(&jobs).unwrap();
+    let mesh_path = jobs.join(mesh);
+    std::fs::create_dir_all(mesh_path.parent().unwrap()).unwrap();
+    std::fs::copy(meshes().join("spot.obj"), &mesh_path).unwrap();
+    std::fs::write(jobs.join("demo.toml"), &text).unwrap();
+    let out = bin()
+        .args(["measure", "jobs/demo.toml", "--report", "m.json"])
+        .current_dir(dir.path())
+        .output()
+        .unwrap();
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let r = read_json(dir.path(), "m.json");
+    let names: Vec<&str> = r["constraints"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| c["name"].as_str().unwrap())
+        .collect();
+    assert_eq!(names, ["belly girth", "head", "volume"]);
+}
