@@ -1481,3 +1481,31 @@ fn demo_prints_its_job() {
         .collect();
     assert_eq!(names, ["belly girth", "head", "volume"]);
 }
+
+/// The README's JSON job example is a job: `measure` runs it on spot.
+#[test]
+fn readme_json_job_example_runs() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let readme = std::fs::read_to_string(root.join("README.md")).unwrap();
+    let start = readme
+        .find("```json\n{\n  \"mesh\"")
+        .expect("README has a JSON job example")
+        + "```json\n".len();
+    let len = readme[start..].find("```").unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::copy(meshes().join("spot.obj"), dir.path().join("spot.obj")).unwrap();
+    std::fs::write(dir.path().join("job.json"), &readme[start..start + len]).unwrap();
+    let out = bin()
+        .args(["measure", "job.json", "--report", "m.json"])
+        .current_dir(dir.path())
+        .output()
+        .unwrap();
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let r = read_json(dir.path(), "m.json");
+    assert_eq!(r["constraints"].as_array().unwrap().len(), 3);
+}
