@@ -4,6 +4,45 @@
 
 use crate::Mesh;
 use glam::DVec3;
+use serde::Serialize;
+
+/// How far the vertices moved from the input to the output, each vertex's
+/// `|output - input|` as a percentage of a length (the input's bbox diagonal,
+/// [`Mesh::bbox_diagonal`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
+pub struct DisplacementStats {
+    pub max_percent: f64,
+    /// Mean over all vertices.
+    pub mean_percent: f64,
+    /// The 99th percentile by the nearest-rank definition: with the n values
+    /// sorted ascending, the ceil(0.99 n)-th (1-based).
+    pub p99_percent: f64,
+}
+
+/// Per-vertex displacement `|output[i] - input[i]|` as a percentage of
+/// `diagonal`: max, mean over every vertex and nearest-rank 99th percentile
+/// ([`DisplacementStats`]). All zero when there are no vertices or `diagonal`
+/// is not a positive finite number (nothing to measure against).
+pub fn displacement_percent(input: &[DVec3], output: &[DVec3], diagonal: f64) -> DisplacementStats {
+    let n = input.len().min(output.len());
+    if n == 0 || !(diagonal.is_finite() && diagonal > 0.0) {
+        return DisplacementStats::default();
+    }
+    let mut d: Vec<f64> = input
+        .iter()
+        .zip(output)
+        .map(|(a, b)| (*b - *a).length() / diagonal * 100.0)
+        .collect();
+    let mean = d.iter().sum::<f64>() / n as f64;
+    d.sort_unstable_by(f64::total_cmp);
+    // Nearest rank: the smallest value with at least 99 % of the values <= it.
+    let rank = ((0.99 * n as f64).ceil() as usize).clamp(1, n);
+    DisplacementStats {
+        max_percent: d[n - 1],
+        mean_percent: mean,
+        p99_percent: d[rank - 1],
+    }
+}
 
 /// Distortion of one face: sigma_max / sigma_min (infinity for a collapsed face).
 pub fn face_ratio(a: [DVec3; 3], b: [DVec3; 3]) -> f64 {
@@ -134,6 +173,35 @@ mod tests {
         for d in face_distortions(&mesh, &x, &z) {
             assert!((d - 3.0).abs() < 1e-12);
         }
+    }
+    /// 200 vertices, vertex i moved by i/1000 along a fixed direction, against
+    /// a diagonal of 4: max 199/1000/4 = 4.975 %, mean (199/2)/1000/4 = 2.4875 %,
+    /// p99 the 198th smallest (nearest rank: ceil(0.99 * 200) = 198) = 197/1000/4
+    /// = 4.925 %.
+    #[test]
+    fn displacement_of_a_known_field() {
+        let x: Vec<DVec3> = (0..200).map(|i| DVec3::new(i as f64, 0.5, -1.0)).collect();
+        let dir = DVec3::new(2.0, -1.0, 2.0) / 3.0; // unit length
+        let y: Vec<DVec3> = x
+            .iter()
+            .enumerate()
+            .map(|(i, p)| *p + dir * (i as f64 / 1000.0))
+            .collect();
+        let s = displacement_percent(&x, &y, 4.0);
+        assert!((s.max_percent - 4.975).abs() < 1e-12, "{s:?}");
+        assert!((s.mean_percent - 2.4875).abs() < 1e-12, "{s:?}");
+        assert!((s.p99_percent - 4.925).abs() < 1e-12, "{s:?}");
+        // The order of the vertices does not matter; no motion is all zero.
+        let (xr, yr): (Vec<DVec3>, Vec<DVec3>) = x.iter().rev().zip(y.iter().rev()).unzip();
+        assert_eq!(displacement_percent(&xr, &yr, 4.0), s);
+        assert_eq!(
+            displacement_percent(&x, &x, 4.0),
+            DisplacementStats::default()
+        );
+        // Nearest rank on few values: with 3 values p99 is the largest.
+        let z = [DVec3::ZERO; 3];
+        let w = [DVec3::X, DVec3::ZERO, 2.0 * DVec3::Y];
+        assert_eq!(displacement_percent(&z, &w, 100.0).p99_percent, 2.0);
     }
     #[test]
     fn similarity_is_one_and_shear_is_not() {

@@ -592,7 +592,8 @@ fn parse_stl(bytes: &[u8], path: &Path) -> Result<Mesh> {
 ///   (faces, groups, `vt`, `vn`, comments, extra vertex columns, line endings) is kept.
 /// * OBJ otherwise: `v x y z` lines, then `f a b c` lines (1-based), with `g` lines so that
 ///   reading the file back gives the same groups.
-/// * PLY: `binary_little_endian`, `double` x/y/z, `list uchar int vertex_indices`.
+/// * PLY: `binary_little_endian`, `double` x/y/z, `list uchar int vertex_indices`
+///   ([`encode_mesh_with`] adds `double` vertex and face properties).
 /// * STL: binary (f32 coordinates), one triangle per face with its unit normal.
 ///
 /// Text formats print `f64` with `Display` (shortest round trip), so positions read back
@@ -617,6 +618,76 @@ pub fn encode_mesh(
     mesh: &Mesh,
     positions: &[DVec3],
     source: Option<&Path>,
+) -> Result<Vec<u8>> {
+    encode_mesh_with(path, mesh, positions, source, None)
+}
+
+/// Extra `double` properties of a PLY file: per vertex (after `x y z`) and per
+/// face (after `vertex_indices`), each a name and one value per vertex / face.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct PlyAttributes {
+    pub vertex: Vec<(String, Vec<f64>)>,
+    pub face: Vec<(String, Vec<f64>)>,
+}
+
+impl PlyAttributes {
+    /// The attributes of a deformed mesh (contract: "PLY output carries face
+    /// properties `scale` and `distortion` and vertex properties `dx dy dz`"):
+    /// per face [`crate::distortion::face_scales`] and
+    /// [`crate::distortion::face_distortions`] from `input` to `output`, per
+    /// vertex `output - input`.
+    pub fn deformation(mesh: &Mesh, input: &[DVec3], output: &[DVec3]) -> PlyAttributes {
+        let d: Vec<DVec3> = input.iter().zip(output).map(|(a, b)| *b - *a).collect();
+        PlyAttributes {
+            vertex: vec![
+                ("dx".into(), d.iter().map(|v| v.x).collect()),
+                ("dy".into(), d.iter().map(|v| v.y).collect()),
+                ("dz".into(), d.iter().map(|v| v.z).collect()),
+            ],
+            face: vec![
+                (
+                    "scale".into(),
+                    crate::distortion::face_scales(mesh, input, output),
+                ),
+                (
+                    "distortion".into(),
+                    crate::distortion::face_distortions(mesh, input, output),
+                ),
+            ],
+        }
+    }
+
+    /// Every column has one value per vertex / face, every name is one PLY token.
+    fn check(&self, nv: usize, nf: usize) -> Result<()> {
+        let cols = self
+            .vertex
+            .iter()
+            .map(|c| (c, nv, "vertex"))
+            .chain(self.face.iter().map(|c| (c, nf, "face")));
+        for ((name, values), n, element) in cols {
+            let token = !name.is_empty()
+                && name.bytes().all(|b| b.is_ascii_graphic())
+                && !["x", "y", "z", "vertex_indices"].contains(&name.as_str());
+            if !token || values.len() != n {
+                return Err(Error::Internal(format!(
+                    "PLY {element} property '{name}': {} values for {n} elements \
+                     (or a name that is not one new PLY token)",
+                    values.len()
+                )));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// [`encode_mesh`], and for a `.ply` path the extra properties `attributes`
+/// (ignored for OBJ and STL, which stay plain geometry).
+pub fn encode_mesh_with(
+    path: &Path,
+    mesh: &Mesh,
+    positions: &[DVec3],
+    source: Option<&Path>,
+    attributes: Option<&PlyAttributes>,
 ) -> Result<Vec<u8>> {
     let format = format_of(path)?;
     if positions.len() != mesh.positions.len() {
@@ -648,7 +719,12 @@ pub fn encode_mesh(
             Some(src) => obj_from_source(src, positions)?,
             None => obj_plain(mesh, positions),
         },
-        Format::Ply => ply_binary(mesh, positions),
+        Format::Ply => {
+            let none = PlyAttributes::default();
+            let attributes = attributes.unwrap_or(&none);
+            attributes.check(positions.len(), mesh.faces.len())?;
+            ply_binary(mesh, positions, attributes)
+        }
         Format::Stl => stl_binary(mesh, positions, path)?,
     };
     Ok(data)
@@ -771,25 +847,44 @@ fn obj_plain(mesh: &Mesh, positions: &[DVec3]) -> Vec<u8> {
     s.into_bytes()
 }
 
-fn ply_binary(mesh: &Mesh, positions: &[DVec3]) -> Vec<u8> {
-    let header = format!(
+fn ply_binary(mesh: &Mesh, positions: &[DVec3], attributes: &PlyAttributes) -> Vec<u8> {
+    let mut header = format!(
         "ply\nformat binary_little_endian 1.0\ncomment written by metricdeform\n\
-         element vertex {}\nproperty double x\nproperty double y\nproperty double z\n\
-         element face {}\nproperty list uchar int vertex_indices\nend_header\n",
-        positions.len(),
+         element vertex {}\nproperty double x\nproperty double y\nproperty double z\n",
+        positions.len()
+    );
+    for (name, _) in &attributes.vertex {
+        let _ = writeln!(header, "property double {name}");
+    }
+    let _ = write!(
+        header,
+        "element face {}\nproperty list uchar int vertex_indices\n",
         mesh.faces.len()
     );
-    let mut out = Vec::with_capacity(header.len() + positions.len() * 24 + mesh.faces.len() * 13);
+    for (name, _) in &attributes.face {
+        let _ = writeln!(header, "property double {name}");
+    }
+    header.push_str("end_header\n");
+    let (nva, nfa) = (attributes.vertex.len(), attributes.face.len());
+    let mut out = Vec::with_capacity(
+        header.len() + positions.len() * (24 + 8 * nva) + mesh.faces.len() * (13 + 8 * nfa),
+    );
     out.extend_from_slice(header.as_bytes());
-    for p in positions {
+    for (i, p) in positions.iter().enumerate() {
         for c in p.to_array() {
             out.extend_from_slice(&c.to_le_bytes());
         }
+        for (_, values) in &attributes.vertex {
+            out.extend_from_slice(&values[i].to_le_bytes());
+        }
     }
-    for t in &mesh.faces {
+    for (f, t) in mesh.faces.iter().enumerate() {
         out.push(3u8);
         for &v in t {
             out.extend_from_slice(&(v as i32).to_le_bytes());
+        }
+        for (_, values) in &attributes.face {
+            out.extend_from_slice(&values[f].to_le_bytes());
         }
     }
     out

@@ -36,9 +36,11 @@ impl fmt::Display for MetricKind {
 pub struct JobSpec {
     /// Input mesh (.obj, .ply or .stl), relative to the job file.
     pub mesh: PathBuf,
-    /// Output mesh; default `<mesh stem>.deformed.<ext>` beside the job file.
+    /// Output mesh: a path (`output = "x.ply"`) or a table `[output]` with an
+    /// optional `path` and `attributes`. Default path `<mesh stem>.deformed.<ext>`
+    /// beside the job file.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub output: Option<PathBuf>,
+    pub output: Option<OutputSpec>,
     #[serde(default)]
     pub constraint: Vec<ConstraintSpec>,
     #[serde(default)]
@@ -47,6 +49,76 @@ pub struct JobSpec {
     pub curvature: Vec<CurvatureSpec>,
     #[serde(default)]
     pub solver: SolverSpec,
+}
+
+/// The job's `output`: either a path, or a table `{ path, attributes }`.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+#[serde(untagged)]
+pub enum OutputSpec {
+    /// `output = "x.ply"`.
+    Path(PathBuf),
+    /// `[output]` with `path` and `attributes`, both optional.
+    Table(OutputTable),
+}
+
+/// The table form of `output`.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct OutputTable {
+    /// Output mesh path; default `<mesh stem>.deformed.<ext>` beside the job file.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub path: Option<PathBuf>,
+    /// PLY output carries the face properties `scale` and `distortion` and the
+    /// vertex properties `dx dy dz` (default true); OBJ and STL never do.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub attributes: Option<bool>,
+}
+
+impl OutputSpec {
+    /// The path given, if any.
+    pub fn path(&self) -> Option<&Path> {
+        match self {
+            OutputSpec::Path(p) => Some(p),
+            OutputSpec::Table(t) => t.path.as_deref(),
+        }
+    }
+
+    /// Whether PLY output carries the attributes (default true).
+    pub fn attributes(&self) -> bool {
+        match self {
+            OutputSpec::Path(_) => true,
+            OutputSpec::Table(t) => t.attributes.unwrap_or(true),
+        }
+    }
+}
+
+/// By hand rather than `untagged`, whose only message is "did not match any
+/// variant": a string is a path, a table is read as [`OutputTable`] (unknown
+/// keys named), anything else is told what is expected.
+impl<'de> Deserialize<'de> for OutputSpec {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> std::result::Result<Self, D::Error> {
+        struct V;
+        impl<'de> serde::de::Visitor<'de> for V {
+            type Value = OutputSpec;
+            fn expecting(&self, f: &mut fmt::Formatter) -> fmt::Result {
+                f.write_str(
+                    "`output` as a path string (output = \"x.ply\") or a table \
+                     ([output] with optional path = \"x.ply\" and attributes = true/false)",
+                )
+            }
+            fn visit_str<E: serde::de::Error>(self, v: &str) -> std::result::Result<OutputSpec, E> {
+                Ok(OutputSpec::Path(PathBuf::from(v)))
+            }
+            fn visit_map<A: serde::de::MapAccess<'de>>(
+                self,
+                map: A,
+            ) -> std::result::Result<OutputSpec, A::Error> {
+                OutputTable::deserialize(serde::de::value::MapAccessDeserializer::new(map))
+                    .map(OutputSpec::Table)
+            }
+        }
+        d.deserialize_any(V)
+    }
 }
 
 /// One `[[constraint]]`.
@@ -315,9 +387,15 @@ impl Job {
         self.resolve_path(&self.spec.mesh)
     }
 
-    /// The job's `output`, else `<mesh stem>.deformed.<mesh ext>` beside the job file.
+    /// Whether a PLY output carries the per-face and per-vertex attributes
+    /// (`[output] attributes`, default true).
+    pub fn output_attributes(&self) -> bool {
+        self.spec.output.as_ref().is_none_or(OutputSpec::attributes)
+    }
+
+    /// The job's `output` path, else `<mesh stem>.deformed.<mesh ext>` beside the job file.
     pub fn output_path(&self) -> PathBuf {
-        if let Some(out) = &self.spec.output {
+        if let Some(out) = self.spec.output.as_ref().and_then(OutputSpec::path) {
             return self.resolve_path(out);
         }
         let stem = self
@@ -404,6 +482,15 @@ impl JobSpec {
     pub fn validate(&self) -> Result<(), String> {
         if self.mesh.as_os_str().is_empty() {
             return Err("`mesh` is empty: give the input mesh's path".into());
+        }
+        if let Some(p) = self.output.as_ref().and_then(OutputSpec::path) {
+            if p.as_os_str().is_empty() {
+                return Err(
+                    "`output` path is empty: give a file name, or leave it out for \
+                     <mesh stem>.deformed.<ext> beside the job file"
+                        .into(),
+                );
+            }
         }
         for (i, c) in self.constraint.iter().enumerate() {
             c.validate(&constraint_label(i, c))?;

@@ -108,6 +108,9 @@ enum Command {
     Adapters,
     /// Run the bundled job on spot (no files needed).
     Demo {
+        /// Print the demo's job file (examples/spot-demo.toml) and exit, running nothing.
+        #[arg(long)]
+        print_job: bool,
         #[command(flatten)]
         args: RunArgs,
     },
@@ -128,7 +131,13 @@ fn main() -> ExitCode {
             picture,
         } => Job::load(&job).and_then(|j| measure(&j, report.as_deref(), &picture)),
         Command::Adapters => adapters(),
-        Command::Demo { args } => demo(&args),
+        Command::Demo {
+            print_job: true, ..
+        } => {
+            print!("{DEMO_JOB}");
+            Ok(0)
+        }
+        Command::Demo { args, .. } => demo(&args),
     };
     match result {
         Ok(code) => ExitCode::from(code),
@@ -426,11 +435,21 @@ fn run(job: &Job, args: &RunArgs) -> Result<u8, Error> {
             *p = p.as_vec3().as_dvec3();
         }
     }
-    let mesh_bytes = io::encode_mesh(
+    let input = &problem.mesh.positions;
+    // PLY output carries per-face scale and distortion and per-vertex
+    // displacement (of the positions written: PLY stores f64) unless the job
+    // says `[output] attributes = false`; OBJ and STL stay plain geometry.
+    let ply = out_path
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("ply"));
+    let attributes = (ply && job.output_attributes())
+        .then(|| io::PlyAttributes::deformation(&problem.mesh, input, &outcome.positions));
+    let mesh_bytes = io::encode_mesh_with(
         &out_path,
         &problem.mesh,
         &outcome.positions,
         Some(&problem.mesh_path),
+        attributes.as_ref(),
     )?;
     let rows = constraint_rows(&problem, &x, options.tolerance);
     let satisfied = rows.iter().all(|r| r.met);
@@ -440,7 +459,9 @@ fn run(job: &Job, args: &RunArgs) -> Result<u8, Error> {
     } else {
         explain_miss(&problem, &rows, Some(&outcome))
     };
-    let (qc_mean, qc_max) = distortion::quasi_conformal(&problem.mesh, &problem.mesh.positions, &x);
+    let (qc_mean, qc_max) = distortion::quasi_conformal(&problem.mesh, input, &x);
+    let displacement =
+        distortion::displacement_percent(input, &x, problem.mesh.bbox_diagonal(input));
     let report = Report {
         mesh: MeshInfo {
             path: problem.mesh_path.display().to_string(),
@@ -466,6 +487,7 @@ fn run(job: &Job, args: &RunArgs) -> Result<u8, Error> {
             quasi_conformal_mean: qc_mean,
             quasi_conformal_max: qc_max,
         },
+        displacement,
         preview,
         warnings: problem.warnings.clone(),
         reason: reason.clone(),
@@ -497,8 +519,16 @@ fn run(job: &Job, args: &RunArgs) -> Result<u8, Error> {
     output::commit(staged)?;
     print!("{}", table(&rows));
     println!(
-        "distortion: quasi-conformal mean {:.4}, max {:.4}; iterations: {} scale-driven, {} fine-tune; {:.2} s",
-        qc_mean, qc_max, report.iterations.scale_driven, report.iterations.fine_tune, report.seconds.total
+        "distortion: quasi-conformal mean {:.4}, max {:.4}; displacement (% of the bbox diagonal): \
+         max {:.4}, mean {:.4}, p99 {:.4}; iterations: {} scale-driven, {} fine-tune; {:.2} s",
+        qc_mean,
+        qc_max,
+        displacement.max_percent,
+        displacement.mean_percent,
+        displacement.p99_percent,
+        report.iterations.scale_driven,
+        report.iterations.fine_tune,
+        report.seconds.total
     );
     println!("wrote {}", out_path.display());
     if let Some(path) = &args.report {
@@ -563,6 +593,7 @@ fn measure(job: &Job, report_path: Option<&Path>, picture: &PictureArgs) -> Resu
             quasi_conformal_mean: 1.0,
             quasi_conformal_max: 1.0,
         },
+        displacement: distortion::DisplacementStats::default(),
         preview: false,
         warnings: problem.warnings.clone(),
         reason: None,

@@ -2,6 +2,7 @@
 
 use crate::deform::{Outcome, Problem};
 use crate::job::MetricKind;
+use crate::mesh::Mesh;
 use crate::metrics::Selection;
 use glam::DVec3;
 use serde::Serialize;
@@ -13,7 +14,7 @@ pub struct MeshInfo {
     pub faces: usize,
 }
 
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Default, Serialize)]
 pub struct ConstraintReport {
     pub kind: String,
     pub name: String,
@@ -22,6 +23,32 @@ pub struct ConstraintReport {
     pub result: f64,
     pub error_percent: f64,
     pub met: bool,
+    /// Region: how many faces of the input mesh it selects.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub faces: Option<usize>,
+    /// Region: its area on the input mesh.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub area: Option<f64>,
+    /// Region: the bounding box of its faces' vertices on the input mesh.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub bbox: Option<BoundingBox>,
+    /// Curve: points of the polyline ([`crate::selection::Curve::num_points`]).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub points: Option<usize>,
+    /// Plane curve: connected pieces the plane cut from the input mesh.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub loops: Option<usize>,
+    /// Plane curve: the chosen piece, numbered from 1 by the smallest index of
+    /// the faces each piece crosses ([`crate::selection::PlaneCut`]).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub chosen_loop: Option<usize>,
+}
+
+/// An axis-aligned box `{ "min": [x, y, z], "max": [x, y, z] }`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct BoundingBox {
+    pub min: [f64; 3],
+    pub max: [f64; 3],
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -43,6 +70,8 @@ pub struct Distortion {
     pub quasi_conformal_mean: f64,
     pub quasi_conformal_max: f64,
 }
+
+pub use crate::distortion::DisplacementStats;
 
 /// Preconditioner set-ups per system kind (numeric factorizations on the
 /// CPU, AMG hierarchy builds on the GPU).
@@ -107,6 +136,9 @@ pub struct Report {
     pub iterations: Iterations,
     pub seconds: Seconds,
     pub distortion: Distortion,
+    /// How far the vertices moved, in % of the input's bbox diagonal (zero for
+    /// `measure`).
+    pub displacement: DisplacementStats,
     /// `--preview N`: the scale-driven phase was cut after N iterations and the
     /// fine-tune skipped; constraints are not expected to be met.
     pub preview: bool,
@@ -124,14 +156,15 @@ pub struct Report {
     pub solver: Option<SolverWork>,
 }
 
-/// Metric rows for positions `x` (the result, or the input for `measure`).
+/// Metric rows for positions `x` (the result, or the input for `measure`), with
+/// each constraint's selection facts measured on the input mesh.
 pub fn constraint_rows(p: &Problem, x: &[DVec3], tolerance: f64) -> Vec<ConstraintReport> {
     p.constraints
         .iter()
         .map(|c| {
             let result = c.measure(&p.mesh, x);
             let rel = (result - c.target).abs() / c.target.abs();
-            ConstraintReport {
+            let mut row = ConstraintReport {
                 kind: c.kind.to_string(),
                 name: c.name.clone(),
                 original: c.original,
@@ -139,9 +172,43 @@ pub fn constraint_rows(p: &Problem, x: &[DVec3], tolerance: f64) -> Vec<Constrai
                 result,
                 error_percent: rel * 100.0,
                 met: rel <= tolerance,
+                ..ConstraintReport::default()
+            };
+            let input = &p.mesh.positions;
+            match &c.selection {
+                Selection::Region(r) => {
+                    row.faces = Some(r.faces.len());
+                    row.area = Some(r.area(&p.mesh, input));
+                    row.bbox = region_bbox(&p.mesh, input, &r.faces);
+                }
+                Selection::Curve(curve) => {
+                    row.points = Some(curve.num_points());
+                    if let Some(cut) = curve.plane_cut {
+                        row.loops = Some(cut.loops);
+                        row.chosen_loop = Some(cut.chosen);
+                    }
+                }
+                Selection::Whole => {}
             }
+            row
         })
         .collect()
+}
+
+/// Bounding box of the vertices of `faces` at positions `x`; None when empty.
+fn region_bbox(mesh: &Mesh, x: &[DVec3], faces: &[u32]) -> Option<BoundingBox> {
+    let mut lo = DVec3::splat(f64::INFINITY);
+    let mut hi = DVec3::splat(f64::NEG_INFINITY);
+    for &f in faces {
+        for v in mesh.faces[f as usize] {
+            lo = lo.min(x[v as usize]);
+            hi = hi.max(x[v as usize]);
+        }
+    }
+    (lo.x <= hi.x).then(|| BoundingBox {
+        min: lo.to_array(),
+        max: hi.to_array(),
+    })
 }
 
 /// A plain explanation for missed constraints, when one is known.
@@ -263,7 +330,44 @@ pub fn table(rows: &[ConstraintReport]) -> String {
             if r.met { "yes" } else { "NO" }
         ));
     }
+    // The selections, one line per constraint that has one, under the table.
+    let facts: Vec<String> = rows
+        .iter()
+        .filter_map(|r| selection_facts(r).map(|f| format!("  {}: {f}\n", r.name)))
+        .collect();
+    if !facts.is_empty() {
+        s.push_str("selections on the input mesh:\n");
+        for f in facts {
+            s.push_str(&f);
+        }
+    }
     s
+}
+
+/// A row's selection facts in words: `412 faces, area 0.123456, bbox [..] to
+/// [..]` for a region, `96 points, piece 2 of 4 cut by the plane` for a curve;
+/// None for a volume.
+pub fn selection_facts(r: &ConstraintReport) -> Option<String> {
+    let v = |p: [f64; 3]| format!("[{:.4}, {:.4}, {:.4}]", p[0], p[1], p[2]);
+    if let Some(faces) = r.faces {
+        let mut s = format!("region of {faces} faces");
+        if let Some(a) = r.area {
+            s.push_str(&format!(", area {a:.6}"));
+        }
+        if let Some(b) = &r.bbox {
+            s.push_str(&format!(", bbox {} to {}", v(b.min), v(b.max)));
+        }
+        return Some(s);
+    }
+    let points = r.points?;
+    let mut s = format!("curve of {points} points");
+    if let (Some(loops), Some(chosen)) = (r.loops, r.chosen_loop) {
+        s.push_str(&format!(
+            ", the plane cut {loops} loop{}, this is loop {chosen}",
+            if loops == 1 { "" } else { "s" }
+        ));
+    }
+    Some(s)
 }
 
 #[cfg(test)]
@@ -279,6 +383,7 @@ mod tests {
             result: 1.2,
             error_percent: 0.0,
             met: true,
+            ..ConstraintReport::default()
         }
     }
 
@@ -294,5 +399,55 @@ mod tests {
         let col = |l: &str| l.find("length").unwrap_or(0);
         assert_eq!(col(lines[1]), col(lines[2]));
         assert_eq!(col(lines[1]), 70_002);
+    }
+
+    /// Selection facts go on lines of their own under the table, one per
+    /// constraint that has a selection (none for a volume), and in the JSON
+    /// only where they apply.
+    #[test]
+    fn selection_facts_are_listed_under_the_table() {
+        let mut girth = row("girth");
+        girth.points = Some(130);
+        girth.loops = Some(4);
+        girth.chosen_loop = Some(2);
+        let mut head = row("head");
+        head.kind = "area".into();
+        head.faces = Some(870);
+        head.area = Some(0.5953);
+        head.bbox = Some(BoundingBox {
+            min: [-1.0, 0.0, 0.5],
+            max: [1.0, 2.0, 0.75],
+        });
+        let mut volume = row("volume");
+        volume.kind = "volume".into();
+        let t = table(&[girth.clone(), head.clone(), volume.clone()]);
+        let lines: Vec<&str> = t.lines().collect();
+        assert_eq!(lines.len(), 4 + 1 + 2, "{t}");
+        assert_eq!(lines[4], "selections on the input mesh:");
+        assert!(
+            lines[5].starts_with("  girth: ")
+                && lines[5].contains("130 points")
+                && lines[5].contains("4 loops")
+                && lines[5].contains("loop 2"),
+            "{t}"
+        );
+        assert!(
+            lines[6].starts_with("  head: ")
+                && lines[6].contains("870 faces")
+                && lines[6].contains("area 0.595300")
+                && lines[6].contains("[-1.0000, 0.0000, 0.5000] to [1.0000, 2.0000, 0.7500]"),
+            "{t}"
+        );
+        let json = |r: &ConstraintReport| serde_json::to_value(r).unwrap();
+        let (g, h, v) = (json(&girth), json(&head), json(&volume));
+        assert_eq!(g["loops"], 4);
+        assert_eq!(g["chosen_loop"], 2);
+        assert!(g.get("faces").is_none() && g.get("bbox").is_none());
+        assert_eq!(h["faces"], 870);
+        assert_eq!(h["bbox"]["max"][2], 0.75);
+        assert!(h.get("points").is_none() && h.get("loops").is_none());
+        for k in ["faces", "area", "bbox", "points", "loops", "chosen_loop"] {
+            assert!(v.get(k).is_none(), "{k}: {v}");
+        }
     }
 }

@@ -58,12 +58,43 @@ impl Segment {
 pub struct Curve {
     pub segments: Vec<Segment>,
     pub closed: bool,
+    /// For a curve cut by a plane: how many pieces the plane cut and which one
+    /// this curve is. `None` for paths and explicit points.
+    pub plane_cut: Option<PlaneCut>,
+}
+
+/// What a plane section found on the input mesh.
+///
+/// The pieces are numbered from 1 in the order of the smallest index of the
+/// faces each one crosses (the piece through the lowest-numbered crossed face
+/// is piece 1). A piece where the plane only touches the mesh at a vertex (no
+/// segment of positive length) is not counted.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct PlaneCut {
+    /// Connected pieces (closed loops, or open arcs on an open mesh) the plane
+    /// cut from the mesh.
+    pub loops: usize,
+    /// 1-based number of the piece chosen (the one with a crossing point
+    /// closest to the plane's origin), in the order above.
+    pub chosen: usize,
 }
 
 impl Curve {
     /// Sum of the segment lengths for vertex positions `x`.
     pub fn length(&self, mesh: &Mesh, x: &[DVec3]) -> f64 {
         self.segments.iter().map(|s| s.length(mesh, x)).sum()
+    }
+
+    /// Points of the polyline: the segments' ends, each shared end counted once
+    /// (segments + 1 for an open curve, segments for a closed one).
+    pub fn num_points(&self) -> usize {
+        if self.segments.is_empty() {
+            0
+        } else if self.closed {
+            self.segments.len()
+        } else {
+            self.segments.len() + 1
+        }
     }
 }
 
@@ -196,8 +227,11 @@ fn plane_section(plane: &PlaneSpec, mesh: &Mesh, topo: &Topology, what: &str) ->
 
     let nf = mesh.faces.len();
     let mut visited = vec![false; nf];
-    // Best piece so far: (distance of its nearest crossing to origin, segments, closed).
-    let mut best: Option<(f64, Vec<Segment>, bool)> = None;
+    // Best piece so far: (distance of its nearest crossing to origin, segments,
+    // closed, 1-based piece number).
+    let mut best: Option<(f64, Vec<Segment>, bool, usize)> = None;
+    // Pieces found so far (those with at least one segment).
+    let mut pieces = 0usize;
     for f0 in 0..nf {
         // Duplicate and collapsed faces are not part of the surface's adjacency.
         if visited[f0] || topo.ignored.get(f0).copied().unwrap_or(false) {
@@ -288,12 +322,22 @@ fn plane_section(plane: &PlaneSpec, mesh: &Mesh, topo: &Topology, what: &str) ->
         if segments.is_empty() {
             continue; // the plane only touches the mesh at a vertex here
         }
-        if best.as_ref().is_none_or(|(bd, _, _)| dist < *bd) {
-            best = Some((dist, segments, closed));
+        // Pieces are found in order of their lowest-numbered crossed face: f0
+        // is the first crossed face not on an earlier piece.
+        pieces += 1;
+        if best.as_ref().is_none_or(|(bd, _, _, _)| dist < *bd) {
+            best = Some((dist, segments, closed, pieces));
         }
     }
     match best {
-        Some((_, segments, closed)) => Ok(Curve { segments, closed }),
+        Some((_, segments, closed, chosen)) => Ok(Curve {
+            segments,
+            closed,
+            plane_cut: Some(PlaneCut {
+                loops: pieces,
+                chosen,
+            }),
+        }),
         None => {
             // Extent of the mesh along the unit normal, measured from the origin.
             let nh = normal.normalize();
@@ -511,7 +555,11 @@ fn edge_path(
         )));
     }
     let closed = closed || path.first() == path.last();
-    Ok(Curve { segments, closed })
+    Ok(Curve {
+        segments,
+        closed,
+        plane_cut: None,
+    })
 }
 
 /// A validated surface point: face and normalised barycentrics (tiny ones snapped to 0).
@@ -655,7 +703,11 @@ fn point_curve(points: &[PointSpec], mesh: &Mesh, topo: &Topology, what: &str) -
         )));
     }
     let closed = pts.len() > 2 && pts[0].same_point(mesh, &pts[pts.len() - 1]);
-    Ok(Curve { segments, closed })
+    Ok(Curve {
+        segments,
+        closed,
+        plane_cut: None,
+    })
 }
 
 // ---------------------------------------------------------------------------

@@ -741,3 +741,771 @@ fn handled_faces_are_warned_on_stderr_and_in_the_report() {
     let qc = report["distortion"]["quasi_conformal_max"].as_f64();
     assert!(qc.is_some_and(|q| q.is_finite() && q >= 1.0), "{report}");
 }
+
+/// The `v` positions and the `f` triangles (0-based) of an OBJ of triangles,
+/// read here independently of the crate's reader.
+fn read_obj(path: &Path) -> (Vec<[f64; 3]>, Vec<[usize; 3]>) {
+    let text = std::fs::read_to_string(path).unwrap();
+    let (mut v, mut f) = (Vec::new(), Vec::new());
+    for line in text.lines() {
+        let t: Vec<&str> = line.split_whitespace().collect();
+        match t.first() {
+            Some(&"v") => v.push([1, 2, 3].map(|k| t[k].parse::<f64>().unwrap())),
+            Some(&"f") => {
+                assert_eq!(t.len(), 4, "not a triangle: {line}");
+                f.push(
+                    [1, 2, 3]
+                        .map(|k| t[k].split('/').next().unwrap().parse::<usize>().unwrap() - 1),
+                );
+            }
+            _ => {}
+        }
+    }
+    (v, f)
+}
+
+fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+
+fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+fn norm(a: [f64; 3]) -> f64 {
+    dot(a, a).sqrt()
+}
+
+fn tri_area(v: &[[f64; 3]], t: [usize; 3]) -> f64 {
+    let (e1, e2) = (sub(v[t[1]], v[t[0]]), sub(v[t[2]], v[t[0]]));
+    let c = [
+        e1[1] * e2[2] - e1[2] * e2[1],
+        e1[2] * e2[0] - e1[0] * e2[2],
+        e1[0] * e2[1] - e1[1] * e2[0],
+    ];
+    0.5 * norm(c)
+}
+
+fn close(a: f64, b: f64, rel: f64) -> bool {
+    (a - b).abs() <= rel * a.abs().max(b.abs()).max(1e-300)
+}
+
+/// The report's displacement statistics are those of the written mesh against
+/// the input: recomputed here from the two OBJ files, as % of the input's
+/// bbox diagonal (max, mean, nearest-rank 99th percentile); the stdout
+/// summary line gives them too.
+#[test]
+fn displacement_statistics_match_the_written_mesh() {
+    let job = "mesh = \"spot.obj\"\noutput = \"out.obj\"\n[[constraint]]\nkind = \"volume\"\nscale = 1.3\n";
+    let (out, dir) = deform_job("spot.obj", job, &["--report", "r.json"]);
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{stdout}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let (x, faces) = read_obj(&dir.path().join("spot.obj"));
+    let (y, faces_out) = read_obj(&dir.path().join("out.obj"));
+    assert_eq!(faces, faces_out);
+    let (mut lo, mut hi) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
+    for t in &faces {
+        for &i in t {
+            for k in 0..3 {
+                lo[k] = lo[k].min(x[i][k]);
+                hi[k] = hi[k].max(x[i][k]);
+            }
+        }
+    }
+    let diagonal = norm(sub(hi, lo));
+    let mut d: Vec<f64> = x
+        .iter()
+        .zip(&y)
+        .map(|(a, b)| norm(sub(*b, *a)) / diagonal * 100.0)
+        .collect();
+    d.sort_by(f64::total_cmp);
+    let n = d.len();
+    let max = d[n - 1];
+    let mean = d.iter().sum::<f64>() / n as f64;
+    let p99 = d[(99 * n).div_ceil(100) - 1];
+    // A volume x1.3 moves the surface by several % of the diagonal.
+    assert!(max > 1.0, "max {max}");
+    let r = read_json(dir.path(), "r.json");
+    let disp = &r["displacement"];
+    for (key, want) in [
+        ("max_percent", max),
+        ("mean_percent", mean),
+        ("p99_percent", p99),
+    ] {
+        let got = disp[key].as_f64().unwrap();
+        assert!(
+            close(got, want, 1e-9),
+            "{key}: report {got}, recomputed {want}"
+        );
+    }
+    let line = stdout
+        .lines()
+        .find(|l| l.contains("displacement"))
+        .unwrap_or_else(|| panic!("no displacement on stdout: {stdout}"));
+    assert!(line.contains(&format!("max {max:.4}")), "{line}");
+    assert!(line.contains(&format!("p99 {p99:.4}")), "{line}");
+}
+
+/// The pieces a plane cuts from a triangle mesh, found here independently of
+/// the crate's section walk: the faces with corners on both sides (signed
+/// distance >= 0 counts as positive, as the contract says) joined by union-find
+/// across the edges that change sides. Returns, per piece in order of its
+/// smallest face index, (its crossed edges, the distance from `origin` to its
+/// nearest crossing point).
+fn plane_pieces(
+    v: &[[f64; 3]],
+    faces: &[[usize; 3]],
+    origin: [f64; 3],
+    normal: [f64; 3],
+) -> Vec<(usize, f64)> {
+    use std::collections::{BTreeMap, HashMap, HashSet};
+    let d: Vec<f64> = v.iter().map(|p| dot(sub(*p, origin), normal)).collect();
+    let pos = |i: usize| d[i] >= 0.0;
+    let mut parent: HashMap<usize, usize> = HashMap::new();
+    fn find(p: &mut HashMap<usize, usize>, mut a: usize) -> usize {
+        while p[&a] != a {
+            let up = p[&p[&a]];
+            p.insert(a, up);
+            a = up;
+        }
+        a
+    }
+    let mut edge_faces: HashMap<(usize, usize), Vec<usize>> = HashMap::new();
+    for (fi, t) in faces.iter().enumerate() {
+        for k in 0..3 {
+            let (a, b) = (t[k], t[(k + 1) % 3]);
+            if pos(a) != pos(b) {
+                parent.insert(fi, fi);
+                edge_faces.entry((a.min(b), a.max(b))).or_default().push(fi);
+            }
+        }
+    }
+    for fs in edge_faces.values() {
+        for &g in &fs[1..] {
+            let (ra, rb) = (find(&mut parent, fs[0]), find(&mut parent, g));
+            parent.insert(rb, ra);
+        }
+    }
+    /// A piece: (smallest face, crossed edges, nearest crossing).
+    type Piece = (usize, HashSet<(usize, usize)>, f64);
+    let mut pieces: BTreeMap<usize, Piece> = BTreeMap::new();
+    let keys: Vec<usize> = parent.keys().copied().collect();
+    for f in keys {
+        let r = find(&mut parent, f);
+        let e = pieces
+            .entry(r)
+            .or_insert((usize::MAX, HashSet::new(), f64::INFINITY));
+        e.0 = e.0.min(f);
+    }
+    for (&(a, b), fs) in &edge_faces {
+        let r = find(&mut parent, fs[0]);
+        let t = d[a] / (d[a] - d[b]);
+        let p = [0, 1, 2].map(|k| v[a][k] + t * (v[b][k] - v[a][k]));
+        let e = pieces.get_mut(&r).unwrap();
+        e.1.insert((a, b));
+        e.2 = e.2.min(norm(sub(p, origin)));
+    }
+    let mut list: Vec<(usize, usize, f64)> = pieces
+        .into_values()
+        .map(|(f, e, dist)| (f, e.len(), dist))
+        .collect();
+    list.sort_by_key(|p| p.0);
+    list.into_iter().map(|(_, e, dist)| (e, dist)).collect()
+}
+
+/// `measure` reports and prints each constraint's selection on spot, checked
+/// against counts made here from the OBJ: a sphere's faces (centroid within),
+/// their area and bounding box; a plane through the four legs (4 loops, the
+/// chosen one holding the crossing nearest the origin) and one through the
+/// body (1 loop); a curve's points (one per crossed edge of its loop). No
+/// constraint has a target: each is just measured (target = original, met).
+#[test]
+fn measure_reports_selection_facts() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::copy(meshes().join("spot.obj"), dir.path().join("spot.obj")).unwrap();
+    let legs = ([-0.2, -0.6, -0.1], [0.0, 1.0, 0.0]);
+    let body = ([0.0, 0.0, 0.3], [0.0, 1.0, 0.0]);
+    let (center, radius) = ([0.0, 0.55, -0.4], 0.35);
+    let job = format!(
+        "mesh = \"spot.obj\"\n\
+         [[constraint]]\nkind = \"length\"\nname = \"legs\"\n\
+         curve = {{ plane = {{ origin = {:?}, normal = {:?} }} }}\n\
+         [[constraint]]\nkind = \"length\"\nname = \"body\"\n\
+         curve = {{ plane = {{ origin = {:?}, normal = {:?} }} }}\n\
+         [[constraint]]\nkind = \"area\"\nname = \"head\"\n\
+         region = {{ sphere = {{ center = {center:?}, radius = {radius:?} }} }}\n",
+        legs.0, legs.1, body.0, body.1
+    );
+    std::fs::write(dir.path().join("job.toml"), job).unwrap();
+    let out = bin()
+        .args(["measure", "job.toml", "--report", "m.json"])
+        .current_dir(dir.path())
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{stdout}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let (v, faces) = read_obj(&dir.path().join("spot.obj"));
+    // The sphere: faces whose centroid is within it, none near its surface.
+    let mut region = Vec::new();
+    for (fi, t) in faces.iter().enumerate() {
+        let c = [0, 1, 2].map(|k| (v[t[0]][k] + v[t[1]][k] + v[t[2]][k]) / 3.0);
+        let r = norm(sub(c, center));
+        assert!((r - radius).abs() > 1e-9, "face {fi} on the sphere");
+        if r <= radius {
+            region.push(fi);
+        }
+    }
+    let area: f64 = region.iter().map(|&f| tri_area(&v, faces[f])).sum();
+    let (mut lo, mut hi) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
+    for &f in &region {
+        for &i in &faces[f] {
+            for k in 0..3 {
+                lo[k] = lo[k].min(v[i][k]);
+                hi[k] = hi[k].max(v[i][k]);
+            }
+        }
+    }
+    let leg_pieces = plane_pieces(&v, &faces, legs.0, legs.1);
+    let body_pieces = plane_pieces(&v, &faces, body.0, body.1);
+    // Spot stands on four legs: a cut at y = -0.6 crosses each once.
+    assert_eq!(leg_pieces.len(), 4);
+    assert_eq!(body_pieces.len(), 1);
+    let nearest = |p: &[(usize, f64)]| {
+        (0..p.len())
+            .min_by(|&a, &b| p[a].1.total_cmp(&p[b].1))
+            .unwrap()
+    };
+    let leg_chosen = nearest(&leg_pieces);
+    // The origin is beside a leg other than the first in face order, so that
+    // the choice is not the first piece found.
+    assert_ne!(leg_chosen, 0);
+
+    let r = read_json(dir.path(), "m.json");
+    let rows = r["constraints"].as_array().unwrap();
+    assert_eq!(rows.len(), 3);
+    for row in rows {
+        assert_eq!(row["target"], row["original"], "{row}");
+        assert_eq!(row["met"], true, "{row}");
+    }
+    let (lr, br, hr) = (&rows[0], &rows[1], &rows[2]);
+    assert_eq!(lr["loops"], 4, "{lr}");
+    assert_eq!(lr["chosen_loop"], leg_chosen + 1, "{lr}");
+    assert_eq!(lr["points"], leg_pieces[leg_chosen].0, "{lr}");
+    assert_eq!(br["loops"], 1, "{br}");
+    assert_eq!(br["chosen_loop"], 1, "{br}");
+    assert_eq!(br["points"], body_pieces[0].0, "{br}");
+    assert!(lr.get("faces").is_none() && hr.get("loops").is_none());
+    assert_eq!(hr["faces"], region.len(), "{hr}");
+    assert!(
+        close(hr["area"].as_f64().unwrap(), area, 1e-12),
+        "{hr} vs {area}"
+    );
+    assert!(close(hr["original"].as_f64().unwrap(), area, 1e-12), "{hr}");
+    for k in 0..3 {
+        assert_eq!(hr["bbox"]["min"][k].as_f64(), Some(lo[k]), "{hr}");
+        assert_eq!(hr["bbox"]["max"][k].as_f64(), Some(hi[k]), "{hr}");
+    }
+    // The same facts on stdout, one line per constraint under the table.
+    let line = |name: &str| {
+        stdout
+            .lines()
+            .find(|l| l.starts_with(&format!("  {name}: ")))
+            .unwrap_or_else(|| panic!("no line for {name}: {stdout}"))
+            .to_string()
+    };
+    let l = line("legs");
+    assert!(
+        l.contains("4 loops")
+            && l.contains(&format!("loop {}", leg_chosen + 1))
+            && l.contains(&format!("{} points", leg_pieces[leg_chosen].0)),
+        "{l}"
+    );
+    assert!(line("body").contains("1 loop,"), "{stdout}");
+    assert!(
+        line("head").contains(&format!("{} faces", region.len())),
+        "{stdout}"
+    );
+}
+
+/// `measure` takes a job without any target (constraints with neither scale
+/// nor value) and a job with no constraint at all: it measures, exit 0.
+#[test]
+fn measure_needs_no_targets() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::copy(meshes().join("spot.obj"), dir.path().join("spot.obj")).unwrap();
+    std::fs::write(dir.path().join("bare.toml"), "mesh = \"spot.obj\"\n").unwrap();
+    std::fs::write(
+        dir.path().join("kept.json"),
+        r#"{"mesh": "spot.obj", "constraint": [{"kind": "volume"}, {"kind": "area", "region": {"faces": [0, 1, 2]}}]}"#,
+    )
+    .unwrap();
+    for job in ["bare.toml", "kept.json"] {
+        let out = bin()
+            .args(["measure", job, "--report", "m.json"])
+            .current_dir(dir.path())
+            .output()
+            .unwrap();
+        assert_eq!(
+            out.status.code(),
+            Some(0),
+            "{job}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let r = read_json(dir.path(), "m.json");
+        let rows = r["constraints"].as_array().unwrap();
+        assert_eq!(rows.len(), if job == "bare.toml" { 0 } else { 2 });
+        for row in rows {
+            assert_eq!(row["target"], row["original"], "{row}");
+            assert_eq!(row["error_percent"], 0.0, "{row}");
+        }
+        if job == "kept.json" {
+            assert_eq!(rows[1]["faces"], 3);
+        }
+    }
+}
+
+/// A binary little-endian PLY read here by hand (independently of the crate's
+/// reader): per element, its property names and, per record, the values
+/// (a list property's entries first, then the scalars, in header order).
+struct Ply {
+    vertex_props: Vec<String>,
+    face_props: Vec<String>,
+    vertex: Vec<Vec<f64>>,
+    face_indices: Vec<Vec<usize>>,
+    face: Vec<Vec<f64>>,
+}
+
+fn read_ply(path: &Path) -> Ply {
+    let bytes = std::fs::read(path).unwrap();
+    let end = b"end_header\n";
+    let hlen = bytes.windows(end.len()).position(|w| w == end).unwrap() + end.len();
+    let header = std::str::from_utf8(&bytes[..hlen]).unwrap();
+    assert!(
+        header.contains("format binary_little_endian 1.0"),
+        "{header}"
+    );
+    /// (element name, count, [(type, property name)]).
+    type Element = (String, usize, Vec<(String, String)>);
+    let mut elems: Vec<Element> = Vec::new();
+    for line in header.lines() {
+        let t: Vec<&str> = line.split_whitespace().collect();
+        match t.first() {
+            Some(&"element") => elems.push((t[1].into(), t[2].parse().unwrap(), Vec::new())),
+            Some(&"property") => {
+                let (ty, name) = if t[1] == "list" {
+                    (format!("list {} {}", t[2], t[3]), t[4])
+                } else {
+                    (t[1].to_string(), t[2])
+                };
+                elems.last_mut().unwrap().2.push((ty, name.into()));
+            }
+            _ => {}
+        }
+    }
+    let mut at = hlen;
+    let mut take = |n: usize| {
+        let s = &bytes[at..at + n];
+        at += n;
+        s.to_vec()
+    };
+    let mut ply = Ply {
+        vertex_props: Vec::new(),
+        face_props: Vec::new(),
+        vertex: Vec::new(),
+        face_indices: Vec::new(),
+        face: Vec::new(),
+    };
+    for (name, count, props) in &elems {
+        let names: Vec<String> = props.iter().map(|p| p.1.clone()).collect();
+        for _ in 0..*count {
+            let mut scalars = Vec::new();
+            for (ty, _) in props {
+                match ty.as_str() {
+                    "double" => scalars.push(f64::from_le_bytes(take(8).try_into().unwrap())),
+                    "list uchar int" => {
+                        let n = take(1)[0] as usize;
+                        let idx = (0..n)
+                            .map(|_| i32::from_le_bytes(take(4).try_into().unwrap()) as usize)
+                            .collect();
+                        ply.face_indices.push(idx);
+                    }
+                    other => panic!("unexpected PLY type {other}"),
+                }
+            }
+            match name.as_str() {
+                "vertex" => ply.vertex.push(scalars),
+                "face" => ply.face.push(scalars),
+                other => panic!("unexpected element {other}"),
+            }
+        }
+        match name.as_str() {
+            "vertex" => ply.vertex_props = names,
+            _ => ply.face_props = names,
+        }
+    }
+    assert_eq!(at, bytes.len(), "trailing bytes");
+    ply
+}
+
+/// PLY output carries per face `scale` and `distortion` and per vertex
+/// `dx dy dz` (the string form of `output`): the distortion's area-weighted
+/// mean and max are the report's quasi-conformal figures, the scale is
+/// sqrt(area out / area in) of the written positions, the displacement is
+/// written minus input. The file reads back as an input mesh.
+#[test]
+fn ply_output_carries_scale_distortion_and_displacement() {
+    let job = "mesh = \"spot.obj\"\noutput = \"out.ply\"\n[[constraint]]\nkind = \"area\"\nregion = { sphere = { center = [0.0, 0.55, -0.4], radius = 0.35 } }\nscale = 1.5\n";
+    let (out, dir) = deform_job("spot.obj", job, &["--report", "r.json"]);
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let (x, faces) = read_obj(&dir.path().join("spot.obj"));
+    let ply = read_ply(&dir.path().join("out.ply"));
+    assert_eq!(ply.vertex_props, ["x", "y", "z", "dx", "dy", "dz"]);
+    assert_eq!(ply.face_props, ["vertex_indices", "scale", "distortion"]);
+    assert_eq!(ply.vertex.len(), x.len());
+    let fi: Vec<Vec<usize>> = faces.iter().map(|t| t.to_vec()).collect();
+    assert_eq!(ply.face_indices, fi);
+    let y: Vec<[f64; 3]> = ply.vertex.iter().map(|r| [r[0], r[1], r[2]]).collect();
+    for (i, r) in ply.vertex.iter().enumerate() {
+        assert_eq!([r[3], r[4], r[5]], sub(y[i], x[i]), "vertex {i}");
+    }
+    let mut moved = 0.0f64;
+    for r in &ply.vertex {
+        moved = moved.max(norm([r[3], r[4], r[5]]));
+    }
+    assert!(moved > 1e-3, "nothing moved: {moved}");
+    let (mut sum, mut wsum, mut max) = (0.0, 0.0, 1.0f64);
+    let (mut s_lo, mut s_hi) = (f64::INFINITY, 0.0f64);
+    for (f, t) in faces.iter().enumerate() {
+        let (a_in, a_out) = (tri_area(&x, *t), tri_area(&y, *t));
+        let (scale, dist) = (ply.face[f][0], ply.face[f][1]);
+        assert!(
+            close(scale, (a_out / a_in).sqrt(), 1e-9),
+            "face {f}: {scale}"
+        );
+        s_lo = s_lo.min(scale);
+        s_hi = s_hi.max(scale);
+        sum += a_in * dist;
+        wsum += a_in;
+        max = max.max(dist);
+    }
+    // The head grew by 1.5 in area: some faces scale up, by sqrt(1.5) on average.
+    assert!(s_hi > 1.1 && s_lo < s_hi, "scales {s_lo} .. {s_hi}");
+    let r = read_json(dir.path(), "r.json");
+    let qc = &r["distortion"];
+    let (mean_r, max_r) = (
+        qc["quasi_conformal_mean"].as_f64().unwrap(),
+        qc["quasi_conformal_max"].as_f64().unwrap(),
+    );
+    assert!(
+        close(sum / wsum, mean_r, 1e-9),
+        "{} vs {mean_r}",
+        sum / wsum
+    );
+    assert!(close(max, max_r, 1e-9), "{max} vs {max_r}");
+    assert!(max > 1.0);
+
+    // The PLY written is an input again: measure it, and deform it to PLY.
+    let job2 = "mesh = \"out.ply\"\noutput = \"again.ply\"\n[[constraint]]\nkind = \"volume\"\nscale = 1.1\n";
+    std::fs::write(dir.path().join("again.toml"), job2).unwrap();
+    let out = bin()
+        .args(["measure", "again.toml", "--report", "m.json"])
+        .current_dir(dir.path())
+        .output()
+        .unwrap();
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let m = read_json(dir.path(), "m.json");
+    assert_eq!(m["mesh"]["vertices"], x.len());
+    assert_eq!(m["mesh"]["faces"], faces.len());
+    let out = bin()
+        .args(["deform", "again.toml", "--backend", "cpu", "--quiet"])
+        .current_dir(dir.path())
+        .output()
+        .unwrap();
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let again = read_ply(&dir.path().join("again.ply"));
+    assert_eq!(again.face_indices, fi);
+    // Displacements are against out.ply's positions, not spot.obj's.
+    for (i, r) in again.vertex.iter().enumerate() {
+        assert_eq!(
+            [r[3], r[4], r[5]],
+            sub([r[0], r[1], r[2]], y[i]),
+            "vertex {i}"
+        );
+    }
+}
+
+/// `[output] attributes = false` writes plain geometry (x y z and
+/// vertex_indices only); the table's `path` is the output path, in TOML and
+/// in JSON; `[output]` with `attributes` only keeps the default path; OBJ
+/// output stays plain whatever `attributes` says.
+#[test]
+fn output_table_switches_attributes_off() {
+    let constraint = "[[constraint]]\nkind = \"volume\"\nscale = 1.1\n";
+    let job = format!(
+        "mesh = \"spot.obj\"\n[output]\npath = \"flat.ply\"\nattributes = false\n{constraint}"
+    );
+    let (out, dir) = deform_job("spot.obj", &job, &[]);
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let ply = read_ply(&dir.path().join("flat.ply"));
+    assert_eq!(ply.vertex_props, ["x", "y", "z"]);
+    assert_eq!(ply.face_props, ["vertex_indices"]);
+    assert_eq!(ply.face.len(), 5856);
+
+    // Table with the path only: attributes on (the default).
+    let job = format!("mesh = \"spot.obj\"\n[output]\npath = \"full.ply\"\n{constraint}");
+    let (out, dir) = deform_job("spot.obj", &job, &[]);
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let ply = read_ply(&dir.path().join("full.ply"));
+    assert_eq!(ply.face_props, ["vertex_indices", "scale", "distortion"]);
+
+    // Table without a path: the default name beside the job.
+    let job = format!("mesh = \"spot.obj\"\n[output]\nattributes = false\n{constraint}");
+    let (out, dir) = deform_job("spot.obj", &job, &[]);
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(dir.path().join("spot.deformed.obj").exists());
+
+    // JSON, and `--out` with a .ply keeps the job's attributes = false.
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::copy(meshes().join("spot.obj"), dir.path().join("spot.obj")).unwrap();
+    std::fs::write(
+        dir.path().join("job.json"),
+        r#"{"mesh": "spot.obj", "output": {"path": "j.ply", "attributes": false},
+            "constraint": [{"kind": "volume", "scale": 1.1}]}"#,
+    )
+    .unwrap();
+    for extra in [&[][..], &["--out", "o.ply"][..]] {
+        let out = bin()
+            .args(["deform", "job.json", "--backend", "cpu", "--quiet"])
+            .args(extra)
+            .current_dir(dir.path())
+            .output()
+            .unwrap();
+        assert_eq!(
+            out.status.code(),
+            Some(0),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+    for name in ["j.ply", "o.ply"] {
+        let ply = read_ply(&dir.path().join(name));
+        assert_eq!(ply.vertex_props, ["x", "y", "z"], "{name}");
+        assert_eq!(ply.face_props, ["vertex_indices"], "{name}");
+    }
+}
+
+/// A misspelt key in `[output]`, or an `output` that is neither a path nor a
+/// table, is bad input naming the job file and what is expected.
+#[test]
+fn bad_output_table_is_refused() {
+    assert_bad_input(
+        "spot.obj",
+        "mesh = \"spot.obj\"\n[output]\natributes = false\n[[constraint]]\nkind = \"volume\"\n",
+        &["job.toml", "atributes", "attributes"],
+    );
+    assert_bad_input(
+        "spot.obj",
+        "mesh = \"spot.obj\"\noutput = 3\n[[constraint]]\nkind = \"volume\"\n",
+        &["job.toml", "output", "path"],
+    );
+    assert_bad_input(
+        "spot.obj",
+        "mesh = \"spot.obj\"\n[output]\nattributes = \"no\"\n[[constraint]]\nkind = \"volume\"\n",
+        &["job.toml", "bool"],
+    );
+}
+
+/// trimesh (`process=False`, which keeps the vertices as in the file) loads
+/// our PLY with its extra properties: same vertex and face counts, same first
+/// vertex, and the face properties are there. Skipped with a message when
+/// python3 with trimesh is not available, unless REQUIRE_TRIMESH=1 (CI).
+#[test]
+fn trimesh_loads_the_ply_output() {
+    let required = std::env::var("REQUIRE_TRIMESH").is_ok_and(|v| v == "1");
+    let probe = Command::new("python3")
+        .args(["-c", "import trimesh, numpy"])
+        .output();
+    let available = probe.as_ref().is_ok_and(|o| o.status.success());
+    if !available {
+        let why = match &probe {
+            // The exception's line (the last of a traceback).
+            Ok(o) => String::from_utf8_lossy(&o.stderr)
+                .lines()
+                .last()
+                .unwrap_or("")
+                .to_string(),
+            Err(e) => format!("python3: {e}"),
+        };
+        assert!(
+            !required,
+            "REQUIRE_TRIMESH=1 but trimesh is not importable: {why}"
+        );
+        eprintln!(
+            "skipped: python3 with trimesh is not available ({})",
+            why.trim()
+        );
+        return;
+    }
+    let job = "mesh = \"spot.obj\"\noutput = \"out.ply\"\n[[constraint]]\nkind = \"volume\"\nscale = 1.2\n";
+    let (out, dir) = deform_job("spot.obj", job, &[]);
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let ply = read_ply(&dir.path().join("out.ply"));
+    assert_eq!(ply.face_props, ["vertex_indices", "scale", "distortion"]);
+    let script = "import sys, trimesh\n\
+                  m = trimesh.load(sys.argv[1], process=False)\n\
+                  raw = m.metadata.get('_ply_raw', {}).get('face', {}).get('data', {})\n\
+                  names = raw.dtype.names if hasattr(raw, 'dtype') else tuple(raw)\n\
+                  print(len(m.vertices), len(m.faces), *map(repr, m.vertices[0].tolist()), \
+                  'scale' in names and 'distortion' in names)\n";
+    let run = Command::new("python3")
+        .args(["-c", script])
+        .arg(dir.path().join("out.ply"))
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&run.stdout);
+    assert!(
+        run.status.success(),
+        "trimesh failed: {}{stdout}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let fields: Vec<&str> = stdout.split_whitespace().collect();
+    assert_eq!(
+        fields[0].parse::<usize>().unwrap(),
+        ply.vertex.len(),
+        "{stdout}"
+    );
+    assert_eq!(
+        fields[1].parse::<usize>().unwrap(),
+        ply.face_indices.len(),
+        "{stdout}"
+    );
+    let v0: Vec<f64> = fields[2..5].iter().map(|t| t.parse().unwrap()).collect();
+    assert_eq!(v0, ply.vertex[0][..3], "first vertex: {stdout}");
+    assert_eq!(fields.last(), Some(&"True"), "face properties: {stdout}");
+}
+
+/// `demo --print-job` prints the bundled job file as it is in the repository,
+/// writes nothing, and the text is a job: beside spot.obj at the path it
+/// names, `measure` runs it and finds its three constraints.
+#[test]
+fn demo_prints_its_job() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = bin()
+        .args(["demo", "--print-job"])
+        .current_dir(dir.path())
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(0));
+    assert!(
+        files(dir.path()).is_empty(),
+        "wrote {:?}",
+        files(dir.path())
+    );
+    let text = String::from_utf8(out.stdout).unwrap();
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    assert_eq!(
+        text,
+        std::fs::read_to_string(root.join("examples/spot-demo.toml")).unwrap()
+    );
+    let parsed: toml::Table = toml::from_str(&text).unwrap();
+    let mesh = parsed["mesh"].as_str().unwrap();
+    // Lay out the mesh where the job says (relative to the job file).
+    let jobs = dir.path().join("jobs");
+    std::fs::create_dir_all(&jobs).unwrap();
+    let mesh_path = jobs.join(mesh);
+    std::fs::create_dir_all(mesh_path.parent().unwrap()).unwrap();
+    std::fs::copy(meshes().join("spot.obj"), &mesh_path).unwrap();
+    std::fs::write(jobs.join("demo.toml"), &text).unwrap();
+    let out = bin()
+        .args(["measure", "jobs/demo.toml", "--report", "m.json"])
+        .current_dir(dir.path())
+        .output()
+        .unwrap();
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let r = read_json(dir.path(), "m.json");
+    let names: Vec<&str> = r["constraints"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| c["name"].as_str().unwrap())
+        .collect();
+    assert_eq!(names, ["belly girth", "head", "volume"]);
+}
+
+/// The README's JSON job example is a job: `measure` runs it on spot.
+#[test]
+fn readme_json_job_example_runs() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let readme = std::fs::read_to_string(root.join("README.md")).unwrap();
+    let start = readme
+        .find("```json\n{\n  \"mesh\"")
+        .expect("README has a JSON job example")
+        + "```json\n".len();
+    let len = readme[start..].find("```").unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::copy(meshes().join("spot.obj"), dir.path().join("spot.obj")).unwrap();
+    std::fs::write(dir.path().join("job.json"), &readme[start..start + len]).unwrap();
+    let out = bin()
+        .args(["measure", "job.json", "--report", "m.json"])
+        .current_dir(dir.path())
+        .output()
+        .unwrap();
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let r = read_json(dir.path(), "m.json");
+    assert_eq!(r["constraints"].as_array().unwrap().len(), 3);
+}

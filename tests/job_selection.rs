@@ -429,6 +429,72 @@ fn output_path_default_and_resolution() {
     assert_eq!(job.output_path(), dir.path().join("bunny.deformed.stl"));
 }
 
+/// `output` is a path or a table `{ path, attributes }` (both optional), in
+/// TOML and JSON alike; attributes default to on.
+#[test]
+fn output_string_or_table() {
+    let parse = |text: &str, format| Job::from_str(text, format, Path::new("/d"), "job").unwrap();
+    let cases = [
+        (
+            "mesh = \"x.obj\"\noutput = \"y.ply\"\n",
+            JobFormat::Toml,
+            "/d/y.ply",
+            true,
+        ),
+        (
+            "mesh = \"x.obj\"\n[output]\npath = \"y.ply\"\nattributes = false\n",
+            JobFormat::Toml,
+            "/d/y.ply",
+            false,
+        ),
+        (
+            "mesh = \"x.obj\"\n[output]\npath = \"z.ply\"\n",
+            JobFormat::Toml,
+            "/d/z.ply",
+            true,
+        ),
+        (
+            "mesh = \"x.obj\"\n[output]\nattributes = false\n",
+            JobFormat::Toml,
+            "/d/x.deformed.obj",
+            false,
+        ),
+        (
+            "mesh = \"x.obj\"\n[output]\n",
+            JobFormat::Toml,
+            "/d/x.deformed.obj",
+            true,
+        ),
+        (
+            r#"{"mesh": "x.obj", "output": "y.ply"}"#,
+            JobFormat::Json,
+            "/d/y.ply",
+            true,
+        ),
+        (
+            r#"{"mesh": "x.obj", "output": {"path": "y.ply", "attributes": false}}"#,
+            JobFormat::Json,
+            "/d/y.ply",
+            false,
+        ),
+        (
+            r#"{"mesh": "x.obj", "output": {"attributes": true}}"#,
+            JobFormat::Json,
+            "/d/x.deformed.obj",
+            true,
+        ),
+    ];
+    for (text, format, path, attributes) in cases {
+        let job = parse(text, format);
+        assert_eq!(job.output_path(), PathBuf::from(path), "{text}");
+        assert_eq!(job.output_attributes(), attributes, "{text}");
+    }
+    let msg = bad_msg(toml_job("mesh = \"x.obj\"\n[output]\npth = \"y.ply\"\n"));
+    assert!(msg.contains("job.toml") && msg.contains("pth"), "{msg}");
+    let msg = bad_msg(toml_job("mesh = \"x.obj\"\noutput = \"\"\n"));
+    assert!(msg.contains("job.toml") && msg.contains("output"), "{msg}");
+}
+
 // ---------------------------------------------------------------------------
 // plane sections
 // ---------------------------------------------------------------------------
