@@ -48,6 +48,25 @@ fn read_json(dir: &Path, name: &str) -> serde_json::Value {
     serde_json::from_str(&std::fs::read_to_string(dir.join(name)).unwrap()).unwrap()
 }
 
+/// `measure JOB --report m.json` in `dir`: it must exit 0; the output and
+/// the report.
+fn measure_reported(dir: &Path, job: &str) -> (Output, serde_json::Value) {
+    let out = bin()
+        .args(["measure", job, "--report", "m.json"])
+        .current_dir(dir)
+        .output()
+        .unwrap();
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "measure {job}: {}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let report = read_json(dir, "m.json");
+    (out, report)
+}
+
 fn files(dir: &Path) -> Vec<String> {
     let mut v: Vec<String> = std::fs::read_dir(dir)
         .unwrap()
@@ -332,13 +351,7 @@ fn measure_reports_input_metrics() {
         r#"{"mesh": "spot.obj", "constraint": [{"kind": "volume", "scale": 2.0}]}"#,
     )
     .unwrap();
-    let out = bin()
-        .args(["measure", "job.json", "--report", "m.json"])
-        .current_dir(dir.path())
-        .output()
-        .unwrap();
-    assert_eq!(out.status.code(), Some(0));
-    let report: serde_json::Value = read_json(dir.path(), "m.json");
+    let (_, report) = measure_reported(dir.path(), "job.json");
     let c = &report["constraints"][0];
     let (orig, target) = (
         c["original"].as_f64().unwrap(),
@@ -420,13 +433,8 @@ fn auto_follows_the_crossover_and_reports_the_solver_work() {
         assert_eq!(solver["transfer_bytes"].as_u64(), Some(0), "{solver}");
     }
     // `measure` deforms nothing and has no solver section.
-    let out = bin()
-        .args(["measure", "job.toml", "--report", "m.json"])
-        .current_dir(dir.path())
-        .output()
-        .unwrap();
-    assert_eq!(out.status.code(), Some(0));
-    assert!(read_json(dir.path(), "m.json").get("solver").is_none());
+    let (_, report) = measure_reported(dir.path(), "job.toml");
+    assert!(report.get("solver").is_none());
 }
 
 const SPOT_LENGTH_JOB: &str = "mesh = \"spot.obj\"\noutput = \"out.obj\"\n[[constraint]]\nkind = \"length\"\ncurve = { plane = { origin = [0.0, -0.1, 0.3], normal = [0.0, 0.0, 1.0] } }\nscale = 1.05\n";
@@ -942,18 +950,8 @@ fn measure_reports_selection_facts() {
         legs.0, legs.1, body.0, body.1
     );
     std::fs::write(dir.path().join("job.toml"), job).unwrap();
-    let out = bin()
-        .args(["measure", "job.toml", "--report", "m.json"])
-        .current_dir(dir.path())
-        .output()
-        .unwrap();
+    let (out, report) = measure_reported(dir.path(), "job.toml");
     let stdout = String::from_utf8_lossy(&out.stdout);
-    assert_eq!(
-        out.status.code(),
-        Some(0),
-        "{stdout}{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
     let (v, faces) = read_obj(&dir.path().join("spot.obj"));
     // The sphere: faces whose centroid is within it, none near its surface.
     let mut region = Vec::new();
@@ -990,7 +988,7 @@ fn measure_reports_selection_facts() {
     // the choice is not the first piece found.
     assert_ne!(leg_chosen, 0);
 
-    let r = read_json(dir.path(), "m.json");
+    let r = report;
     let rows = r["constraints"].as_array().unwrap();
     assert_eq!(rows.len(), 3);
     for row in rows {
@@ -1050,18 +1048,7 @@ fn measure_needs_no_targets() {
     )
     .unwrap();
     for job in ["bare.toml", "kept.json"] {
-        let out = bin()
-            .args(["measure", job, "--report", "m.json"])
-            .current_dir(dir.path())
-            .output()
-            .unwrap();
-        assert_eq!(
-            out.status.code(),
-            Some(0),
-            "{job}: {}",
-            String::from_utf8_lossy(&out.stderr)
-        );
-        let r = read_json(dir.path(), "m.json");
+        let (_, r) = measure_reported(dir.path(), job);
         let rows = r["constraints"].as_array().unwrap();
         assert_eq!(rows.len(), if job == "bare.toml" { 0 } else { 2 });
         for row in rows {
@@ -1222,18 +1209,7 @@ fn ply_output_carries_scale_distortion_and_displacement() {
     // The PLY written is an input again: measure it, and deform it to PLY.
     let job2 = "mesh = \"out.ply\"\noutput = \"again.ply\"\n[[constraint]]\nkind = \"volume\"\nscale = 1.1\n";
     std::fs::write(dir.path().join("again.toml"), job2).unwrap();
-    let out = bin()
-        .args(["measure", "again.toml", "--report", "m.json"])
-        .current_dir(dir.path())
-        .output()
-        .unwrap();
-    assert_eq!(
-        out.status.code(),
-        Some(0),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let m = read_json(dir.path(), "m.json");
+    let (_, m) = measure_reported(dir.path(), "again.toml");
     assert_eq!(m["mesh"]["vertices"], x.len());
     assert_eq!(m["mesh"]["faces"], faces.len());
     let out = bin()
@@ -1461,18 +1437,7 @@ fn demo_prints_its_job() {
     std::fs::create_dir_all(mesh_path.parent().unwrap()).unwrap();
     std::fs::copy(meshes().join("spot.obj"), &mesh_path).unwrap();
     std::fs::write(jobs.join("demo.toml"), &text).unwrap();
-    let out = bin()
-        .args(["measure", "jobs/demo.toml", "--report", "m.json"])
-        .current_dir(dir.path())
-        .output()
-        .unwrap();
-    assert_eq!(
-        out.status.code(),
-        Some(0),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let r = read_json(dir.path(), "m.json");
+    let (_, r) = measure_reported(dir.path(), "jobs/demo.toml");
     let names: Vec<&str> = r["constraints"]
         .as_array()
         .unwrap()
@@ -1495,17 +1460,6 @@ fn readme_json_job_example_runs() {
     let dir = tempfile::tempdir().unwrap();
     std::fs::copy(meshes().join("spot.obj"), dir.path().join("spot.obj")).unwrap();
     std::fs::write(dir.path().join("job.json"), &readme[start..start + len]).unwrap();
-    let out = bin()
-        .args(["measure", "job.json", "--report", "m.json"])
-        .current_dir(dir.path())
-        .output()
-        .unwrap();
-    assert_eq!(
-        out.status.code(),
-        Some(0),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let r = read_json(dir.path(), "m.json");
+    let (_, r) = measure_reported(dir.path(), "job.json");
     assert_eq!(r["constraints"].as_array().unwrap().len(), 3);
 }

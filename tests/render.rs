@@ -73,31 +73,33 @@ fn has_color_bar(p: &Pixmap, color: ColorBy) -> bool {
     })
 }
 
-#[test]
-fn deform_render_writes_both_meshes_and_the_color_bar() {
-    let dir = demo_dir();
-    let out = run(
-        dir.path(),
-        &[
-            "deform",
-            "job.toml",
-            "--backend",
-            "cpu",
-            "--quiet",
-            "--render",
-            "pic.png",
-            "--render-size",
-            "900x500",
-        ],
-        &[],
-    );
+/// `deform job.toml --backend cpu --quiet --render pic.png EXTRA` in `dir`
+/// with `env`: it must exit 0 and say it wrote the picture; the picture.
+fn deform_picture(dir: &Path, extra: &[&str], env: &[(&str, &str)]) -> Pixmap {
+    let mut args = vec![
+        "deform",
+        "job.toml",
+        "--backend",
+        "cpu",
+        "--quiet",
+        "--render",
+        "pic.png",
+    ];
+    args.extend(extra);
+    let out = run(dir, &args, env);
     assert!(
         out.status.success(),
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
     assert!(String::from_utf8_lossy(&out.stdout).contains("wrote pic.png"));
-    let p = Pixmap::load_png(dir.path().join("pic.png")).unwrap();
+    Pixmap::load_png(dir.join("pic.png")).unwrap()
+}
+
+#[test]
+fn deform_render_writes_both_meshes_and_the_color_bar() {
+    let dir = demo_dir();
+    let p = deform_picture(dir.path(), &["--render-size", "900x500"], &[]);
     assert_eq!((p.width(), p.height()), (900, 500));
     // Each half's mesh area (below the titles, above the bottom band) holds
     // a mesh: at least 5 % of its pixels are drawn.
@@ -116,29 +118,11 @@ fn deform_render_writes_both_meshes_and_the_color_bar() {
 #[test]
 fn the_picture_needs_no_vulkan_driver() {
     let dir = demo_dir();
-    let out = run(
+    let p = deform_picture(
         dir.path(),
-        &[
-            "deform",
-            "job.toml",
-            "--backend",
-            "cpu",
-            "--quiet",
-            "--render",
-            "pic.png",
-            "--color",
-            "distortion",
-            "--view",
-            "front",
-        ],
+        &["--color", "distortion", "--view", "front"],
         &[("VK_ICD_FILENAMES", "/nonexistent")],
     );
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let p = Pixmap::load_png(dir.path().join("pic.png")).unwrap();
     assert_eq!((p.width(), p.height()), (1600, 800));
     assert!(has_color_bar(&p, ColorBy::Distortion), "no colour bar");
 }
