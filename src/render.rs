@@ -413,8 +413,8 @@ pub fn render_deformation(
         &cam,
         layout.origin(1),
     );
-    draw_annotations(&mut pix, mesh, input, annotations, &cam, &layout, 0, false);
-    draw_annotations(&mut pix, mesh, output, annotations, &cam, &layout, 1, true);
+    draw_annotations(&mut pix, mesh, input, annotations, &cam, &layout, 0);
+    draw_annotations(&mut pix, mesh, output, annotations, &cam, &layout, 1);
     let font = layout.title_font;
     text(&mut pix, "input", (10, 6), font, None);
     text(
@@ -445,7 +445,7 @@ pub fn render_selections(
         .map(|t| t.map_or(NEUTRAL, |c| mix(NEUTRAL, c, 0.6)))
         .collect();
     draw_surface(&mut pix, mesh, input, &colors, &cam, layout.origin(0));
-    draw_annotations(&mut pix, mesh, input, annotations, &cam, &layout, 0, false);
+    draw_annotations(&mut pix, mesh, input, annotations, &cam, &layout, 0);
     text(&mut pix, "input", (10, 6), layout.title_font, None);
     draw_legend(&mut pix, &layout, annotations, 20.0);
     encode(pix)
@@ -557,7 +557,7 @@ fn draw_surface(
 }
 
 /// Curves as polylines, region outlines and vertex dots, each labelled
-/// beside it: with its name, and on the result panel (`result`, where
+/// beside it: with its name, and on the result panel (panel 1, where
 /// regions are outlined rather than tinted) with its values too.
 fn draw_annotations(
     pix: &mut Pixmap,
@@ -567,8 +567,9 @@ fn draw_annotations(
     cam: &Camera,
     layout: &Layout,
     panel: u32,
-    result: bool,
 ) {
+    // Panel 1 is always a result (a picture of one panel is an input).
+    let result = panel == 1;
     let origin = layout.origin(panel);
     // Labels stay inside their panel.
     let right_edge = origin.0 + 0.5 * layout.panel.0;
