@@ -3,7 +3,8 @@
 //! the result a smooth synthetic deformation and the job's curves and regions
 //! as annotations.
 //!
-//! `cargo bench --bench render` (add `-- --quick` to skip the 1.2M row).
+//! `cargo bench --bench render` (add `-- --quick` to skip the 1.2M row,
+//! `-- --save DIR` to keep the pictures as DIR/render-FACES.png).
 
 #[path = "../tests/common/mod.rs"]
 mod common;
@@ -17,7 +18,13 @@ use std::path::Path;
 use std::time::Instant;
 
 fn main() {
-    let quick = std::env::args().any(|a| a == "--quick");
+    let args: Vec<String> = std::env::args().collect();
+    let quick = args.iter().any(|a| a == "--quick");
+    let save = args
+        .iter()
+        .position(|a| a == "--save")
+        .and_then(|i| args.get(i + 1))
+        .map(std::path::PathBuf::from);
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/meshes");
     let job = Job::from_str(common::TABLE1_HOMER, JobFormat::Toml, &dir, "homer").unwrap();
     let base = metricdeform::io::read_mesh(&job.mesh_path()).unwrap();
@@ -63,6 +70,10 @@ fn main() {
         let png =
             render_deformation(&problem.mesh, x, &y, &notes, &RenderParams::default()).unwrap();
         let secs = t0.elapsed().as_secs_f64();
+        if let Some(dir) = &save {
+            let path = dir.join(format!("render-{}.png", problem.mesh.num_faces()));
+            std::fs::write(&path, &png).unwrap();
+        }
         println!(
             "| {} | {} | {secs:.3} | {} |",
             problem.mesh.num_faces(),

@@ -767,7 +767,11 @@ fn draw_legend(pix: &mut Pixmap, layout: &Layout, annotations: &[Annotation], x0
             paint.set_color(rgb(annotation_color(i)));
             pix.fill_rect(r, &paint, Transform::identity(), None);
         }
-        let legend = format!("{} ({}): {}", a.name, a.kind, a.values);
+        let legend = if a.values.is_empty() {
+            format!("{} ({})", a.name, a.kind)
+        } else {
+            format!("{} ({}): {}", a.name, a.kind, a.values)
+        };
         text(
             pix,
             &legend,
