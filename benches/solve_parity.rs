@@ -1,0 +1,159 @@
+//! How exactly the GPU backend solves, against the CPU's sparse Cholesky, on
+//! the first outer iteration of the `girths-homer` rows of the pipeline bench:
+//!
+//! - the scale factors of Eq. 3 (sequential constrained Newton steps, each a
+//!   Schur-complement solve of `k + 1` right-hand sides): the largest and the
+//!   RMS relative difference of the scale factors;
+//! - the shape solve of Eq. 7 for those scale factors (the GPU at the
+//!   scale-driven tolerance, with the preconditioner the pipeline gives it):
+//!   how far each vertex lands from the Cholesky solution, as % of the bbox
+//!   diagonal (largest, 99th percentile, RMS), and how many vertices are
+//!   within a factor 2 of the largest (a few: the error sits on a few
+//!   vertices; many: it is spread).
+//!
+//! `cargo bench --bench solve_parity -- ROW [--shape]` with ROW
+//! `girths-homer-100k` (default) or `girths-homer-1m` (homer, every edge cut
+//! in 3 or 10); `--shape` adds the shape solve. Any adapter: on lavapipe the
+//! seconds are not GPU seconds, but the differences are the GPU solver's own.
+
+#[path = "../tests/common/mod.rs"]
+mod common;
+
+use glam::DVec3;
+use metricdeform::deform::{Options, Problem, GPU_TOLERANCE, SCALE_DRIVEN_TOLERANCE};
+use metricdeform::job::{Job, JobFormat};
+use metricdeform::scale_factors::{ScaleConstraint, ScaleFactorSystem};
+use metricdeform::shape::ShapeModel;
+use solver_cpu::{CholeskySolver, SpdSolver, SystemKind};
+use std::path::Path;
+use std::time::Instant;
+
+fn gpu(kind: SystemKind, tolerance: f64) -> Box<dyn SpdSolver> {
+    let mut s = solver_gpu::open().expect("a GPU adapter (lavapipe will do)");
+    s.set_tolerance(tolerance);
+    s.set_system_kind(kind);
+    Box::new(s)
+}
+
+fn main() {
+    let args: Vec<String> = std::env::args().collect();
+    let row = args
+        .iter()
+        .find(|a| a.starts_with("girths-"))
+        .cloned()
+        .unwrap_or_else(|| "girths-homer-100k".into());
+    let cut = match row.as_str() {
+        "girths-homer-100k" => 3,
+        "girths-homer-1m" => 10,
+        other => panic!("unknown row {other}: girths-homer-100k or girths-homer-1m"),
+    };
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/meshes");
+    let job = Job::from_str(common::GIRTHS_HOMER, JobFormat::Toml, &dir, &row).unwrap();
+    let o = Options::from_spec(&job.spec.solver);
+    let mesh = metricdeform::io::read_mesh(&job.mesh_path())
+        .unwrap()
+        .subdivide_uniform(cut);
+    let p = Problem::build(&job, mesh, &job.mesh_path()).unwrap();
+    let mesh = &p.mesh;
+    let x = &mesh.positions;
+    println!(
+        "adapter: {}",
+        solver_gpu::default_adapter().map_or("none".into(), |a| a.name)
+    );
+
+    // Eq. 3.
+    let areas = mesh.face_areas(x);
+    let constraints: Vec<ScaleConstraint> = p
+        .constraints
+        .iter()
+        .enumerate()
+        .map(|(i, c)| ScaleConstraint {
+            coeffs: c.face_coefficients(mesh, x, &areas, o.volume_share),
+            degree: c.degree(),
+            target: c.target,
+            group: i,
+        })
+        .collect();
+    let estimate = |solver: Box<dyn SpdSolver>| {
+        let t0 = Instant::now();
+        let mut sys = ScaleFactorSystem::with_solver(
+            &p.topo.face_pairs,
+            &areas,
+            o.k_d,
+            o.k_r,
+            o.regulariser,
+            solver,
+        )
+        .unwrap();
+        let (s, info) = sys.estimate(&constraints, o.multipliers).unwrap();
+        (s, info, t0.elapsed().as_secs_f64())
+    };
+    let (s_cpu, cpu_info, cpu_s) = estimate(Box::new(CholeskySolver::new()));
+    let (s_gpu, gpu_info, gpu_s) = estimate(gpu(SystemKind::ScaleFactors, GPU_TOLERANCE));
+    let rel: Vec<f64> = s_cpu
+        .iter()
+        .zip(&s_gpu)
+        .map(|(a, b)| (a - b).abs() / a.abs())
+        .collect();
+    let worst = rel.iter().cloned().fold(0.0, f64::max);
+    let rms = (rel.iter().map(|d| d * d).sum::<f64>() / rel.len() as f64).sqrt();
+    println!(
+        "{row}: {} faces; scale factors GPU vs Cholesky: largest relative difference {worst:.2e}, RMS {rms:.2e}; \
+         Newton steps {} (GPU) and {} (CPU); constraint residual {:.1e} and {:.1e}; {gpu_s:.1} s and {cpu_s:.1} s",
+        s_cpu.len(),
+        gpu_info.newton_iterations,
+        cpu_info.newton_iterations,
+        gpu_info.max_residual,
+        cpu_info.max_residual,
+    );
+    if !args.iter().any(|a| a == "--shape") {
+        return;
+    }
+
+    // Eq. 7 for the Cholesky scale factors, with the curvature targets the
+    // pipeline gives the first step (area-weighted mean scale factor per vertex).
+    let n = mesh.num_vertices();
+    let mut num = vec![0.0; n];
+    let mut den = vec![0.0; n];
+    for (f, t) in mesh.faces.iter().enumerate() {
+        for &v in t {
+            num[v as usize] += areas[f] * s_cpu[f];
+            den[v as usize] += areas[f];
+        }
+    }
+    let c: Vec<f64> = (0..n)
+        .map(|v| if den[v] > 0.0 { num[v] / den[v] } else { 1.0 })
+        .collect();
+    let shape_solve = |solver: Box<dyn SpdSolver>| -> (Vec<DVec3>, f64) {
+        let t0 = Instant::now();
+        let mut model = ShapeModel::with_solver(mesh, &p.topo, p.handles.clone(), solver).unwrap();
+        model
+            .assemble_and_factor(mesh, x, &s_cpu, &c, &o.shape)
+            .unwrap();
+        let y = model.solve_unconstrained(x).unwrap();
+        (y, t0.elapsed().as_secs_f64())
+    };
+    let (y_cpu, cpu_s) = shape_solve(Box::new(CholeskySolver::new()));
+    let (y_gpu, gpu_s) = shape_solve(gpu(SystemKind::ScaleDriven, SCALE_DRIVEN_TOLERANCE));
+    let diag = mesh.bbox_diagonal(x);
+    let mut d: Vec<f64> = y_cpu
+        .iter()
+        .zip(&y_gpu)
+        .map(|(a, b)| 100.0 * (*a - *b).length() / diag)
+        .collect();
+    let moved = y_cpu
+        .iter()
+        .zip(x)
+        .map(|(a, b)| 100.0 * (*a - *b).length() / diag)
+        .fold(0.0, f64::max);
+    d.sort_by(f64::total_cmp);
+    let max = *d.last().unwrap();
+    let p99 = d[((0.99 * d.len() as f64).ceil() as usize).clamp(1, d.len()) - 1];
+    let rms = (d.iter().map(|v| v * v).sum::<f64>() / d.len() as f64).sqrt();
+    let near_max = d.iter().filter(|&&v| v >= 0.5 * max).count();
+    println!(
+        "{row}: {n} vertices; first shape solve (Eq. 7), GPU vs Cholesky, % of the bbox diagonal: \
+         largest {max:.2e}, p99 {p99:.2e}, RMS {rms:.2e}; {near_max} vertices within a factor 2 of the largest; \
+         the step itself moves vertices up to {moved:.2e}; {gpu_s:.1} s and {cpu_s:.1} s"
+    );
+}
