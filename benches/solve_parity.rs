@@ -20,7 +20,9 @@
 mod common;
 
 use glam::DVec3;
-use metricdeform::deform::{Options, Problem, GPU_TOLERANCE, SCALE_DRIVEN_TOLERANCE};
+use metricdeform::deform::{
+    vertex_mean_scale, Options, Problem, GPU_TOLERANCE, SCALE_DRIVEN_TOLERANCE,
+};
 use metricdeform::job::{Job, JobFormat};
 use metricdeform::scale_factors::{ScaleConstraint, ScaleFactorSystem};
 use metricdeform::shape::ShapeModel;
@@ -113,17 +115,7 @@ fn main() {
     // Eq. 7 for the Cholesky scale factors, with the curvature targets the
     // pipeline gives the first step (area-weighted mean scale factor per vertex).
     let n = mesh.num_vertices();
-    let mut num = vec![0.0; n];
-    let mut den = vec![0.0; n];
-    for (f, t) in mesh.faces.iter().enumerate() {
-        for &v in t {
-            num[v as usize] += areas[f] * s_cpu[f];
-            den[v as usize] += areas[f];
-        }
-    }
-    let c: Vec<f64> = (0..n)
-        .map(|v| if den[v] > 0.0 { num[v] / den[v] } else { 1.0 })
-        .collect();
+    let c = vertex_mean_scale(mesh, &areas, &s_cpu);
     let shape_solve = |solver: Box<dyn SpdSolver>| -> (Vec<DVec3>, f64) {
         let t0 = Instant::now();
         let mut model = ShapeModel::with_solver(mesh, &p.topo, p.handles.clone(), solver).unwrap();

@@ -617,6 +617,23 @@ fn assemble_with_positions(
     done
 }
 
+/// The curvature targets `c_i` of Eq. 21: per vertex, the area-weighted
+/// mean of its faces' scale factors `s` (1 for a vertex in no face).
+pub fn vertex_mean_scale(mesh: &Mesh, areas: &[f64], s: &[f64]) -> Vec<f64> {
+    let n = mesh.num_vertices();
+    let mut num = vec![0.0; n];
+    let mut den = vec![0.0; n];
+    for (f, t) in mesh.faces.iter().enumerate() {
+        for &v in t {
+            num[v as usize] += areas[f] * s[f];
+            den[v as usize] += areas[f];
+        }
+    }
+    (0..n)
+        .map(|v| if den[v] > 0.0 { num[v] / den[v] } else { 1.0 })
+        .collect()
+}
+
 /// Run the method on a resolved problem.
 pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> Result<Outcome> {
     let mesh = &p.mesh;
@@ -757,23 +774,12 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
                 }
             }
             history.push(max_ds);
-            // c_i: area-weighted mean scale factor around each vertex (Eq. 21).
-            let mut c = vec![1.0; n];
-            if o.curvature_target == CurvatureTarget::Scaled {
-                let mut num = vec![0.0; n];
-                let mut den = vec![0.0; n];
-                for (f, t) in mesh.faces.iter().enumerate() {
-                    for &v in t {
-                        num[v as usize] += areas[f] * s[f];
-                        den[v as usize] += areas[f];
-                    }
-                }
-                for v in 0..n {
-                    if den[v] > 0.0 {
-                        c[v] = num[v] / den[v];
-                    }
-                }
-            }
+            // c_i of Eq. 21.
+            let mut c = if o.curvature_target == CurvatureTarget::Scaled {
+                vertex_mean_scale(mesh, &areas, &s)
+            } else {
+                vec![1.0; n]
+            };
             if iterations == 0 && has_curvature {
                 for v in 0..n {
                     c[v] *= curvature_factor[v];

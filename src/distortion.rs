@@ -28,11 +28,7 @@ pub fn displacement_percent(input: &[DVec3], output: &[DVec3], diagonal: f64) ->
     if n == 0 || !(diagonal.is_finite() && diagonal > 0.0) {
         return DisplacementStats::default();
     }
-    let mut d: Vec<f64> = input
-        .iter()
-        .zip(output)
-        .map(|(a, b)| (*b - *a).length() / diagonal * 100.0)
-        .collect();
+    let mut d = vertex_displacements(input, output, diagonal);
     let mean = d.iter().sum::<f64>() / n as f64;
     d.sort_unstable_by(f64::total_cmp);
     // Nearest rank: the smallest value with at least 99 % of the values <= it.
@@ -42,6 +38,15 @@ pub fn displacement_percent(input: &[DVec3], output: &[DVec3], diagonal: f64) ->
         mean_percent: mean,
         p99_percent: d[rank - 1],
     }
+}
+
+/// Per vertex, `|output - input|` as a % of `diagonal`.
+pub fn vertex_displacements(input: &[DVec3], output: &[DVec3], diagonal: f64) -> Vec<f64> {
+    input
+        .iter()
+        .zip(output)
+        .map(|(a, b)| (*b - *a).length() / diagonal * 100.0)
+        .collect()
 }
 
 /// Distortion of one face: sigma_max / sigma_min (infinity for a collapsed face).
@@ -78,7 +83,16 @@ pub fn face_ratio(a: [DVec3; 3], b: [DVec3; 3]) -> f64 {
 /// input ([`Mesh::degenerate_faces`]: zero area, needles) have no meaningful
 /// ratio and get 1.0.
 pub fn face_distortions(mesh: &Mesh, input: &[DVec3], output: &[DVec3]) -> Vec<f64> {
-    let degenerate = mesh.degenerate_faces(input);
+    distortions_but(mesh, input, output, &mesh.degenerate_faces(input))
+}
+
+/// [`face_distortions`] with the input's degenerate faces given.
+fn distortions_but(
+    mesh: &Mesh,
+    input: &[DVec3],
+    output: &[DVec3],
+    degenerate: &[bool],
+) -> Vec<f64> {
     (0..mesh.num_faces())
         .map(|f| {
             if degenerate[f] {
@@ -110,7 +124,7 @@ pub fn face_scales(mesh: &Mesh, input: &[DVec3], output: &[DVec3]) -> Vec<f64> {
 /// have no meaningful ratio and get no shape weight: they are left out.
 pub fn quasi_conformal(mesh: &Mesh, input: &[DVec3], output: &[DVec3]) -> (f64, f64) {
     let degenerate = mesh.degenerate_faces(input);
-    let ratios = face_distortions(mesh, input, output);
+    let ratios = distortions_but(mesh, input, output, &degenerate);
     let mut sum = 0.0;
     let mut wsum = 0.0;
     let mut max = 1.0f64;

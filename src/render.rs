@@ -122,13 +122,19 @@ pub fn parse_size(s: &str) -> Result<(u32, u32), String> {
     let (w, h) = s.split_once(['x', 'X']).ok_or_else(bad)?;
     let w: u32 = w.trim().parse().map_err(|_| bad())?;
     let h: u32 = h.trim().parse().map_err(|_| bad())?;
+    check_size(w, h)?;
+    Ok((w, h))
+}
+
+/// Whether a picture of `w` x `h` pixels is within [`MIN_SIZE`] and [`MAX_SIDE`].
+fn check_size(w: u32, h: u32) -> Result<(), String> {
     if w < MIN_SIZE.0 || h < MIN_SIZE.1 || w > MAX_SIDE || h > MAX_SIDE {
         return Err(format!(
             "render size {w}x{h}: each side must be from {}x{} to {MAX_SIDE}x{MAX_SIDE} pixels",
             MIN_SIZE.0, MIN_SIZE.1
         ));
     }
-    Ok((w, h))
+    Ok(())
 }
 
 /// What a selection marks on the mesh.
@@ -217,11 +223,7 @@ impl Field {
             }
             ColorBy::Displacement => {
                 let diag = mesh.bbox_diagonal(input).max(f64::MIN_POSITIVE);
-                let moved: Vec<f64> = input
-                    .iter()
-                    .zip(output)
-                    .map(|(a, b)| (*b - *a).length() / diag * 100.0)
-                    .collect();
+                let moved = crate::distortion::vertex_displacements(input, output, diag);
                 let values: Vec<f64> = mesh
                     .faces
                     .iter()
@@ -452,7 +454,7 @@ pub fn render_selections(
 }
 
 fn canvas(p: &RenderParams) -> Result<Pixmap, Error> {
-    parse_size(&format!("{}x{}", p.width, p.height)).map_err(Error::bad)?;
+    check_size(p.width, p.height).map_err(Error::bad)?;
     let mut pix = Pixmap::new(p.width, p.height).ok_or_else(|| {
         Error::Internal(format!("cannot make a {}x{} picture", p.width, p.height))
     })?;
