@@ -21,7 +21,7 @@ use std::time::Instant;
 
 fn load(name: &str, subdivisions: usize) -> Mesh {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/meshes");
-    let mut mesh = metricdeform::io::read_mesh(&dir.join(name)).unwrap();
+    let mut mesh = metricdeform::mesh::io::read_mesh(&dir.join(name)).unwrap();
     for _ in 0..subdivisions {
         mesh = mesh.subdivide_midpoint();
     }
@@ -60,7 +60,7 @@ fn residual(a: &BlockSym3, fixed: &[bool], x: &[f64], b: &[f64]) -> f64 {
 }
 
 fn row(label: &str, mesh: &Mesh, quick_direct: bool) {
-    let topo = metricdeform::topology::Topology::build(mesh);
+    let topo = metricdeform::mesh::topology::Topology::build(mesh);
     let mut model = ShapeModel::new(mesh, &topo, Vec::new()).unwrap();
     let nf = mesh.num_faces();
     let n = mesh.num_vertices();
@@ -220,10 +220,10 @@ fn row(label: &str, mesh: &Mesh, quick_direct: bool) {
 /// with each AMG near-null space: translations, and the vertices' affine
 /// motions (`set_vertex_positions`, as the pipeline does).
 fn fine_tune_row(label: &str, mesh: &Mesh) {
-    let topo = metricdeform::topology::Topology::build(mesh);
+    let topo = metricdeform::mesh::topology::Topology::build(mesh);
     let mut model = ShapeModel::new(mesh, &topo, Vec::new()).unwrap();
     let (nf, n) = (mesh.num_faces(), mesh.num_vertices());
-    let w = metricdeform::deform::Options::default().fine_tune;
+    let w = metricdeform::pipeline::Options::default().fine_tune;
     model
         .assemble_and_factor(mesh, &mesh.positions, &vec![1.0; nf], &vec![1.0; n], &w)
         .unwrap();

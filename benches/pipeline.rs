@@ -10,9 +10,10 @@
 #[path = "../tests/common/mod.rs"]
 mod common;
 
-use metricdeform::deform::{deform, max_error, Options, Problem, SolverBackend, SolverSummary};
 use metricdeform::job::{Job, JobFormat};
-use metricdeform::report::peak_memory_mb;
+use metricdeform::memory::peak_memory_mb;
+use metricdeform::pipeline::{deform, Options, SolverBackend, SolverSummary};
+use metricdeform::problem::{max_error, Problem};
 use std::path::Path;
 use std::time::Instant;
 
@@ -37,7 +38,7 @@ fn row(
     let text = format!("{job_text}\n[solver]\nmultipliers = \"{multipliers}\"\n");
     let job = Job::from_str(&text, JobFormat::Toml, &dir, name).unwrap();
     let t0 = Instant::now();
-    let mut mesh = metricdeform::io::read_mesh(&job.mesh_path()).unwrap();
+    let mut mesh = metricdeform::mesh::io::read_mesh(&job.mesh_path()).unwrap();
     match refine {
         Refine::Midpoint(k) => {
             for _ in 0..k {
@@ -163,7 +164,7 @@ fn proxies(name: &str, backend: &str, s: &SolverSummary, cpu: Option<&SolverSumm
 /// back as OBJ and PLY (`--io N`).
 fn io_row(subdivisions: usize) {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/meshes/homer.obj");
-    let mut mesh = metricdeform::io::read_mesh(&path).unwrap();
+    let mut mesh = metricdeform::mesh::io::read_mesh(&path).unwrap();
     for _ in 0..subdivisions {
         mesh = mesh.subdivide_midpoint();
     }
@@ -171,10 +172,10 @@ fn io_row(subdivisions: usize) {
     for ext in ["obj", "ply"] {
         let out = dir.path().join(format!("big.{ext}"));
         let t0 = Instant::now();
-        metricdeform::io::write_mesh(&out, &mesh, &mesh.positions, None).unwrap();
+        metricdeform::mesh::io::write_mesh(&out, &mesh, &mesh.positions, None).unwrap();
         let write = t0.elapsed().as_secs_f64();
         let t1 = Instant::now();
-        let back = metricdeform::io::read_mesh(&out).unwrap();
+        let back = metricdeform::mesh::io::read_mesh(&out).unwrap();
         let read = t1.elapsed().as_secs_f64();
         assert_eq!(back.num_faces(), mesh.num_faces());
         println!(

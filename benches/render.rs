@@ -10,9 +10,9 @@
 mod common;
 
 use glam::DVec3;
-use metricdeform::deform::Problem;
 use metricdeform::job::{Job, JobFormat};
 use metricdeform::metrics::Selection;
+use metricdeform::problem::Problem;
 use metricdeform::render::{render_deformation, Annotation, Marked, RenderParams};
 use std::path::Path;
 use std::time::Instant;
@@ -27,7 +27,7 @@ fn main() {
         .map(std::path::PathBuf::from);
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/meshes");
     let job = Job::from_str(common::TABLE1_HOMER, JobFormat::Toml, &dir, "homer").unwrap();
-    let base = metricdeform::io::read_mesh(&job.mesh_path()).unwrap();
+    let base = metricdeform::mesh::io::read_mesh(&job.mesh_path()).unwrap();
     println!("| faces | selections | render s | PNG kB |");
     println!("|---|---|---|---|");
     for n in [1usize, 3, 10] {

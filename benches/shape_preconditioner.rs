@@ -36,7 +36,7 @@
 //! with every edge cut in 10, 1.2M faces; `--gpu-form-only`: B alone and the
 //! GPU's form only).
 
-use metricdeform::shape::{vertex_areas, ShapeModel, ShapeWeights};
+use metricdeform::shape::{cotangent_laplacian, vertex_areas, ShapeModel, ShapeWeights};
 use metricdeform::Mesh;
 use solver_gpu::amg::{squared_laplacian, AmgOptions, Bsr, Hierarchy, SQUARED_LAPLACIAN_TAU};
 use std::path::Path;
@@ -47,10 +47,10 @@ fn load(k: usize) -> (String, Mesh) {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/meshes");
     if k == 0 || k == 10 {
         let cut = if k == 0 { 3 } else { 10 };
-        let mesh = metricdeform::io::read_mesh(&dir.join("homer.obj")).unwrap();
+        let mesh = metricdeform::mesh::io::read_mesh(&dir.join("homer.obj")).unwrap();
         return (format!("homer x{}", cut * cut), mesh.subdivide_uniform(cut));
     }
-    let mut mesh = metricdeform::io::read_mesh(&dir.join("spot.obj")).unwrap();
+    let mut mesh = metricdeform::mesh::io::read_mesh(&dir.join("spot.obj")).unwrap();
     for _ in 0..k {
         mesh = mesh.subdivide_midpoint();
     }
@@ -123,7 +123,7 @@ fn main() {
     };
     for &sub in levels {
         let (name, mesh) = load(sub);
-        let topo = metricdeform::topology::Topology::build(&mesh);
+        let topo = metricdeform::mesh::topology::Topology::build(&mesh);
         let mut model = ShapeModel::new(&mesh, &topo, Vec::new()).unwrap();
         let (nf, n) = (mesh.num_faces(), mesh.num_vertices());
         let gpu_vcycles = env("VCYCLES", solver_gpu::squared_laplacian_vcycles(n));
@@ -214,7 +214,7 @@ fn main() {
         let mt: Vec<f64> = area.iter().map(|a| 2.0 * a / w.k_m).collect();
         let lambda = 50.0 / mt.iter().sum::<f64>();
         let eps = (c * lambda).sqrt().max(lambda);
-        let cot = model.cotangent();
+        let cot = cotangent_laplacian(&mesh, &mesh.positions);
         let bm = Bsr::scalar_from_rows(
             (0..n)
                 .map(|i| {

@@ -20,11 +20,11 @@
 mod common;
 
 use glam::DVec3;
-use metricdeform::deform::{
-    vertex_mean_scale, Options, Problem, GPU_TOLERANCE, SCALE_DRIVEN_TOLERANCE,
-};
 use metricdeform::job::{Job, JobFormat};
+use metricdeform::pipeline::{Options, GPU_TOLERANCE, SCALE_DRIVEN_TOLERANCE};
+use metricdeform::problem::Problem;
 use metricdeform::scale_factors::{ScaleConstraint, ScaleFactorSystem};
+use metricdeform::shape::vertex_mean_scale;
 use metricdeform::shape::ShapeModel;
 use solver_cpu::{CholeskySolver, SpdSolver, SystemKind};
 use std::path::Path;
@@ -52,7 +52,7 @@ fn main() {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/meshes");
     let job = Job::from_str(common::GIRTHS_HOMER, JobFormat::Toml, &dir, &row).unwrap();
     let o = Options::from_spec(&job.spec.solver);
-    let mesh = metricdeform::io::read_mesh(&job.mesh_path())
+    let mesh = metricdeform::mesh::io::read_mesh(&job.mesh_path())
         .unwrap()
         .subdivide_uniform(cut);
     let p = Problem::build(&job, mesh, &job.mesh_path()).unwrap();

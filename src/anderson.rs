@@ -64,13 +64,6 @@ impl Anderson {
         }
     }
 
-    /// Forget the history (the map changed, e.g. after a one-off first step).
-    pub fn reset(&mut self) {
-        self.df.clear();
-        self.dg.clear();
-        self.last = None;
-    }
-
     /// `x`: the current iterate; `g`: its image `G(x)`. Returns the next iterate.
     pub fn step(&mut self, x: &[DVec3], g: Vec<DVec3>) -> (Vec<DVec3>, AndersonInfo) {
         assert_eq!(x.len(), g.len());

@@ -7,28 +7,19 @@
 //! [`crate::selection`].
 
 use crate::error::{Error, Result};
+use crate::mesh::topology::Topology;
+use crate::mesh::Mesh;
+use crate::pipeline::Options;
+use crate::problem::{
+    constraint_label as label_of, curvature_label, handle_label, Curvature, Demand, Handle, Metric,
+    Problem, Target,
+};
+use crate::selection::{self, check_faces, Curve, FaceSet, Region, SurfaceCurve};
 use serde::{Deserialize, Serialize};
 use std::fmt;
 use std::path::{Path, PathBuf};
 
-/// Which metric a constraint demands.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum MetricKind {
-    Length,
-    Area,
-    Volume,
-}
-
-impl fmt::Display for MetricKind {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.write_str(match self {
-            MetricKind::Length => "length",
-            MetricKind::Area => "area",
-            MetricKind::Volume => "volume",
-        })
-    }
-}
+pub use crate::metrics::MetricKind;
 
 /// The whole job file.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -167,12 +158,7 @@ pub struct PlaneSpec {
 }
 
 /// A surface point: barycentric coordinates in one face.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct PointSpec {
-    pub face: usize,
-    pub bary: [f64; 3],
-}
+pub type PointSpec = selection::FacePoint;
 
 /// A set of faces of the input mesh; exactly one field given.
 /// `vertices` is only valid for handles.
@@ -419,23 +405,137 @@ impl Job {
     }
 }
 
-/// `constraint N ('name')`, or `constraint N (kind)` when unnamed; N = i + 1 is
-/// 1-based (the contract: constraints by name or 1-based number).
+/// `constraint N ('name')`, or `constraint N (kind)` when unnamed, N = i + 1.
 pub fn constraint_label(i: usize, c: &ConstraintSpec) -> String {
-    match &c.name {
-        Some(name) => format!("constraint {} ('{name}')", i + 1),
-        None => format!("constraint {} ({})", i + 1, c.kind),
+    label_of(i, c.name.as_deref(), c.kind)
+}
+
+impl Job {
+    /// Reads one of the job's `faces_file`s: whitespace-separated face indices,
+    /// `#` comments, each index below `faces`. `what` names its owner.
+    pub fn read_faces_file(&self, file: &Path, faces: usize, what: &str) -> Result<Vec<usize>> {
+        let path = self.resolve_path(file);
+        let text = std::fs::read_to_string(&path).map_err(|e| {
+            Error::bad(format!(
+                "{what}: cannot read faces_file {}: {e}",
+                path.display()
+            ))
+        })?;
+        let mut list = Vec::new();
+        // Lines end in LF, CRLF or a lone CR (old Mac files).
+        for line in text.split(['\n', '\r']) {
+            let line = line.split('#').next().unwrap_or("");
+            for tok in line.split_whitespace() {
+                let f: usize = tok.parse().map_err(|_| {
+                    Error::bad(format!(
+                        "{what}: faces_file {}: '{tok}' is not a face index \
+                         (expected whitespace-separated non-negative integers)",
+                        path.display()
+                    ))
+                })?;
+                list.push(f);
+            }
+        }
+        let ctx = format!("face index in {}", path.display());
+        check_faces(&list, faces, what, &ctx)?;
+        Ok(list)
+    }
+
+    /// The job's constraints, handles and curvature regions as typed values
+    /// for a mesh of `faces` faces (its `faces_file`s are read now).
+    pub fn demands(&self, faces: usize) -> Result<(Vec<Demand>, Vec<Handle>, Vec<Curvature>)> {
+        let spec = &self.spec;
+        let demands = (spec.constraint.iter().enumerate())
+            .map(|(i, c)| {
+                let what = constraint_label(i, c);
+                c.demand(&what, &mut |f| self.read_faces_file(f, faces, &what))
+            })
+            .collect::<Result<_>>()?;
+        let handles = (spec.handle.iter().enumerate())
+            .map(|(i, h)| {
+                let what = handle_label(i);
+                h.handle(&what, &mut |f| self.read_faces_file(f, faces, &what))
+            })
+            .collect::<Result<_>>()?;
+        let curvature = (spec.curvature.iter().enumerate())
+            .map(|(i, c)| {
+                let what = curvature_label(i);
+                c.curvature(&what, &mut |f| self.read_faces_file(f, faces, &what))
+            })
+            .collect::<Result<_>>()?;
+        Ok((demands, handles, curvature))
+    }
+
+    /// A bad-input message that does not name the job file yet gets it in front
+    /// (contract: bad-input messages name the job file).
+    fn naming(&self, e: Error) -> Error {
+        match e {
+            Error::BadInput(m) if !self.origin.is_empty() && !m.starts_with(&self.origin) => {
+                Error::BadInput(format!("{}: {m}", self.origin))
+            }
+            Error::Io { path, source } if !self.origin.is_empty() => Error::BadInput(format!(
+                "{}: cannot read {}: {source}",
+                self.origin,
+                path.display()
+            )),
+            e => e,
+        }
     }
 }
 
-/// `handle N` for the 0-based index `i`, N 1-based.
-pub fn handle_label(i: usize) -> String {
-    format!("handle {}", i + 1)
+/// The job file front end of [`Problem::new`].
+impl Problem {
+    /// Read the job's mesh and resolve every selection on it.
+    pub fn load(job: &Job) -> Result<Problem> {
+        let mesh_path = job.mesh_path();
+        let mesh = crate::mesh::io::read_mesh(&mesh_path).map_err(|e| job.naming(e))?;
+        Problem::build(job, mesh, &mesh_path)
+    }
+
+    /// Resolve the job's selections on an already loaded mesh. Bad-input messages
+    /// name the job file.
+    pub fn build(job: &Job, mesh: Mesh, mesh_path: &Path) -> Result<Problem> {
+        let inputs = crate::mesh::validate::check_indices(&mesh, mesh_path)
+            .and_then(|_| job.demands(mesh.num_faces()));
+        let (demands, handles, curvature) = inputs.map_err(|e| job.naming(e))?;
+        Problem::new(mesh, mesh_path, &demands, &handles, &curvature).map_err(|e| job.naming(e))
+    }
 }
 
-/// `curvature N` for the 0-based index `i`, N 1-based.
-pub fn curvature_label(i: usize) -> String {
-    format!("curvature {}", i + 1)
+/// A job's curve resolved on `mesh` ([`selection::build_curve`] of its typed form).
+pub fn build_curve(
+    spec: &CurveSpec,
+    mesh: &Mesh,
+    topo: &Topology,
+    what: &str,
+) -> Result<SurfaceCurve> {
+    spec.validate(what).map_err(Error::bad)?;
+    let curve = spec
+        .curve()
+        .ok_or_else(|| Error::bad(format!("{what}: curve is empty")))?;
+    selection::build_curve(&curve, mesh, topo, what)
+}
+
+/// A job's region resolved on `mesh` ([`selection::build_region`] of its
+/// typed form; a `faces_file` is read relative to the job).
+pub fn build_region(spec: &RegionSpec, mesh: &Mesh, job: &Job, what: &str) -> Result<FaceSet> {
+    spec.validate(what, false).map_err(Error::bad)?;
+    let region = spec.region(&mut |f| job.read_faces_file(f, mesh.num_faces(), what))?;
+    selection::build_region(&region, mesh, what)
+}
+
+/// A job's handle's vertices on `mesh` ([`selection::build_handle_vertices`]
+/// of its typed form).
+pub fn build_handle_vertices(
+    spec: &HandleSpec,
+    mesh: &Mesh,
+    job: &Job,
+    what: &str,
+) -> Result<Vec<u32>> {
+    let handle = spec.handle(what, &mut |f| {
+        job.read_faces_file(f, mesh.num_faces(), what)
+    })?;
+    selection::build_handle_vertices(&handle.region, mesh, what)
 }
 
 /// A number for messages: plain, or in exponent form when very large or small.
@@ -462,10 +562,6 @@ fn lone_cr_to_lf(text: &str) -> String {
     out
 }
 
-fn finite3(v: &[f64; 3]) -> bool {
-    v.iter().all(|x| x.is_finite())
-}
-
 fn check_choice(field: &str, value: &Option<String>, allowed: &[&str]) -> Result<(), String> {
     match value {
         Some(v) if !allowed.contains(&v.as_str()) => Err(format!(
@@ -478,7 +574,10 @@ fn check_choice(field: &str, value: &Option<String>, allowed: &[&str]) -> Result
 
 impl JobSpec {
     /// Checks that need no mesh. The message names the constraint/handle and what
-    /// is wrong (without the job file's name, which the caller adds).
+    /// is wrong (without the job file's name, which the caller adds). The file
+    /// schema's own rules (exactly one of some fields) are checked here; the
+    /// values are checked by the typed selections they become
+    /// ([`Demand::validate`], [`Handle::validate`], [`Curvature::validate`]).
     pub fn validate(&self) -> Result<(), String> {
         if self.mesh.as_os_str().is_empty() {
             return Err("`mesh` is empty: give the input mesh's path".into());
@@ -492,37 +591,46 @@ impl JobSpec {
                 );
             }
         }
+        // A faces_file is read only when the problem is built.
+        let mut unread = |_: &Path| Ok(Vec::new());
+        let message = |e: Error| match e {
+            Error::BadInput(m) => m,
+            e => e.to_string(),
+        };
         for (i, c) in self.constraint.iter().enumerate() {
-            c.validate(&constraint_label(i, c))?;
+            let what = constraint_label(i, c);
+            c.validate(&what)?;
+            c.demand(&what, &mut unread)
+                .map_err(message)?
+                .validate(&what)?;
         }
         for (i, h) in self.handle.iter().enumerate() {
-            h.validate(&handle_label(i))?;
+            let what = handle_label(i);
+            h.validate(&what)?;
+            h.handle(&what, &mut unread)
+                .map_err(message)?
+                .validate(&what)?;
         }
         for (i, c) in self.curvature.iter().enumerate() {
             let what = curvature_label(i);
             c.region.validate(&what, false)?;
-            if !c.scale.is_finite() {
-                return Err(format!("{what}: scale must be a finite number"));
-            }
+            c.curvature(&what, &mut unread)
+                .map_err(message)?
+                .validate(&what)?;
         }
         self.solver.validate()
     }
 }
 
+/// Reads a `faces_file` (its path as the job gives it) into face indices.
+pub type FacesFileReader<'a> = dyn FnMut(&Path) -> Result<Vec<usize>> + 'a;
+
 impl ConstraintSpec {
-    /// Checks that need no mesh; `what` names the constraint.
+    /// The schema's rules: a curve for a length, a region for an area, neither
+    /// for a volume; scale or value, not both. `what` names the constraint.
     pub fn validate(&self, what: &str) -> Result<(), String> {
         if self.scale.is_some() && self.value.is_some() {
             return Err(format!("{what}: give either scale or value, not both"));
-        }
-        for (field, v) in [("scale", self.scale), ("value", self.value)] {
-            if let Some(v) = v {
-                if !v.is_finite() || v <= 0.0 {
-                    return Err(format!(
-                        "{what}: {field} must be a finite number > 0 (got {v})"
-                    ));
-                }
-            }
         }
         match self.kind {
             MetricKind::Length => {
@@ -568,10 +676,42 @@ impl ConstraintSpec {
         }
         Ok(())
     }
+
+    /// The typed constraint ([`ConstraintSpec::validate`] first).
+    pub fn demand(&self, what: &str, faces_file: &mut FacesFileReader) -> Result<Demand> {
+        self.validate(what).map_err(Error::bad)?;
+        let metric =
+            match self.kind {
+                MetricKind::Length => {
+                    Metric::Length(self.curve.as_ref().and_then(CurveSpec::curve).ok_or_else(
+                        || Error::bad(format!("{what}: a length constraint needs a curve")),
+                    )?)
+                }
+                MetricKind::Area => Metric::Area(
+                    self.region
+                        .as_ref()
+                        .ok_or_else(|| {
+                            Error::bad(format!("{what}: an area constraint needs a region"))
+                        })?
+                        .region(faces_file)?,
+                ),
+                MetricKind::Volume => Metric::Volume,
+            };
+        let target = match (self.scale, self.value) {
+            (Some(s), _) => Target::Scale(s),
+            (None, Some(v)) => Target::Value(v),
+            (None, None) => Target::Keep,
+        };
+        Ok(Demand {
+            name: self.name.clone(),
+            metric,
+            target,
+        })
+    }
 }
 
 impl CurveSpec {
-    /// Exactly one of plane/path/points; `closed` only with path; finite numbers.
+    /// Exactly one of plane/path/points; `closed` only with path.
     pub fn validate(&self, what: &str) -> Result<(), String> {
         let n = self.plane.is_some() as usize
             + self.path.is_some() as usize
@@ -586,31 +726,24 @@ impl CurveSpec {
                 "{what}: curve `closed` is only allowed with `path`"
             ));
         }
-        if let Some(p) = &self.plane {
-            if !finite3(&p.origin) || !finite3(&p.normal) {
-                return Err(format!("{what}: plane origin and normal must be finite"));
-            }
-            if p.normal.iter().all(|&x| x == 0.0) {
-                return Err(format!("{what}: plane normal is zero"));
-            }
-        }
-        if let Some(path) = &self.path {
-            if path.len() < 2 {
-                return Err(format!(
-                    "{what}: a path needs at least 2 vertices (got {})",
-                    path.len()
-                ));
-            }
-        }
-        if let Some(points) = &self.points {
-            if points.len() < 2 {
-                return Err(format!(
-                    "{what}: a curve needs at least 2 points (got {})",
-                    points.len()
-                ));
-            }
-        }
         Ok(())
+    }
+
+    /// The typed curve: the first of plane, path, points given.
+    pub fn curve(&self) -> Option<Curve> {
+        if let Some(p) = &self.plane {
+            Some(Curve::Plane {
+                origin: p.origin,
+                normal: p.normal,
+            })
+        } else if let Some(path) = &self.path {
+            Some(Curve::Path {
+                vertices: path.clone(),
+                closed: self.closed.unwrap_or(false),
+            })
+        } else {
+            self.points.clone().map(Curve::Points)
+        }
     }
 }
 
@@ -639,7 +772,8 @@ impl RegionSpec {
         v
     }
 
-    /// Exactly one kind; `vertices` only when `allow_vertices` (handles); sane numbers.
+    /// Exactly one kind; `vertices` only when `allow_vertices` (handles); a
+    /// non-empty `faces_file`.
     pub fn validate(&self, what: &str, allow_vertices: bool) -> Result<(), String> {
         let given = self.given();
         let kinds = if allow_vertices {
@@ -662,28 +796,6 @@ impl RegionSpec {
                  use one of {kinds}"
             ));
         }
-        if let Some(s) = &self.sphere {
-            if !finite3(&s.center) {
-                return Err(format!("{what}: sphere center must be finite"));
-            }
-            if !(s.radius.is_finite() && s.radius > 0.0) {
-                return Err(format!(
-                    "{what}: sphere radius must be a finite number > 0 (got {})",
-                    s.radius
-                ));
-            }
-        }
-        if let Some(b) = &self.box_ {
-            if !finite3(&b.min) || !finite3(&b.max) {
-                return Err(format!("{what}: box min and max must be finite"));
-            }
-            if (0..3).any(|k| b.min[k] > b.max[k]) {
-                return Err(format!(
-                    "{what}: box min {:?} exceeds max {:?} in some coordinate",
-                    b.min, b.max
-                ));
-            }
-        }
         if let Some(f) = &self.faces_file {
             if f.as_os_str().is_empty() {
                 return Err(format!("{what}: faces_file is empty"));
@@ -691,10 +803,36 @@ impl RegionSpec {
         }
         Ok(())
     }
+
+    /// The typed region, a `faces_file` read through `faces_file` into
+    /// [`Region::Faces`].
+    pub fn region(&self, faces_file: &mut FacesFileReader) -> Result<Region> {
+        Ok(if let Some(list) = &self.faces {
+            Region::Faces(list.clone())
+        } else if let Some(file) = &self.faces_file {
+            Region::Faces(faces_file(file)?)
+        } else if let Some(s) = &self.sphere {
+            Region::Sphere {
+                center: s.center,
+                radius: s.radius,
+            }
+        } else if let Some(b) = &self.box_ {
+            Region::Box {
+                min: b.min,
+                max: b.max,
+            }
+        } else if let Some(g) = &self.group {
+            Region::Group(g.clone())
+        } else if let Some(v) = &self.vertices {
+            Region::Vertices(v.clone())
+        } else {
+            return Err(Error::bad("region is empty"));
+        })
+    }
 }
 
 impl HandleSpec {
-    /// Exactly one of region/vertices; finite translation.
+    /// Exactly one of region/vertices.
     pub fn validate(&self, what: &str) -> Result<(), String> {
         match (&self.region, &self.vertices) {
             (Some(_), Some(_)) => {
@@ -704,17 +842,37 @@ impl HandleSpec {
             (Some(r), None) => r.validate(what, true)?,
             (None, Some(_)) => {}
         }
-        if let Some(t) = &self.translate {
-            if !finite3(t) {
-                return Err(format!("{what}: translate must be finite"));
-            }
-        }
         Ok(())
     }
 
     /// The translation, zero when not given.
     pub fn translation(&self) -> [f64; 3] {
         self.translate.unwrap_or([0.0; 3])
+    }
+
+    /// The typed handle ([`HandleSpec::validate`] first).
+    pub fn handle(&self, what: &str, faces_file: &mut FacesFileReader) -> Result<Handle> {
+        self.validate(what).map_err(Error::bad)?;
+        let region = match (&self.vertices, &self.region) {
+            (Some(v), _) => Region::Vertices(v.clone()),
+            (None, Some(r)) => r.region(faces_file)?,
+            (None, None) => return Err(Error::bad(format!("{what}: needs a region or vertices"))),
+        };
+        Ok(Handle {
+            region,
+            translate: self.translation(),
+        })
+    }
+}
+
+impl CurvatureSpec {
+    /// The typed curvature region.
+    pub fn curvature(&self, what: &str, faces_file: &mut FacesFileReader) -> Result<Curvature> {
+        self.region.validate(what, false).map_err(Error::bad)?;
+        Ok(Curvature {
+            region: self.region.region(faces_file)?,
+            scale: self.scale,
+        })
     }
 }
 
@@ -832,5 +990,65 @@ impl WeightsSpec {
             ));
         }
         Ok(())
+    }
+}
+
+/// The `[solver]` table's settings.
+impl Options {
+    /// Defaults overridden by the job's `[solver]` table.
+    pub fn from_spec(spec: &SolverSpec) -> Options {
+        let mut o = Options::default();
+        if let Some(t) = spec.tolerance {
+            o.tolerance = t;
+        }
+        if let Some(m) = spec.max_iterations {
+            o.max_iterations = m;
+        }
+        if let Some(m) = spec.fine_tune_iterations {
+            o.fine_tune_iterations = m;
+        }
+        if let Some(t) = spec.scale_threshold {
+            o.scale_threshold = t;
+        }
+        if let Some(w) = &spec.weights {
+            if let Some(v) = w.k_f {
+                o.shape.k_f = v;
+            }
+            if let Some(v) = w.k_m {
+                o.shape.k_m = v;
+            }
+            if let Some(v) = w.k_l {
+                o.shape.k_l = v;
+            }
+            if let Some(v) = w.k_p {
+                o.shape.k_p = v;
+                o.fine_tune.k_p = v;
+            }
+            if let Some(v) = w.k_d {
+                o.k_d = v;
+            }
+            if let Some(v) = w.k_r {
+                o.k_r = v;
+            }
+        }
+        match spec.multipliers.as_deref() {
+            Some("per_kind") => o.multipliers = crate::constrained_step::Multipliers::PerKind,
+            _ => o.multipliers = crate::constrained_step::Multipliers::PerConstraint,
+        }
+        if spec.regulariser.as_deref() == Some("uniform") {
+            o.regulariser = crate::scale_factors::Regulariser::Uniform;
+        }
+        if spec.curvature_target.as_deref() == Some("literal") {
+            o.curvature_target = crate::shape::CurvatureTarget::Literal;
+        }
+        if spec.volume_share.as_deref() == Some("tetrahedra") {
+            o.volume_share = crate::metrics::VolumeShare::Tetrahedra;
+        }
+        match spec.acceleration.as_deref() {
+            Some("none") => o.anderson_depth = 0,
+            Some("anderson") => o.anderson_from_faces = 0,
+            _ => {}
+        }
+        o
     }
 }

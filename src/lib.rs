@@ -2,23 +2,23 @@
 //! hold exactly (Jin, Zhang, Wang: *Deformation with Enforced Metrics on Length, Area
 //! and Volume*).
 
-pub mod error;
-pub mod io;
-pub mod job;
-pub mod mesh;
-pub mod selection;
-pub mod topology;
-pub mod validate;
-
-pub use error::{Error, Result};
 pub mod anderson;
-pub use mesh::Mesh;
-pub mod deform;
+pub mod constrained_step;
 pub mod distortion;
+pub mod error;
+pub mod fine_tune;
+pub mod job;
+pub mod memory;
+pub mod mesh;
 pub mod metrics;
 pub mod output;
+pub mod pipeline;
+pub mod problem;
 pub mod render;
 pub mod report;
 pub mod scale_factors;
-pub mod schur;
+pub mod selection;
 pub mod shape;
+
+pub use error::{Error, Result};
+pub use mesh::Mesh;

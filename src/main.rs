@@ -2,13 +2,16 @@
 
 use clap::{Parser, Subcommand, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
-use metricdeform::deform::{auto_uses_gpu, deform, Options, Problem, Progress, SolverBackend};
 use metricdeform::job::{Job, JobFormat};
+use metricdeform::memory::peak_memory_mb;
+use metricdeform::mesh::io;
+use metricdeform::pipeline::{auto_uses_gpu, deform, Options, Progress, SolverBackend};
+use metricdeform::problem::Problem;
 use metricdeform::report::{
-    constraint_rows, explain_miss, peak_memory_mb, table, Distortion, Iterations, MeshInfo, Report,
-    Seconds, SolverWork,
+    constraint_rows, explain_miss, table, Distortion, Iterations, MeshInfo, Report, Seconds,
+    SolverWork,
 };
-use metricdeform::{distortion, io, output, render, Error};
+use metricdeform::{distortion, output, render, Error};
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -647,7 +650,7 @@ fn annotations(problem: &Problem, values: impl Fn(usize) -> String) -> Vec<rende
         });
     }
     for (i, c) in problem.curvature.iter().enumerate() {
-        let name = metricdeform::job::curvature_label(i);
+        let name = metricdeform::problem::curvature_label(i);
         notes.push(render::Annotation {
             name,
             kind: "curvature".into(),

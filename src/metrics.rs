@@ -3,16 +3,36 @@
 //! hard constraints of Eqs. 10, 12, 14) and written as a polynomial in per-face
 //! scale factors `s` (for the scale-factor estimation of Eqs. 9, 11, 13).
 
-use crate::job::MetricKind;
-use crate::mesh::Mesh;
-use crate::selection::{Curve, Region};
+use crate::mesh::{triangle_area_gradient, Mesh};
+use crate::selection::{FaceSet, SurfaceCurve};
 use glam::DVec3;
+use serde::{Deserialize, Serialize};
+use std::fmt;
+
+/// Which metric a constraint demands.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum MetricKind {
+    Length,
+    Area,
+    Volume,
+}
+
+impl fmt::Display for MetricKind {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            MetricKind::Length => "length",
+            MetricKind::Area => "area",
+            MetricKind::Volume => "volume",
+        })
+    }
+}
 
 /// What a constraint measures.
 #[derive(Debug, Clone)]
 pub enum Selection {
-    Curve(Curve),
-    Region(Region),
+    Curve(SurfaceCurve),
+    Region(FaceSet),
     /// The whole (closed) mesh.
     Whole,
 }
@@ -40,7 +60,7 @@ pub struct Constraint {
     /// Sign of the input's signed volume (an inward-oriented mesh has -1).
     pub orientation: f64,
     /// Faces a whole-mesh metric leaves out (duplicate faces, see
-    /// [`crate::topology::Topology::duplicate_faces`]); empty: none.
+    /// [`crate::mesh::topology::Topology::duplicate_faces`]); empty: none.
     pub skip: Vec<bool>,
 }
 
@@ -91,7 +111,8 @@ impl Constraint {
             Selection::Curve(c) => {
                 for seg in &c.segments {
                     let t = mesh.faces[seg.face as usize];
-                    let d = point(x, &t, &seg.b) - point(x, &t, &seg.a);
+                    let (a, b) = seg.ends(mesh, x);
+                    let d = b - a;
                     let len = d.length();
                     if len <= 0.0 {
                         continue;
@@ -149,9 +170,7 @@ impl Constraint {
             Selection::Curve(c) => {
                 let mut out: Vec<(u32, f64)> = Vec::with_capacity(c.segments.len());
                 for seg in &c.segments {
-                    let t = mesh.faces[seg.face as usize];
-                    let l = (point(x, &t, &seg.b) - point(x, &t, &seg.a)).length();
-                    out.push((seg.face, l));
+                    out.push((seg.face, seg.length(mesh, x)));
                 }
                 merge(out)
             }
@@ -182,24 +201,14 @@ impl Constraint {
     }
 }
 
-#[inline]
-fn point(x: &[DVec3], t: &[u32; 3], bary: &[f64; 3]) -> DVec3 {
-    bary[0] * x[t[0] as usize] + bary[1] * x[t[1] as usize] + bary[2] * x[t[2] as usize]
-}
-
-/// d area / d corner k = 1/2 n_hat x (x_{k+2} - x_{k+1}).
+/// Adds face f's area gradient (d area / d corner) to `add`.
 #[inline]
 fn area_gradient(mesh: &Mesh, x: &[DVec3], f: usize, add: &mut impl FnMut(u32, DVec3)) {
     let t = mesh.faces[f];
-    let p = [x[t[0] as usize], x[t[1] as usize], x[t[2] as usize]];
-    let n = (p[1] - p[0]).cross(p[2] - p[0]);
-    let len = n.length();
-    if len <= 0.0 {
-        return;
-    }
-    let nh = n / len;
-    for k in 0..3 {
-        add(t[k], 0.5 * nh.cross(p[(k + 2) % 3] - p[(k + 1) % 3]));
+    if let Some((_, g)) = triangle_area_gradient(mesh.corners(x, f)) {
+        for k in 0..3 {
+            add(t[k], g[k]);
+        }
     }
 }
 

@@ -15,7 +15,7 @@
 //! same bytes.
 
 use crate::mesh::Mesh;
-use crate::selection::Curve;
+use crate::selection::SurfaceCurve;
 use crate::Error;
 use embedded_graphics::mono_font::ascii::{FONT_10X20, FONT_6X13, FONT_9X15};
 use embedded_graphics::mono_font::{MonoFont, MonoTextStyle};
@@ -141,7 +141,7 @@ fn check_size(w: u32, h: u32) -> Result<(), String> {
 #[derive(Clone, Debug)]
 pub enum Marked<'a> {
     /// A curve on the surface (it moves with the mesh).
-    Curve(&'a Curve),
+    Curve(&'a SurfaceCurve),
     /// A set of faces.
     Faces(&'a [u32]),
     /// A set of vertices (handles, curvature regions), drawn as dots.

@@ -1,9 +1,10 @@
 //! The JSON report of the contract and the table printed on stdout.
 
-use crate::deform::{Outcome, Problem};
 use crate::job::MetricKind;
 use crate::mesh::Mesh;
 use crate::metrics::Selection;
+use crate::pipeline::Outcome;
+use crate::problem::Problem;
 use glam::DVec3;
 use serde::Serialize;
 
@@ -32,7 +33,7 @@ pub struct ConstraintReport {
     /// Region: the bounding box of its faces' vertices on the input mesh.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub bbox: Option<BoundingBox>,
-    /// Curve: points of the polyline ([`crate::selection::Curve::num_points`]).
+    /// Curve: points of the polyline ([`crate::selection::SurfaceCurve::num_points`]).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub points: Option<usize>,
     /// Plane curve: connected pieces the plane cut from the input mesh.
@@ -249,46 +250,6 @@ pub fn explain_miss(
         ));
     }
     Some(why)
-}
-
-/// Peak resident set size of this process in MiB (VmHWM), 0 when unknown.
-pub fn peak_memory_mb() -> f64 {
-    proc_status_mb("VmHWM:")
-}
-
-/// Current resident set size of this process in MiB (VmRSS), 0 when unknown.
-pub fn resident_memory_mb() -> f64 {
-    proc_status_mb("VmRSS:")
-}
-
-/// Hands the allocator's free memory back to the system (glibc keeps freed
-/// blocks of its per-thread arenas resident; a large set-up step leaves hundreds
-/// of MiB of them at a million faces). A no-op elsewhere.
-pub fn release_free_memory() {
-    #[cfg(all(target_os = "linux", target_env = "gnu"))]
-    {
-        extern "C" {
-            fn malloc_trim(pad: usize) -> std::ffi::c_int;
-        }
-        // SAFETY: malloc_trim only returns free pages of glibc's own arenas.
-        unsafe {
-            malloc_trim(0);
-        }
-    }
-}
-
-fn proc_status_mb(field: &str) -> f64 {
-    std::fs::read_to_string("/proc/self/status")
-        .ok()
-        .and_then(|s| {
-            s.lines().find(|l| l.starts_with(field)).and_then(|l| {
-                l.split_whitespace()
-                    .nth(1)
-                    .and_then(|kb| kb.parse::<f64>().ok())
-                    .map(|kb| kb / 1024.0)
-            })
-        })
-        .unwrap_or(0.0)
 }
 
 /// The stdout table. Names are padded by hand: `format!`'s width is limited

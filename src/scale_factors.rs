@@ -8,9 +8,9 @@
 //! resolution-dependent; `Regulariser::Uniform` keeps the paper's literal form).
 //! The Hessian is constant for the whole run: it is factored once.
 
-use crate::schur::{constrained_step_warm, Linearized, Multipliers};
+use crate::constrained_step::{constrained_step_warm, Linearized, Multipliers};
 use crate::Result;
-use solver_cpu::{CholeskySolver, SpdSolver, SymCsc};
+use solver_cpu::{SpdSolver, SymCsc};
 
 /// Weighting of the regulariser `k_r (s_i - 1)^2`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -71,24 +71,8 @@ impl ScaleFactorSystem {
         self.solver.counters()
     }
 
-    /// Assemble and factor `2 k_d L_Q + 2 k_r diag(rho)` (Hessian of Eq. 3).
-    pub fn new(
-        face_pairs: &[[u32; 2]],
-        areas: &[f64],
-        k_d: f64,
-        k_r: f64,
-        reg: Regulariser,
-    ) -> Result<Self> {
-        Self::with_solver(
-            face_pairs,
-            areas,
-            k_d,
-            k_r,
-            reg,
-            Box::new(CholeskySolver::new()),
-        )
-    }
-
+    /// Assemble and factor `2 k_d L_Q + 2 k_r diag(rho)` (Hessian of Eq. 3)
+    /// with `solver`.
     pub fn with_solver(
         face_pairs: &[[u32; 2]],
         areas: &[f64],

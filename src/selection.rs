@@ -1,17 +1,145 @@
-//! Turning the job's curve/region/handle specs into concrete selections on the
-//! INPUT mesh (contract: "Curves", "Regions").
+//! Selections: what a constraint, handle or curvature region picks on the
+//! INPUT mesh (contract: "Curves", "Regions"), as typed values ([`Curve`],
+//! [`Region`]) and as their resolutions on a mesh ([`SurfaceCurve`],
+//! [`FaceSet`]).
+//!
+//! A [`Curve`] or [`Region`] is checked in one place: [`Curve::validate`] and
+//! [`Region::validate`] for what needs no mesh (the job file front end calls
+//! them when it reads a job, to fail before the mesh is read), then
+//! [`build_curve`] and [`build_region`] on the mesh.
 //!
 //! Curves are polylines of surface points: each segment lies in one face and stores
 //! its ends as barycentric coordinates of that face (paper Sec. 3.1), so the curve
 //! follows the mesh when it deforms. Everything here runs in (near) linear time.
 
 use crate::error::{Error, Result};
-use crate::job::{CurveSpec, HandleSpec, Job, PlaneSpec, PointSpec, RegionSpec};
+use crate::mesh::topology::Topology;
 use crate::mesh::Mesh;
-use crate::topology::Topology;
 use glam::DVec3;
 use std::cmp::Ordering;
 use std::collections::BinaryHeap;
+
+/// A curve on the input surface, as a caller gives it.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Curve {
+    /// The section of the mesh by the plane through `origin` with normal
+    /// `normal` (any non-zero length); where the plane cuts several pieces,
+    /// the piece with a crossing point closest to `origin`.
+    Plane { origin: [f64; 3], normal: [f64; 3] },
+    /// The shortest edge path through these vertices, in order (at least 2);
+    /// `closed` returns to the first.
+    Path { vertices: Vec<usize>, closed: bool },
+    /// The polyline through these surface points (at least 2); consecutive
+    /// points must share a face.
+    Points(Vec<FacePoint>),
+}
+
+/// A surface point as a caller gives it: barycentric coordinates (>= 0,
+/// summing to 1) in face `face`.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FacePoint {
+    pub face: usize,
+    pub bary: [f64; 3],
+}
+
+/// A set of faces of the input mesh, as a caller gives it.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Region {
+    /// These faces (0-based indices).
+    Faces(Vec<usize>),
+    /// The faces whose centroid lies within `radius` of `center`.
+    Sphere { center: [f64; 3], radius: f64 },
+    /// The faces whose centroid lies inside the axis-aligned box.
+    Box { min: [f64; 3], max: [f64; 3] },
+    /// The faces of every OBJ group (`g` or `o`) of this name.
+    Group(String),
+    /// These vertices (0-based): for handles only.
+    Vertices(Vec<usize>),
+}
+
+fn finite3(v: &[f64; 3]) -> bool {
+    v.iter().all(|x| x.is_finite())
+}
+
+impl Curve {
+    /// The checks that need no mesh: finite numbers, a non-zero normal, at
+    /// least 2 vertices or points. `what` names the owner in the message.
+    pub fn validate(&self, what: &str) -> Result<(), String> {
+        match self {
+            Curve::Plane { origin, normal } => {
+                if !finite3(origin) || !finite3(normal) {
+                    return Err(format!("{what}: plane origin and normal must be finite"));
+                }
+                if normal.iter().all(|&x| x == 0.0) {
+                    return Err(format!("{what}: plane normal is zero"));
+                }
+            }
+            Curve::Path { vertices, .. } if vertices.len() < 2 => {
+                return Err(format!(
+                    "{what}: a path needs at least 2 vertices (got {})",
+                    vertices.len()
+                ));
+            }
+            Curve::Points(points) if points.len() < 2 => {
+                return Err(format!(
+                    "{what}: a curve needs at least 2 points (got {})",
+                    points.len()
+                ));
+            }
+            _ => {}
+        }
+        Ok(())
+    }
+}
+
+impl Region {
+    /// The field name of the job file schema for this kind of region.
+    pub fn kind(&self) -> &'static str {
+        match self {
+            Region::Faces(_) => "faces",
+            Region::Sphere { .. } => "sphere",
+            Region::Box { .. } => "box",
+            Region::Group(_) => "group",
+            Region::Vertices(_) => "vertices",
+        }
+    }
+
+    /// The checks that need no mesh: `Vertices` only where `allow_vertices`
+    /// (handles), finite numbers, a positive radius, `min <= max`.
+    pub fn validate(&self, what: &str, allow_vertices: bool) -> Result<(), String> {
+        match self {
+            Region::Vertices(_) if !allow_vertices => {
+                return Err(format!(
+                    "{what}: region `vertices` is only allowed for handles; \
+                     use one of faces, faces_file, sphere, box or group"
+                ))
+            }
+            Region::Sphere { center, radius } => {
+                if !finite3(center) {
+                    return Err(format!("{what}: sphere center must be finite"));
+                }
+                if !(radius.is_finite() && *radius > 0.0) {
+                    return Err(format!(
+                        "{what}: sphere radius must be a finite number > 0 (got {radius})"
+                    ));
+                }
+            }
+            Region::Box { min, max } => {
+                if !finite3(min) || !finite3(max) {
+                    return Err(format!("{what}: box min and max must be finite"));
+                }
+                if (0..3).any(|k| min[k] > max[k]) {
+                    return Err(format!(
+                        "{what}: box min {min:?} exceeds max {max:?} in some coordinate"
+                    ));
+                }
+            }
+            _ => {}
+        }
+        Ok(())
+    }
+}
 
 /// A point on the surface: barycentric coordinates in one face.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -55,7 +183,7 @@ impl Segment {
 /// A polyline on the surface. Consecutive segments meet (segment i's `b` is at the
 /// same surface point as segment i+1's `a`); `closed` when the last meets the first.
 #[derive(Clone, Debug, Default, PartialEq)]
-pub struct Curve {
+pub struct SurfaceCurve {
     pub segments: Vec<Segment>,
     pub closed: bool,
     /// For a curve cut by a plane: how many pieces the plane cut and which one
@@ -79,7 +207,7 @@ pub struct PlaneCut {
     pub chosen: usize,
 }
 
-impl Curve {
+impl SurfaceCurve {
     /// Sum of the segment lengths for vertex positions `x`.
     pub fn length(&self, mesh: &Mesh, x: &[DVec3]) -> f64 {
         self.segments.iter().map(|s| s.length(mesh, x)).sum()
@@ -100,11 +228,11 @@ impl Curve {
 
 /// A set of faces: sorted, unique, non-empty.
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
-pub struct Region {
+pub struct FaceSet {
     pub faces: Vec<u32>,
 }
 
-impl Region {
+impl FaceSet {
     /// Total area for vertex positions `x`.
     pub fn area(&self, mesh: &Mesh, x: &[DVec3]) -> f64 {
         self.faces
@@ -142,24 +270,31 @@ fn v3(a: &[f64; 3]) -> DVec3 {
 
 /// Build the curve of a length constraint on the input mesh. `what` names the
 /// constraint in messages.
-pub fn build_curve(spec: &CurveSpec, mesh: &Mesh, topo: &Topology, what: &str) -> Result<Curve> {
-    spec.validate(what).map_err(Error::bad)?;
-    if let Some(plane) = &spec.plane {
-        plane_section(plane, mesh, topo, what)
-    } else if let Some(path) = &spec.path {
-        edge_path(path, spec.closed.unwrap_or(false), mesh, topo, what)
-    } else if let Some(points) = &spec.points {
-        point_curve(points, mesh, topo, what)
-    } else {
-        Err(Error::bad(format!("{what}: curve is empty")))
+pub fn build_curve(
+    curve: &Curve,
+    mesh: &Mesh,
+    topo: &Topology,
+    what: &str,
+) -> Result<SurfaceCurve> {
+    curve.validate(what).map_err(Error::bad)?;
+    match curve {
+        Curve::Plane { origin, normal } => plane_section(origin, normal, mesh, topo, what),
+        Curve::Path { vertices, closed } => edge_path(vertices, *closed, mesh, topo, what),
+        Curve::Points(points) => point_curve(points, mesh, topo, what),
     }
 }
 
 /// Plane section: see the module docs and the contract. One pass over the faces;
 /// crossing points are computed per edge so that neighbouring faces agree exactly.
-fn plane_section(plane: &PlaneSpec, mesh: &Mesh, topo: &Topology, what: &str) -> Result<Curve> {
-    let origin = v3(&plane.origin);
-    let normal = v3(&plane.normal);
+fn plane_section(
+    origin_given: &[f64; 3],
+    normal_given: &[f64; 3],
+    mesh: &Mesh,
+    topo: &Topology,
+    what: &str,
+) -> Result<SurfaceCurve> {
+    let origin = v3(origin_given);
+    let normal = v3(normal_given);
     let x = &mesh.positions;
     let d: Vec<f64> = x.iter().map(|&p| (p - origin).dot(normal)).collect();
     let pos = |v: u32| d[v as usize] >= 0.0;
@@ -330,7 +465,7 @@ fn plane_section(plane: &PlaneSpec, mesh: &Mesh, topo: &Topology, what: &str) ->
         }
     }
     match best {
-        Some((_, segments, closed, chosen)) => Ok(Curve {
+        Some((_, segments, closed, chosen)) => Ok(SurfaceCurve {
             segments,
             closed,
             plane_cut: Some(PlaneCut {
@@ -354,8 +489,8 @@ fn plane_section(plane: &PlaneSpec, mesh: &Mesh, topo: &Topology, what: &str) ->
                  spans {} to {} along the unit normal from the origin (dot(x - origin, \
                  n/|n|)); move the origin by a distance in that range along the unit \
                  normal",
-                plane.origin,
-                plane.normal,
+                origin_given,
+                normal_given,
                 short(lo),
                 short(hi)
             )))
@@ -457,7 +592,7 @@ fn edge_path(
     mesh: &Mesh,
     topo: &Topology,
     what: &str,
-) -> Result<Curve> {
+) -> Result<SurfaceCurve> {
     let nv = mesh.positions.len();
     if path.len() < 2 {
         return Err(Error::bad(format!(
@@ -555,7 +690,7 @@ fn edge_path(
         )));
     }
     let closed = closed || path.first() == path.last();
-    Ok(Curve {
+    Ok(SurfaceCurve {
         segments,
         closed,
         plane_cut: None,
@@ -621,7 +756,7 @@ impl VertexWeights {
     }
 }
 
-fn check_point(p: &PointSpec, i: usize, mesh: &Mesh, what: &str) -> Result<VertexWeights> {
+fn check_point(p: &FacePoint, i: usize, mesh: &Mesh, what: &str) -> Result<VertexWeights> {
     let nf = mesh.faces.len();
     if p.face >= nf {
         return Err(Error::bad(format!(
@@ -655,7 +790,12 @@ fn check_point(p: &PointSpec, i: usize, mesh: &Mesh, what: &str) -> Result<Verte
 }
 
 /// Curve through explicit surface points; consecutive points must share a face.
-fn point_curve(points: &[PointSpec], mesh: &Mesh, topo: &Topology, what: &str) -> Result<Curve> {
+fn point_curve(
+    points: &[FacePoint],
+    mesh: &Mesh,
+    topo: &Topology,
+    what: &str,
+) -> Result<SurfaceCurve> {
     if points.len() < 2 {
         return Err(Error::bad(format!(
             "{what}: a curve needs at least 2 points (got {})",
@@ -703,7 +843,7 @@ fn point_curve(points: &[PointSpec], mesh: &Mesh, topo: &Topology, what: &str) -
         )));
     }
     let closed = pts.len() > 2 && pts[0].same_point(mesh, &pts[pts.len() - 1]);
-    Ok(Curve {
+    Ok(SurfaceCurve {
         segments,
         closed,
         plane_cut: None,
@@ -715,94 +855,46 @@ fn point_curve(points: &[PointSpec], mesh: &Mesh, topo: &Topology, what: &str) -
 // ---------------------------------------------------------------------------
 
 /// Build a region (a set of faces of the input mesh). `what` names the constraint,
-/// handle or curvature entry in messages. `vertices` is rejected here (handles use
+/// handle or curvature entry in messages. `Vertices` is rejected here (handles use
 /// [`build_handle_vertices`]).
-pub fn build_region(spec: &RegionSpec, mesh: &Mesh, job: &Job, what: &str) -> Result<Region> {
-    spec.validate(what, false).map_err(Error::bad)?;
+pub fn build_region(region: &Region, mesh: &Mesh, what: &str) -> Result<FaceSet> {
+    region.validate(what, false).map_err(Error::bad)?;
     let nf = mesh.faces.len();
     let x = &mesh.positions;
-    let mut faces: Vec<u32> = if let Some(list) = &spec.faces {
-        check_faces(list, nf, what, "region face index")?;
-        list.iter().map(|&f| f as u32).collect()
-    } else if let Some(file) = &spec.faces_file {
-        let path = job.resolve_path(file);
-        let text = std::fs::read_to_string(&path).map_err(|e| {
-            Error::bad(format!(
-                "{what}: cannot read faces_file {}: {e}",
-                path.display()
-            ))
-        })?;
-        let mut list = Vec::new();
-        // Lines end in LF, CRLF or a lone CR (old Mac files).
-        for line in text.split(['\n', '\r']) {
-            let line = line.split('#').next().unwrap_or("");
-            for tok in line.split_whitespace() {
-                let f: usize = tok.parse().map_err(|_| {
-                    Error::bad(format!(
-                        "{what}: faces_file {}: '{tok}' is not a face index \
-                         (expected whitespace-separated non-negative integers)",
-                        path.display()
-                    ))
-                })?;
-                list.push(f);
-            }
+    let mut faces: Vec<u32> = match region {
+        Region::Faces(list) => {
+            check_faces(list, nf, what, "region face index")?;
+            list.iter().map(|&f| f as u32).collect()
         }
-        let ctx = format!("face index in {}", path.display());
-        check_faces(&list, nf, what, &ctx)?;
-        list.into_iter().map(|f| f as u32).collect()
-    } else if let Some(s) = &spec.sphere {
-        let c = v3(&s.center);
-        let r2 = s.radius * s.radius;
-        (0..nf)
-            .filter(|&f| (mesh.centroid(x, f) - c).length_squared() <= r2)
-            .map(|f| f as u32)
-            .collect()
-    } else if let Some(b) = &spec.box_ {
-        let (lo, hi) = (v3(&b.min), v3(&b.max));
-        (0..nf)
-            .filter(|&f| {
-                let c = mesh.centroid(x, f);
-                c.cmpge(lo).all() && c.cmple(hi).all()
-            })
-            .map(|f| f as u32)
-            .collect()
-    } else if let Some(name) = &spec.group {
-        let matching: Vec<_> = mesh.groups.iter().filter(|g| &g.name == name).collect();
-        if matching.is_empty() {
-            if mesh.groups.is_empty() {
-                return Err(Error::bad(format!(
-                    "{what}: group '{name}' not found: the mesh has no groups \
-                     (only OBJ files have `g`/`o` groups)"
-                )));
-            }
-            let mut names: Vec<&str> = mesh.groups.iter().map(|g| g.name.as_str()).collect();
-            names.sort_unstable();
-            names.dedup();
-            let shown = if names.len() > 30 {
-                format!("{}, ... ({} in all)", names[..30].join(", "), names.len())
-            } else {
-                names.join(", ")
-            };
-            return Err(Error::bad(format!(
-                "{what}: group '{name}' not found; the mesh has groups: {shown}"
-            )));
+        Region::Sphere { center, radius } => {
+            let c = v3(center);
+            let r2 = radius * radius;
+            (0..nf)
+                .filter(|&f| (mesh.centroid(x, f) - c).length_squared() <= r2)
+                .map(|f| f as u32)
+                .collect()
         }
-        let mut list = Vec::new();
-        for g in matching {
-            check_faces(&g.faces, nf, what, &format!("face index of group '{name}'"))?;
-            list.extend(g.faces.iter().map(|&f| f as u32));
+        Region::Box { min, max } => {
+            let (lo, hi) = (v3(min), v3(max));
+            (0..nf)
+                .filter(|&f| {
+                    let c = mesh.centroid(x, f);
+                    c.cmpge(lo).all() && c.cmple(hi).all()
+                })
+                .map(|f| f as u32)
+                .collect()
         }
-        list
-    } else {
-        return Err(Error::bad(format!("{what}: region is empty")));
+        Region::Group(name) => group_faces(name, mesh, what)?,
+        Region::Vertices(_) => unreachable!("rejected by Region::validate"),
     };
     faces.sort_unstable();
     faces.dedup();
     if faces.is_empty() {
-        let hint = if let Some(sp) = &spec.sphere {
-            let r = sp.radius;
-            let c = sp.center;
-            format!(
+        let hint = match region {
+            Region::Sphere {
+                center: c,
+                radius: r,
+            } => format!(
                 ": no face centroid lies within the sphere (center {:?}, radius {r}, \
                  extent [{}, {}, {}] to [{}, {}, {}]); the mesh's bounding box is {}: \
                  move the center or enlarge the radius",
@@ -814,27 +906,57 @@ pub fn build_region(spec: &RegionSpec, mesh: &Mesh, job: &Job, what: &str) -> Re
                 short(c[1] + r),
                 short(c[2] + r),
                 bbox_text(mesh)
-            )
-        } else if let Some(b) = &spec.box_ {
-            format!(
+            ),
+            Region::Box { min, max } => format!(
                 ": no face centroid lies inside the box (min {:?} max {:?}); the mesh's \
                  bounding box is {}: move or enlarge the box",
-                b.min,
-                b.max,
+                min,
+                max,
                 bbox_text(mesh)
-            )
-        } else {
-            ": the list is empty; give at least one face index".to_string()
+            ),
+            _ => ": the list is empty; give at least one face index".to_string(),
         };
         return Err(Error::bad(format!(
             "{what}: region selects no faces ({}){hint}",
-            spec.given().join("")
+            region.kind()
         )));
     }
-    Ok(Region { faces })
+    Ok(FaceSet { faces })
 }
 
-fn check_faces(list: &[usize], nf: usize, what: &str, ctx: &str) -> Result<()> {
+/// The faces of every group named `name`.
+fn group_faces(name: &str, mesh: &Mesh, what: &str) -> Result<Vec<u32>> {
+    let nf = mesh.faces.len();
+    let matching: Vec<_> = mesh.groups.iter().filter(|g| g.name == name).collect();
+    if matching.is_empty() {
+        if mesh.groups.is_empty() {
+            return Err(Error::bad(format!(
+                "{what}: group '{name}' not found: the mesh has no groups \
+                 (only OBJ files have `g`/`o` groups)"
+            )));
+        }
+        let mut names: Vec<&str> = mesh.groups.iter().map(|g| g.name.as_str()).collect();
+        names.sort_unstable();
+        names.dedup();
+        let shown = if names.len() > 30 {
+            format!("{}, ... ({} in all)", names[..30].join(", "), names.len())
+        } else {
+            names.join(", ")
+        };
+        return Err(Error::bad(format!(
+            "{what}: group '{name}' not found; the mesh has groups: {shown}"
+        )));
+    }
+    let mut list = Vec::new();
+    for g in matching {
+        check_faces(&g.faces, nf, what, &format!("face index of group '{name}'"))?;
+        list.extend(g.faces.iter().map(|&f| f as u32));
+    }
+    Ok(list)
+}
+
+/// Every index of `list` below `nf`; `ctx` says what the indices are.
+pub fn check_faces(list: &[usize], nf: usize, what: &str, ctx: &str) -> Result<()> {
     if let Some(&f) = list.iter().find(|&&f| f >= nf) {
         return Err(Error::bad(format!(
             "{what}: {ctx} {f} is out of range (mesh has {nf} faces)"
@@ -858,26 +980,12 @@ fn check_vertices(list: &[usize], nv: usize, what: &str) -> Result<Vec<u32>> {
     Ok(out)
 }
 
-/// The vertices a handle moves: its `vertices`, or all vertices of its region's
-/// faces; sorted and unique, non-empty.
-pub fn build_handle_vertices(
-    spec: &HandleSpec,
-    mesh: &Mesh,
-    job: &Job,
-    what: &str,
-) -> Result<Vec<u32>> {
-    spec.validate(what).map_err(Error::bad)?;
-    let nv = mesh.positions.len();
-    if let Some(list) = &spec.vertices {
-        return check_vertices(list, nv, what);
+/// The vertices a handle moves: its `Vertices`, or all vertices of its
+/// region's faces; sorted and unique, non-empty.
+pub fn build_handle_vertices(region: &Region, mesh: &Mesh, what: &str) -> Result<Vec<u32>> {
+    region.validate(what, true).map_err(Error::bad)?;
+    match region {
+        Region::Vertices(list) => check_vertices(list, mesh.positions.len(), what),
+        _ => Ok(build_region(region, mesh, what)?.vertices(mesh)),
     }
-    let region = spec
-        .region
-        .as_ref()
-        .ok_or_else(|| Error::bad(format!("{what}: needs a region or vertices")))?;
-    if let Some(list) = &region.vertices {
-        return check_vertices(list, nv, what);
-    }
-    let r = build_region(region, mesh, job, what)?;
-    Ok(r.vertices(mesh))
 }

@@ -26,8 +26,8 @@
 //! handles: one vertex of each such component is held (its increment is zero) and
 //! the component is re-centred after each step.
 
-use crate::mesh::{Mesh, COT_CAP};
-use crate::topology::Topology;
+use crate::mesh::topology::{vertex_components, Topology};
+use crate::mesh::{triangle_area_gradient, Mesh, COT_CAP};
 use crate::{Error, Result};
 use glam::DVec3;
 use solver_cpu::{BlockPcgSolver, IsoRingSym3, ShapeOperatorModel, SparseRows, SpdSolver};
@@ -283,7 +283,7 @@ impl ShapeModel {
             n,
             h.iso.row_idx.len(),
             t_setup.elapsed().as_secs_f64(),
-            crate::report::resident_memory_mb()
+            crate::memory::resident_memory_mb()
         );
 
         // Held vertices: unreferenced ones, and one per component without handles.
@@ -294,7 +294,7 @@ impl ShapeModel {
             }
         }
         let mut fixed: Vec<bool> = referenced.iter().map(|r| !r).collect();
-        let comp = components(mesh, n);
+        let comp = vertex_components(mesh);
         let mut has_handle = vec![false; comp.1];
         for hd in &handles {
             has_handle[comp.0[hd.vertex as usize] as usize] = true;
@@ -338,11 +338,6 @@ impl ShapeModel {
     /// Mean input edge length.
     pub fn mean_edge(&self) -> f64 {
         self.mean_edge
-    }
-
-    /// Cotangent Laplacian of the input (for curvature measurements).
-    pub fn cotangent(&self) -> &Laplacian {
-        &self.cot
     }
 
     /// Assemble the Hessian and the gradient at the reference positions `xc`
@@ -416,15 +411,11 @@ impl ShapeModel {
             if self.no_weight[f] {
                 continue;
             }
-            let p = [xc[t[0] as usize], xc[t[1] as usize], xc[t[2] as usize]];
-            let nrm = (p[1] - p[0]).cross(p[2] - p[0]);
-            let a2 = nrm.length();
-            if a2 <= 0.0 {
+            // The gradient of log(area): d area / d corner over the area.
+            let Some((a2, da)) = triangle_area_gradient(mesh.corners(xc, f)) else {
                 continue;
-            }
-            let nh = nrm / a2;
-            let g: [DVec3; 3] =
-                std::array::from_fn(|k| nh.cross(p[(k + 2) % 3] - p[(k + 1) % 3]) / a2);
+            };
+            let g: [DVec3; 3] = da.map(|d| d * 2.0 / a2);
             let wf = 2.0 * w.k_f * self.face_weight[f];
             let slots = &self.face_slots[f];
             for k in 0..3 {
@@ -557,6 +548,28 @@ impl ShapeModel {
         });
         self.operator_model = Some((key, m.clone()));
         Some(m)
+    }
+
+    /// [`ShapeModel::assemble_and_factor`] at `x`; with `affine`, the solver
+    /// is given the vertex positions for the factorization (an iterative
+    /// backend's AMG then takes the vertices' affine motions as near-null
+    /// space) and they are cleared after it.
+    pub fn assemble_with_positions(
+        &mut self,
+        mesh: &Mesh,
+        x: &[DVec3],
+        s: &[f64],
+        c: &[f64],
+        w: &ShapeWeights,
+        affine: bool,
+    ) -> Result<()> {
+        if affine {
+            let positions: Vec<[f64; 3]> = x.iter().map(|p| p.to_array()).collect();
+            self.solver().set_vertex_positions(&positions);
+        }
+        let done = self.assemble_and_factor(mesh, x, s, c, w);
+        self.solver().set_vertex_positions(&[]);
+        done
     }
 
     /// The assembled Hessian of the last assembly and the held vertices (for
@@ -698,38 +711,67 @@ fn two_ring_pattern(ring: &Laplacian) -> (Vec<usize>, Vec<usize>) {
     (col_ptr, row_idx)
 }
 
-pub fn components(mesh: &Mesh, n: usize) -> (Vec<u32>, usize) {
-    let mut parent: Vec<u32> = (0..n as u32).collect();
-    fn find(p: &mut [u32], mut a: u32) -> u32 {
-        while p[a as usize] != a {
-            p[a as usize] = p[p[a as usize] as usize];
-            a = p[a as usize];
+// ---------------------------------------------------------------------------
+// Eq. 21: the E_m targets c_i
+// ---------------------------------------------------------------------------
+
+/// How the E_m target of each vertex is scaled (Eq. 21).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum CurvatureTarget {
+    /// `c_i` = area-weighted mean scale factor around vertex i (pitfall (b); default).
+    #[default]
+    Scaled,
+    /// `c_i` = 1 (Eq. 5 as printed), except in curvature regions.
+    Literal,
+}
+
+/// The curvature targets `c_i` of Eq. 21: per vertex, the area-weighted
+/// mean of its faces' scale factors `s` (1 for a vertex in no face).
+pub fn vertex_mean_scale(mesh: &Mesh, areas: &[f64], s: &[f64]) -> Vec<f64> {
+    let n = mesh.num_vertices();
+    let mut num = vec![0.0; n];
+    let mut den = vec![0.0; n];
+    for (f, t) in mesh.faces.iter().enumerate() {
+        for &v in t {
+            num[v as usize] += areas[f] * s[f];
+            den[v as usize] += areas[f];
         }
-        a
     }
-    for f in &mesh.faces {
-        let r0 = find(&mut parent, f[0]);
-        for &v in &f[1..] {
-            let r = find(&mut parent, v);
-            if r != r0 {
-                parent[r as usize] = r0;
-            }
+    (0..n)
+        .map(|v| if den[v] > 0.0 { num[v] / den[v] } else { 1.0 })
+        .collect()
+}
+
+/// Per vertex, the product of the factors of the curvature regions it is in
+/// (Eq. 21; 1 outside them).
+pub fn curvature_factors(n: usize, regions: &[crate::problem::CurvatureRegion]) -> Vec<f64> {
+    let mut factor = vec![1.0; n];
+    for r in regions {
+        for &v in &r.vertices {
+            factor[v as usize] *= r.scale;
         }
-        // keep the root of f[0] fresh
-        let _ = find(&mut parent, f[0]);
     }
-    let mut label = vec![u32::MAX; n];
-    let mut count = 0usize;
-    let mut out = vec![0u32; n];
-    for v in 0..n {
-        let r = find(&mut parent, v as u32) as usize;
-        if label[r] == u32::MAX {
-            label[r] = count as u32;
-            count += 1;
-        }
-        out[v] = label[r];
+    factor
+}
+
+/// The E_m targets `c_i` of Eq. 21 for face scale factors `s`: the vertex
+/// mean scale ([`CurvatureTarget::Scaled`]) or 1, times `factors`
+/// ([`curvature_factors`]) where given.
+pub fn curvature_targets(
+    mesh: &Mesh,
+    areas: &[f64],
+    s: &[f64],
+    target: CurvatureTarget,
+    factors: Option<&[f64]>,
+) -> Vec<f64> {
+    let mut c = match target {
+        CurvatureTarget::Scaled => vertex_mean_scale(mesh, areas, s),
+        CurvatureTarget::Literal => vec![1.0; mesh.num_vertices()],
+    };
+    if let Some(f) = factors {
+        c.iter_mut().zip(f).for_each(|(c, f)| *c *= f);
     }
-    (out, count)
+    c
 }
 
 #[cfg(test)]
@@ -739,7 +781,7 @@ mod tests {
     /// spot (in the repository) and its shape model.
     fn spot_model() -> (Mesh, ShapeModel) {
         let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("data/meshes/spot.obj");
-        let mesh = crate::io::read_mesh(&path).unwrap();
+        let mesh = crate::mesh::io::read_mesh(&path).unwrap();
         let topo = Topology::build(&mesh);
         let model = ShapeModel::new(&mesh, &topo, Vec::new()).unwrap();
         (mesh, model)

@@ -410,7 +410,7 @@ fn auto_follows_the_crossover_and_reports_the_solver_work() {
     let report = read_json(dir.path(), "r.json");
     let faces = report["mesh"]["faces"].as_u64().unwrap() as usize;
     let hardware = solver_gpu::default_adapter().is_ok_and(|a| a.device_type != "Cpu");
-    let expected = if metricdeform::deform::auto_uses_gpu(faces, hardware) {
+    let expected = if metricdeform::pipeline::auto_uses_gpu(faces, hardware) {
         "gpu"
     } else {
         "cpu"

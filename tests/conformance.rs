@@ -10,7 +10,7 @@
 mod common;
 
 use common::*;
-use metricdeform::deform::SolverBackend;
+use metricdeform::pipeline::SolverBackend;
 
 /// Whether tests on `backend` can run here (see the module docs).
 fn available(backend: SolverBackend) -> bool {
@@ -163,15 +163,15 @@ fn gpu_parity_at_a_million_faces_on_hardware() {
         }
     }
     let job = job(GIRTHS_HOMER);
-    let mesh = metricdeform::io::read_mesh(&job.mesh_path())
+    let mesh = metricdeform::mesh::io::read_mesh(&job.mesh_path())
         .unwrap()
         .subdivide_uniform(10);
-    let problem = metricdeform::deform::Problem::build(&job, mesh, &job.mesh_path()).unwrap();
+    let problem = metricdeform::problem::Problem::build(&job, mesh, &job.mesh_path()).unwrap();
     assert!(problem.mesh.num_faces() > 1_000_000);
-    let mut options = metricdeform::deform::Options::from_spec(&job.spec.solver);
+    let mut options = metricdeform::pipeline::Options::from_spec(&job.spec.solver);
     let mut result = |backend| {
         options.backend = backend;
-        metricdeform::deform::deform(&problem, &options, &mut |_| {}).unwrap()
+        metricdeform::pipeline::deform(&problem, &options, &mut |_| {}).unwrap()
     };
     let gpu = result(SolverBackend::Gpu);
     let cpu = result(SolverBackend::Cpu);

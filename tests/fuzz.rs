@@ -37,12 +37,14 @@
 
 use arbitrary::Unstructured;
 use glam::DVec3;
-use metricdeform::deform::{max_error, Options, Problem};
 use metricdeform::job::{Job, JobFormat};
+use metricdeform::mesh::topology::Topology;
 use metricdeform::mesh::FaceGroup;
+use metricdeform::mesh::{io, validate};
+use metricdeform::pipeline::Options;
+use metricdeform::problem::{max_error, Problem};
 use metricdeform::report::{constraint_rows, explain_miss, table};
-use metricdeform::topology::Topology;
-use metricdeform::{io, validate, Mesh};
+use metricdeform::Mesh;
 use serde_json::{json, Value};
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;

@@ -1,9 +1,9 @@
 //! Mesh reading/writing and input validation.
 
 use glam::DVec3;
-use metricdeform::io::{read_mesh, write_mesh};
-use metricdeform::topology::Topology;
-use metricdeform::validate::{require_closed, validate, MeshCheck};
+use metricdeform::mesh::io::{read_mesh, write_mesh};
+use metricdeform::mesh::topology::Topology;
+use metricdeform::mesh::validate::{require_closed, validate, MeshCheck};
 use metricdeform::{Error, Mesh};
 use std::fs;
 use std::path::{Path, PathBuf};

@@ -1,14 +1,15 @@
 //! Job file parsing/validation and selections (curves, regions, handles).
 
 use glam::DVec3;
-use metricdeform::deform::Problem;
+use metricdeform::job::{build_curve, build_handle_vertices, build_region};
 use metricdeform::job::{
     BoxSpec, CurveSpec, HandleSpec, Job, JobFormat, MetricKind, PlaneSpec, PointSpec, RegionSpec,
     SphereSpec,
 };
+use metricdeform::mesh::topology::Topology;
 use metricdeform::mesh::{FaceGroup, Mesh};
-use metricdeform::selection::{build_curve, build_handle_vertices, build_region, Curve};
-use metricdeform::topology::Topology;
+use metricdeform::problem::Problem;
+use metricdeform::selection::SurfaceCurve;
 use metricdeform::Error;
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -116,7 +117,7 @@ fn plane(origin: [f64; 3], normal: [f64; 3]) -> CurveSpec {
 }
 
 /// Consecutive segments of the curve meet (end of one = start of next in space).
-fn assert_connected(c: &Curve, m: &Mesh) {
+fn assert_connected(c: &SurfaceCurve, m: &Mesh) {
     let n = c.segments.len();
     let last = if c.closed { n } else { n - 1 };
     for i in 0..last {
@@ -1348,7 +1349,7 @@ fn empty_selections_say_where_the_mesh_is() {
 
     // Through Problem::load: the job file is named.
     let mesh_path = dir.path().join("m.obj");
-    metricdeform::io::write_mesh(&mesh_path, &m, &m.positions, None).unwrap();
+    metricdeform::mesh::io::write_mesh(&mesh_path, &m, &m.positions, None).unwrap();
     let p = dir.path().join("far.toml");
     std::fs::write(
         &p,
@@ -1378,7 +1379,7 @@ fn empty_selections_say_where_the_mesh_is() {
 fn default_constraint_names_count_from_one() {
     let dir = tempfile::tempdir().unwrap();
     let m = cube();
-    metricdeform::io::write_mesh(&dir.path().join("m.obj"), &m, &m.positions, None).unwrap();
+    metricdeform::mesh::io::write_mesh(&dir.path().join("m.obj"), &m, &m.positions, None).unwrap();
     let p = dir.path().join("names.toml");
     std::fs::write(
         &p,

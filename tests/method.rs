@@ -7,7 +7,8 @@ mod common;
 
 use common::{assert_all_met, job, run};
 use glam::DVec3;
-use metricdeform::deform::{deform, max_error, Options, Problem};
+use metricdeform::pipeline::{deform, Options};
+use metricdeform::problem::{max_error, Problem};
 use metricdeform::report::constraint_rows;
 
 /// Paper Fig. 16: the surface area kept while the volume grows past the
@@ -266,7 +267,7 @@ fn anderson_acceleration_reaches_the_plain_iterations_limit_sooner() {
     let job = job(&text);
     let problem = Problem::load(&job).unwrap();
     let mut results = Vec::new();
-    for depth in [0, metricdeform::deform::ANDERSON_DEPTH] {
+    for depth in [0, metricdeform::pipeline::ANDERSON_DEPTH] {
         let mut options = Options::from_spec(&job.spec.solver);
         options.anderson_depth = depth;
         options.anderson_from_faces = 0;
@@ -305,7 +306,7 @@ fn anderson_acceleration_reaches_the_plain_iterations_limit_sooner() {
 /// accelerates at every size, `auto` (the default) from ANDERSON_FROM_FACES on.
 #[test]
 fn acceleration_option_selects_the_iteration() {
-    use metricdeform::deform::{ANDERSON_DEPTH, ANDERSON_FROM_FACES};
+    use metricdeform::pipeline::{ANDERSON_DEPTH, ANDERSON_FROM_FACES};
     let with = |value: &str| {
         let text = common::GIRTHS_HOMER.replace(
             "mesh = \"homer.obj\"",

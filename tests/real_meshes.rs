@@ -6,11 +6,12 @@
 mod common;
 
 use glam::DVec3;
-use metricdeform::deform::{deform, Options, Problem, SolverBackend};
-use metricdeform::io::{read_mesh, write_mesh};
 use metricdeform::job::{Job, JobFormat};
+use metricdeform::mesh::io::{read_mesh, write_mesh};
+use metricdeform::mesh::topology::Topology;
+use metricdeform::pipeline::{deform, Options, SolverBackend};
+use metricdeform::problem::Problem;
 use metricdeform::report::constraint_rows;
-use metricdeform::topology::Topology;
 use metricdeform::{Error, Mesh};
 use std::path::{Path, PathBuf};
 
@@ -54,10 +55,13 @@ fn run(job: &Job) -> (Problem, Vec<DVec3>, bool) {
     (problem, out.positions, met)
 }
 
-/// The face of `m` across edge (a, b) from face `f`.
-fn neighbour(m: &Mesh, topo: &Topology, f: usize, a: u32, b: u32) -> usize {
-    let e = topo.find_edge(m, a, b).unwrap();
-    let fs = topo.edge_faces(e);
+/// The face across edge (a, b) from face `f`.
+fn neighbour(topo: &Topology, f: usize, a: u32, b: u32) -> usize {
+    let e = topo.face_edges[f]
+        .iter()
+        .find(|&&e| topo.edges[e as usize] == [a.min(b), a.max(b)])
+        .unwrap();
+    let fs = topo.edge_faces(*e as usize);
     let g = if fs[0] as usize == f { fs[1] } else { fs[0] };
     g as usize
 }
@@ -71,7 +75,7 @@ fn spot_with_sliver(f: usize, lift: f64) -> (Mesh, usize) {
     let mut m = spot();
     let topo = Topology::build(&m);
     let [a, b, c] = m.faces[f];
-    let _ = neighbour(&m, &topo, f, a, b);
+    let _ = neighbour(&topo, f, a, b);
     let (pa, pb, pc) = (
         m.positions[a as usize],
         m.positions[b as usize],
@@ -396,8 +400,9 @@ fn collapsed_faces_are_zero_area_faces() {
 /// k_d = k_r = 0 (the regulariser keeps a floor on zero-area faces).
 #[test]
 fn scale_factor_system_is_well_posed_on_zero_area_faces() {
+    use metricdeform::constrained_step::Multipliers;
     use metricdeform::scale_factors::{Regulariser, ScaleConstraint, ScaleFactorSystem};
-    use metricdeform::schur::Multipliers;
+    use solver_cpu::CholeskySolver;
     let (mut mesh, sliver) = spot_with_sliver(100, 0.0);
     // A second, isolated zero-area face: a collapsed one.
     let [a, b, _] = mesh.faces[200];
@@ -414,7 +419,15 @@ fn scale_factor_system_is_well_posed_on_zero_area_faces() {
     let total: f64 = faces.iter().map(|&f| areas[f as usize]).sum();
     for reg in [Regulariser::Area, Regulariser::Uniform] {
         for (k_d, k_r) in [(1.0, 0.01), (0.0, 0.0)] {
-            let mut sys = ScaleFactorSystem::new(&topo.face_pairs, &areas, k_d, k_r, reg).unwrap();
+            let mut sys = ScaleFactorSystem::with_solver(
+                &topo.face_pairs,
+                &areas,
+                k_d,
+                k_r,
+                reg,
+                Box::new(CholeskySolver::new()),
+            )
+            .unwrap();
             let c = ScaleConstraint {
                 coeffs: faces.iter().map(|&f| (f, areas[f as usize])).collect(),
                 degree: 2,

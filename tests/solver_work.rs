@@ -9,9 +9,10 @@
 mod common;
 
 use common::*;
-use metricdeform::deform::{
-    auto_uses_gpu, deform, Options, Problem, SolverBackend, GPU_FASTER_FROM_FACES,
+use metricdeform::pipeline::{
+    auto_uses_gpu, deform, Options, SolverBackend, GPU_FASTER_FROM_FACES,
 };
+use metricdeform::problem::Problem;
 
 fn gpu_available() -> bool {
     if solver_gpu::gpu_available() {
@@ -24,7 +25,7 @@ fn gpu_available() -> bool {
     false
 }
 
-fn run(backend: SolverBackend) -> (Problem, Options, metricdeform::deform::Outcome) {
+fn run(backend: SolverBackend) -> (Problem, Options, metricdeform::pipeline::Outcome) {
     // Spot with a girth, a region's area and the volume: several
     // scale-driven outer iterations, then the fine-tune.
     let job = job(SPOT_DEMO);
@@ -165,7 +166,7 @@ fn squared_laplacian_preconditions_the_shape_systems() {
         k_l: 1.0,
         k_p: 1000.0,
     };
-    let fine_tune = metricdeform::deform::Options::default().fine_tune;
+    let fine_tune = metricdeform::pipeline::Options::default().fine_tune;
     squared_laplacian_on(SystemKind::ScaleDriven, scale_driven);
     squared_laplacian_on(SystemKind::FineTune, fine_tune);
 }
@@ -175,10 +176,10 @@ fn squared_laplacian_on(kind: solver_cpu::SystemKind, w: metricdeform::shape::Sh
     use solver_cpu::SpdSolver;
     use solver_gpu::Preconditioner;
     let path = meshes().join("spot.obj");
-    let mesh = metricdeform::io::read_mesh(&path)
+    let mesh = metricdeform::mesh::io::read_mesh(&path)
         .unwrap()
         .subdivide_midpoint();
-    let topo = metricdeform::topology::Topology::build(&mesh);
+    let topo = metricdeform::mesh::topology::Topology::build(&mesh);
     let (nf, n) = (mesh.num_faces(), mesh.num_vertices());
     let s = vec![1.1; nf];
     let c = vec![1.1; n];

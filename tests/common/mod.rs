@@ -4,11 +4,13 @@
 #![allow(dead_code)]
 
 use glam::DVec3;
-use metricdeform::deform::{deform, Options, Problem, SolverBackend};
 use metricdeform::distortion::quasi_conformal;
 use metricdeform::job::{Job, JobFormat};
+use metricdeform::mesh::io;
+use metricdeform::pipeline::{deform, Options, SolverBackend};
+use metricdeform::problem::Problem;
 use metricdeform::report::constraint_rows;
-use metricdeform::{io, Mesh};
+use metricdeform::Mesh;
 use std::path::{Path, PathBuf};
 
 /// Table 1 style on spot: two lengths (plane section, edge path), an area, the volume.

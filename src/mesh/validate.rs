@@ -19,8 +19,8 @@
 //! triangulation, numbered in file order).
 
 use crate::error::{Error, Result};
+use crate::mesh::topology::{vertex_components, Topology, UnionFind};
 use crate::mesh::Mesh;
-use crate::topology::Topology;
 use std::path::Path;
 
 /// Most offenders listed by name in an error message.
@@ -85,26 +85,9 @@ fn plural(n: usize, one: &str, many: &str) -> String {
     format!("{n} {}", if n == 1 { one } else { many })
 }
 
-fn find(parent: &mut [u32], mut x: u32) -> u32 {
-    while parent[x as usize] != x {
-        let p = parent[x as usize];
-        parent[x as usize] = parent[p as usize];
-        x = p;
-    }
-    x
-}
-
-fn union(parent: &mut [u32], a: u32, b: u32) {
-    let (ra, rb) = (find(parent, a), find(parent, b));
-    if ra != rb {
-        parent[ra.max(rb) as usize] = ra.min(rb);
-    }
-}
-
-/// Checks `mesh` (with its topology `topo`) for use by the solver; `file` is named in the
-/// messages. Returns the counts of tolerated defects, or [`Error::BadInput`] listing at
-/// most five offenders of the first failed check.
-pub fn validate(mesh: &Mesh, topo: &Topology, file: &Path) -> Result<MeshCheck> {
+/// The checks [`Topology::build`] relies on: at least one face, every corner
+/// index names a vertex. `file` is named in the message.
+pub fn check_indices(mesh: &Mesh, file: &Path) -> Result<()> {
     let file_s = file.display();
     let nv = mesh.positions.len();
     let nf = mesh.faces.len();
@@ -135,6 +118,16 @@ pub fn validate(mesh: &Mesh, topo: &Topology, file: &Path) -> Result<MeshCheck> 
             listing(&out_of_range)
         )));
     }
+    Ok(())
+}
+
+/// Checks `mesh` (with its topology `topo`) for use by the solver; `file` is named in the
+/// messages. Returns the counts of tolerated defects, or [`Error::BadInput`] listing at
+/// most five offenders of the first failed check.
+pub fn validate(mesh: &Mesh, topo: &Topology, file: &Path) -> Result<MeshCheck> {
+    check_indices(mesh, file)?;
+    let file_s = file.display();
+    let nv = mesh.positions.len();
 
     let mut used = vec![false; nv];
     for t in &mesh.faces {
@@ -264,18 +257,14 @@ pub fn validate(mesh: &Mesh, topo: &Topology, file: &Path) -> Result<MeshCheck> 
     }
 
     // Connected components of faces via shared vertices.
-    let mut parent: Vec<u32> = (0..nv as u32).collect();
-    for t in &mesh.faces {
-        union(&mut parent, t[0], t[1]);
-        union(&mut parent, t[0], t[2]);
-    }
-    let mut is_root = vec![false; nv];
+    let (label, count) = vertex_components(mesh);
+    let mut seen = vec![false; count];
     for v in 0..nv {
         if used[v] {
-            is_root[find(&mut parent, v as u32) as usize] = true;
+            seen[label[v] as usize] = true;
         }
     }
-    let components = is_root.iter().filter(|&&r| r).count();
+    let components = seen.iter().filter(|&&r| r).count();
 
     let check = MeshCheck {
         boundary_edges: topo.boundary_edges.len(),
@@ -295,15 +284,13 @@ pub fn validate(mesh: &Mesh, topo: &Topology, file: &Path) -> Result<MeshCheck> 
 /// incident to the vertex). Assumes no non-manifold edges.
 fn non_manifold_vertices(mesh: &Mesh, topo: &Topology) -> Vec<usize> {
     let mut out = Vec::new();
-    let mut local: Vec<u32> = Vec::new();
     for v in 0..mesh.positions.len() {
         let fs = topo.vertex_faces(v);
         if fs.len() < 2 {
             continue;
         }
         // Union-find over the faces around v (indices into fs).
-        local.clear();
-        local.extend(0..fs.len() as u32);
+        let mut local = UnionFind::new(fs.len());
         for (i, &f) in fs.iter().enumerate() {
             let t = mesh.faces[f as usize];
             for k in 0..3 {
@@ -315,14 +302,14 @@ fn non_manifold_vertices(mesh: &Mesh, topo: &Topology) -> Vec<usize> {
                 for &g in topo.edge_faces(e) {
                     if g != f {
                         if let Some(j) = fs.iter().position(|&h| h == g) {
-                            union(&mut local, i as u32, j as u32);
+                            local.union(i as u32, j as u32);
                         }
                     }
                 }
             }
         }
-        let root = find(&mut local, 0);
-        if (1..fs.len() as u32).any(|i| find(&mut local, i) != root) {
+        let root = local.find(0);
+        if (1..fs.len() as u32).any(|i| local.find(i) != root) {
             out.push(v);
         }
     }

@@ -202,20 +202,55 @@ impl Topology {
     pub fn is_closed(&self) -> bool {
         self.boundary_edges.is_empty() && self.non_manifold_edges.is_empty()
     }
+}
 
-    /// Edge index of the undirected edge (a, b), if it exists.
-    pub fn find_edge(&self, mesh: &Mesh, a: u32, b: u32) -> Option<usize> {
-        let (lo, hi) = (a.min(b), a.max(b));
-        for &f in self.vertex_faces(lo as usize) {
-            let t = mesh.faces[f as usize];
-            for k in 0..3 {
-                let e = self.face_edges[f as usize][k] as usize;
-                if self.edges[e] == [lo, hi] {
-                    let _ = t;
-                    return Some(e);
-                }
-            }
-        }
-        None
+/// Disjoint sets of `0..n` (union by smaller root, path halving).
+pub struct UnionFind(Vec<u32>);
+
+impl UnionFind {
+    pub fn new(n: usize) -> UnionFind {
+        UnionFind((0..n as u32).collect())
     }
+
+    /// The set's root; roots are the smallest member of their set.
+    pub fn find(&mut self, mut x: u32) -> u32 {
+        let p = &mut self.0;
+        while p[x as usize] != x {
+            p[x as usize] = p[p[x as usize] as usize];
+            x = p[x as usize];
+        }
+        x
+    }
+
+    /// Joins the sets of `a` and `b`.
+    pub fn union(&mut self, a: u32, b: u32) {
+        let (ra, rb) = (self.find(a), self.find(b));
+        if ra != rb {
+            self.0[ra.max(rb) as usize] = ra.min(rb);
+        }
+    }
+}
+
+/// Connected components of the vertices through the faces: each vertex's
+/// component label (0-based, numbered in vertex order; a vertex in no face
+/// is its own component) and the number of components.
+pub fn vertex_components(mesh: &Mesh) -> (Vec<u32>, usize) {
+    let n = mesh.num_vertices();
+    let mut sets = UnionFind::new(n);
+    for t in &mesh.faces {
+        sets.union(t[0], t[1]);
+        sets.union(t[0], t[2]);
+    }
+    let mut label = vec![u32::MAX; n];
+    let mut count = 0usize;
+    let mut out = vec![0u32; n];
+    for v in 0..n {
+        let r = sets.find(v as u32) as usize;
+        if label[r] == u32::MAX {
+            label[r] = count as u32;
+            count += 1;
+        }
+        out[v] = label[r];
+    }
+    (out, count)
 }

@@ -3,6 +3,10 @@
 //! Vertex `i` is the i-th vertex of the file, face `f` the f-th triangle after fan
 //! triangulation in file order. Nothing is ever re-ordered, merged or split.
 
+pub mod io;
+pub mod topology;
+pub mod validate;
+
 use glam::DVec3;
 
 /// Twice a face's area at or below this times the squared bbox diagonal counts as
@@ -30,6 +34,35 @@ pub struct Mesh {
 }
 
 impl Mesh {
+    /// A mesh from vertex positions and triangles (0-based vertex indices), no
+    /// groups. Only an index too large for 32 bits is refused here; the rest
+    /// (indices in range, finite positions) is checked by
+    /// [`crate::problem::Problem::new`].
+    pub fn from_arrays(positions: &[[f64; 3]], triangles: &[[usize; 3]]) -> crate::Result<Mesh> {
+        let faces = triangles
+            .iter()
+            .enumerate()
+            .map(|(f, t)| {
+                let mut out = [0u32; 3];
+                for k in 0..3 {
+                    out[k] = u32::try_from(t[k]).map_err(|_| {
+                        crate::Error::bad(format!(
+                            "face {f} corner {k} refers to vertex {}, beyond the 2^32 vertices \
+                             a mesh may have",
+                            t[k]
+                        ))
+                    })?;
+                }
+                Ok(out)
+            })
+            .collect::<crate::Result<Vec<_>>>()?;
+        Ok(Mesh {
+            positions: positions.iter().map(|&p| DVec3::from_array(p)).collect(),
+            faces,
+            groups: Vec::new(),
+        })
+    }
+
     pub fn num_vertices(&self) -> usize {
         self.positions.len()
     }
@@ -229,7 +262,7 @@ impl Mesh {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::topology::Topology;
+    use crate::mesh::topology::Topology;
 
     fn tetrahedron() -> Mesh {
         Mesh {
@@ -294,4 +327,21 @@ mod tests {
         b.sort();
         assert_eq!(a, b);
     }
+}
+
+/// The gradient of a triangle's area with respect to its corners `p`,
+/// `d area / d p_k = 1/2 n_hat x (p_{k+2} - p_{k+1})`, with twice the area
+/// (the normal's length); `None` for a degenerate triangle.
+#[inline]
+pub fn triangle_area_gradient(p: [DVec3; 3]) -> Option<(f64, [DVec3; 3])> {
+    let n = (p[1] - p[0]).cross(p[2] - p[0]);
+    let len = n.length();
+    if len <= 0.0 {
+        return None;
+    }
+    let nh = n / len;
+    Some((
+        len,
+        std::array::from_fn(|k| 0.5 * nh.cross(p[(k + 2) % 3] - p[(k + 1) % 3])),
+    ))
 }

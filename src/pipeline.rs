@@ -4,22 +4,21 @@
 //! Eqs. 15-18 on a Hessian factored once).
 
 use crate::anderson::Anderson;
-use crate::job::{curvature_label, handle_label, Job, MetricKind, SolverSpec};
-use crate::metrics::{Constraint, Selection, VolumeShare};
+use crate::constrained_step::Multipliers;
+use crate::fine_tune::{fine_tune, FineTuneParams};
+use crate::metrics::{MetricKind, VolumeShare};
+use crate::problem::{max_error, Problem};
 use crate::scale_factors::{Regulariser, ScaleConstraint, ScaleFactorSystem};
-use crate::schur::{constrained_step_warm, Linearized, Multipliers};
-use crate::selection::{build_curve, build_handle_vertices, build_region};
-use crate::shape::{HandleTarget, ShapeModel, ShapeWeights};
-use crate::topology::Topology;
-use crate::validate::{require_volume, validate, MeshCheck};
-use crate::{Error, Mesh, Result};
+use crate::shape::{
+    curvature_factors, curvature_targets, CurvatureTarget, ShapeModel, ShapeWeights,
+};
+use crate::{Error, Result};
 use glam::DVec3;
 use solver_cpu::cholesky::NESTED_DISSECTION_FROM;
 use solver_cpu::{
     nested_dissection_of_pattern, BlockPcgSolver, CholeskySolver, FillOrdering, SpdSolver, SymCsc,
     SystemKind, WorkCounters,
 };
-use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 /// Meshes from this many vertices on give an iterative backend the vertex
@@ -35,16 +34,6 @@ use std::time::Instant;
 /// end to end on lavapipe), 9x fewer iterations on spot x16. The crossover,
 /// translations needing about 4x the affine iterations, is near 10k vertices.
 pub const AFFINE_SCALE_DRIVEN_MIN_VERTICES: usize = 10_000;
-
-/// How the E_m target of each vertex is scaled (Eq. 21).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub enum CurvatureTarget {
-    /// `c_i` = area-weighted mean scale factor around vertex i (pitfall (b); default).
-    #[default]
-    Scaled,
-    /// `c_i` = 1 (Eq. 5 as printed), except in curvature regions.
-    Literal,
-}
 
 /// Which linear solvers a run uses (`--backend`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -214,238 +203,6 @@ impl Default for Options {
     }
 }
 
-impl Options {
-    /// Defaults overridden by the job's `[solver]` table.
-    pub fn from_spec(spec: &SolverSpec) -> Options {
-        let mut o = Options::default();
-        if let Some(t) = spec.tolerance {
-            o.tolerance = t;
-        }
-        if let Some(m) = spec.max_iterations {
-            o.max_iterations = m;
-        }
-        if let Some(m) = spec.fine_tune_iterations {
-            o.fine_tune_iterations = m;
-        }
-        if let Some(t) = spec.scale_threshold {
-            o.scale_threshold = t;
-        }
-        if let Some(w) = &spec.weights {
-            if let Some(v) = w.k_f {
-                o.shape.k_f = v;
-            }
-            if let Some(v) = w.k_m {
-                o.shape.k_m = v;
-            }
-            if let Some(v) = w.k_l {
-                o.shape.k_l = v;
-            }
-            if let Some(v) = w.k_p {
-                o.shape.k_p = v;
-                o.fine_tune.k_p = v;
-            }
-            if let Some(v) = w.k_d {
-                o.k_d = v;
-            }
-            if let Some(v) = w.k_r {
-                o.k_r = v;
-            }
-        }
-        match spec.multipliers.as_deref() {
-            Some("per_kind") => o.multipliers = Multipliers::PerKind,
-            _ => o.multipliers = Multipliers::PerConstraint,
-        }
-        if spec.regulariser.as_deref() == Some("uniform") {
-            o.regulariser = Regulariser::Uniform;
-        }
-        if spec.curvature_target.as_deref() == Some("literal") {
-            o.curvature_target = CurvatureTarget::Literal;
-        }
-        if spec.volume_share.as_deref() == Some("tetrahedra") {
-            o.volume_share = VolumeShare::Tetrahedra;
-        }
-        match spec.acceleration.as_deref() {
-            Some("none") => o.anderson_depth = 0,
-            Some("anderson") => o.anderson_from_faces = 0,
-            _ => {}
-        }
-        o
-    }
-}
-
-/// A curvature region of Eq. 21: its vertices and factor.
-#[derive(Debug, Clone)]
-pub struct CurvatureRegion {
-    pub vertices: Vec<u32>,
-    pub scale: f64,
-}
-
-/// A job resolved on its mesh: everything the solver needs.
-pub struct Problem {
-    pub mesh_path: PathBuf,
-    pub mesh: Mesh,
-    pub topo: Topology,
-    pub check: MeshCheck,
-    pub constraints: Vec<Constraint>,
-    pub handles: Vec<HandleTarget>,
-    pub curvature: Vec<CurvatureRegion>,
-    /// Tolerated defects of the input worth telling the user (zero-area, needle and
-    /// duplicate faces, ...), one line each without a `warning:` prefix; they are
-    /// also logged with `log::warn!` when found.
-    pub warnings: Vec<String>,
-}
-
-/// A bad-input message that does not name the job file yet gets it in front
-/// (contract: bad-input messages name the job file).
-fn naming_job(job: &Job, e: Error) -> Error {
-    match e {
-        Error::BadInput(m) if !job.origin.is_empty() && !m.starts_with(&job.origin) => {
-            Error::BadInput(format!("{}: {m}", job.origin))
-        }
-        Error::Io { path, source } if !job.origin.is_empty() => Error::BadInput(format!(
-            "{}: cannot read {}: {source}",
-            job.origin,
-            path.display()
-        )),
-        e => e,
-    }
-}
-
-impl Problem {
-    /// Read the job's mesh and resolve every selection on it.
-    pub fn load(job: &Job) -> Result<Problem> {
-        let mesh_path = job.mesh_path();
-        let mesh = crate::io::read_mesh(&mesh_path).map_err(|e| naming_job(job, e))?;
-        Problem::build(job, mesh, &mesh_path)
-    }
-
-    /// Resolve the job's selections on an already loaded mesh. Bad-input messages
-    /// name the job file.
-    pub fn build(job: &Job, mesh: Mesh, mesh_path: &Path) -> Result<Problem> {
-        Self::build_named(job, mesh, mesh_path).map_err(|e| naming_job(job, e))
-    }
-
-    fn build_named(job: &Job, mesh: Mesh, mesh_path: &Path) -> Result<Problem> {
-        let topo = Topology::build(&mesh);
-        let check = validate(&mesh, &topo, mesh_path)?;
-        // Duplicate faces count once in whole-mesh metrics.
-        let skip: Vec<bool> = if topo.duplicate_faces.is_empty() {
-            Vec::new()
-        } else {
-            topo.is_duplicate.clone()
-        };
-        let x = &mesh.positions;
-        let mut constraints = Vec::new();
-        for (i, spec) in job.spec.constraint.iter().enumerate() {
-            let label = job.constraint_label(i);
-            let (selection, orientation) = match spec.kind {
-                MetricKind::Length => {
-                    let curve = spec.curve.as_ref().ok_or_else(|| {
-                        Error::bad(format!("{label}: a length constraint needs a curve"))
-                    })?;
-                    (
-                        Selection::Curve(build_curve(curve, &mesh, &topo, &label)?),
-                        1.0,
-                    )
-                }
-                MetricKind::Area => {
-                    let region = spec.region.as_ref().ok_or_else(|| {
-                        Error::bad(format!("{label}: an area constraint needs a region"))
-                    })?;
-                    (
-                        Selection::Region(build_region(region, &mesh, job, &label)?),
-                        1.0,
-                    )
-                }
-                MetricKind::Volume => {
-                    require_volume(&mesh, &topo, &check, mesh_path, &label)?;
-                    let v = Constraint {
-                        kind: MetricKind::Volume,
-                        name: String::new(),
-                        selection: Selection::Whole,
-                        original: 0.0,
-                        target: 0.0,
-                        orientation: 1.0,
-                        skip: skip.clone(),
-                    }
-                    .measure(&mesh, x);
-                    if v == 0.0 || !v.is_finite() {
-                        return Err(Error::bad(format!(
-                            "{label}: the mesh {} encloses no volume",
-                            mesh_path.display()
-                        )));
-                    }
-                    (Selection::Whole, v.signum())
-                }
-            };
-            let mut c = Constraint {
-                kind: spec.kind,
-                name: spec
-                    .name
-                    .clone()
-                    .unwrap_or_else(|| format!("{} {}", spec.kind, i + 1)),
-                selection,
-                original: 0.0,
-                target: 0.0,
-                orientation,
-                skip: skip.clone(),
-            };
-            c.original = c.measure(&mesh, x);
-            if !(c.original > 0.0) || !c.original.is_finite() {
-                return Err(Error::bad(format!(
-                    "{label}: the {} measures {} on the input mesh",
-                    spec.kind, c.original
-                )));
-            }
-            c.target = match (spec.scale, spec.value) {
-                (Some(s), None) => s * c.original,
-                (None, Some(v)) => v,
-                (None, None) => c.original,
-                (Some(_), Some(_)) => {
-                    return Err(Error::bad(format!(
-                        "{label}: give either scale or value, not both"
-                    )))
-                }
-            };
-            constraints.push(c);
-        }
-        let mut handles = Vec::new();
-        for (i, h) in job.spec.handle.iter().enumerate() {
-            let what = handle_label(i);
-            let t = h.translate.unwrap_or([0.0; 3]);
-            let t = DVec3::from_array(t);
-            for v in build_handle_vertices(h, &mesh, job, &what)? {
-                handles.push(HandleTarget {
-                    vertex: v,
-                    target: x[v as usize] + t,
-                });
-            }
-        }
-        let mut curvature = Vec::new();
-        for (i, c) in job.spec.curvature.iter().enumerate() {
-            let what = curvature_label(i);
-            if !(c.scale.is_finite()) {
-                return Err(Error::bad(format!("{what}: scale must be a finite number")));
-            }
-            let region = build_region(&c.region, &mesh, job, &what)?;
-            curvature.push(CurvatureRegion {
-                vertices: region.vertices(&mesh),
-                scale: c.scale,
-            });
-        }
-        Ok(Problem {
-            mesh_path: mesh_path.to_path_buf(),
-            mesh,
-            topo,
-            constraints,
-            handles,
-            curvature,
-            warnings: check.warnings.clone(),
-            check,
-        })
-    }
-}
-
 /// Progress of a run, for the progress bar.
 #[derive(Debug, Clone)]
 pub enum Progress {
@@ -587,53 +344,6 @@ fn log_work(phase: &str, w: &WorkCounters, seconds: Option<f64>) {
     );
 }
 
-/// Largest relative metric error.
-pub fn max_error(p: &Problem, x: &[DVec3]) -> f64 {
-    p.constraints
-        .iter()
-        .map(|c| c.residual(&p.mesh, x).abs())
-        .fold(0.0, f64::max)
-}
-
-/// `model.assemble_and_factor` at `x`; with `affine`, the solver is given the
-/// vertex positions for the factorization (an iterative backend's AMG then
-/// takes the vertices' affine motions as near-null space) and they are
-/// cleared after it.
-fn assemble_with_positions(
-    model: &mut ShapeModel,
-    mesh: &Mesh,
-    x: &[DVec3],
-    s: &[f64],
-    c: &[f64],
-    w: &ShapeWeights,
-    affine: bool,
-) -> Result<()> {
-    if affine {
-        let positions: Vec<[f64; 3]> = x.iter().map(|p| p.to_array()).collect();
-        model.solver().set_vertex_positions(&positions);
-    }
-    let done = model.assemble_and_factor(mesh, x, s, c, w);
-    model.solver().set_vertex_positions(&[]);
-    done
-}
-
-/// The curvature targets `c_i` of Eq. 21: per vertex, the area-weighted
-/// mean of its faces' scale factors `s` (1 for a vertex in no face).
-pub fn vertex_mean_scale(mesh: &Mesh, areas: &[f64], s: &[f64]) -> Vec<f64> {
-    let n = mesh.num_vertices();
-    let mut num = vec![0.0; n];
-    let mut den = vec![0.0; n];
-    for (f, t) in mesh.faces.iter().enumerate() {
-        for &v in t {
-            num[v as usize] += areas[f] * s[f];
-            den[v as usize] += areas[f];
-        }
-    }
-    (0..n)
-        .map(|v| if den[v] > 0.0 { num[v] / den[v] } else { 1.0 })
-        .collect()
-}
-
 /// Run the method on a resolved problem.
 pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> Result<Outcome> {
     let mesh = &p.mesh;
@@ -656,22 +366,17 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
 
     log::debug!(
         "deform: {nf} faces, resident {:.0} MiB at the start",
-        crate::report::resident_memory_mb()
+        crate::memory::resident_memory_mb()
     );
     let mut shape_solver = o.backend.shape_solver()?;
     shape_solver.set_system_kind(SystemKind::ScaleDriven);
     let mut model = ShapeModel::with_solver(mesh, &p.topo, p.handles.clone(), shape_solver)?;
     let face_ordering = fill_orderings(p, o, &mut model);
-    crate::report::release_free_memory();
+    crate::memory::release_free_memory();
     model
         .solver()
         .set_tolerance(SCALE_DRIVEN_TOLERANCE.max(o.backend.fine_tune_tolerance()));
-    let mut curvature_factor = vec![1.0; n];
-    for r in &p.curvature {
-        for &v in &r.vertices {
-            curvature_factor[v as usize] *= r.scale;
-        }
-    }
+    let curvature_factor = curvature_factors(n, &p.curvature);
     let has_curvature = !p.curvature.is_empty();
     let has_handles = !p.handles.is_empty();
 
@@ -706,7 +411,7 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
                 },
             )?)
         };
-        crate::report::release_free_memory();
+        crate::memory::release_free_memory();
         stop_reason = "iteration cap".into();
         let mut anderson = Anderson::new(if nf >= o.anderson_from_faces {
             o.anderson_depth
@@ -739,7 +444,7 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
                         "scale factors: {} Newton steps, {:.3} s, resident {:.0} MiB",
                         info.newton_iterations,
                         t_iter.elapsed().as_secs_f64(),
-                        crate::report::resident_memory_mb()
+                        crate::memory::resident_memory_mb()
                     );
                     let m = s.iter().fold(0.0f64, |m, v| m.max((v - 1.0).abs()));
                     (s, m)
@@ -774,23 +479,20 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
                 }
             }
             history.push(max_ds);
-            // c_i of Eq. 21.
-            let mut c = if o.curvature_target == CurvatureTarget::Scaled {
-                vertex_mean_scale(mesh, &areas, &s)
-            } else {
-                vec![1.0; n]
-            };
-            if iterations == 0 && has_curvature {
-                for v in 0..n {
-                    c[v] *= curvature_factor[v];
-                }
-            }
+            // c_i of Eq. 21; the curvature regions' factors in the first step only.
+            let c = curvature_targets(
+                mesh,
+                &areas,
+                &s,
+                o.curvature_target,
+                (iterations == 0 && has_curvature).then_some(&curvature_factor[..]),
+            );
             // Eq. 7 / 19. On large meshes an iterative backend's AMG takes the
             // vertices' affine motions as near-null space here too (see
             // AFFINE_SCALE_DRIVEN_MIN_VERTICES).
             let t_shape = Instant::now();
             let affine = n >= AFFINE_SCALE_DRIVEN_MIN_VERTICES;
-            assemble_with_positions(&mut model, mesh, &x, &s, &c, &o.shape, affine)?;
+            model.assemble_with_positions(mesh, &x, &s, &c, &o.shape, affine)?;
             let t_solve = Instant::now();
             let g = model.solve_unconstrained(&x)?;
             // The first step of a curvature job has its own targets (Eq. 21 factors
@@ -822,8 +524,8 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
                 (t_solve - t_shape).as_secs_f64(),
                 t_solve.elapsed().as_secs_f64(),
                 t_iter.elapsed().as_secs_f64(),
-                crate::report::resident_memory_mb(),
-                crate::report::peak_memory_mb()
+                crate::memory::resident_memory_mb(),
+                crate::memory::peak_memory_mb()
             );
             let e = max_error(p, &x);
             if e < best.0 || has_handles || has_curvature {
@@ -846,7 +548,19 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
         model
             .solver()
             .set_tolerance(o.backend.fine_tune_tolerance());
-        let (xf, it) = fine_tune(p, o, &mut model, &groups, &x, progress)?;
+        let params = FineTuneParams {
+            weights: o.fine_tune,
+            tolerance: o.tolerance,
+            max_iterations: o.fine_tune_iterations,
+            multipliers: o.multipliers,
+        };
+        let mut report = |iteration, max_error| {
+            progress(Progress::FineTune {
+                iteration,
+                max_error,
+            })
+        };
+        let (xf, it) = fine_tune(p, &params, &mut model, &groups, &x, &mut report)?;
         x = xf;
         ft_iterations = it;
     }
@@ -936,121 +650,4 @@ fn compact(groups: &[usize]) -> Vec<usize> {
         .iter()
         .map(|g| ids.binary_search(g).unwrap())
         .collect()
-}
-
-/// Eq. 8 (and Eq. 20 with handles): minimise the shape energy relative to the
-/// scale-driven result subject to the metrics as hard constraints.
-fn fine_tune(
-    p: &Problem,
-    o: &Options,
-    model: &mut ShapeModel,
-    groups: &[usize],
-    xstart: &[DVec3],
-    progress: &mut dyn FnMut(Progress),
-) -> Result<(Vec<DVec3>, usize)> {
-    let mesh = &p.mesh;
-    let n = mesh.num_vertices();
-    let nf = mesh.num_faces();
-    let ones_f = vec![1.0; nf];
-    let ones_v = vec![1.0; n];
-    // One factorization for the whole fine-tune (symbolic analysis reused).
-    crate::report::release_free_memory();
-    model.solver().set_system_kind(SystemKind::FineTune);
-    // The fine-tune Hessian (k_m = k_l = 100 k_f) is nearly blind to local
-    // affine motions: an AMG of the matrix itself (the GPU's `affine-amg`)
-    // takes them as its near-null space (4-7x fewer GPU PCG iterations on
-    // spot, BENCHMARKS.md); the GPU's default squared Laplacian ignores them.
-    assemble_with_positions(model, mesh, xstart, &ones_f, &ones_v, &o.fine_tune, true)?;
-    let goal = 0.01 * o.tolerance;
-    let mut dx = vec![0.0; 3 * n];
-    let apply = |dx: &[f64]| -> Vec<DVec3> {
-        (0..n)
-            .map(|v| xstart[v] + DVec3::new(dx[3 * v], dx[3 * v + 1], dx[3 * v + 2]))
-            .collect()
-    };
-    let mut x = xstart.to_vec();
-    let mut mu: f64 = 0.0;
-    let mut it = 0;
-    let residuals =
-        |x: &[DVec3]| -> Vec<f64> { p.constraints.iter().map(|c| c.residual(mesh, x)).collect() };
-    let merit = |model: &ShapeModel, dx: &[f64], c: &[f64], mu: f64| -> f64 {
-        model.energy(dx) + mu * c.iter().map(|v| v.abs()).sum::<f64>()
-    };
-    let mut c = residuals(&x);
-    // Solutions of the previous Newton step: the initial guess of iterative solvers.
-    let mut warm = Vec::new();
-    while it < o.fine_tune_iterations {
-        let err = c.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-        progress(Progress::FineTune {
-            iteration: it,
-            max_error: err,
-        });
-        if err <= goal {
-            break;
-        }
-        let g = model.gradient_at(&dx);
-        let neg: Vec<f64> = g.iter().map(|v| -v).collect();
-        let rows: Vec<Vec<f64>> = p
-            .constraints
-            .iter()
-            .map(|con| {
-                let mut r = vec![0.0; 3 * n];
-                con.add_gradient(mesh, &x, 1.0 / con.target, &mut r);
-                for v in 0..n {
-                    if model.fixed[v] {
-                        r[3 * v..3 * v + 3].iter_mut().for_each(|e| *e = 0.0);
-                    }
-                }
-                r
-            })
-            .collect();
-        let mut lin = Linearized {
-            values: c.clone(),
-            rows,
-        };
-        if o.multipliers == Multipliers::PerKind {
-            lin = lin.grouped(groups);
-        }
-        let step = constrained_step_warm(model.solver(), neg, lin, &mut warm)?;
-        let lam_max = match o.multipliers {
-            Multipliers::PerConstraint => step.lambda.iter().fold(0.0f64, |m, l| m.max(l.abs())),
-            Multipliers::PerKind => groups
-                .iter()
-                .zip(&c)
-                .map(|(&g, cj)| (2.0 * step.lambda[g] * cj).abs())
-                .fold(0.0, f64::max),
-        };
-        mu = mu.max(2.0 * lam_max + 1e-6);
-        let phi0 = merit(model, &dx, &c, mu);
-        let mut alpha = 1.0;
-        let mut accepted = false;
-        while alpha > 1.0 / 1024.0 {
-            let trial: Vec<f64> = dx
-                .iter()
-                .zip(&step.dx)
-                .map(|(a, b)| a + alpha * b)
-                .collect();
-            let xt = apply(&trial);
-            let ct = residuals(&xt);
-            if merit(model, &trial, &ct, mu) < phi0 {
-                dx = trial;
-                x = xt;
-                c = ct;
-                accepted = true;
-                break;
-            }
-            alpha *= 0.5;
-        }
-        it += 1;
-        log::debug!(
-            "fine-tune step {it}: step length {alpha}, resident {:.0} MiB (peak {:.0})",
-            crate::report::resident_memory_mb(),
-            crate::report::peak_memory_mb()
-        );
-        if !accepted {
-            log::info!("fine-tune: line search stalled at iteration {it}");
-            break;
-        }
-    }
-    Ok((x, it))
 }

@@ -53,16 +53,8 @@ pub struct Step {
     pub lambda: Vec<f64>,
 }
 
-/// Solve Eqs. 16-18 with the prepared solver. `neg_grad` is `-grad E` at the current point.
-pub fn constrained_step(
-    solver: &mut dyn SpdSolver,
-    neg_grad: Vec<f64>,
-    lin: Linearized,
-) -> Result<Step> {
-    constrained_step_warm(solver, neg_grad, lin, &mut Vec::new())
-}
-
-/// [`constrained_step`] with the k+1 solutions `[y | Y]` of the previous step in
+/// Solve Eqs. 16-18 with the prepared solver; `neg_grad` is `-grad E` at the
+/// current point. The k+1 solutions `[y | Y]` of the previous step in
 /// `warm` as the initial guess of an iterative solver (unused when its size does
 /// not match); `warm` receives this step's solutions. The gradient and the
 /// Jacobian rows are moved into the right-hand side (one copy of each at a time:

@@ -1,0 +1,140 @@
+//! The fine-tune (paper Eq. 8, Sec. 4): the metrics as hard constraints on
+//! the shape energy, solved by sequential linearly constrained Newton steps
+//! ([`crate::constrained_step`], Eqs. 15-18) on one factored Hessian, with an
+//! exact-penalty line search.
+
+use crate::constrained_step::{constrained_step_warm, Linearized, Multipliers};
+use crate::problem::Problem;
+use crate::shape::{ShapeModel, ShapeWeights};
+use crate::Result;
+use glam::DVec3;
+use solver_cpu::SystemKind;
+
+/// The fine-tune's settings.
+#[derive(Debug, Clone, Copy)]
+pub struct FineTuneParams {
+    /// The shape weights of Eq. 8 (the paper's k_f, k_m, k_l = 1, 100, 100).
+    pub weights: ShapeWeights,
+    /// The run's relative metric tolerance; the fine-tune aims at 1 % of it.
+    pub tolerance: f64,
+    /// Most Newton steps.
+    pub max_iterations: usize,
+    pub multipliers: Multipliers,
+}
+
+/// Eq. 8 (and Eq. 20 with handles): minimise the shape energy relative to
+/// the scale-driven result `xstart` subject to the metrics as hard
+/// constraints. `groups[j]` is constraint j's multiplier group (used with
+/// [`Multipliers::PerKind`]); `progress(iteration, max_error)` is called
+/// before each step. Returns the positions and the steps taken.
+pub fn fine_tune(
+    p: &Problem,
+    params: &FineTuneParams,
+    model: &mut ShapeModel,
+    groups: &[usize],
+    xstart: &[DVec3],
+    progress: &mut dyn FnMut(usize, f64),
+) -> Result<(Vec<DVec3>, usize)> {
+    let mesh = &p.mesh;
+    let n = mesh.num_vertices();
+    let nf = mesh.num_faces();
+    let ones_f = vec![1.0; nf];
+    let ones_v = vec![1.0; n];
+    // One factorization for the whole fine-tune (symbolic analysis reused).
+    crate::memory::release_free_memory();
+    model.solver().set_system_kind(SystemKind::FineTune);
+    // The fine-tune Hessian (k_m = k_l = 100 k_f) is nearly blind to local
+    // affine motions: an AMG of the matrix itself (the GPU's `affine-amg`)
+    // takes them as its near-null space (4-7x fewer GPU PCG iterations on
+    // spot, BENCHMARKS.md); the GPU's default squared Laplacian ignores them.
+    model.assemble_with_positions(mesh, xstart, &ones_f, &ones_v, &params.weights, true)?;
+    let goal = 0.01 * params.tolerance;
+    let mut dx = vec![0.0; 3 * n];
+    let apply = |dx: &[f64]| -> Vec<DVec3> {
+        (0..n)
+            .map(|v| xstart[v] + DVec3::new(dx[3 * v], dx[3 * v + 1], dx[3 * v + 2]))
+            .collect()
+    };
+    let mut x = xstart.to_vec();
+    let mut mu: f64 = 0.0;
+    let mut it = 0;
+    let residuals =
+        |x: &[DVec3]| -> Vec<f64> { p.constraints.iter().map(|c| c.residual(mesh, x)).collect() };
+    let merit = |model: &ShapeModel, dx: &[f64], c: &[f64], mu: f64| -> f64 {
+        model.energy(dx) + mu * c.iter().map(|v| v.abs()).sum::<f64>()
+    };
+    let mut c = residuals(&x);
+    // Solutions of the previous Newton step: the initial guess of iterative solvers.
+    let mut warm = Vec::new();
+    while it < params.max_iterations {
+        let err = c.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        progress(it, err);
+        if err <= goal {
+            break;
+        }
+        let g = model.gradient_at(&dx);
+        let neg: Vec<f64> = g.iter().map(|v| -v).collect();
+        let rows: Vec<Vec<f64>> = p
+            .constraints
+            .iter()
+            .map(|con| {
+                let mut r = vec![0.0; 3 * n];
+                con.add_gradient(mesh, &x, 1.0 / con.target, &mut r);
+                for v in 0..n {
+                    if model.fixed[v] {
+                        r[3 * v..3 * v + 3].iter_mut().for_each(|e| *e = 0.0);
+                    }
+                }
+                r
+            })
+            .collect();
+        let mut lin = Linearized {
+            values: c.clone(),
+            rows,
+        };
+        if params.multipliers == Multipliers::PerKind {
+            lin = lin.grouped(groups);
+        }
+        let step = constrained_step_warm(model.solver(), neg, lin, &mut warm)?;
+        let lam_max = match params.multipliers {
+            Multipliers::PerConstraint => step.lambda.iter().fold(0.0f64, |m, l| m.max(l.abs())),
+            Multipliers::PerKind => groups
+                .iter()
+                .zip(&c)
+                .map(|(&g, cj)| (2.0 * step.lambda[g] * cj).abs())
+                .fold(0.0, f64::max),
+        };
+        mu = mu.max(2.0 * lam_max + 1e-6);
+        let phi0 = merit(model, &dx, &c, mu);
+        let mut alpha = 1.0;
+        let mut accepted = false;
+        while alpha > 1.0 / 1024.0 {
+            let trial: Vec<f64> = dx
+                .iter()
+                .zip(&step.dx)
+                .map(|(a, b)| a + alpha * b)
+                .collect();
+            let xt = apply(&trial);
+            let ct = residuals(&xt);
+            if merit(model, &trial, &ct, mu) < phi0 {
+                dx = trial;
+                x = xt;
+                c = ct;
+                accepted = true;
+                break;
+            }
+            alpha *= 0.5;
+        }
+        it += 1;
+        log::debug!(
+            "fine-tune step {it}: step length {alpha}, resident {:.0} MiB (peak {:.0})",
+            crate::memory::resident_memory_mb(),
+            crate::memory::peak_memory_mb()
+        );
+        if !accepted {
+            log::info!("fine-tune: line search stalled at iteration {it}");
+            break;
+        }
+    }
+    Ok((x, it))
+}
