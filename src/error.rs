@@ -19,19 +19,23 @@ pub enum Error {
     /// A linear solve failed (not positive definite, no convergence, ...).
     #[error("linear solver: {0}")]
     Solver(#[from] solver_cpu::SolverError),
+    /// The caller asked the run to stop (Ctrl-C).
+    #[error("interrupted")]
+    Interrupted,
     /// Anything else that is our fault, not the user's.
     #[error("internal error: {0}")]
     Internal(String),
 }
 
 impl Error {
-    /// Contract exit code: 2 bad input / usage, 1 internal failure.
+    /// Contract exit code: 2 bad input / usage, 1 internal failure, 130 interrupted.
     pub fn exit_code(&self) -> i32 {
         match self {
             Error::BadInput(_) => 2,
             Error::Io { source, .. } if source.kind() == std::io::ErrorKind::NotFound => 2,
             Error::Io { .. } => 2,
             Error::Solver(_) | Error::Internal(_) => 1,
+            Error::Interrupted => 130,
         }
     }
 

@@ -26,14 +26,14 @@ pub struct FineTuneParams {
 /// the scale-driven result `xstart` subject to the metrics as hard
 /// constraints. `groups[j]` is constraint j's multiplier group (used with
 /// [`Multipliers::PerKind`]); `progress(iteration, max_error)` is called
-/// before each step. Returns the positions and the steps taken.
+/// before each step, and an error it returns stops the fine-tune. Returns the positions and the steps taken.
 pub fn fine_tune(
     p: &Problem,
     params: &FineTuneParams,
     model: &mut ShapeModel,
     groups: &[usize],
     xstart: &[DVec3],
-    progress: &mut dyn FnMut(usize, f64),
+    progress: &mut dyn FnMut(usize, f64) -> Result<()>,
 ) -> Result<(Vec<DVec3>, usize)> {
     let mesh = &p.mesh;
     let n = mesh.num_vertices();
@@ -68,7 +68,7 @@ pub fn fine_tune(
     let mut warm = Vec::new();
     while it < params.max_iterations {
         let err = c.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-        progress(it, err);
+        progress(it, err)?;
         if err <= goal {
             break;
         }

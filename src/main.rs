@@ -2,16 +2,13 @@
 
 use clap::{Parser, Subcommand, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
+use metricdeform::job::BACKENDS;
 use metricdeform::job::{Job, JobFormat};
-use metricdeform::memory::peak_memory_mb;
 use metricdeform::mesh::io;
-use metricdeform::pipeline::{auto_uses_gpu, deform, Options, Progress, SolverBackend};
+use metricdeform::pipeline::{choose_backend as choose, deform, Options, Progress, SolverBackend};
 use metricdeform::problem::Problem;
-use metricdeform::report::{
-    constraint_rows, explain_miss, table, Distortion, Iterations, MeshInfo, Report, Seconds,
-    SolverWork,
-};
-use metricdeform::{distortion, output, render, Error};
+use metricdeform::report::{table, Report, RunInfo};
+use metricdeform::{output, render, Error};
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -245,62 +242,19 @@ fn choose_backend(
             .or(from_env)
             .unwrap_or_else(|| "auto".into()),
     };
-    match name.as_str() {
-        "cpu" => Ok((SolverBackend::Cpu, None)),
-        "gpu" => match solver_gpu::default_adapter() {
-            Ok(a) => {
-                if a.device_type == "Cpu" {
-                    eprintln!(
-                        "warning: --backend gpu runs on {}, a CPU emulation of a GPU: expect it to be \
-                         far slower than --backend cpu (250-300x measured on the demo)",
-                        a.name
-                    );
-                }
-                Ok((SolverBackend::Gpu, Some(a.name)))
-            }
-            Err(why) => Err(Error::bad(format!(
-                "--backend gpu: no usable GPU adapter: {why}"
-            ))),
-        },
-        "auto" => match solver_gpu::default_adapter() {
-            Ok(a) if auto_uses_gpu(faces, a.device_type != "Cpu") => {
-                if !quiet {
-                    eprintln!("backend: gpu (auto: adapter {}, {faces} faces)", a.name);
-                }
-                Ok((SolverBackend::Gpu, Some(a.name)))
-            }
-            Ok(a) if a.device_type != "Cpu" => {
-                if !quiet {
-                    eprintln!(
-                        "backend: cpu (auto: the GPU backend is not measured faster than the CPU at {faces} faces; \
-                         --backend gpu uses {} anyway)",
-                        a.name
-                    );
-                }
-                Ok((SolverBackend::Cpu, None))
-            }
-            Ok(a) => {
-                // A fallback: said even under --quiet (contract).
-                {
-                    eprintln!(
-                        "backend: cpu (auto: the only adapter, {}, is a CPU emulation; --backend gpu uses it anyway)",
-                        a.name
-                    );
-                }
-                Ok((SolverBackend::Cpu, None))
-            }
-            Err(why) => {
-                // A fallback: said even under --quiet (contract).
-                {
-                    eprintln!("backend: cpu (auto: {why})");
-                }
-                Ok((SolverBackend::Cpu, None))
-            }
-        },
-        other => Err(Error::bad(format!(
-            "unknown backend '{other}' (from METRICDEFORM_BACKEND or the job): expected auto, cpu or gpu"
-        ))),
+    if !BACKENDS.contains(&name.as_str()) {
+        return Err(Error::bad(format!(
+            "unknown backend '{name}' (from METRICDEFORM_BACKEND or the job): expected auto, cpu or gpu"
+        )));
     }
+    let choice = choose(&name, faces)?;
+    if let Some(note) = &choice.note {
+        // A fallback or a warning is said even under --quiet (contract).
+        if choice.note_always || !quiet {
+            eprintln!("{note}");
+        }
+    }
+    Ok((choice.backend, choice.adapter))
 }
 
 /// The job's name in messages: its file, or the demo.
@@ -454,49 +408,29 @@ fn run(job: &Job, args: &RunArgs) -> Result<u8, Error> {
         Some(&problem.mesh_path),
         attributes.as_ref(),
     )?;
-    let rows = constraint_rows(&problem, &x, options.tolerance);
-    let satisfied = rows.iter().all(|r| r.met);
     let preview = args.preview.is_some();
-    let reason = if satisfied || preview {
-        None
-    } else {
-        explain_miss(&problem, &rows, Some(&outcome))
-    };
-    let (qc_mean, qc_max) = distortion::quasi_conformal(&problem.mesh, input, &x);
-    let displacement =
-        distortion::displacement_percent(input, &x, problem.mesh.bbox_diagonal(input));
-    let report = Report {
-        mesh: MeshInfo {
-            path: problem.mesh_path.display().to_string(),
-            vertices: problem.mesh.num_vertices(),
-            faces: problem.mesh.num_faces(),
+    let report = Report::of_deformation(
+        &problem,
+        options.tolerance,
+        &outcome,
+        &x,
+        RunInfo {
+            output: Some(out_path.display().to_string()),
+            backend: backend.name().to_string(),
+            adapter,
+            load_seconds: t_load,
+            total_seconds: t0.elapsed().as_secs_f64(),
+            preview,
         },
-        output: Some(out_path.display().to_string()),
-        backend: backend.name().to_string(),
-        adapter,
-        constraints: rows.clone(),
-        satisfied,
-        iterations: Iterations {
-            scale_driven: outcome.scale_driven_iterations,
-            fine_tune: outcome.fine_tune_iterations,
-        },
-        seconds: Seconds {
-            total: t0.elapsed().as_secs_f64(),
-            load: t_load,
-            scale_driven: outcome.seconds_scale_driven,
-            fine_tune: outcome.seconds_fine_tune,
-        },
-        distortion: Distortion {
-            quasi_conformal_mean: qc_mean,
-            quasi_conformal_max: qc_max,
-        },
-        displacement,
-        preview,
-        warnings: problem.warnings.clone(),
-        reason: reason.clone(),
-        peak_memory_mb: peak_memory_mb(),
-        solver: Some(SolverWork::of(&outcome)),
-    };
+    );
+    let rows = &report.constraints;
+    let reason = report.reason.clone();
+    let satisfied = report.satisfied;
+    let displacement = report.displacement;
+    let (qc_mean, qc_max) = (
+        report.distortion.quasi_conformal_mean,
+        report.distortion.quasi_conformal_max,
+    );
     // The mesh and the report as a pair: both or neither.
     let mut staged = vec![output::stage(&out_path, &mesh_bytes)?];
     if let Some(path) = &args.report {
@@ -520,7 +454,7 @@ fn run(job: &Job, args: &RunArgs) -> Result<u8, Error> {
         staged.push(output::stage(path, &png)?);
     }
     output::commit(staged)?;
-    print!("{}", table(&rows));
+    print!("{}", table(rows));
     println!(
         "distortion: quasi-conformal mean {:.4}, max {:.4}; displacement (% of the bbox diagonal): \
          max {:.4}, mean {:.4}, p99 {:.4}; iterations: {} scale-driven, {} fine-tune; {:.2} s",
@@ -569,40 +503,17 @@ fn measure(job: &Job, report_path: Option<&Path>, picture: &PictureArgs) -> Resu
     let problem = Problem::load(job)?;
     print_warnings(&problem.warnings);
     let x = &problem.mesh.positions;
-    let rows = constraint_rows(&problem, x, options.tolerance);
-    print!("{}", table(&rows));
-    let report = Report {
-        mesh: MeshInfo {
-            path: problem.mesh_path.display().to_string(),
-            vertices: problem.mesh.num_vertices(),
-            faces: problem.mesh.num_faces(),
+    let report = Report::of_measurement(
+        &problem,
+        options.tolerance,
+        RunInfo {
+            backend: "none".into(),
+            load_seconds: t0.elapsed().as_secs_f64(),
+            total_seconds: t0.elapsed().as_secs_f64(),
+            ..RunInfo::default()
         },
-        output: None,
-        backend: "none".into(),
-        adapter: None,
-        satisfied: rows.iter().all(|r| r.met),
-        constraints: rows,
-        iterations: Iterations {
-            scale_driven: 0,
-            fine_tune: 0,
-        },
-        seconds: Seconds {
-            total: t0.elapsed().as_secs_f64(),
-            load: t0.elapsed().as_secs_f64(),
-            scale_driven: 0.0,
-            fine_tune: 0.0,
-        },
-        distortion: Distortion {
-            quasi_conformal_mean: 1.0,
-            quasi_conformal_max: 1.0,
-        },
-        displacement: distortion::DisplacementStats::default(),
-        preview: false,
-        warnings: problem.warnings.clone(),
-        reason: None,
-        peak_memory_mb: peak_memory_mb(),
-        solver: None,
-    };
+    );
+    print!("{}", table(&report.constraints));
     let mut staged = Vec::new();
     if let Some(p) = report_path {
         staged.push(output::stage(p, &report_json(&report)?)?);

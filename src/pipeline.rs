@@ -19,6 +19,8 @@ use solver_cpu::{
     nested_dissection_of_pattern, BlockPcgSolver, CholeskySolver, FillOrdering, SpdSolver, SymCsc,
     SystemKind, WorkCounters,
 };
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
 use std::time::Instant;
 
 /// Meshes from this many vertices on give an iterative backend the vertex
@@ -141,6 +143,79 @@ pub fn auto_uses_gpu(faces: usize, hardware_adapter: bool) -> bool {
     hardware_adapter && GPU_FASTER_FROM_FACES.is_some_and(|from| faces >= from)
 }
 
+/// The backend a name picks ([`choose_backend`]).
+#[derive(Debug, Clone)]
+pub struct BackendChoice {
+    pub backend: SolverBackend,
+    /// The GPU adapter (GPU backend only).
+    pub adapter: Option<String>,
+    /// What to tell the user about the choice.
+    pub note: Option<String>,
+    /// The note is a fallback or a warning: said even when asked to be quiet.
+    pub note_always: bool,
+}
+
+/// The backend `name` (`auto`, `cpu` or `gpu`) picks for a mesh of `faces`
+/// faces: `auto` is the GPU on a hardware adapter from the measured crossover
+/// on ([`auto_uses_gpu`]), else the CPU; `gpu` without a usable adapter is
+/// bad input.
+pub fn choose_backend(name: &str, faces: usize) -> Result<BackendChoice> {
+    let cpu = |note: Option<String>, note_always| BackendChoice {
+        backend: SolverBackend::Cpu,
+        adapter: None,
+        note,
+        note_always,
+    };
+    match name {
+        "cpu" => Ok(cpu(None, false)),
+        "gpu" => match solver_gpu::default_adapter() {
+            Ok(a) => Ok(BackendChoice {
+                backend: SolverBackend::Gpu,
+                note: (a.device_type == "Cpu").then(|| {
+                    format!(
+                        "warning: --backend gpu runs on {}, a CPU emulation of a GPU: expect it to be \
+                         far slower than --backend cpu (250-300x measured on the demo)",
+                        a.name
+                    )
+                }),
+                note_always: true,
+                adapter: Some(a.name),
+            }),
+            Err(why) => Err(Error::bad(format!(
+                "--backend gpu: no usable GPU adapter: {why}"
+            ))),
+        },
+        "auto" => Ok(match solver_gpu::default_adapter() {
+            Ok(a) if auto_uses_gpu(faces, a.device_type != "Cpu") => BackendChoice {
+                backend: SolverBackend::Gpu,
+                note: Some(format!("backend: gpu (auto: adapter {}, {faces} faces)", a.name)),
+                note_always: false,
+                adapter: Some(a.name),
+            },
+            Ok(a) if a.device_type != "Cpu" => cpu(
+                Some(format!(
+                    "backend: cpu (auto: the GPU backend is not measured faster than the CPU at \
+                     {faces} faces; --backend gpu uses {} anyway)",
+                    a.name
+                )),
+                false,
+            ),
+            Ok(a) => cpu(
+                Some(format!(
+                    "backend: cpu (auto: the only adapter, {}, is a CPU emulation; --backend gpu \
+                     uses it anyway)",
+                    a.name
+                )),
+                true,
+            ),
+            Err(why) => cpu(Some(format!("backend: cpu (auto: {why})")), true),
+        }),
+        other => Err(Error::bad(format!(
+            "unknown backend '{other}': expected auto, cpu or gpu"
+        ))),
+    }
+}
+
 /// Solver settings (`[solver]` of the job file, with defaults).
 #[derive(Debug, Clone)]
 pub struct Options {
@@ -168,6 +243,19 @@ pub struct Options {
     /// the default; `"anderson"` sets 0).
     pub anderson_from_faces: usize,
     pub backend: SolverBackend,
+    /// Checked at every progress report: once set, the run stops with
+    /// [`Error::Interrupted`].
+    pub interrupt: Option<Arc<AtomicBool>>,
+}
+
+impl Options {
+    /// [`Error::Interrupted`] once the interrupt flag is set.
+    pub fn check_interrupt(&self) -> Result<()> {
+        match &self.interrupt {
+            Some(flag) if flag.load(Ordering::Relaxed) => Err(Error::Interrupted),
+            _ => Ok(()),
+        }
+    }
 }
 
 impl Default for Options {
@@ -199,6 +287,7 @@ impl Default for Options {
             anderson_depth: ANDERSON_DEPTH,
             anderson_from_faces: ANDERSON_FROM_FACES,
             backend: SolverBackend::Cpu,
+            interrupt: None,
         }
     }
 }
@@ -457,6 +546,7 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
                 max_error: err,
                 max_scale_change: max_ds,
             });
+            o.check_interrupt()?;
             // Stopping rule (Sec. 2.4) plus stagnation and the cap.
             let first_free_step = iterations == 0 && (has_handles || has_curvature);
             if max_ds < o.scale_threshold && !first_free_step {
@@ -558,7 +648,8 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
             progress(Progress::FineTune {
                 iteration,
                 max_error,
-            })
+            });
+            o.check_interrupt()
         };
         let (xf, it) = fine_tune(p, &params, &mut model, &groups, &x, &mut report)?;
         x = xf;

@@ -1,7 +1,8 @@
 //! The JSON report of the contract and the table printed on stdout.
 
-use crate::job::MetricKind;
+use crate::memory::peak_memory_mb;
 use crate::mesh::Mesh;
+use crate::metrics::MetricKind;
 use crate::metrics::Selection;
 use crate::pipeline::Outcome;
 use crate::problem::Problem;
@@ -155,6 +156,121 @@ pub struct Report {
     /// The linear solvers' work (deform only).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub solver: Option<SolverWork>,
+}
+
+/// What a report says about the run beyond the problem and its result.
+#[derive(Debug, Clone, Default)]
+pub struct RunInfo {
+    /// The output mesh's path, if one is written.
+    pub output: Option<String>,
+    /// The backend's name (`cpu`, `gpu`, ...; `none` for a measurement).
+    pub backend: String,
+    /// The GPU adapter in use.
+    pub adapter: Option<String>,
+    /// Seconds from the start of the run to the problem's being built.
+    pub load_seconds: f64,
+    /// Seconds of the whole run.
+    pub total_seconds: f64,
+    /// `--preview N` cut the run.
+    pub preview: bool,
+}
+
+impl Report {
+    /// The report of a deformation: the metrics of `x` (the positions written:
+    /// the result, or its f32 rounding for STL), the distortion and
+    /// displacement from the input, the solvers' work.
+    pub fn of_deformation(
+        p: &Problem,
+        tolerance: f64,
+        outcome: &Outcome,
+        x: &[DVec3],
+        run: RunInfo,
+    ) -> Report {
+        let input = &p.mesh.positions;
+        let rows = constraint_rows(p, x, tolerance);
+        let satisfied = rows.iter().all(|r| r.met);
+        let reason = if satisfied || run.preview {
+            None
+        } else {
+            explain_miss(p, &rows, Some(outcome))
+        };
+        let (qc_mean, qc_max) = crate::distortion::quasi_conformal(&p.mesh, input, x);
+        Report {
+            mesh: MeshInfo::of(p),
+            output: run.output,
+            backend: run.backend,
+            adapter: run.adapter,
+            constraints: rows,
+            satisfied,
+            iterations: Iterations {
+                scale_driven: outcome.scale_driven_iterations,
+                fine_tune: outcome.fine_tune_iterations,
+            },
+            seconds: Seconds {
+                total: run.total_seconds,
+                load: run.load_seconds,
+                scale_driven: outcome.seconds_scale_driven,
+                fine_tune: outcome.seconds_fine_tune,
+            },
+            distortion: Distortion {
+                quasi_conformal_mean: qc_mean,
+                quasi_conformal_max: qc_max,
+            },
+            displacement: crate::distortion::displacement_percent(
+                input,
+                x,
+                p.mesh.bbox_diagonal(input),
+            ),
+            preview: run.preview,
+            warnings: p.warnings.clone(),
+            reason,
+            peak_memory_mb: peak_memory_mb(),
+            solver: Some(SolverWork::of(outcome)),
+        }
+    }
+
+    /// The report of a measurement: the input's metrics, nothing moved.
+    pub fn of_measurement(p: &Problem, tolerance: f64, run: RunInfo) -> Report {
+        let rows = constraint_rows(p, &p.mesh.positions, tolerance);
+        Report {
+            mesh: MeshInfo::of(p),
+            output: None,
+            backend: run.backend,
+            adapter: None,
+            satisfied: rows.iter().all(|r| r.met),
+            constraints: rows,
+            iterations: Iterations {
+                scale_driven: 0,
+                fine_tune: 0,
+            },
+            seconds: Seconds {
+                total: run.total_seconds,
+                load: run.load_seconds,
+                scale_driven: 0.0,
+                fine_tune: 0.0,
+            },
+            distortion: Distortion {
+                quasi_conformal_mean: 1.0,
+                quasi_conformal_max: 1.0,
+            },
+            displacement: DisplacementStats::default(),
+            preview: false,
+            warnings: p.warnings.clone(),
+            reason: None,
+            peak_memory_mb: peak_memory_mb(),
+            solver: None,
+        }
+    }
+}
+
+impl MeshInfo {
+    fn of(p: &Problem) -> MeshInfo {
+        MeshInfo {
+            path: p.mesh_path.display().to_string(),
+            vertices: p.mesh.num_vertices(),
+            faces: p.mesh.num_faces(),
+        }
+    }
 }
 
 /// Metric rows for positions `x` (the result, or the input for `measure`), with
