@@ -101,9 +101,12 @@ pub struct BlockPcgSolver {
     last_iterations: usize,
     /// Iterations of the first block solve after the last factorization.
     base_iterations: Option<usize>,
-    /// Seconds of the last factorization and per iteration of the last solve.
-    factor_seconds: f64,
-    iteration_seconds: f64,
+    /// Floating-point operations of the last factorization, and of one PCG
+    /// iteration with it (the two triangular solves, 4 per factor entry, and
+    /// about as much again for the operator): counted, not timed, so that the
+    /// refactoring decisions, and the result, are the same on every run.
+    factor_flops: f64,
+    iteration_flops: f64,
     /// PCG iterations summed over all solves (for tests and benchmarks).
     pub total_iterations: usize,
     pub solves: usize,
@@ -250,7 +253,7 @@ impl BlockPcgSolver {
         self.mode != mode
             || self.factored_trace == 0.0
             || self.last_iterations > self.params.refactor_iterations
-            || extra as f64 * self.iteration_seconds > self.factor_seconds
+            || extra as f64 * self.iteration_flops > self.factor_flops
     }
 
     /// Factor the preconditioner if `refactor`, or if `trace` moved too far
@@ -261,7 +264,8 @@ impl BlockPcgSolver {
         if refactor || moved || self.params.refactor_iterations == 0 {
             self.factored_trace = 0.0;
             self.factor(m)?;
-            self.factor_seconds = self.precond.numeric_seconds;
+            self.factor_flops = self.precond.factor_flops();
+            self.iteration_flops = 8.0 * self.precond.factor_nnz() as f64;
             self.factored_trace = trace;
             self.base_iterations = None;
         }
@@ -376,8 +380,19 @@ impl BlockPcgSolver {
     }
 }
 
+/// Elements per block of [`dot`].
+const DOT_BLOCK: usize = 1 << 14;
+
+/// `a . b`, the same to the last bit on every run: fixed blocks summed in
+/// parallel, their sums added in order (rayon's own `sum` adds in the order
+/// its work stealing happens to split, which varies from run to run).
 fn dot(a: &[f64], b: &[f64]) -> f64 {
-    a.par_iter().zip(b).map(|(x, y)| x * y).sum()
+    let partial: Vec<f64> = a
+        .par_chunks(DOT_BLOCK)
+        .zip(b.par_chunks(DOT_BLOCK))
+        .map(|(x, y)| x.iter().zip(y).map(|(x, y)| x * y).sum::<f64>())
+        .collect();
+    partial.iter().sum()
 }
 
 impl SpdSolver for BlockPcgSolver {
@@ -643,7 +658,6 @@ impl BlockPcgSolver {
         if blocks {
             self.last_iterations = it;
             self.base_iterations.get_or_insert(it);
-            self.iteration_seconds = t_start.elapsed().as_secs_f64() / it.max(1) as f64;
         }
         log::debug!(
             "{} PCG: {ncols} column(s), {it} iterations, residual {worst:.2e}, {:.3} s ({:.3} s preconditioning)",
