@@ -51,6 +51,9 @@
 //! | [`report`] | the JSON report and the stdout table | |
 //! | [`distortion`], [`render`], [`output`], [`memory`] | per-face fields, pictures, atomic output, memory probes | |
 
+// Index loops read as the paper's sums (`for i in 0..n { s[i] ... }`).
+#![allow(clippy::needless_range_loop)]
+
 pub mod anderson;
 pub mod constrained_step;
 pub mod distortion;

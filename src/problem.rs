@@ -292,7 +292,7 @@ impl Problem {
                 skip: skip.clone(),
             };
             c.original = c.measure(&mesh, x);
-            if !(c.original > 0.0) || !c.original.is_finite() {
+            if c.original.is_nan() || c.original <= 0.0 || !c.original.is_finite() {
                 return Err(Error::bad(format!(
                     "{label}: the {kind} measures {} on the input mesh",
                     c.original

@@ -874,13 +874,7 @@ fn points_across_adjacent_faces() {
     let p_a = pt(0, [0.2, 0.6, 0.2]); // interior of face 0
     let p_edge = pt(1, [0.5, 0.5, 0.0]); // midpoint of edge (0,3), given in face 1
     let p_b = pt(1, [0.2, 0.2, 0.6]); // interior of face 1
-    let c = build_curve(
-        &points(vec![p_a.clone(), p_edge.clone(), p_b.clone()]),
-        &m,
-        &topo,
-        "c",
-    )
-    .unwrap();
+    let c = build_curve(&points(vec![p_a, p_edge, p_b]), &m, &topo, "c").unwrap();
     assert_eq!(c.segments.len(), 2);
     assert_eq!(c.segments[0].face, 0);
     assert_eq!(c.segments[1].face, 1);

@@ -220,19 +220,16 @@ fn load_job<'py>(
 
 /// Read a mesh file (OBJ, PLY, STL) as (V, F).
 #[pyfunction]
-fn read_mesh<'py>(
-    py: Python<'py>,
-    path: std::path::PathBuf,
-) -> PyResult<(Bound<'py, PyArray2<f64>>, Bound<'py, PyArray2<i64>>)> {
+fn read_mesh(py: Python<'_>, path: std::path::PathBuf) -> PyResult<Arrays<'_>> {
     let mesh = read_mesh_file(&path).map_err(to_py)?;
     Ok(arrays_of(py, &mesh))
 }
 
+/// (V, F) as numpy arrays.
+type Arrays<'py> = (Bound<'py, PyArray2<f64>>, Bound<'py, PyArray2<i64>>);
+
 /// (V, F) of a mesh.
-fn arrays_of<'py>(
-    py: Python<'py>,
-    mesh: &Mesh,
-) -> (Bound<'py, PyArray2<f64>>, Bound<'py, PyArray2<i64>>) {
+fn arrays_of<'py>(py: Python<'py>, mesh: &Mesh) -> Arrays<'py> {
     let flat: Vec<i64> = mesh.faces.iter().flatten().map(|&i| i as i64).collect();
     let f = Array2::from_shape_vec((mesh.faces.len(), 3), flat).expect("m x 3");
     (

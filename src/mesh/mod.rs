@@ -259,6 +259,23 @@ impl Mesh {
     }
 }
 
+/// The gradient of a triangle's area with respect to its corners `p`,
+/// `d area / d p_k = 1/2 n_hat x (p_{k+2} - p_{k+1})`, with twice the area
+/// (the normal's length); `None` for a degenerate triangle.
+#[inline]
+pub fn triangle_area_gradient(p: [DVec3; 3]) -> Option<(f64, [DVec3; 3])> {
+    let n = (p[1] - p[0]).cross(p[2] - p[0]);
+    let len = n.length();
+    if len <= 0.0 {
+        return None;
+    }
+    let nh = n / len;
+    Some((
+        len,
+        std::array::from_fn(|k| 0.5 * nh.cross(p[(k + 2) % 3] - p[(k + 1) % 3])),
+    ))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -327,21 +344,4 @@ mod tests {
         b.sort();
         assert_eq!(a, b);
     }
-}
-
-/// The gradient of a triangle's area with respect to its corners `p`,
-/// `d area / d p_k = 1/2 n_hat x (p_{k+2} - p_{k+1})`, with twice the area
-/// (the normal's length); `None` for a degenerate triangle.
-#[inline]
-pub fn triangle_area_gradient(p: [DVec3; 3]) -> Option<(f64, [DVec3; 3])> {
-    let n = (p[1] - p[0]).cross(p[2] - p[0]);
-    let len = n.length();
-    if len <= 0.0 {
-        return None;
-    }
-    let nh = n / len;
-    Some((
-        len,
-        std::array::from_fn(|k| 0.5 * nh.cross(p[(k + 2) % 3] - p[(k + 1) % 3])),
-    ))
 }

@@ -318,8 +318,8 @@ fn non_manifold_vertices(mesh: &Mesh, topo: &Topology) -> Vec<usize> {
 
 /// Fails unless the mesh is closed: `what` names the requirement, e.g.
 /// `volume constraint 'body'`, giving
-/// "<file>: volume constraint 'body' needs a closed mesh, but it has 223 boundary edges
-/// (...): fill the holes ... or drop the volume constraint".
+/// `<file>: volume constraint 'body' needs a closed mesh, but it has 223 boundary edges
+/// (...): fill the holes ... or drop the volume constraint`.
 pub fn require_closed(check: &MeshCheck, file: &Path, what: &str) -> Result<()> {
     if check.closed {
         return Ok(());
