@@ -36,7 +36,7 @@ use crate::mesh::topology::Topology;
 use crate::mesh::validate::{check_indices, require_volume, validate, MeshCheck};
 use crate::metrics::{Constraint, MetricKind, Selection};
 use crate::selection::{build_curve, build_handle_vertices, build_region, Curve, Region};
-use crate::shape::HandleTarget;
+use crate::shape::{CurvatureRegion, HandleTarget};
 use crate::{Error, Mesh, Result};
 use glam::DVec3;
 use std::path::PathBuf;
@@ -196,13 +196,6 @@ pub fn handle_label(i: usize) -> String {
 /// `curvature N` for the 0-based index `i`, N 1-based.
 pub fn curvature_label(i: usize) -> String {
     format!("curvature {}", i + 1)
-}
-
-/// A curvature region of Eq. 21 resolved on the mesh: its vertices and factor.
-#[derive(Debug, Clone)]
-pub struct CurvatureRegion {
-    pub vertices: Vec<u32>,
-    pub scale: f64,
 }
 
 /// Demands resolved on their mesh: everything the solver needs.

@@ -13,7 +13,7 @@
 //! follows the mesh when it deforms. Everything here runs in (near) linear time.
 
 use crate::error::{Error, Result};
-use crate::mesh::topology::Topology;
+use crate::mesh::topology::{compressed_rows, Topology};
 use crate::mesh::Mesh;
 use glam::DVec3;
 use std::cmp::Ordering;
@@ -541,28 +541,14 @@ impl Adjacency {
             let [a, b] = topo.edges[e];
             a != b && !topo.edge_faces(e).is_empty()
         };
-        let mut start = vec![0usize; nv + 1];
-        for (e, &[a, b]) in topo.edges.iter().enumerate() {
-            if !usable(e) {
-                continue;
+        let (start, nbr) = compressed_rows(nv, |add| {
+            for (e, &[a, b]) in topo.edges.iter().enumerate() {
+                if usable(e) {
+                    add(a as usize, (b, e as u32));
+                    add(b as usize, (a, e as u32));
+                }
             }
-            start[a as usize + 1] += 1;
-            start[b as usize + 1] += 1;
-        }
-        for i in 0..nv {
-            start[i + 1] += start[i];
-        }
-        let mut fill = start.clone();
-        let mut nbr = vec![(0u32, 0u32); start[nv]];
-        for (e, &[a, b]) in topo.edges.iter().enumerate() {
-            if !usable(e) {
-                continue;
-            }
-            nbr[fill[a as usize]] = (b, e as u32);
-            fill[a as usize] += 1;
-            nbr[fill[b as usize]] = (a, e as u32);
-            fill[b as usize] += 1;
-        }
+        });
         Adjacency { start, nbr }
     }
     fn of(&self, v: u32) -> &[(u32, u32)] {

@@ -742,9 +742,16 @@ pub fn vertex_mean_scale(mesh: &Mesh, areas: &[f64], s: &[f64]) -> Vec<f64> {
         .collect()
 }
 
+/// A curvature region of Eq. 21 resolved on the mesh: its vertices and factor.
+#[derive(Debug, Clone)]
+pub struct CurvatureRegion {
+    pub vertices: Vec<u32>,
+    pub scale: f64,
+}
+
 /// Per vertex, the product of the factors of the curvature regions it is in
 /// (Eq. 21; 1 outside them).
-pub fn curvature_factors(n: usize, regions: &[crate::problem::CurvatureRegion]) -> Vec<f64> {
+pub fn curvature_factors(n: usize, regions: &[CurvatureRegion]) -> Vec<f64> {
     let mut factor = vec![1.0; n];
     for r in regions {
         for &v in &r.vertices {

@@ -91,30 +91,13 @@ impl Topology {
         }
         drop(map);
         let ne = edges.len();
-        let mut edge_face_start = vec![0usize; ne + 1];
-        for (f, fe) in face_edges.iter().enumerate() {
-            if ignored[f] {
-                continue;
+        let (edge_face_start, edge_face_index) = compressed_rows(ne, |add| {
+            for (f, fe) in face_edges.iter().enumerate() {
+                if !ignored[f] {
+                    fe.iter().for_each(|&e| add(e as usize, f as u32));
+                }
             }
-            for &e in fe {
-                edge_face_start[e as usize + 1] += 1;
-            }
-        }
-        for e in 0..ne {
-            edge_face_start[e + 1] += edge_face_start[e];
-        }
-        let mut fill = edge_face_start.clone();
-        let mut edge_face_index = vec![0u32; edge_face_start[ne]];
-        for (f, fe) in face_edges.iter().enumerate() {
-            if ignored[f] {
-                continue;
-            }
-            for &e in fe {
-                edge_face_index[fill[e as usize]] = f as u32;
-                fill[e as usize] += 1;
-            }
-        }
-        drop(fill);
+        });
         let mut face_pairs = Vec::new();
         let mut boundary_edges = Vec::new();
         let mut non_manifold_edges = Vec::new();
@@ -142,33 +125,15 @@ impl Topology {
                 face_pairs.push([g, f]);
             }
         }
-        let mut vf_start = vec![0usize; nv + 1];
-        for (f, t) in mesh.faces.iter().enumerate() {
-            if ignored[f] {
-                continue;
-            }
-            for &v in t {
-                if (v as usize) < nv {
-                    vf_start[v as usize + 1] += 1;
+        let (vf_start, vf_index) = compressed_rows(nv, |add| {
+            for (f, t) in mesh.faces.iter().enumerate() {
+                if !ignored[f] {
+                    t.iter()
+                        .filter(|&&v| (v as usize) < nv)
+                        .for_each(|&v| add(v as usize, f as u32));
                 }
             }
-        }
-        for i in 0..nv {
-            vf_start[i + 1] += vf_start[i];
-        }
-        let mut fill = vf_start.clone();
-        let mut vf_index = vec![0u32; vf_start[nv]];
-        for (f, t) in mesh.faces.iter().enumerate() {
-            if ignored[f] {
-                continue;
-            }
-            for &v in t {
-                if (v as usize) < nv {
-                    vf_index[fill[v as usize]] = f as u32;
-                    fill[v as usize] += 1;
-                }
-            }
-        }
+        });
         Topology {
             edges,
             edge_face_start,
@@ -202,6 +167,28 @@ impl Topology {
     pub fn is_closed(&self) -> bool {
         self.boundary_edges.is_empty() && self.non_manifold_edges.is_empty()
     }
+}
+
+/// Compressed rows: `entries` calls its argument `add(row, item)` for every
+/// item (the same items in the same order each time it is called: it is
+/// called twice, to count and to fill); row r's items are
+/// `items[start[r]..start[r + 1]]`, in the order added.
+pub fn compressed_rows<T: Copy + Default>(
+    rows: usize,
+    entries: impl Fn(&mut dyn FnMut(usize, T)),
+) -> (Vec<usize>, Vec<T>) {
+    let mut start = vec![0usize; rows + 1];
+    entries(&mut |r, _| start[r + 1] += 1);
+    for r in 0..rows {
+        start[r + 1] += start[r];
+    }
+    let mut fill = start.clone();
+    let mut items = vec![T::default(); start[rows]];
+    entries(&mut |r, item| {
+        items[fill[r]] = item;
+        fill[r] += 1;
+    });
+    (start, items)
 }
 
 /// Disjoint sets of `0..n` (union by smaller root, path halving).
