@@ -1,13 +1,13 @@
 //! The Python package's tests (python/tests), run as part of `cargo test`:
-//! build the wheel with maturin, install it into a fresh virtual environment
-//! (which sees the system's numpy, pytest and trimesh), run pytest there with
+//! build the wheel with maturin, install it into a folder of its own (`pip
+//! install --target`), run pytest with that folder first on `PYTHONPATH` and
 //! `METRICDEFORM_CLI` naming this build's CLI.
 //!
 //! Needs `maturin` and `python3` with pytest and numpy (`python3 -m pip install
 //! maturin pytest numpy trimesh`); without them the test says so and passes,
 //! unless `REQUIRE_PYTHON=1` (as in CI, `.ci/run`) makes it fail.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::process::Command;
 
 fn root() -> PathBuf {
@@ -42,14 +42,6 @@ fn missing_tools() -> Option<String> {
     None
 }
 
-fn venv_python(venv: &Path) -> PathBuf {
-    if cfg!(windows) {
-        venv.join("Scripts").join("python.exe")
-    } else {
-        venv.join("bin").join("python")
-    }
-}
-
 fn required() -> bool {
     std::env::var_os("REQUIRE_PYTHON").is_some_and(|v| v == "1")
 }
@@ -79,21 +71,29 @@ fn python_package_passes_its_tests() {
         .map(|e| e.unwrap().path())
         .find(|p| p.extension().is_some_and(|e| e == "whl"))
         .expect("maturin wrote a wheel");
-    let venv = work.join("venv");
+    // Installed into a folder of its own (no virtual environment, which some
+    // system Pythons cannot make without an extra package), put first on the
+    // path; numpy, pytest and trimesh come from the system's site-packages.
+    let site = work.join("site");
     run(Command::new("python3")
-        .args(["-m", "venv", "--system-site-packages"])
-        .arg(&venv))
-    .unwrap_or_else(|e| panic!("creating a virtual environment: {e}"));
-    let python = venv_python(&venv);
-    run(Command::new(&python)
-        .args(["-m", "pip", "install", "--quiet", "--no-deps", "--no-index"])
+        .args([
+            "-m",
+            "pip",
+            "install",
+            "--quiet",
+            "--no-deps",
+            "--no-index",
+            "--target",
+        ])
+        .arg(&site)
         .arg(&wheel))
     .unwrap_or_else(|e| panic!("installing the wheel: {e}"));
     // From a folder outside the source tree, so that the installed package is
     // the one imported.
-    let out = run(Command::new(&python)
+    let out = run(Command::new("python3")
         .args(["-m", "pytest", "-q", "-p", "no:cacheprovider"])
         .arg(root().join("python").join("tests"))
+        .env("PYTHONPATH", &site)
         .env("METRICDEFORM_CLI", env!("CARGO_BIN_EXE_metricdeform"))
         .current_dir(&work))
     .unwrap_or_else(|e| panic!("pytest: {e}"));
