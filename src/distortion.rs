@@ -123,8 +123,13 @@ pub fn face_scales(mesh: &Mesh, input: &[DVec3], output: &[DVec3]) -> Vec<f64> {
 /// degenerate in the input ([`Mesh::degenerate_faces`]: zero area, needles)
 /// have no meaningful ratio and get no shape weight: they are left out.
 pub fn quasi_conformal(mesh: &Mesh, input: &[DVec3], output: &[DVec3]) -> (f64, f64) {
+    distortion_summary(mesh, input, &face_distortions(mesh, input, output))
+}
+
+/// The area-weighted mean and the max of per-face distortions `ratios` (as
+/// [`face_distortions`] gives them), the input's degenerate faces left out.
+pub fn distortion_summary(mesh: &Mesh, input: &[DVec3], ratios: &[f64]) -> (f64, f64) {
     let degenerate = mesh.degenerate_faces(input);
-    let ratios = distortions_but(mesh, input, output, &degenerate);
     let mut sum = 0.0;
     let mut wsum = 0.0;
     let mut max = 1.0f64;

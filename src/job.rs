@@ -495,9 +495,8 @@ impl Problem {
     /// Resolve the job's selections on an already loaded mesh. Bad-input messages
     /// name the job file.
     pub fn build(job: &Job, mesh: Mesh, mesh_path: &Path) -> Result<Problem> {
-        let inputs = crate::mesh::validate::check_indices(&mesh, mesh_path)
-            .and_then(|_| job.demands(mesh.num_faces()));
-        let (demands, handles, curvature) = inputs.map_err(|e| job.naming(e))?;
+        let (demands, handles, curvature) =
+            job.demands(mesh.num_faces()).map_err(|e| job.naming(e))?;
         Problem::new(mesh, mesh_path, &demands, &handles, &curvature).map_err(|e| job.naming(e))
     }
 }
@@ -772,8 +771,9 @@ impl RegionSpec {
         v
     }
 
-    /// Exactly one kind; `vertices` only when `allow_vertices` (handles); a
-    /// non-empty `faces_file`.
+    /// Exactly one kind (`vertices` counted only when `allow_vertices`, for
+    /// handles; [`Region::validate`] refuses it elsewhere); a non-empty
+    /// `faces_file`.
     pub fn validate(&self, what: &str, allow_vertices: bool) -> Result<(), String> {
         let given = self.given();
         let kinds = if allow_vertices {
@@ -788,12 +788,6 @@ impl RegionSpec {
             return Err(format!(
                 "{what}: region gives {}; give exactly one of {kinds}",
                 given.join(" and ")
-            ));
-        }
-        if self.vertices.is_some() && !allow_vertices {
-            return Err(format!(
-                "{what}: region `vertices` is only allowed for handles; \
-                 use one of {kinds}"
             ));
         }
         if let Some(f) = &self.faces_file {

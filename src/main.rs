@@ -414,6 +414,7 @@ fn run(job: &Job, args: &RunArgs) -> Result<u8, Error> {
         options.tolerance,
         &outcome,
         &x,
+        &metricdeform::distortion::face_distortions(&problem.mesh, input, &x),
         RunInfo {
             output: Some(out_path.display().to_string()),
             backend: backend.name().to_string(),

@@ -33,7 +33,7 @@
 //! ```
 
 use crate::mesh::topology::Topology;
-use crate::mesh::validate::{check_indices, require_volume, validate, MeshCheck};
+use crate::mesh::validate::{require_volume, validate, MeshCheck};
 use crate::metrics::{Constraint, MetricKind, Selection};
 use crate::selection::{build_curve, build_handle_vertices, build_region, Curve, Region};
 use crate::shape::{CurvatureRegion, HandleTarget};
@@ -228,7 +228,7 @@ impl Problem {
         curvature: &[Curvature],
     ) -> Result<Problem> {
         let mesh_path: PathBuf = source.into();
-        check_indices(&mesh, &mesh_path)?;
+        // Topology::build takes any corner index; validate refuses those out of range.
         let topo = Topology::build(&mesh);
         let check = validate(&mesh, &topo, &mesh_path)?;
         // Duplicate faces count once in whole-mesh metrics.

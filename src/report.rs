@@ -177,13 +177,15 @@ pub struct RunInfo {
 
 impl Report {
     /// The report of a deformation: the metrics of `x` (the positions written:
-    /// the result, or its f32 rounding for STL), the distortion and
+    /// the result, or its f32 rounding for STL), the distortion
+    /// (`face_distortion`: [`crate::distortion::face_distortions`] of `x`) and
     /// displacement from the input, the solvers' work.
     pub fn of_deformation(
         p: &Problem,
         tolerance: f64,
         outcome: &Outcome,
         x: &[DVec3],
+        face_distortion: &[f64],
         run: RunInfo,
     ) -> Report {
         let input = &p.mesh.positions;
@@ -194,7 +196,8 @@ impl Report {
         } else {
             explain_miss(p, &rows, Some(outcome))
         };
-        let (qc_mean, qc_max) = crate::distortion::quasi_conformal(&p.mesh, input, x);
+        let (qc_mean, qc_max) =
+            crate::distortion::distortion_summary(&p.mesh, input, face_distortion);
         Report {
             mesh: MeshInfo::of(p),
             output: run.output,

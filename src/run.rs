@@ -41,6 +41,8 @@ pub fn deform_with_progress(
     let t0 = Instant::now();
     let outcome = run_pipeline(problem, options, progress)?;
     let input = &problem.mesh.positions;
+    let face_distortion =
+        crate::distortion::face_distortions(&problem.mesh, input, &outcome.positions);
     let adapter = match options.backend {
         SolverBackend::Gpu => solver_gpu::default_adapter().ok().map(|a| a.name),
         _ => None,
@@ -50,6 +52,7 @@ pub fn deform_with_progress(
         options.tolerance,
         &outcome,
         &outcome.positions,
+        &face_distortion,
         RunInfo {
             output: None,
             backend: options.backend.name().to_string(),
@@ -60,11 +63,7 @@ pub fn deform_with_progress(
         },
     );
     Ok(Deformation {
-        face_distortion: crate::distortion::face_distortions(
-            &problem.mesh,
-            input,
-            &outcome.positions,
-        ),
+        face_distortion,
         face_scale: outcome.face_scale,
         positions: outcome.positions,
         report,

@@ -44,6 +44,18 @@ fn cube_mesh() -> Mesh {
     Mesh::from_arrays(&v, &f).unwrap()
 }
 
+/// The cube asked for 8 times its volume.
+fn cube_volume_x8() -> Problem {
+    Problem::new(
+        cube_mesh(),
+        "cube",
+        &[Demand::volume().scale(8.0)],
+        &[],
+        &[],
+    )
+    .unwrap()
+}
+
 fn bad(r: metricdeform::Result<Problem>) -> String {
     match r {
         Err(Error::BadInput(m)) => m,
@@ -177,14 +189,7 @@ fn bad_typed_input_is_named_never_a_panic() {
 
 #[test]
 fn cube_volume_x8_is_the_cube_doubled() {
-    let problem = Problem::new(
-        cube_mesh(),
-        "cube",
-        &[Demand::volume().scale(8.0)],
-        &[],
-        &[],
-    )
-    .unwrap();
+    let problem = cube_volume_x8();
     let result = deform(&problem, &Options::default()).unwrap();
     assert!(result.report.satisfied, "{:?}", result.report.reason);
     assert_eq!(result.face_scale.len(), 12);
@@ -231,14 +236,7 @@ fn measure_reports_the_input() {
 
 #[test]
 fn an_interrupt_stops_the_run() {
-    let problem = Problem::new(
-        cube_mesh(),
-        "cube",
-        &[Demand::volume().scale(8.0)],
-        &[],
-        &[],
-    )
-    .unwrap();
+    let problem = cube_volume_x8();
     let options = Options {
         interrupt: Some(Arc::new(AtomicBool::new(true))),
         ..Options::default()

@@ -85,9 +85,9 @@ fn plural(n: usize, one: &str, many: &str) -> String {
     format!("{n} {}", if n == 1 { one } else { many })
 }
 
-/// The checks [`Topology::build`] relies on: at least one face, every corner
-/// index names a vertex. `file` is named in the message.
-pub fn check_indices(mesh: &Mesh, file: &Path) -> Result<()> {
+/// At least one face, every corner index names a vertex. `file` is named in
+/// the message.
+fn check_indices(mesh: &Mesh, file: &Path) -> Result<()> {
     let file_s = file.display();
     let nv = mesh.positions.len();
     let nf = mesh.faces.len();
