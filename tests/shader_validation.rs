@@ -69,6 +69,7 @@ fn every_shader_parses_and_validates() {
         "bsr_spmv_f64.wgsl",
         "stream.wgsl",
         "expand_blocks.wgsl",
+        "supernodal.wgsl",
     ] {
         assert!(names.iter().any(|n| n == expected), "{expected} missing");
     }

@@ -169,6 +169,10 @@ pub struct CholeskySolver {
     numeric32: Vec<f32>,
     /// Factor and solve in f32 (see module docs).
     single: bool,
+    /// Always a supernodal factor (faer picks a simplicial one for sparse
+    /// factors): for [`CholeskySolver::supernodal_factor`]'s users, whose
+    /// solves run a supernode per step.
+    pub supernodal: bool,
     /// Solve buffer in f32 (single precision only).
     buf32: Vec<f32>,
     factored: bool,
@@ -240,6 +244,151 @@ impl CholeskySolver {
     /// Bytes held by the numeric factor.
     pub fn factor_bytes(&self) -> usize {
         self.numeric.len() * 8 + self.numeric32.len() * 4
+    }
+}
+
+/// A numeric factor `P A P^T = L L^T` laid out by supernodes, in f32, for
+/// triangular solves elsewhere (the GPU backend's preconditioner).
+///
+/// Supernode `s` owns the columns `begin[s]..begin[s + 1]` (`m` of them) and the
+/// rows below its diagonal block `rows[row_ptr[s]..row_ptr[s + 1]]` (`q`, in
+/// the permuted numbering, ascending); its values are the dense column-major
+/// `(m + q) x m` block at `values[val_ptr[s]..]`: the lower triangle of the
+/// diagonal block in its first `m` rows, then the `q` rows below. Supernodes
+/// come in topological order: every row below a supernode's diagonal block
+/// belongs to a later supernode.
+#[derive(Debug, Clone, Default)]
+pub struct SupernodalFactor {
+    /// `perm[new] = old`.
+    pub perm: Vec<u32>,
+    pub begin: Vec<u32>,
+    pub row_ptr: Vec<u32>,
+    pub rows: Vec<u32>,
+    pub val_ptr: Vec<u64>,
+    pub values: Vec<f32>,
+}
+
+impl SupernodalFactor {
+    /// Supernodes.
+    pub fn len(&self) -> usize {
+        self.begin.len().saturating_sub(1)
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// `(columns, rows below the diagonal block)` of supernode `s`.
+    pub fn shape(&self, s: usize) -> (usize, usize) {
+        (
+            (self.begin[s + 1] - self.begin[s]) as usize,
+            (self.row_ptr[s + 1] - self.row_ptr[s]) as usize,
+        )
+    }
+
+    /// `x = (L L^T)^-1 ... ` in the original numbering: `P^T L^-T L^-1 P b` for
+    /// one column, in f64 on the factor's f32 values (a reference for tests).
+    pub fn solve(&self, b: &[f64]) -> Vec<f64> {
+        let n = self.perm.len();
+        let mut w: Vec<f64> = (0..n).map(|i| b[self.perm[i] as usize]).collect();
+        for s in 0..self.len() {
+            let (m, q) = self.shape(s);
+            let (c0, v, nr) = (self.begin[s] as usize, self.val_ptr[s] as usize, m + q);
+            let rows = &self.rows[self.row_ptr[s] as usize..self.row_ptr[s + 1] as usize];
+            for k in 0..m {
+                w[c0 + k] /= self.values[v + k * nr + k] as f64;
+                let x = w[c0 + k];
+                for i in k + 1..m {
+                    w[c0 + i] -= self.values[v + k * nr + i] as f64 * x;
+                }
+                for (r, &row) in rows.iter().enumerate() {
+                    w[row as usize] -= self.values[v + k * nr + m + r] as f64 * x;
+                }
+            }
+        }
+        for s in (0..self.len()).rev() {
+            let (m, q) = self.shape(s);
+            let (c0, v, nr) = (self.begin[s] as usize, self.val_ptr[s] as usize, m + q);
+            let rows = &self.rows[self.row_ptr[s] as usize..self.row_ptr[s + 1] as usize];
+            for k in (0..m).rev() {
+                let mut t = w[c0 + k];
+                for i in k + 1..m {
+                    t -= self.values[v + k * nr + i] as f64 * w[c0 + i];
+                }
+                for (r, &row) in rows.iter().enumerate() {
+                    t -= self.values[v + k * nr + m + r] as f64 * w[row as usize];
+                }
+                w[c0 + k] = t / self.values[v + k * nr + k] as f64;
+            }
+        }
+        let mut x = vec![0.0; n];
+        for i in 0..n {
+            x[self.perm[i] as usize] = w[i];
+        }
+        x
+    }
+}
+
+impl CholeskySolver {
+    /// The current numeric factor by supernodes (a simplicial factor as
+    /// one-column supernodes), in f32; `None` before a factorization.
+    pub fn supernodal_factor(&self) -> Option<SupernodalFactor> {
+        let sym = self.symbolic.as_ref().filter(|_| self.factored)?;
+        let n = self.n;
+        let value = |k: usize| -> f32 {
+            if self.numeric32.is_empty() {
+                self.numeric[k] as f32
+            } else {
+                self.numeric32[k]
+            }
+        };
+        let perm = match sym.perm() {
+            Some(p) => p.arrays().0.to_vec(),
+            None => (0..n as u32).collect(),
+        };
+        let mut f = SupernodalFactor {
+            perm,
+            ..Default::default()
+        };
+        match sym.raw() {
+            SymbolicCholeskyRaw::Simplicial(s) => {
+                let (cp, ri) = (s.col_ptr(), s.row_idx());
+                f.begin = (0..=n as u32).collect();
+                f.row_ptr.push(0);
+                f.val_ptr.push(0);
+                f.values.reserve(ri.len());
+                for j in 0..n {
+                    let (a, b) = (cp[j] as usize, cp[j + 1] as usize);
+                    if b <= a || ri[a] as usize != j {
+                        return None;
+                    }
+                    f.rows.extend_from_slice(&ri[a + 1..b]);
+                    f.values.extend((a..b).map(value));
+                    f.row_ptr.push(f.rows.len() as u32);
+                    f.val_ptr.push(f.values.len() as u64);
+                }
+            }
+            SymbolicCholeskyRaw::Supernodal(s) => {
+                let ns = s.n_supernodes();
+                let vp = s.col_ptr_for_val();
+                f.begin = s.supernode_begin().to_vec();
+                f.begin.push(n as u32);
+                f.row_ptr.push(0);
+                f.val_ptr.push(0);
+                f.values = (0..s.len_val()).map(value).collect();
+                for k in 0..ns {
+                    let pattern = s.supernode(k).pattern();
+                    let m = (f.begin[k + 1] - f.begin[k]) as usize;
+                    if (vp[k + 1] - vp[k]) as usize != m * (m + pattern.len()) {
+                        return None;
+                    }
+                    f.rows.extend_from_slice(pattern);
+                    f.row_ptr.push(f.rows.len() as u32);
+                    f.val_ptr.push(vp[k + 1] as u64);
+                }
+            }
+        }
+        Some(f)
     }
 }
 
@@ -392,15 +541,22 @@ impl SpdSolver for CholeskySolver {
                 }
                 None => SymmetricOrdering::Amd,
             };
-            let sym =
-                factorize_symbolic_cholesky(sym_ref, Side::Lower, ordering, Default::default())
-                    .map_err(|e| {
-                        SolverError::Backend(format!(
-                            "symbolic Cholesky of {} unknowns: {e:?} (the factor's entries must be \
+            let symbolic_params = faer::sparse::linalg::cholesky::CholeskySymbolicParams {
+                supernodal_flop_ratio_threshold: if self.supernodal {
+                    faer::sparse::linalg::SupernodalThreshold::FORCE_SUPERNODAL
+                } else {
+                    faer::sparse::linalg::SupernodalThreshold::AUTO
+                },
+                ..Default::default()
+            };
+            let sym = factorize_symbolic_cholesky(sym_ref, Side::Lower, ordering, symbolic_params)
+                .map_err(|e| {
+                    SolverError::Backend(format!(
+                        "symbolic Cholesky of {} unknowns: {e:?} (the factor's entries must be \
                              indexable by 32-bit integers)",
-                            a.n
-                        ))
-                    })?;
+                        a.n
+                    ))
+                })?;
             self.numeric = Vec::new();
             self.numeric32 = Vec::new();
             if self.single {

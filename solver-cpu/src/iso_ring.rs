@@ -188,6 +188,23 @@ impl IsoRingSym3 {
     }
 
     /// Block rows (vertices).
+    /// `K` with the held rows and columns made identity (`fixed` per vertex):
+    /// the matrix whose factor preconditions a system with held vertices.
+    pub fn iso_held_identity(&self, fixed: &[bool]) -> SymCsc {
+        let mut k = self.iso.clone();
+        if fixed.iter().any(|&f| f) {
+            for j in 0..k.n {
+                for s in k.col_ptr[j]..k.col_ptr[j + 1] {
+                    let i = k.row_idx[s];
+                    if fixed[i] || fixed[j] {
+                        k.values[s] = if i == j { 1.0 } else { 0.0 };
+                    }
+                }
+            }
+        }
+        k
+    }
+
     pub fn n(&self) -> usize {
         self.iso.n
     }

@@ -12,7 +12,7 @@ pub mod iso_ring;
 pub mod pcg;
 
 pub use block::{BlockRows, BlockSym3};
-pub use cholesky::{nested_dissection_of_pattern, CholeskySolver, FillOrdering};
+pub use cholesky::{nested_dissection_of_pattern, CholeskySolver, FillOrdering, SupernodalFactor};
 pub use iso_ring::{IsoRingSym3, SparseRows};
 pub use pcg::{BlockPcgParams, BlockPcgSolver};
 
@@ -307,6 +307,87 @@ mod tests {
         }
         a.add_block(0, 0, &[2.0, 0.5, 0.0, 0.5, 2.0, 0.0, 0.0, 0.0, 2.0]);
         a
+    }
+
+    /// The supernodal layout handed to the GPU solves as the factor does:
+    /// a grid Laplacian's simplicial and supernodal factors (AMD and nested
+    /// dissection), and a single unknown.
+    #[test]
+    fn supernodal_factor_solves_as_the_factor() {
+        let grid = |w: usize| {
+            let n = w * w;
+            let mut e = Vec::new();
+            for i in 0..w {
+                for j in 0..w {
+                    let v = i * w + j;
+                    e.push((v, v));
+                    if j + 1 < w {
+                        e.push((v + 1, v));
+                    }
+                    if i + 1 < w {
+                        e.push((v + w, v));
+                    }
+                }
+            }
+            let mut a = SymCsc::from_pattern(n, e);
+            for j in 0..n {
+                for s in a.col_ptr[j]..a.col_ptr[j + 1] {
+                    a.values[s] = if a.row_idx[s] == j {
+                        4.1 + (j as f64).sin().abs()
+                    } else {
+                        -1.0
+                    };
+                }
+            }
+            a
+        };
+        for (w, ordering, supernodal) in [
+            (1, FillOrdering::Amd, false),
+            (30, FillOrdering::Amd, false),
+            (30, FillOrdering::NestedDissection, true),
+            (30, FillOrdering::Amd, true),
+        ] {
+            let a = grid(w);
+            let mut solver = CholeskySolver::single_precision();
+            solver.supernodal = supernodal;
+            solver.set_fill_ordering(ordering.clone());
+            solver.prepare(&a).unwrap();
+            let f = solver.supernodal_factor().unwrap();
+            assert_eq!(f.values.len(), solver.factor_nnz());
+            assert_eq!(f.val_ptr.last().copied(), Some(f.values.len() as u64));
+            if supernodal {
+                assert!(
+                    (0..f.len()).any(|s| f.shape(s).0 > 1),
+                    "{ordering:?}: no supernode"
+                );
+            }
+            for s in 0..f.len() {
+                let rows = &f.rows[f.row_ptr[s] as usize..f.row_ptr[s + 1] as usize];
+                assert!(
+                    rows.iter().all(|&r| r >= f.begin[s + 1]),
+                    "{w} {ordering:?} {s}"
+                );
+            }
+            let b: Vec<f64> = (0..a.n).map(|i| (i as f64 * 0.7).cos()).collect();
+            let x = f.solve(&b);
+            let mut y = b.clone();
+            solver.solve_in_place(&mut y, 1).unwrap();
+            let scale = y.iter().fold(0f64, |m, v| m.max(v.abs()));
+            for i in 0..a.n {
+                assert!(
+                    (x[i] - y[i]).abs() <= 1e-5 * scale,
+                    "{w} {ordering:?} {i}: {} {}",
+                    x[i],
+                    y[i]
+                );
+            }
+            // And it inverts A itself (to the f32 factor's accuracy).
+            let mut ax = vec![0.0; a.n];
+            a.mul_vec(&x, &mut ax);
+            for i in 0..a.n {
+                assert!((ax[i] - b[i]).abs() < 1e-4, "{w} {ordering:?} {i}");
+            }
+        }
     }
 
     #[test]

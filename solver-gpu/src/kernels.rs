@@ -251,6 +251,41 @@ pub fn squared_laplacian(s: &mut GpuSolver, r: &[f32], ncols: usize) -> Result<V
     ctx.read(&ws.z, r.len(), &mut None, Some(enc))
 }
 
+/// `z = (P^T L L^T P)^-1 r` for x, y and z of each column: the Cholesky
+/// preconditioner's triangular solves on the GPU as the PCG applies them (it
+/// must be the active preconditioner: a shape matrix prepared by
+/// `prepare_shape_owned`). The work vector and `z` are poisoned with NaN first.
+pub fn cholesky(s: &mut GpuSolver, r: &[f32], ncols: usize) -> Result<Vec<f32>, GpuError> {
+    check_cols(s, r.len(), ncols)?;
+    if s.chol.is_none() {
+        return Err(GpuError::Backend(
+            "the Cholesky preconditioner is not active".into(),
+        ));
+    }
+    s.workspace(ncols)?;
+    let ctx = &s.ctx;
+    let ws = s.ws.as_ref().unwrap();
+    let c = ws.chol.as_ref().unwrap();
+    ctx.write_buffer(&ws.r, 0, bytemuck::cast_slice(r));
+    for b in [c.work_vector(), &ws.z] {
+        let nan = vec![f32::NAN; (b.size() / 4) as usize];
+        ctx.write_buffer(b, 0, bytemuck::cast_slice(&nan));
+    }
+    let pipelines = c.pipelines(ctx, ncols)?;
+    let mut enc = ctx.encoder("Cholesky preconditioner");
+    {
+        let mut pass = enc.begin_compute_pass(&Default::default());
+        c.record(&mut pass, &pipelines);
+    }
+    ctx.read(&ws.z, r.len(), &mut None, Some(enc))
+}
+
+/// Levels of the active Cholesky preconditioner's elimination tree (dispatches
+/// per triangular solve), and its stored values; `None` when it is not active.
+pub fn cholesky_shape(s: &GpuSolver) -> Option<(usize, usize)> {
+    s.chol.as_ref().map(|f| (f.depth(), f.nnz))
+}
+
 /// Result of one f32 PCG run ([`pcg`]).
 #[derive(Debug, Clone)]
 pub struct PcgOutput {

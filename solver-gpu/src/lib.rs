@@ -124,6 +124,7 @@ pub mod precision;
 mod scale_rows;
 #[cfg(feature = "bench-kernels")]
 pub mod stream;
+mod supernodal;
 
 pub use device::{AdapterSummary, KernelWork, OpenOptions};
 pub use wgpu;

@@ -222,6 +222,8 @@ pub(crate) struct Workspace {
     pub amg: Option<VcycleWorkspace>,
     /// The squared-Laplacian preconditioner (in place of `amg`).
     pub squared: Option<SquaredSteps>,
+    /// The Cholesky factor's triangular solves (in place of `amg`).
+    pub chol: Option<crate::supernodal::SupernodalSteps>,
     /// Mixed precision (an f64 workspace with the f32 V-cycle): the copies the
     /// V-cycle reads and writes.
     pub narrow: Option<Narrow>,
@@ -411,6 +413,7 @@ impl Pcg {
             staging_x: None,
             amg: None,
             squared: None,
+            chol: None,
             narrow: None,
         })
     }
@@ -468,7 +471,11 @@ impl Pcg {
             }
             _ => None,
         };
-        let k_update = if vcycle.is_some() || squared.is_some() {
+        let chol = match &ws.chol {
+            Some(c) => Some((c, c.pipelines(ctx, ncols)?)),
+            None => None,
+        };
+        let k_update = if vcycle.is_some() || squared.is_some() || chol.is_some() {
             self.update_amg.pipeline(ctx, ncols)?
         } else {
             self.update.pipeline(ctx, ncols)?
@@ -495,7 +502,7 @@ impl Pcg {
             ..KernelWork::operator(ws.stored.0 + 2 * nv + partials, ws.stored.1 + 2 * nv)
         };
         let scalars = KernelWork::other(partials);
-        let jacobi_update = vcycle.is_none() && squared.is_none();
+        let jacobi_update = vcycle.is_none() && squared.is_none() && chol.is_none();
         let update_work = match jacobi_update {
             // x, r, p, Ap read; x, r, z written; the inverted diagonal blocks.
             true => KernelWork::other(7 * nv + (ws.rows * ws.bs * ws.bs * 4) as u64 + partials),
@@ -510,6 +517,9 @@ impl Pcg {
             if let Some((q, ..)) = &squared {
                 precondition_work = precondition_work + q.work(ncols);
             }
+            if let Some((c, _)) = &chol {
+                precondition_work = precondition_work + c.work(ncols);
+            }
             if narrow.is_some() {
                 // r to f32 and z to f64: 12 bytes an entry each way.
                 let e = (n * ncols) as u64;
@@ -523,7 +533,7 @@ impl Pcg {
         let iteration_work =
             spmv_work + scalars + update_work + precondition_work + scalars + direction_work;
         let precondition = |pass: &mut wgpu::ComputePass| {
-            if vcycle.is_some() || squared.is_some() {
+            if !jacobi_update {
                 if let Some((nw, to32, _)) = &narrow {
                     dispatch(pass, to32, &nw.bg_r, nw.dims);
                 }
@@ -538,6 +548,9 @@ impl Pcg {
                     for (c, p) in q.second.iter().zip(second) {
                         c.record(pass, p);
                     }
+                }
+                if let Some((c, pipes)) = &chol {
+                    c.record(pass, pipes);
                 }
                 if let Some((nw, _, to64)) = &narrow {
                     dispatch(pass, to64, &nw.bg_z, nw.dims);

@@ -54,12 +54,21 @@ pub enum Preconditioner {
     /// 2 x 11 V-cycles to its 4 right-hand sides); 108k: at most 300
     /// iterations against 541, 3.1 s against 6.9 s. Every other system (the
     /// scale factors') as `AffineAmg`.
-    #[default]
     SquaredLaplacian,
+    /// For the shape systems prepared in isotropic-plus-ring form
+    /// ([`solver_cpu::SpdSolver::prepare_shape_owned`]): the supernodal Cholesky
+    /// factor of their isotropic part `K` (held rows identity), made on the host
+    /// once per system kind per run and applied on the GPU by level-scheduled
+    /// triangular solves ([`crate::supernodal`]), the CPU backend's
+    /// preconditioner. Where the factor cannot be made or does not fit the
+    /// device, the shape systems fall back to `SquaredLaplacian`; every other
+    /// system (the scale factors') as `AffineAmg`.
+    #[default]
+    Cholesky,
 }
 
 impl Preconditioner {
-    /// From `METRICDEFORM_GPU_PRECONDITIONER` (`squared-laplacian`,
+    /// From `METRICDEFORM_GPU_PRECONDITIONER` (`cholesky`, `squared-laplacian`,
     /// `affine-amg` or `amg`), else
     /// the default. Block Jacobi is not offered there: it needs tens of
     /// thousands of iterations on the shape systems of 100k-face meshes
@@ -70,13 +79,14 @@ impl Preconditioner {
         match v.to_lowercase().as_str() {
             "amg" => Preconditioner::Amg,
             "affine-amg" | "affine_amg" => Preconditioner::AffineAmg,
-            "" | "squared-laplacian" | "squared_laplacian" => Preconditioner::SquaredLaplacian,
+            "squared-laplacian" | "squared_laplacian" => Preconditioner::SquaredLaplacian,
+            "" | "cholesky" => Preconditioner::Cholesky,
             other => {
                 log::warn!(
                     "METRICDEFORM_GPU_PRECONDITIONER={other} is not a preconditioner \
-                     (amg, affine-amg or squared-laplacian); using squared-laplacian"
+                     (cholesky, amg, affine-amg or squared-laplacian); using cholesky"
                 );
-                Preconditioner::SquaredLaplacian
+                Preconditioner::Cholesky
             }
         }
     }

@@ -14,7 +14,7 @@ use solver_cpu::{
 use crate::precision::{MixedPrecision, RoundWatch};
 use crate::{
     amg, amg_gpu, block_jacobi, bsr_spmv, convert, csr_spmv, default_adapter, device, dot,
-    expand_blocks, matrix, pcg, precision, AdapterSummary, OpenOptions,
+    expand_blocks, matrix, pcg, precision, supernodal, AdapterSummary, OpenOptions,
 };
 use crate::{GpuError, Preconditioner, CMAX, SQUARED_LAPLACIAN_SWEEPS};
 
@@ -209,6 +209,15 @@ pub fn open_with(opts: OpenOptions) -> Result<GpuSolver, GpuError> {
         expand: None,
         expansion: None,
         mixed_builds: 0,
+        chol: None,
+        chol_kind: None,
+        chol_kernels: None,
+        chol_host: {
+            let mut c = solver_cpu::CholeskySolver::single_precision();
+            c.supernodal = true;
+            c
+        },
+        chol_unavailable: false,
     })
 }
 
@@ -308,6 +317,17 @@ pub struct GpuSolver {
     pub(crate) expansion: Option<(expand_blocks::Expansion, usize, Option<usize>, Vec<bool>)>,
     /// Mixed-precision matrices built (each has its own low-part buffers).
     mixed_builds: usize,
+    /// The Cholesky preconditioner's factor on the GPU
+    /// ([`Preconditioner::Cholesky`]), the kind it was made for, its kernels,
+    /// and the host factorization (its symbolic analysis serves every kind of
+    /// the same pattern).
+    pub(crate) chol: Option<supernodal::GpuFactor>,
+    chol_kind: Option<SystemKind>,
+    chol_kernels: Option<std::sync::Arc<supernodal::SupernodalKernels>>,
+    chol_host: solver_cpu::CholeskySolver,
+    /// The factor could not be made or kept on this device: the squared
+    /// Laplacian serves instead for the rest of the run.
+    chol_unavailable: bool,
 }
 
 /// The f64 kernels of the mixed-precision solve.
@@ -383,7 +403,7 @@ impl GpuSolver {
         self.stats
     }
 
-    /// Choose the preconditioner (default [`Preconditioner::SquaredLaplacian`],
+    /// Choose the preconditioner (default [`Preconditioner::Cholesky`],
     /// or `METRICDEFORM_GPU_PRECONDITIONER`); a prepared matrix gets
     /// the new one at once.
     pub fn set_preconditioner(&mut self, p: Preconditioner) -> Result<(), GpuError> {
@@ -394,6 +414,8 @@ impl GpuSolver {
         self.drop_workspaces();
         self.amg_host = None;
         self.amg_gpu = None;
+        self.chol = None;
+        self.chol_kind = None;
         if self.host.is_some() {
             self.setup_amg()?;
         }
@@ -418,7 +440,7 @@ impl GpuSolver {
     /// Whether the mixed-precision solve can run (f64 kernels and AMG).
     fn mixed_available(&self) -> bool {
         self.ctx.shader_f64
-            && self.amg_gpu.is_some()
+            && (self.amg_gpu.is_some() || self.chol.is_some())
             && self.mixed_precision != MixedPrecision::Never
     }
 
@@ -457,9 +479,20 @@ impl GpuSolver {
         let spmv = k.spmv(h.bs);
         let mut ws = k.pcg.workspace(&self.ctx, &spmv, &matrix, h.n(), 1, want)?;
         let narrow = pcg::Narrow::new(&self.ctx, &k.convert, &ws)?;
-        let g = self.amg_gpu.as_ref().unwrap();
-        match &self.squared {
-            Some((_, mt)) => {
+        match (&self.chol, &self.squared) {
+            (Some(f), _) => {
+                ws.chol = Some(supernodal::SupernodalSteps::new(
+                    &self.ctx,
+                    self.chol_kernels.as_ref().unwrap(),
+                    f,
+                    &narrow.r32,
+                    &narrow.z32,
+                    h.bs,
+                    ws.cmax,
+                )?)
+            }
+            (None, Some((_, mt))) => {
+                let g = self.amg_gpu.as_ref().unwrap();
                 ws.squared = Some(amg_gpu::SquaredSteps::new(
                     &self.ctx,
                     &self.k.amg,
@@ -470,7 +503,8 @@ impl GpuSolver {
                     ws.cmax,
                 )?)
             }
-            None => {
+            (None, None) => {
+                let g = self.amg_gpu.as_ref().unwrap();
                 ws.amg = Some(amg_gpu::VcycleWorkspace::new(
                     &self.ctx,
                     &self.k.amg,
@@ -575,6 +609,7 @@ impl GpuSolver {
     /// affine hierarchy had no positions or failed.
     pub fn active_preconditioner(&self) -> Preconditioner {
         match (&self.amg_gpu, &self.amg_host) {
+            _ if self.chol.is_some() => Preconditioner::Cholesky,
             (Some(_), _) if self.squared.is_some() => Preconditioner::SquaredLaplacian,
             (Some(_), Some(h)) if h.affine => Preconditioner::AffineAmg,
             (Some(_), _) => Preconditioner::Amg,
@@ -623,11 +658,12 @@ impl GpuSolver {
         };
         let prev = self.amg_host.take();
         let positions = match (&self.positions, self.preconditioner) {
-            (Some(x), Preconditioner::AffineAmg | Preconditioner::SquaredLaplacian)
-                if h.bs == 3 && x.len() == h.rows =>
-            {
-                Some(x)
-            }
+            (
+                Some(x),
+                Preconditioner::AffineAmg
+                | Preconditioner::SquaredLaplacian
+                | Preconditioner::Cholesky,
+            ) if h.bs == 3 && x.len() == h.rows => Some(x),
             _ => None,
         };
         let built = match positions {
@@ -683,13 +719,73 @@ impl GpuSolver {
         self.amg_setup_seconds = t.elapsed().as_secs_f64();
     }
 
+    /// Whether the next shape matrix is preconditioned by the Cholesky factor.
+    fn cholesky_wanted(&self) -> bool {
+        self.preconditioner == Preconditioner::Cholesky
+            && !self.chol_unavailable
+            && matches!(self.kind, SystemKind::ScaleDriven | SystemKind::FineTune)
+    }
+
+    fn drop_cholesky(&mut self) {
+        if self.chol.is_some() {
+            self.chol = None;
+            self.chol_kind = None;
+            self.drop_workspaces();
+        }
+    }
+
+    /// Factor the isotropic part of `a` (held rows identity) on the host and
+    /// upload it: the preconditioner of this system kind for the rest of the
+    /// run. Any other preconditioner is released.
+    fn setup_cholesky(&mut self, a: &IsoRingSym3, fixed: &[bool]) -> Result<(), GpuError> {
+        let t = std::time::Instant::now();
+        self.setups += 1;
+        self.drop_cholesky();
+        let k = a.iso_held_identity(fixed);
+        self.chol_host
+            .prepare(&k)
+            .map_err(|e| GpuError::Backend(format!("Cholesky factor of K: {e}")))?;
+        drop(k);
+        let f = self
+            .chol_host
+            .supernodal_factor()
+            .ok_or_else(|| GpuError::Backend("no supernodal factor".into()))?;
+        let factor_seconds = t.elapsed().as_secs_f64();
+        if self.chol_kernels.is_none() {
+            self.chol_kernels = Some(supernodal::SupernodalKernels::new(&self.ctx)?);
+        }
+        self.drop_workspaces();
+        self.amg_host = None;
+        self.amg_gpu = None;
+        self.squared = None;
+        self.amg_kind = None;
+        let g = supernodal::GpuFactor::upload(&self.ctx, &f)?;
+        self.ctx.check()?;
+        log::debug!(
+            "Cholesky preconditioner ({:?} system): {} unknowns, {} supernodes, {} levels, \
+             nnz(L) {}, factor {factor_seconds:.3} s, setup {:.3} s",
+            self.kind,
+            g.nv,
+            f.len(),
+            g.depth(),
+            g.nnz,
+            t.elapsed().as_secs_f64()
+        );
+        self.chol = Some(g);
+        self.chol_kind = Some(self.kind);
+        self.amg_setup_seconds = t.elapsed().as_secs_f64();
+        Ok(())
+    }
+
     /// The shape model the squared-Laplacian preconditioner builds on, where
     /// it is asked for and fits the prepared block matrix.
     fn squared_model(&self) -> Option<std::sync::Arc<ShapeOperatorModel>> {
         let h = self.host.as_ref()?;
         let m = self.shape_model.as_ref()?;
-        (self.preconditioner == Preconditioner::SquaredLaplacian
-            && matches!(self.kind, SystemKind::ScaleDriven | SystemKind::FineTune)
+        (matches!(
+            self.preconditioner,
+            Preconditioner::SquaredLaplacian | Preconditioner::Cholesky
+        ) && matches!(self.kind, SystemKind::ScaleDriven | SystemKind::FineTune)
             && h.bs == 3
             && m.laplacian.len() == h.rows
             && m.mt.len() == h.rows
@@ -788,6 +884,8 @@ impl GpuSolver {
                 .is_some_and(|now| std::sync::Arc::ptr_eq(m, &now))
         });
         match (&self.amg_gpu, &self.amg_host) {
+            // Made for this kind in `prepare_shape_owned`, kept for its run.
+            _ if self.chol.is_some() => self.amg_kept = false,
             _ if self.squared.is_some() => {
                 if keep && squared_kept {
                     self.amg_kept = true;
@@ -885,7 +983,17 @@ impl GpuSolver {
             want,
         )?;
         let mut ws = ws;
-        if let (Some(g), Some((_, mt))) = (&self.amg_gpu, &self.squared) {
+        if let Some(f) = &self.chol {
+            ws.chol = Some(supernodal::SupernodalSteps::new(
+                &self.ctx,
+                self.chol_kernels.as_ref().unwrap(),
+                f,
+                &ws.r,
+                &ws.z,
+                h.bs,
+                ws.cmax,
+            )?);
+        } else if let (Some(g), Some((_, mt))) = (&self.amg_gpu, &self.squared) {
             ws.squared = Some(amg_gpu::SquaredSteps::new(
                 &self.ctx,
                 &self.k.amg,
@@ -1161,6 +1269,7 @@ impl SpdSolver for GpuSolver {
                 a.row_idx.len()
             )));
         }
+        self.drop_cholesky();
         let same = self.same_pattern(1, &a.col_ptr, &a.row_idx);
         let mut h = self.take_host(same, a.n, 1, &a.col_ptr, &a.row_idx)?;
         h.fill_scalar(a);
@@ -1177,6 +1286,7 @@ impl SpdSolver for GpuSolver {
                 a.row_idx.len()
             )));
         }
+        self.drop_cholesky();
         let same = self.same_pattern(3, &a.col_ptr, &a.row_idx);
         let mut h = self.take_host(same, a.n, 3, &a.col_ptr, &a.row_idx)?;
         h.fill_blocks(a, fixed);
@@ -1213,6 +1323,20 @@ impl SpdSolver for GpuSolver {
         let same = self.same_pattern(3, col_ptr, row_idx);
         if !(same && self.ring_slots.as_ref().is_some_and(|r| r.of(&a.rings))) {
             self.ring_slots = Some(RingSlots::new(&a.rings, col_ptr, row_idx)?);
+        }
+        if self.cholesky_wanted() {
+            let current = same && self.chol.is_some() && self.chol_kind == Some(self.kind);
+            if !current {
+                if let Err(e) = self.setup_cholesky(&a, fixed) {
+                    log::warn!(
+                        "Cholesky preconditioner unavailable ({e}); the squared Laplacian instead"
+                    );
+                    self.drop_cholesky();
+                    self.chol_unavailable = true;
+                }
+            }
+        } else {
+            self.drop_cholesky();
         }
         let mut h = self.take_host(same, n, 3, col_ptr, row_idx)?;
         let slots = self.ring_slots.as_ref().unwrap();
