@@ -247,8 +247,9 @@ impl CholeskySolver {
     }
 }
 
-/// A numeric factor `P A P^T = L L^T` laid out by supernodes, in f32, for
-/// triangular solves elsewhere (the GPU backend's preconditioner).
+/// A numeric factor `P A P^T = L L^T` laid out by supernodes, in the precision
+/// it was computed in, for triangular solves elsewhere (the GPU backend's
+/// preconditioner).
 ///
 /// Supernode `s` owns the columns `begin[s]..begin[s + 1]` (`m` of them) and the
 /// rows below its diagonal block `rows[row_ptr[s]..row_ptr[s + 1]]` (`q`, in
@@ -265,7 +266,10 @@ pub struct SupernodalFactor {
     pub row_ptr: Vec<u32>,
     pub rows: Vec<u32>,
     pub val_ptr: Vec<u64>,
+    /// The values of an f32 factor (then `values64` is empty)...
     pub values: Vec<f32>,
+    /// ... or of an f64 factor (then `values` is empty).
+    pub values64: Vec<f64>,
 }
 
 impl SupernodalFactor {
@@ -278,6 +282,20 @@ impl SupernodalFactor {
         self.len() == 0
     }
 
+    /// Stored values.
+    pub fn nnz(&self) -> usize {
+        self.values.len() + self.values64.len()
+    }
+
+    /// Value `k` in f64.
+    pub fn value(&self, k: usize) -> f64 {
+        if self.values64.is_empty() {
+            self.values[k] as f64
+        } else {
+            self.values64[k]
+        }
+    }
+
     /// `(columns, rows below the diagonal block)` of supernode `s`.
     pub fn shape(&self, s: usize) -> (usize, usize) {
         (
@@ -286,8 +304,8 @@ impl SupernodalFactor {
         )
     }
 
-    /// `x = (L L^T)^-1 ... ` in the original numbering: `P^T L^-T L^-1 P b` for
-    /// one column, in f64 on the factor's f32 values (a reference for tests).
+    /// `x = P^T L^-T L^-1 P b` (the original numbering) for one column, in
+    /// f64 (a reference for tests).
     pub fn solve(&self, b: &[f64]) -> Vec<f64> {
         let n = self.perm.len();
         let mut w: Vec<f64> = (0..n).map(|i| b[self.perm[i] as usize]).collect();
@@ -296,13 +314,13 @@ impl SupernodalFactor {
             let (c0, v, nr) = (self.begin[s] as usize, self.val_ptr[s] as usize, m + q);
             let rows = &self.rows[self.row_ptr[s] as usize..self.row_ptr[s + 1] as usize];
             for k in 0..m {
-                w[c0 + k] /= self.values[v + k * nr + k] as f64;
+                w[c0 + k] /= self.value(v + k * nr + k);
                 let x = w[c0 + k];
                 for i in k + 1..m {
-                    w[c0 + i] -= self.values[v + k * nr + i] as f64 * x;
+                    w[c0 + i] -= self.value(v + k * nr + i) * x;
                 }
                 for (r, &row) in rows.iter().enumerate() {
-                    w[row as usize] -= self.values[v + k * nr + m + r] as f64 * x;
+                    w[row as usize] -= self.value(v + k * nr + m + r) * x;
                 }
             }
         }
@@ -313,12 +331,12 @@ impl SupernodalFactor {
             for k in (0..m).rev() {
                 let mut t = w[c0 + k];
                 for i in k + 1..m {
-                    t -= self.values[v + k * nr + i] as f64 * w[c0 + i];
+                    t -= self.value(v + k * nr + i) * w[c0 + i];
                 }
                 for (r, &row) in rows.iter().enumerate() {
-                    t -= self.values[v + k * nr + m + r] as f64 * w[row as usize];
+                    t -= self.value(v + k * nr + m + r) * w[row as usize];
                 }
-                w[c0 + k] = t / self.values[v + k * nr + k] as f64;
+                w[c0 + k] = t / self.value(v + k * nr + k);
             }
         }
         let mut x = vec![0.0; n];
@@ -330,18 +348,12 @@ impl SupernodalFactor {
 }
 
 impl CholeskySolver {
-    /// The current numeric factor by supernodes (a simplicial factor as
-    /// one-column supernodes), in f32; `None` before a factorization.
-    pub fn supernodal_factor(&self) -> Option<SupernodalFactor> {
+    /// The numeric factor by supernodes (a simplicial factor as one-column
+    /// supernodes), its values moved out (no copy: the solver is unfactored
+    /// after it, its symbolic analysis kept); `None` before a factorization.
+    pub fn take_supernodal_factor(&mut self) -> Option<SupernodalFactor> {
         let sym = self.symbolic.as_ref().filter(|_| self.factored)?;
         let n = self.n;
-        let value = |k: usize| -> f32 {
-            if self.numeric32.is_empty() {
-                self.numeric[k] as f32
-            } else {
-                self.numeric32[k]
-            }
-        };
         let perm = match sym.perm() {
             Some(p) => p.arrays().0.to_vec(),
             None => (0..n as u32).collect(),
@@ -356,17 +368,16 @@ impl CholeskySolver {
                 f.begin = (0..=n as u32).collect();
                 f.row_ptr.push(0);
                 f.val_ptr.push(0);
-                f.values.reserve(ri.len());
                 for j in 0..n {
                     let (a, b) = (cp[j] as usize, cp[j + 1] as usize);
                     if b <= a || ri[a] as usize != j {
                         return None;
                     }
                     f.rows.extend_from_slice(&ri[a + 1..b]);
-                    f.values.extend((a..b).map(value));
                     f.row_ptr.push(f.rows.len() as u32);
-                    f.val_ptr.push(f.values.len() as u64);
+                    f.val_ptr.push(b as u64);
                 }
+                // Column-major columns, diagonal first: already the layout.
             }
             SymbolicCholeskyRaw::Supernodal(s) => {
                 let ns = s.n_supernodes();
@@ -375,7 +386,6 @@ impl CholeskySolver {
                 f.begin.push(n as u32);
                 f.row_ptr.push(0);
                 f.val_ptr.push(0);
-                f.values = (0..s.len_val()).map(value).collect();
                 for k in 0..ns {
                     let pattern = s.supernode(k).pattern();
                     let m = (f.begin[k + 1] - f.begin[k]) as usize;
@@ -388,6 +398,9 @@ impl CholeskySolver {
                 }
             }
         }
+        f.values = std::mem::take(&mut self.numeric32);
+        f.values64 = std::mem::take(&mut self.numeric);
+        self.factored = false;
         Some(f)
     }
 }
@@ -592,6 +605,28 @@ impl SpdSolver for CholeskySolver {
             // pattern gets the `Auto` choice.
             if matches!(self.ordering, FillOrdering::Given(_)) {
                 self.ordering = FillOrdering::Auto;
+            }
+        }
+        // The values' storage, where `take_supernodal_factor` moved it out.
+        let len = self.symbolic.as_ref().unwrap().len_val();
+        let storage = if self.single {
+            self.numeric32.len()
+        } else {
+            self.numeric.len()
+        };
+        if storage != len {
+            self.numeric = Vec::new();
+            self.numeric32 = Vec::new();
+            if self.single {
+                self.numeric32
+                    .try_reserve_exact(len)
+                    .map_err(|_| SolverError::OutOfMemory)?;
+                self.numeric32.resize(len, 0.0);
+            } else {
+                self.numeric
+                    .try_reserve_exact(len)
+                    .map_err(|_| SolverError::OutOfMemory)?;
+                self.numeric.resize(len, 0.0);
             }
         }
         let sym = self.symbolic.as_ref().unwrap();

@@ -257,16 +257,26 @@ pub fn squared_laplacian(s: &mut GpuSolver, r: &[f32], ncols: usize) -> Result<V
 /// `prepare_shape_owned`). The work vector and `z` are poisoned with NaN first.
 pub fn cholesky(s: &mut GpuSolver, r: &[f32], ncols: usize) -> Result<Vec<f32>, GpuError> {
     check_cols(s, r.len(), ncols)?;
-    if s.chol.is_none() {
+    let Some(precision) = s.chol.as_ref().map(|f| f.precision) else {
         return Err(GpuError::Backend(
             "the Cholesky preconditioner is not active".into(),
         ));
+    };
+    // An f64 factor runs on the mixed-precision PCG's f64 vectors.
+    let f64 = precision == crate::precision::Precision::F64;
+    if f64 {
+        s.mixed_workspace(ncols)?;
+    } else {
+        s.workspace(ncols)?;
     }
-    s.workspace(ncols)?;
     let ctx = &s.ctx;
-    let ws = s.ws.as_ref().unwrap();
+    let ws = match f64 {
+        true => &s.mixed.as_ref().unwrap().ws,
+        false => s.ws.as_ref().unwrap(),
+    };
     let c = ws.chol.as_ref().unwrap();
-    ctx.write_buffer(&ws.r, 0, bytemuck::cast_slice(r));
+    let input: Vec<f64> = r.iter().map(|&v| v as f64).collect();
+    ctx.write_buffer(&ws.r, 0, &precision.encode(&input));
     for b in [c.work_vector(), &ws.z] {
         let nan = vec![f32::NAN; (b.size() / 4) as usize];
         ctx.write_buffer(b, 0, bytemuck::cast_slice(&nan));
@@ -277,7 +287,20 @@ pub fn cholesky(s: &mut GpuSolver, r: &[f32], ncols: usize) -> Result<Vec<f32>, 
         let mut pass = enc.begin_compute_pass(&Default::default());
         c.record(&mut pass, &pipelines);
     }
-    ctx.read(&ws.z, r.len(), &mut None, Some(enc))
+    match f64 {
+        true => {
+            let z: Vec<f64> = ctx.read(&ws.z, r.len(), &mut None, Some(enc))?;
+            Ok(z.iter().map(|&v| v as f32).collect())
+        }
+        false => ctx.read(&ws.z, r.len(), &mut None, Some(enc)),
+    }
+}
+
+/// Whether the active Cholesky preconditioner's factor is f64.
+pub fn cholesky_is_f64(s: &GpuSolver) -> Option<bool> {
+    s.chol
+        .as_ref()
+        .map(|f| f.precision == crate::precision::Precision::F64)
 }
 
 /// Levels of the active Cholesky preconditioner's elimination tree (dispatches

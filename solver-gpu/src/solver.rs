@@ -445,7 +445,7 @@ impl GpuSolver {
     }
 
     /// The mixed-precision matrix and workspace for at least `ncols` columns.
-    fn mixed_workspace(&mut self, ncols: usize) -> Result<(), GpuError> {
+    pub(crate) fn mixed_workspace(&mut self, ncols: usize) -> Result<(), GpuError> {
         let stamp = (self.pattern_uploads, self.value_uploads);
         let want = ncols.min(CMAX);
         let block = self.host.as_ref().is_some_and(|h| h.bs == 3);
@@ -478,6 +478,25 @@ impl GpuSolver {
         };
         let spmv = k.spmv(h.bs);
         let mut ws = k.pcg.workspace(&self.ctx, &spmv, &matrix, h.n(), 1, want)?;
+        // An f64 factor's solves read and write the f64 vectors in place.
+        let f64_chol = self
+            .chol
+            .as_ref()
+            .filter(|f| f.precision == precision::Precision::F64);
+        if let Some(f) = f64_chol {
+            ws.chol = Some(supernodal::SupernodalSteps::new(
+                &self.ctx,
+                self.chol_kernels.as_ref().unwrap(),
+                f,
+                &ws.r,
+                &ws.z,
+                h.bs,
+                ws.cmax,
+            )?);
+            self.mixed = Some(MixedData { stamp, matrix, ws });
+            self.mixed_builds += 1;
+            return Ok(());
+        }
         let narrow = pcg::Narrow::new(&self.ctx, &k.convert, &ws)?;
         match (&self.chol, &self.squared) {
             (Some(f), _) => {
@@ -741,6 +760,21 @@ impl GpuSolver {
         let t = std::time::Instant::now();
         self.setups += 1;
         self.drop_cholesky();
+        // In f64 where the PCG runs in f64 (mixed precision) from the start:
+        // K is too ill-conditioned for an f32 factorization on large meshes
+        // (homer 1.2M: not positive definite in f32), and the f64 solves read
+        // the PCG's vectors in place. Else f32, for the f32 PCG.
+        let precision = match self.ctx.shader_f64 && self.mixed_precision.starts_mixed(self.kind) {
+            true => precision::Precision::F64,
+            false => precision::Precision::F32,
+        };
+        if self.chol_host.is_single_precision() != (precision == precision::Precision::F32) {
+            self.chol_host = match precision {
+                precision::Precision::F32 => solver_cpu::CholeskySolver::single_precision(),
+                precision::Precision::F64 => solver_cpu::CholeskySolver::new(),
+            };
+            self.chol_host.supernodal = true;
+        }
         let k = a.iso_held_identity(fixed);
         self.chol_host
             .prepare(&k)
@@ -748,11 +782,15 @@ impl GpuSolver {
         drop(k);
         let f = self
             .chol_host
-            .supernodal_factor()
+            .take_supernodal_factor()
             .ok_or_else(|| GpuError::Backend("no supernodal factor".into()))?;
         let factor_seconds = t.elapsed().as_secs_f64();
-        if self.chol_kernels.is_none() {
-            self.chol_kernels = Some(supernodal::SupernodalKernels::new(&self.ctx)?);
+        if self
+            .chol_kernels
+            .as_ref()
+            .is_none_or(|k| k.precision != precision)
+        {
+            self.chol_kernels = Some(supernodal::SupernodalKernels::new(&self.ctx, precision)?);
         }
         self.drop_workspaces();
         self.amg_host = None;
@@ -762,9 +800,10 @@ impl GpuSolver {
         let g = supernodal::GpuFactor::upload(&self.ctx, &f)?;
         self.ctx.check()?;
         log::debug!(
-            "Cholesky preconditioner ({:?} system): {} unknowns, {} supernodes, {} levels, \
+            "Cholesky preconditioner ({:?} system, {:?}): {} unknowns, {} supernodes, {} levels, \
              nnz(L) {}, factor {factor_seconds:.3} s, setup {:.3} s",
             self.kind,
+            precision,
             g.nv,
             f.len(),
             g.depth(),
@@ -983,7 +1022,11 @@ impl GpuSolver {
             want,
         )?;
         let mut ws = ws;
-        if let Some(f) = &self.chol {
+        let chol = self
+            .chol
+            .as_ref()
+            .filter(|f| f.precision == precision::Precision::F32);
+        if let Some(f) = chol {
             ws.chol = Some(supernodal::SupernodalSteps::new(
                 &self.ctx,
                 self.chol_kernels.as_ref().unwrap(),

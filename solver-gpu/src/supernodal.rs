@@ -7,32 +7,32 @@
 //!
 //! The factor is made on the host once per system kind per run (faer, nested
 //! dissection from 50k vertices: a shallow elimination tree) and goes up once,
-//! in f32. An application is `2 + 2 levels` dispatches, no host work: gather
+//! in f32. An application is `2 + 2 levels` dispatches, no host work and no
+//! atomics (the same result on every run): gather
 //! `w = P r`, the forward solve level by level of the supernodal elimination
 //! tree (a level's supernodes are independent: one workgroup each), the
 //! backward solve the other way, scatter `z = P^T w`.
 //!
 //! Bindings (group 0), as documented in the shader: 0 `P` uniform
-//! ([`SnParams`], one per level), 1 `order`, 2 `sn`, 3 `rows`, 4 `vals`,
-//! 5 `perm`, 6 `w` (read-write), 7 `r`, 8 `z` (read-write).
+//! ([`SnParams`], one per level), 1 `idx` (the index sections), 2 `vals`,
+//! 3 `w` (read-write), 4 `r`, 5 `z` (read-write), 6 `contrib` (read-write).
 
 use crate::device::{dispatch, Bind, Context, Kernel, KernelWork, Shader, FLAT_WG};
+use crate::precision::Precision;
 use crate::GpuError;
 use solver_cpu::SupernodalFactor;
 use std::sync::Arc;
 
 pub(crate) const SOURCE: &str = include_str!("../../shaders/supernodal.wgsl");
 
-const BINDINGS: [(u32, Bind); 9] = [
+const BINDINGS: [(u32, Bind); 7] = [
     (0, Bind::Uniform),
     (1, Bind::Read),
     (2, Bind::Read),
-    (3, Bind::Read),
+    (3, Bind::ReadWrite),
     (4, Bind::Read),
-    (5, Bind::Read),
+    (5, Bind::ReadWrite),
     (6, Bind::ReadWrite),
-    (7, Bind::Read),
-    (8, Bind::ReadWrite),
 ];
 
 /// Parameters, as `Params` in `supernodal.wgsl`.
@@ -44,11 +44,17 @@ struct SnParams {
     nv: u32,
     stride: u32,
     bs: u32,
-    pad: [u32; 3],
+    o_sn: u32,
+    o_rows: u32,
+    o_perm: u32,
+    o_tptr: u32,
+    o_tpos: u32,
+    pad: [u32; 2],
 }
 
-/// The four entry points.
+/// The four entry points, in one precision.
 pub(crate) struct SupernodalKernels {
+    pub precision: Precision,
     shader: Shader,
     gather: Kernel,
     forward: Kernel,
@@ -57,9 +63,11 @@ pub(crate) struct SupernodalKernels {
 }
 
 impl SupernodalKernels {
-    pub fn new(ctx: &Context) -> Result<Arc<Self>, GpuError> {
-        let shader = Shader::new(ctx, "supernodal.wgsl", SOURCE, &BINDINGS)?;
+    pub fn new(ctx: &Context, precision: Precision) -> Result<Arc<Self>, GpuError> {
+        let source = precision.source(SOURCE);
+        let shader = Shader::new(ctx, "supernodal.wgsl", &source, &BINDINGS)?;
         Ok(Arc::new(SupernodalKernels {
+            precision,
             gather: Kernel::new(&shader, "supernodal gather", "gather"),
             forward: Kernel::new(&shader, "supernodal forward", "forward"),
             backward: Kernel::new(&shader, "supernodal backward", "backward"),
@@ -71,17 +79,21 @@ impl SupernodalKernels {
 
 /// A supernodal factor on the GPU, with its level schedule.
 pub(crate) struct GpuFactor {
-    order: wgpu::Buffer,
-    sn: wgpu::Buffer,
-    rows: wgpu::Buffer,
+    idx: wgpu::Buffer,
     vals: wgpu::Buffer,
-    perm: wgpu::Buffer,
+    /// Offsets of the sections of `idx`: supernode table, rows, permutation,
+    /// row pointers and slots of the transposed row lists.
+    offsets: [u32; 5],
+    /// Slots of `rows` (one update per slot and column in `contrib`).
+    slots: usize,
     /// `(first, count)` in `order` per level, leaves first.
     levels: Vec<(u32, u32)>,
     /// Rows of `K`.
     pub nv: usize,
     /// Stored values of the factor.
     pub nnz: usize,
+    /// Precision of its values (and of the vectors its solves run on).
+    pub precision: Precision,
     /// Bytes of the factor's values and row indices (read twice an application).
     bytes: u64,
 }
@@ -143,10 +155,25 @@ impl GpuFactor {
             order[next[l as usize] as usize] = s as u32;
             next[l as usize] += 1;
         }
-        let mut sn = Vec::with_capacity(5 * ns);
+        // One u32 buffer: order, supernode table, rows, perm, and the rows'
+        // slots (a counting sort of `rows` by row).
+        let n = f.perm.len();
+        let nrows = f.rows.len();
+        let total = ns + 5 * ns + nrows + n + (n + 1) + nrows;
+        if total > u32::MAX as usize {
+            return Err(GpuError::LimitExceeded {
+                what: "a Cholesky factor's index sections (32-bit offsets)".into(),
+                limit_name: "u32::MAX",
+                needed: total as u64,
+                limit: u32::MAX as u64,
+            });
+        }
+        let mut idx = Vec::with_capacity(total);
+        idx.extend_from_slice(&order);
+        let o_sn = idx.len() as u32;
         for s in 0..ns {
             let (m, q) = f.shape(s);
-            sn.extend_from_slice(&[
+            idx.extend_from_slice(&[
                 f.begin[s],
                 m as u32,
                 q as u32,
@@ -154,16 +181,45 @@ impl GpuFactor {
                 f.val_ptr[s] as u32,
             ]);
         }
-        let bytes = 4 * (f.values.len() + f.rows.len()) as u64;
+        let o_rows = idx.len() as u32;
+        idx.extend_from_slice(&f.rows);
+        let o_perm = idx.len() as u32;
+        idx.extend_from_slice(&f.perm);
+        let o_tptr = idx.len() as u32;
+        let mut tptr = vec![0u32; n + 1];
+        for &r in &f.rows {
+            tptr[r as usize + 1] += 1;
+        }
+        for i in 0..n {
+            tptr[i + 1] += tptr[i];
+        }
+        idx.extend_from_slice(&tptr);
+        let o_tpos = idx.len() as u32;
+        idx.resize(total, 0);
+        let mut next = tptr;
+        for (e, &r) in f.rows.iter().enumerate() {
+            let at = next[r as usize] as usize;
+            idx[o_tpos as usize + at] = e as u32;
+            next[r as usize] += 1;
+        }
+        let precision = match f.values64.is_empty() {
+            true => Precision::F32,
+            false => Precision::F64,
+        };
+        let bytes = precision.bytes() * f.nnz() as u64 + 8 * nrows as u64;
+        let vals = match precision {
+            Precision::F32 => ctx.storage_init("Cholesky values (f32)", &f.values)?,
+            Precision::F64 => ctx.storage_init("Cholesky values (f64)", &f.values64)?,
+        };
         Ok(GpuFactor {
-            order: ctx.storage_init("Cholesky supernodes by level", &order)?,
-            sn: ctx.storage_init("Cholesky supernodes", &sn)?,
-            rows: ctx.storage_init("Cholesky rows", &f.rows)?,
-            vals: ctx.storage_init("Cholesky values (f32)", &f.values)?,
-            perm: ctx.storage_init("Cholesky permutation", &f.perm)?,
+            idx: ctx.storage_init("Cholesky index sections", &idx)?,
+            vals,
+            precision,
+            offsets: [o_sn, o_rows, o_perm, o_tptr, o_tpos],
+            slots: nrows,
             levels,
             nv: f.perm.len(),
-            nnz: f.values.len(),
+            nnz: f.nnz(),
             bytes,
         })
     }
@@ -181,6 +237,9 @@ pub(crate) struct SupernodalSteps {
     groups: Vec<(wgpu::BindGroup, (u32, u32))>,
     flat: (u32, u32),
     w: wgpu::Buffer,
+    /// Kept alive for the bind groups.
+    #[allow(dead_code)]
+    contrib: wgpu::Buffer,
     #[allow(dead_code)]
     params: Vec<wgpu::Buffer>,
     /// Factor bytes, and bytes of one PCG column.
@@ -188,8 +247,8 @@ pub(crate) struct SupernodalSteps {
 }
 
 impl SupernodalSteps {
-    /// The steps for `r` and `z` (f32, columns of `stride = nv * bs`, up to
-    /// `cmax` of them).
+    /// The steps for `r` and `z` (in the factor's precision, columns of
+    /// `stride = nv * bs`, up to `cmax` of them).
     pub fn new(
         ctx: &Context,
         kernels: &Arc<SupernodalKernels>,
@@ -200,10 +259,21 @@ impl SupernodalSteps {
         cmax: usize,
     ) -> Result<SupernodalSteps, GpuError> {
         let stride = f.nv * bs;
+        let b = f.precision.bytes() as usize;
+        if kernels.precision != f.precision {
+            return Err(GpuError::Backend(
+                "Cholesky kernels and factor of different precisions".into(),
+            ));
+        }
         let w = ctx.storage(
-            &format!("Cholesky work vector ({} x {cmax} f32)", stride),
-            (stride * cmax * 4) as u64,
+            &format!("Cholesky work vector ({stride} x {cmax})"),
+            (stride * cmax * b) as u64,
         )?;
+        let contrib = ctx.storage(
+            &format!("Cholesky updates ({} x {})", f.slots, bs * cmax),
+            (f.slots * bs * cmax * b) as u64,
+        )?;
+        let [o_sn, o_rows, o_perm, o_tptr, o_tpos] = f.offsets;
         let mut params = Vec::with_capacity(f.levels.len().max(1));
         let mut groups = Vec::with_capacity(params.capacity());
         let levels: Vec<(u32, u32)> = if f.levels.is_empty() {
@@ -220,21 +290,24 @@ impl SupernodalSteps {
                     nv: f.nv as u32,
                     stride: stride as u32,
                     bs: bs as u32,
-                    pad: [0; 3],
+                    o_sn,
+                    o_rows,
+                    o_perm,
+                    o_tptr,
+                    o_tpos,
+                    pad: [0; 2],
                 },
             )?;
             let bg = kernels.shader.bind(
                 ctx,
                 &[
                     (0, &p),
-                    (1, &f.order),
-                    (2, &f.sn),
-                    (3, &f.rows),
-                    (4, &f.vals),
-                    (5, &f.perm),
-                    (6, &w),
-                    (7, r),
-                    (8, z),
+                    (1, &f.idx),
+                    (2, &f.vals),
+                    (3, &w),
+                    (4, r),
+                    (5, z),
+                    (6, &contrib),
                 ],
             )?;
             groups.push((bg, ctx.dims("supernodal level", count as u64)?));
@@ -249,8 +322,9 @@ impl SupernodalSteps {
             groups,
             flat,
             w,
+            contrib,
             params,
-            bytes: (f.bytes, 4 * stride as u64),
+            bytes: (f.bytes, b as u64 * stride as u64),
         })
     }
 
@@ -326,7 +400,7 @@ mod tests {
         let mut c = CholeskySolver::single_precision();
         c.set_fill_ordering(FillOrdering::NestedDissection);
         c.prepare(&a).unwrap();
-        let f = c.supernodal_factor().unwrap();
+        let f = c.take_supernodal_factor().unwrap();
         let l = levels(&f).unwrap();
         let depth = *l.iter().max().unwrap() as usize + 1;
         // Nested dissection of a path: about log2(n) levels of separators.
