@@ -394,6 +394,16 @@ mod tests {
                     y[i]
                 );
             }
+            // With inverted diagonal blocks, the same solve.
+            let mut fi = f.clone();
+            fi.invert_diagonal_blocks();
+            let xi = fi.solve(&b);
+            for i in 0..a.n {
+                assert!(
+                    (xi[i] - x[i]).abs() <= if single { 1e-4 } else { 1e-10 } * scale,
+                    "{w} {ordering:?} {i}: inverted blocks"
+                );
+            }
             // And it inverts A itself (to the f32 factor's accuracy).
             let mut ax = vec![0.0; a.n];
             a.mul_vec(&x, &mut ax);

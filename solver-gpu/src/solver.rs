@@ -769,21 +769,24 @@ impl GpuSolver {
             false => precision::Precision::F32,
         };
         if self.chol_host.is_single_precision() != (precision == precision::Precision::F32) {
+            let ordering = std::mem::take(&mut self.chol_host.ordering);
             self.chol_host = match precision {
                 precision::Precision::F32 => solver_cpu::CholeskySolver::single_precision(),
                 precision::Precision::F64 => solver_cpu::CholeskySolver::new(),
             };
             self.chol_host.supernodal = true;
+            self.chol_host.ordering = ordering;
         }
         let k = a.iso_held_identity(fixed);
         self.chol_host
             .prepare(&k)
             .map_err(|e| GpuError::Backend(format!("Cholesky factor of K: {e}")))?;
         drop(k);
-        let f = self
+        let mut f = self
             .chol_host
             .take_supernodal_factor()
             .ok_or_else(|| GpuError::Backend("no supernodal factor".into()))?;
+        f.invert_diagonal_blocks();
         let factor_seconds = t.elapsed().as_secs_f64();
         if self
             .chol_kernels
@@ -1422,6 +1425,12 @@ impl SpdSolver for GpuSolver {
 
     fn set_shape_model(&mut self, model: Option<std::sync::Arc<ShapeOperatorModel>>) {
         self.shape_model = model;
+    }
+
+    /// For the Cholesky preconditioner's next symbolic analysis (the
+    /// pipeline computes the vertices' nested dissection beside other work).
+    fn set_fill_ordering(&mut self, ordering: solver_cpu::FillOrdering) {
+        self.chol_host.set_fill_ordering(ordering);
     }
 
     fn counters(&self) -> WorkCounters {

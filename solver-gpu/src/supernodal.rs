@@ -6,16 +6,20 @@
 //! preconditions the same systems (`solver_cpu::pcg`).
 //!
 //! The factor is made on the host once per system kind per run (faer, nested
-//! dissection from 50k vertices: a shallow elimination tree) and goes up once,
-//! in f32. An application is `2 + 2 levels` dispatches, no host work and no
-//! atomics (the same result on every run): gather
-//! `w = P r`, the forward solve level by level of the supernodal elimination
-//! tree (a level's supernodes are independent: one workgroup each), the
-//! backward solve the other way, scatter `z = P^T w`.
+//! dissection: a shallow elimination tree), its diagonal blocks inverted there
+//! ([`SupernodalFactor::invert_diagonal_blocks`]), and goes up once. An
+//! application is `2 + 5 levels` dispatches, no host work, no atomics and no
+//! barriers (the same result on every run): gather `w = P r`; per level of the
+//! supernodal elimination tree, leaves first, pull the descendants' updates,
+//! `y_s = L_ss^-1 w_s`, leave the updates of the rows below; per level, root
+//! first, subtract the ancestors' part and `x_s = L_ss^-T w_s`; scatter
+//! `z = P^T x`. Each kernel runs one invocation per row and scalar column of
+//! the level, a dot product each: the dense separators at the top of the tree
+//! spread over the whole GPU instead of one workgroup.
 //!
 //! Bindings (group 0), as documented in the shader: 0 `P` uniform
 //! ([`SnParams`], one per level), 1 `idx` (the index sections), 2 `vals`,
-//! 3 `w` (read-write), 4 `r`, 5 `z` (read-write), 6 `contrib` (read-write).
+//! 3 `w`, 4 `y`, 5 `r`, 6 `z`, 7 `contrib` (3, 4, 6, 7 read-write).
 
 use crate::device::{dispatch, Bind, Context, Kernel, KernelWork, Shader, FLAT_WG};
 use crate::precision::Precision;
@@ -25,54 +29,57 @@ use std::sync::Arc;
 
 pub(crate) const SOURCE: &str = include_str!("../../shaders/supernodal.wgsl");
 
-const BINDINGS: [(u32, Bind); 7] = [
+const BINDINGS: [(u32, Bind); 8] = [
     (0, Bind::Uniform),
     (1, Bind::Read),
     (2, Bind::Read),
     (3, Bind::ReadWrite),
-    (4, Bind::Read),
-    (5, Bind::ReadWrite),
+    (4, Bind::ReadWrite),
+    (5, Bind::Read),
     (6, Bind::ReadWrite),
+    (7, Bind::ReadWrite),
 ];
 
 /// Parameters, as `Params` in `supernodal.wgsl`.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
 struct SnParams {
-    first: u32,
-    count: u32,
+    own: u32,
+    n_own: u32,
+    below: u32,
+    n_below: u32,
     nv: u32,
     stride: u32,
     bs: u32,
-    o_sn: u32,
-    o_rows: u32,
-    o_perm: u32,
-    o_tptr: u32,
-    o_tpos: u32,
-    pad: [u32; 2],
+    offsets: [u32; 9],
 }
 
-/// The four entry points, in one precision.
+/// The entry points, in one precision.
 pub(crate) struct SupernodalKernels {
     pub precision: Precision,
     shader: Shader,
-    gather: Kernel,
-    forward: Kernel,
-    backward: Kernel,
-    scatter: Kernel,
+    /// gather, pull, fdiag, fbelow, bbelow, bdiag, scatter.
+    kernels: [Kernel; 7],
 }
 
 impl SupernodalKernels {
     pub fn new(ctx: &Context, precision: Precision) -> Result<Arc<Self>, GpuError> {
         let source = precision.source(SOURCE);
         let shader = Shader::new(ctx, "supernodal.wgsl", &source, &BINDINGS)?;
+        let k = |label, entry| Kernel::new(&shader, label, entry);
+        let kernels = [
+            k("supernodal gather", "gather"),
+            k("supernodal pull", "pull"),
+            k("supernodal fdiag", "fdiag"),
+            k("supernodal fbelow", "fbelow"),
+            k("supernodal bbelow", "bbelow"),
+            k("supernodal bdiag", "bdiag"),
+            k("supernodal scatter", "scatter"),
+        ];
         Ok(Arc::new(SupernodalKernels {
             precision,
-            gather: Kernel::new(&shader, "supernodal gather", "gather"),
-            forward: Kernel::new(&shader, "supernodal forward", "forward"),
-            backward: Kernel::new(&shader, "supernodal backward", "backward"),
-            scatter: Kernel::new(&shader, "supernodal scatter", "scatter"),
             shader,
+            kernels,
         }))
     }
 }
@@ -81,13 +88,13 @@ impl SupernodalKernels {
 pub(crate) struct GpuFactor {
     idx: wgpu::Buffer,
     vals: wgpu::Buffer,
-    /// Offsets of the sections of `idx`: supernode table, rows, permutation,
-    /// row pointers and slots of the transposed row lists.
-    offsets: [u32; 5],
+    /// Offsets of the sections of `idx` (as in `SnParams::offsets`).
+    offsets: [u32; 9],
     /// Slots of `rows` (one update per slot and column in `contrib`).
     slots: usize,
-    /// `(first, count)` in `order` per level, leaves first.
-    levels: Vec<(u32, u32)>,
+    /// Per level, leaves first: `(first, count)` of its columns and of its
+    /// slots in their sections.
+    levels: Vec<[u32; 4]>,
     /// Rows of `K`.
     pub nv: usize,
     /// Stored values of the factor.
@@ -125,51 +132,67 @@ fn levels(f: &SupernodalFactor) -> Option<Vec<u32>> {
 }
 
 impl GpuFactor {
-    /// Upload `f` (values in f32, indices in u32).
+    /// Upload `f` (its diagonal blocks inverted; indices in u32).
     pub fn upload(ctx: &Context, f: &SupernodalFactor) -> Result<GpuFactor, GpuError> {
         let ns = f.len();
         let bad = |what: &str| GpuError::Backend(format!("supernodal factor: {what}"));
+        if !f.inverted {
+            return Err(bad("diagonal blocks not inverted"));
+        }
         let level = levels(f).ok_or_else(|| bad("supernodes out of topological order"))?;
-        if f.values.len() > u32::MAX as usize {
+        let n = f.perm.len();
+        let nrows = f.rows.len();
+        let total = 5 * ns + nrows + n + (n + 1) + nrows + 2 * n + 2 * nrows;
+        if f.nnz() > u32::MAX as usize || total > u32::MAX as usize {
             return Err(GpuError::LimitExceeded {
-                what: "a Cholesky factor's values (32-bit offsets)".into(),
+                what: "a Cholesky factor's values or index sections (32-bit offsets)".into(),
                 limit_name: "u32::MAX",
-                needed: f.values.len() as u64,
+                needed: f.nnz().max(total) as u64,
                 limit: u32::MAX as u64,
             });
         }
         let depth = level.iter().max().map_or(0, |&l| l as usize + 1);
-        let mut count = vec![0u32; depth];
-        for &l in &level {
-            count[l as usize] += 1;
-        }
-        let mut levels = Vec::with_capacity(depth);
-        let mut first = 0u32;
-        for &c in &count {
-            levels.push((first, c));
-            first += c;
-        }
-        let mut next: Vec<u32> = levels.iter().map(|l| l.0).collect();
-        let mut order = vec![0u32; ns];
+        // Columns and slots per level, in supernode order within a level.
+        let mut cols_at = vec![0u32; depth + 1];
+        let mut slots_at = vec![0u32; depth + 1];
         for (s, &l) in level.iter().enumerate() {
-            order[next[l as usize] as usize] = s as u32;
-            next[l as usize] += 1;
+            let (m, q) = f.shape(s);
+            cols_at[l as usize + 1] += m as u32;
+            slots_at[l as usize + 1] += q as u32;
         }
-        // One u32 buffer: order, supernode table, rows, perm, and the rows'
-        // slots (a counting sort of `rows` by row).
-        let n = f.perm.len();
-        let nrows = f.rows.len();
-        let total = ns + 5 * ns + nrows + n + (n + 1) + nrows;
-        if total > u32::MAX as usize {
-            return Err(GpuError::LimitExceeded {
-                what: "a Cholesky factor's index sections (32-bit offsets)".into(),
-                limit_name: "u32::MAX",
-                needed: total as u64,
-                limit: u32::MAX as u64,
-            });
+        for l in 0..depth {
+            cols_at[l + 1] += cols_at[l];
+            slots_at[l + 1] += slots_at[l];
         }
-        let mut idx = Vec::with_capacity(total);
-        idx.extend_from_slice(&order);
+        let levels: Vec<[u32; 4]> = (0..depth)
+            .map(|l| {
+                [
+                    cols_at[l],
+                    cols_at[l + 1] - cols_at[l],
+                    slots_at[l],
+                    slots_at[l + 1] - slots_at[l],
+                ]
+            })
+            .collect();
+        let mut cols = vec![0u32; n];
+        let mut owner = vec![0u32; n];
+        let mut slots = vec![0u32; nrows];
+        let mut slot_owner = vec![0u32; nrows];
+        let (mut nc, mut nsl) = (cols_at, slots_at);
+        for (s, &l) in level.iter().enumerate() {
+            let l = l as usize;
+            for c in f.begin[s]..f.begin[s + 1] {
+                cols[nc[l] as usize] = c;
+                nc[l] += 1;
+                owner[c as usize] = s as u32;
+            }
+            for e in f.row_ptr[s]..f.row_ptr[s + 1] {
+                slots[nsl[l] as usize] = e;
+                nsl[l] += 1;
+                slot_owner[e as usize] = s as u32;
+            }
+        }
+        let mut idx: Vec<u32> = Vec::with_capacity(total);
         let o_sn = idx.len() as u32;
         for s in 0..ns {
             let (m, q) = f.shape(s);
@@ -185,6 +208,7 @@ impl GpuFactor {
         idx.extend_from_slice(&f.rows);
         let o_perm = idx.len() as u32;
         idx.extend_from_slice(&f.perm);
+        // The slots holding each row: a counting sort of `rows` by row.
         let o_tptr = idx.len() as u32;
         let mut tptr = vec![0u32; n + 1];
         for &r in &f.rows {
@@ -195,13 +219,21 @@ impl GpuFactor {
         }
         idx.extend_from_slice(&tptr);
         let o_tpos = idx.len() as u32;
-        idx.resize(total, 0);
+        let mut tpos = vec![0u32; nrows];
         let mut next = tptr;
         for (e, &r) in f.rows.iter().enumerate() {
-            let at = next[r as usize] as usize;
-            idx[o_tpos as usize + at] = e as u32;
+            tpos[next[r as usize] as usize] = e as u32;
             next[r as usize] += 1;
         }
+        idx.extend_from_slice(&tpos);
+        let o_cols = idx.len() as u32;
+        idx.extend_from_slice(&cols);
+        let o_owner = idx.len() as u32;
+        idx.extend_from_slice(&owner);
+        let o_slots = idx.len() as u32;
+        idx.extend_from_slice(&slots);
+        let o_slot_owner = idx.len() as u32;
+        idx.extend_from_slice(&slot_owner);
         let precision = match f.values64.is_empty() {
             true => Precision::F32,
             false => Precision::F64,
@@ -214,17 +246,27 @@ impl GpuFactor {
         Ok(GpuFactor {
             idx: ctx.storage_init("Cholesky index sections", &idx)?,
             vals,
-            precision,
-            offsets: [o_sn, o_rows, o_perm, o_tptr, o_tpos],
+            offsets: [
+                o_sn,
+                o_rows,
+                o_perm,
+                o_tptr,
+                o_tpos,
+                o_cols,
+                o_owner,
+                o_slots,
+                o_slot_owner,
+            ],
             slots: nrows,
             levels,
-            nv: f.perm.len(),
+            nv: n,
             nnz: f.nnz(),
+            precision,
             bytes,
         })
     }
 
-    /// Levels of the elimination tree (dispatches per triangular solve).
+    /// Levels of the elimination tree.
     pub fn depth(&self) -> usize {
         self.levels.len()
     }
@@ -233,11 +275,17 @@ impl GpuFactor {
 /// One recorded application `z = M^-1 r` for a workspace's `r` and `z`.
 pub(crate) struct SupernodalSteps {
     kernels: Arc<SupernodalKernels>,
-    /// One bind group per level (each with its own parameters).
-    groups: Vec<(wgpu::BindGroup, (u32, u32))>,
-    flat: (u32, u32),
+    /// Per level: its bind group and the dispatch sizes of its own rows and
+    /// of its slots (for the most columns).
+    groups: Vec<(wgpu::BindGroup, [u32; 2])>,
+    /// Rows and slots per level, for the dispatch sizes of fewer columns.
+    counts: Vec<[u32; 2]>,
+    nv: usize,
+    bs: usize,
     w: wgpu::Buffer,
     /// Kept alive for the bind groups.
+    #[allow(dead_code)]
+    y: wgpu::Buffer,
     #[allow(dead_code)]
     contrib: wgpu::Buffer,
     #[allow(dead_code)]
@@ -265,37 +313,36 @@ impl SupernodalSteps {
                 "Cholesky kernels and factor of different precisions".into(),
             ));
         }
-        let w = ctx.storage(
-            &format!("Cholesky work vector ({stride} x {cmax})"),
-            (stride * cmax * b) as u64,
-        )?;
+        let vector = |what: &str| {
+            ctx.storage(
+                &format!("Cholesky {what} ({stride} x {cmax})"),
+                (stride * cmax * b) as u64,
+            )
+        };
+        let (w, y) = (vector("work vector w")?, vector("work vector y")?);
         let contrib = ctx.storage(
             &format!("Cholesky updates ({} x {})", f.slots, bs * cmax),
             (f.slots * bs * cmax * b) as u64,
         )?;
-        let [o_sn, o_rows, o_perm, o_tptr, o_tpos] = f.offsets;
-        let mut params = Vec::with_capacity(f.levels.len().max(1));
-        let mut groups = Vec::with_capacity(params.capacity());
-        let levels: Vec<(u32, u32)> = if f.levels.is_empty() {
-            vec![(0, 0)]
+        let levels: Vec<[u32; 4]> = if f.levels.is_empty() {
+            vec![[0; 4]]
         } else {
             f.levels.clone()
         };
-        for (first, count) in levels {
+        let mut params = Vec::with_capacity(levels.len());
+        let mut groups = Vec::with_capacity(levels.len());
+        for [own, n_own, below, n_below] in levels.iter().copied() {
             let p = ctx.uniform_of(
                 "supernodal params",
                 &SnParams {
-                    first,
-                    count,
+                    own,
+                    n_own,
+                    below,
+                    n_below,
                     nv: f.nv as u32,
                     stride: stride as u32,
                     bs: bs as u32,
-                    o_sn,
-                    o_rows,
-                    o_perm,
-                    o_tptr,
-                    o_tpos,
-                    pad: [0; 2],
+                    offsets: f.offsets,
                 },
             )?;
             let bg = kernels.shader.bind(
@@ -305,23 +352,24 @@ impl SupernodalSteps {
                     (1, &f.idx),
                     (2, &f.vals),
                     (3, &w),
-                    (4, r),
-                    (5, z),
-                    (6, &contrib),
+                    (4, &y),
+                    (5, r),
+                    (6, z),
+                    (7, &contrib),
                 ],
             )?;
-            groups.push((bg, ctx.dims("supernodal level", count as u64)?));
+            groups.push((bg, [n_own, n_below]));
             params.push(p);
         }
-        let flat = ctx.dims(
-            "supernodal gather",
-            ((stride * cmax) as u64).div_ceil(FLAT_WG as u64),
-        )?;
+        let counts = groups.iter().map(|g| g.1).collect();
         Ok(SupernodalSteps {
             kernels: kernels.clone(),
             groups,
-            flat,
+            counts,
+            nv: f.nv,
+            bs,
             w,
+            y,
             contrib,
             params,
             bytes: (f.bytes, b as u64 * stride as u64),
@@ -334,46 +382,68 @@ impl SupernodalSteps {
         &self.w
     }
 
-    /// Pipelines for `ncols` PCG columns: gather, forward, backward, scatter.
-    pub fn pipelines(
-        &self,
-        ctx: &Context,
-        ncols: usize,
-    ) -> Result<[wgpu::ComputePipeline; 4], GpuError> {
-        let k = &self.kernels;
-        Ok([
-            k.gather.pipeline(ctx, ncols)?,
-            k.forward.pipeline(ctx, ncols)?,
-            k.backward.pipeline(ctx, ncols)?,
-            k.scatter.pipeline(ctx, ncols)?,
-        ])
+    /// Pipelines for `ncols` PCG columns, with the dispatch sizes of each
+    /// level and of the flat kernels.
+    pub fn pipelines(&self, ctx: &Context, ncols: usize) -> Result<Pipelines, GpuError> {
+        let k = &self.kernels.kernels;
+        let cc = (self.bs * ncols) as u64;
+        let dims =
+            |items: u64| ctx.dims("supernodal kernel", (items * cc).div_ceil(FLAT_WG as u64));
+        let mut levels = Vec::with_capacity(self.counts.len());
+        for &[own, below] in &self.counts {
+            levels.push([dims(own as u64)?, dims(below as u64)?]);
+        }
+        Ok(Pipelines {
+            p: [
+                k[0].pipeline(ctx, ncols)?,
+                k[1].pipeline(ctx, ncols)?,
+                k[2].pipeline(ctx, ncols)?,
+                k[3].pipeline(ctx, ncols)?,
+                k[4].pipeline(ctx, ncols)?,
+                k[5].pipeline(ctx, ncols)?,
+                k[6].pipeline(ctx, ncols)?,
+            ],
+            flat: dims(self.nv as u64)?,
+            levels,
+        })
     }
 
     /// Modelled work of one application for `ncols` columns: the factor read
-    /// twice (an operator application each way), `w` read and written about
-    /// twice per sweep, `r` read and `z` written once.
+    /// twice (an operator application each way), the vectors about twice per
+    /// sweep, `r` read and `z` written once.
     pub fn work(&self, ncols: usize) -> KernelWork {
         let col = self.bytes.1 * ncols as u64;
-        let sweep = KernelWork::operator(self.bytes.0 + 2 * col, self.bytes.0 + 2 * col);
+        let sweep = KernelWork::operator(self.bytes.0 + 4 * col, self.bytes.0 + 2 * col);
         let levels = self.groups.len() as u64;
         KernelWork {
-            dispatches: 2 + 2 * levels,
+            dispatches: 2 + 5 * levels,
             ..sweep.times(2) + KernelWork::other(2 * col).times(2)
         }
     }
 
     /// Record one application into `pass`.
-    pub fn record(&self, pass: &mut wgpu::ComputePass, p: &[wgpu::ComputePipeline; 4]) {
+    pub fn record(&self, pass: &mut wgpu::ComputePass, p: &Pipelines) {
         let bg0 = &self.groups[0].0;
-        dispatch(pass, &p[0], bg0, self.flat);
-        for (bg, dims) in &self.groups {
-            dispatch(pass, &p[1], bg, *dims);
+        dispatch(pass, &p.p[0], bg0, p.flat);
+        for ((bg, _), d) in self.groups.iter().zip(&p.levels) {
+            dispatch(pass, &p.p[1], bg, d[0]);
+            dispatch(pass, &p.p[2], bg, d[0]);
+            dispatch(pass, &p.p[3], bg, d[1]);
         }
-        for (bg, dims) in self.groups.iter().rev() {
-            dispatch(pass, &p[2], bg, *dims);
+        for ((bg, _), d) in self.groups.iter().zip(&p.levels).rev() {
+            dispatch(pass, &p.p[4], bg, d[0]);
+            dispatch(pass, &p.p[5], bg, d[0]);
         }
-        dispatch(pass, &p[3], bg0, self.flat);
+        dispatch(pass, &p.p[6], bg0, p.flat);
     }
+}
+
+/// The pipelines of [`SupernodalSteps`] for one column count, and their
+/// dispatch sizes.
+pub(crate) struct Pipelines {
+    p: [wgpu::ComputePipeline; 7],
+    flat: (u32, u32),
+    levels: Vec<[(u32, u32); 2]>,
 }
 
 #[cfg(test)]
