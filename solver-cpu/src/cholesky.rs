@@ -212,6 +212,18 @@ impl CholeskySolver {
         self.symbolic.as_ref().map_or(0, |s| s.len_val())
     }
 
+    /// Rows below the diagonal blocks, over all supernodes (a simplicial
+    /// factor: its entries below the diagonal); 0 before the symbolic analysis.
+    pub fn factor_slots(&self) -> usize {
+        match self.symbolic.as_ref().map(|s| s.raw()) {
+            None => 0,
+            Some(SymbolicCholeskyRaw::Simplicial(s)) => s.row_idx().len().saturating_sub(s.nrows()),
+            Some(SymbolicCholeskyRaw::Supernodal(s)) => {
+                (0..s.n_supernodes()).map(|k| s.supernode(k).pattern().len()).sum()
+            }
+        }
+    }
+
     /// Floating-point operations of one numeric factorization, `sum_j c_j^2`
     /// over the factor's column counts `c_j` (0 before the symbolic analysis):
     /// a cost measure that is the same on every run, unlike a timing.
@@ -600,15 +612,11 @@ fn solve_split<T: faer::traits::ComplexField<Real = T> + Copy + Send + Sync>(
     !failed.into_inner()
 }
 
-impl SpdSolver for CholeskySolver {
-    fn set_fill_ordering(&mut self, ordering: FillOrdering) {
-        if ordering != self.ordering {
-            self.ordering = ordering;
-            self.symbolic = None;
-        }
-    }
-
-    fn prepare(&mut self, a: &SymCsc) -> Result<(), SolverError> {
+impl CholeskySolver {
+    /// The symbolic analysis of `a`'s pattern (ordering, elimination tree,
+    /// supernodes) where it is new: the factor's size is known from here on
+    /// ([`CholeskySolver::factor_nnz`]) before any numeric factorization.
+    pub fn analyse(&mut self, a: &SymCsc) -> Result<(), SolverError> {
         let key = PatternKey::of(&a.col_ptr, &a.row_idx);
         let same = self.pattern == Some(key);
         // faer works on u32 indices here: its symbolic factor (supernode row
@@ -717,6 +725,22 @@ impl SpdSolver for CholeskySolver {
                 self.ordering = FillOrdering::Auto;
             }
         }
+        Ok(())
+    }
+}
+
+impl SpdSolver for CholeskySolver {
+    fn set_fill_ordering(&mut self, ordering: FillOrdering) {
+        if ordering != self.ordering {
+            self.ordering = ordering;
+            self.symbolic = None;
+        }
+    }
+
+    fn prepare(&mut self, a: &SymCsc) -> Result<(), SolverError> {
+        self.analyse(a)?;
+        let (col_ptr32, row_idx32) = pattern_u32(a)?;
+        let sym_ref = SymbolicSparseColMatRef::new_checked(a.n, a.n, &col_ptr32, None, &row_idx32);
         // The values' storage, where `take_supernodal_factor` moved it out.
         let len = self.symbolic.as_ref().unwrap().len_val();
         let storage = if self.single {

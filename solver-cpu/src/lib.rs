@@ -361,7 +361,9 @@ mod tests {
             let mut y = b_of(a.n);
             solver.solve_in_place(&mut y, 1).unwrap();
             let f = solver.take_supernodal_factor().unwrap();
+            let slots = solver.factor_slots();
             assert_eq!(f.nnz(), solver.factor_nnz());
+            assert_eq!(f.rows.len(), slots);
             assert_eq!(f.values64.is_empty(), single);
             assert_eq!(f.val_ptr.last().copied(), Some(f.nnz() as u64));
             if supernodal {

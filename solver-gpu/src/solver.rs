@@ -738,6 +738,15 @@ impl GpuSolver {
         self.amg_setup_seconds = t.elapsed().as_secs_f64();
     }
 
+    /// Most columns one PCG batch carries: [`CMAX`], fewer where the Cholesky
+    /// preconditioner's updates for that many would not fit a storage binding.
+    fn batch_columns(&self) -> usize {
+        match (&self.chol, self.host.as_ref()) {
+            (Some(f), Some(h)) => f.max_columns(matrix::binding_limit(&self.ctx), h.bs),
+            _ => CMAX,
+        }
+    }
+
     /// Whether the next shape matrix is preconditioned by the Cholesky factor.
     fn cholesky_wanted(&self) -> bool {
         self.preconditioner == Preconditioner::Cholesky
@@ -778,9 +787,27 @@ impl GpuSolver {
             self.chol_host.ordering = ordering;
         }
         let k = a.iso_held_identity(fixed);
-        self.chol_host
-            .prepare(&k)
-            .map_err(|e| GpuError::Backend(format!("Cholesky factor of K: {e}")))?;
+        let backend = |e: SolverError| GpuError::Backend(format!("Cholesky factor of K: {e}"));
+        // The factor's size is known from the symbolic analysis: one that
+        // would not fit the device's storage bindings is refused before the
+        // numeric factorization.
+        self.chol_host.analyse(&k).map_err(backend)?;
+        let b = precision.bytes();
+        let limit = matrix::binding_limit(&self.ctx);
+        let values = self.chol_host.factor_nnz() as u64 * b;
+        let update_column = self.chol_host.factor_slots() as u64 * 3 * b;
+        if values > limit || update_column > limit {
+            return Err(GpuError::LimitExceeded {
+                what: format!(
+                    "the Cholesky factor's values ({values} bytes) or one column of its updates \
+                     ({update_column} bytes)"
+                ),
+                limit_name: "max_storage_buffer_binding_size",
+                needed: values.max(update_column),
+                limit,
+            });
+        }
+        self.chol_host.prepare(&k).map_err(backend)?;
         drop(k);
         let mut f = self
             .chol_host
@@ -1250,8 +1277,9 @@ impl GpuSolver {
         worst: &mut f64,
         iterations: &mut usize,
     ) -> Result<(), SolverError> {
-        for c0 in (0..ncols).step_by(CMAX) {
-            let m = CMAX.min(ncols - c0);
+        let batch = self.batch_columns();
+        for c0 in (0..ncols).step_by(batch) {
+            let m = batch.min(ncols - c0);
             let rng = c0 * n..(c0 + m) * n;
             let before = self.stats;
             self.stats = SolveStats::default();

@@ -266,6 +266,14 @@ impl GpuFactor {
         })
     }
 
+    /// Most PCG columns (up to [`crate::CMAX`], at least 1) whose work vectors
+    /// and updates fit `limit` bytes a binding, for block rows of `bs`.
+    pub fn max_columns(&self, limit: u64, bs: usize) -> usize {
+        let b = self.precision.bytes();
+        let per = (self.slots.max(self.nv) * bs) as u64 * b;
+        ((limit / per.max(1)) as usize).clamp(1, crate::CMAX)
+    }
+
     /// Levels of the elimination tree.
     pub fn depth(&self) -> usize {
         self.levels.len()

@@ -1450,3 +1450,40 @@ fn cholesky_preconditioner_is_the_factor_solve_per_component() {
         assert_eq!(s.active_preconditioner(), Preconditioner::Cholesky);
     }
 }
+
+/// A Cholesky factor that would not fit one storage binding is refused after
+/// the symbolic analysis (no numeric factorization is wasted on it): the
+/// shape system falls back to AMG and still solves, as the CPU backend does.
+#[test]
+fn cholesky_factor_over_the_binding_limit_falls_back() {
+    use solver_cpu::BlockPcgSolver;
+    let (nx, ny) = (260, 200);
+    let n = nx * ny;
+    let mut rng = Rng(5);
+    let a = iso_grid(nx, ny, &mut rng);
+    let fixed = fixed_every(n, 61);
+    let mut host = CholeskySolver::new();
+    host.analyse(&a.iso_held_identity(&fixed)).unwrap();
+    let factor_bytes = 8 * host.factor_nnz() as u64;
+    // Room for the vectors and the matrix's chunks, not for the factor.
+    let limit = (factor_bytes / 2).max(4 << 20) / 4 * 4;
+    assert!(limit < factor_bytes, "{limit} {factor_bytes}");
+    let Some(mut s) = gpu_with_limits(move |l| l.max_storage_buffer_binding_size = limit) else {
+        return;
+    };
+    s.set_system_kind(SystemKind::ScaleDriven);
+    let a = s.prepare_shape_owned(a, &fixed).unwrap().unwrap();
+    assert_ne!(s.active_preconditioner(), Preconditioner::Cholesky);
+    assert!(kernels::cholesky_shape(&s).is_none());
+    let b = rng.vec(3 * n);
+    let mut x = vec![0.0; b.len()];
+    s.set_tolerance(1e-10);
+    s.solve_with_guess(&b, &mut x, 1).unwrap();
+    let mut cpu = BlockPcgSolver::new();
+    cpu.set_tolerance(1e-12);
+    cpu.prepare_shape_owned(a, &fixed).unwrap();
+    let mut y = vec![0.0; b.len()];
+    cpu.solve_with_guess(&b, &mut y, 1).unwrap();
+    let e = rel_err(&x, &y);
+    assert!(e < 1e-8, "GPU against CPU {e:e}");
+}
