@@ -130,10 +130,12 @@ fn open_gpu() -> Result<Box<dyn SpdSolver>> {
 
 /// `--backend auto`'s measured crossover: the smallest mesh, in faces, from
 /// which the GPU backend ran faster than the CPU backend on the same machine
-/// (BENCHMARKS.md, "`auto` crossover"). `None`: at no measured size. On an
-/// NVIDIA H100 against its 16-core host the GPU backend was 1.74x slower at
-/// 108k faces and 1.57x slower at 1.2M (2026-11-24; 5-11x at 5.9k-1.2M
-/// before), so `auto` uses the CPU until a measurement shows the GPU ahead.
+/// (BENCHMARKS.md, "`auto` crossover"). `None`: at no measured size from
+/// which on. On an NVIDIA H100 against its 16-core host (2026-11-24, the
+/// Cholesky preconditioner) the GPU backend was 1.50x slower at 108k faces,
+/// 1.25x faster at 1.2M, and slower at 4.3M, where its factor does not fit
+/// one storage binding; so `auto` uses the CPU until the GPU is ahead from
+/// some size on.
 pub const GPU_FASTER_FROM_FACES: Option<usize> = None;
 
 /// Whether `--backend auto` runs a mesh of `faces` faces on the GPU: only on

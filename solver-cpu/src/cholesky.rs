@@ -170,7 +170,7 @@ pub struct CholeskySolver {
     /// Factor and solve in f32 (see module docs).
     single: bool,
     /// Always a supernodal factor (faer picks a simplicial one for sparse
-    /// factors): for [`CholeskySolver::supernodal_factor`]'s users, whose
+    /// factors): for [`CholeskySolver::take_supernodal_factor`]'s users, whose
     /// solves run a supernode per step.
     pub supernodal: bool,
     /// Solve buffer in f32 (single precision only).
@@ -218,9 +218,9 @@ impl CholeskySolver {
         match self.symbolic.as_ref().map(|s| s.raw()) {
             None => 0,
             Some(SymbolicCholeskyRaw::Simplicial(s)) => s.row_idx().len().saturating_sub(s.nrows()),
-            Some(SymbolicCholeskyRaw::Supernodal(s)) => {
-                (0..s.n_supernodes()).map(|k| s.supernode(k).pattern().len()).sum()
-            }
+            Some(SymbolicCholeskyRaw::Supernodal(s)) => (0..s.n_supernodes())
+                .map(|k| s.supernode(k).pattern().len())
+                .sum(),
         }
     }
 

@@ -51,7 +51,19 @@
 //! pattern, without an explicit [`solver_cpu::BlockSym3`].
 //!
 //! The **shape systems** (the scale-driven ones, Eq. 7, and the fine-tune's,
-//! Eq. 8) are preconditioned by default by the **squared Laplacian** ([`Preconditioner::SquaredLaplacian`]): their
+//! Eq. 8) are preconditioned by default as the CPU backend's block PCG is,
+//! by the **Cholesky factor of their isotropic part** `K_ij = tr(A_ij) / 3`
+//! ([`Preconditioner::Cholesky`]), `M = P^T L L^T P (x) I3`:
+//!
+//! ```text
+//! P K P^T = L L^T            host, faer, f64 where the PCG is f64, once per system kind
+//! L_ss := L_ss^-1            host, each supernode's diagonal block
+//! z = P^T L^-T L^-1 P r      GPU, per level of the elimination tree: dot products
+//! ```
+//!
+//! (`supernodal`, `shaders/supernodal.wgsl`). A factor that does not fit one
+//! storage binding, or an f32 one that breaks down, falls back to the
+//! **squared Laplacian** ([`Preconditioner::SquaredLaplacian`]): their
 //! isotropic part is close to `S Mt^-1 S + c S` (`S` the input's cotangent
 //! Laplacian; E_m's bi-Laplacian and E_f's Laplacian,
 //! [`solver_cpu::ShapeOperatorModel`], handed over by
@@ -84,7 +96,7 @@
 //! or by block Jacobi `M = blockdiag(A)` ([`Preconditioner::BlockJacobi`]: 3x3
 //! blocks inverted on the CPU in f64; plain Jacobi for the scalar system; also
 //! the fallback when AMG coarsening stalls). [`GpuSolver::set_preconditioner`] or
-//! `METRICDEFORM_GPU_PRECONDITIONER=squared-laplacian|affine-amg|amg` chooses. The PCG keeps every scalar on the GPU:
+//! `METRICDEFORM_GPU_PRECONDITIONER=cholesky|squared-laplacian|affine-amg|amg` chooses. The PCG keeps every scalar on the GPU:
 //! `alpha = r.z / p.Ap` and `beta = r'.z' / r.z` are computed per column by a
 //! one-workgroup kernel from per-workgroup partial sums; the host reads the
 //! per-column state back only after batches of iterations (the first as long

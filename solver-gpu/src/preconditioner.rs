@@ -59,7 +59,7 @@ pub enum Preconditioner {
     /// ([`solver_cpu::SpdSolver::prepare_shape_owned`]): the supernodal Cholesky
     /// factor of their isotropic part `K` (held rows identity), made on the host
     /// once per system kind per run and applied on the GPU by level-scheduled
-    /// triangular solves ([`crate::supernodal`]), the CPU backend's
+    /// triangular solves (`supernodal.rs`, `shaders/supernodal.wgsl`), the CPU backend's
     /// preconditioner. Where the factor cannot be made or does not fit the
     /// device, the shape systems fall back to `SquaredLaplacian`; every other
     /// system (the scale factors') as `AffineAmg`.

@@ -1363,10 +1363,10 @@ fn iso_grid(nx: usize, ny: usize, rng: &mut Rng) -> solver_cpu::IsoRingSym3 {
             }
         }
     }
-    for j in 0..n {
+    for (j, d) in diag.iter().enumerate() {
         for s in k.col_ptr[j]..k.col_ptr[j + 1] {
             if k.row_idx[s] == j {
-                k.values[s] = diag[j] + 0.05 * (1.0 + rng.sym());
+                k.values[s] = d + 0.05 * (1.0 + rng.sym());
             }
         }
     }
