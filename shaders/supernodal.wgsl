@@ -96,6 +96,23 @@ fn supernode(s: u32) -> Super {
     return Super(idx[a], idx[a + 1u], idx[a + 2u], idx[a + 3u], idx[a + 4u]);
 }
 
+// Invocation t of a level's own rows: row (permuted column) `row` of
+// supernode `s`, local index `k = row - c0`, scalar column `c` of `cc`.
+struct OwnRow {
+    row: u32,
+    k: u32,
+    c: u32,
+    cc: u32,
+    s: Super,
+}
+
+fn own_row(t: u32) -> OwnRow {
+    let cc = P.bs * NCOLS;
+    let row = idx[P.o_cols + P.own + t / cc];
+    let s = supernode(idx[P.o_owner + row]);
+    return OwnRow(row, row - s.c0, t % cc, cc, s);
+}
+
 fn linear(gid: vec3<u32>, nwg: vec3<u32>) -> u32 {
     return gid.x + gid.y * nwg.x * FWG;
 }
@@ -150,16 +167,13 @@ fn fdiag(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups)
     if t >= P.n_own * cc {
         return;
     }
-    let row = idx[P.o_cols + P.own + t / cc];
-    let c = t % cc;
-    let s = supernode(idx[P.o_owner + row]);
-    let i = row - s.c0;
-    let nr = s.m + s.q;
+    let o = own_row(t);
+    let nr = o.s.m + o.s.q;
     var acc: f32 = 0.0;
-    for (var k = 0u; k <= i; k++) {
-        acc += vals[s.vo + k * nr + i] * w[(s.c0 + k) * cc + c];
+    for (var k = 0u; k <= o.k; k++) {
+        acc += vals[o.s.vo + k * nr + o.k] * w[(o.s.c0 + k) * cc + o.c];
     }
-    y[row * cc + c] = acc;
+    y[o.row * cc + o.c] = acc;
 }
 
 // contrib[e] = sum_k L[m + r, k] y_k for the slot e = ro + r of supernode s.
@@ -191,17 +205,13 @@ fn bbelow(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
     if t >= P.n_own * cc {
         return;
     }
-    let row = idx[P.o_cols + P.own + t / cc];
-    let c = t % cc;
-    let s = supernode(idx[P.o_owner + row]);
-    let k = row - s.c0;
-    let nr = s.m + s.q;
-    let at = s.vo + k * nr + s.m;
-    var acc = y[row * cc + c];
-    for (var rr = 0u; rr < s.q; rr++) {
-        acc -= vals[at + rr] * y[idx[P.o_rows + s.ro + rr] * cc + c];
+    let o = own_row(t);
+    let at = o.s.vo + o.k * (o.s.m + o.s.q) + o.s.m;
+    var acc = y[o.row * cc + o.c];
+    for (var rr = 0u; rr < o.s.q; rr++) {
+        acc -= vals[at + rr] * y[idx[P.o_rows + o.s.ro + rr] * cc + o.c];
     }
-    w[row * cc + c] = acc;
+    w[o.row * cc + o.c] = acc;
 }
 
 // x_k = sum_{i >= k} L_ss^-1[i, k] w_i for row k of supernode s, into y.
@@ -212,15 +222,11 @@ fn bdiag(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups)
     if t >= P.n_own * cc {
         return;
     }
-    let row = idx[P.o_cols + P.own + t / cc];
-    let c = t % cc;
-    let s = supernode(idx[P.o_owner + row]);
-    let k = row - s.c0;
-    let nr = s.m + s.q;
-    let at = s.vo + k * nr;
+    let o = own_row(t);
+    let at = o.s.vo + o.k * (o.s.m + o.s.q);
     var acc: f32 = 0.0;
-    for (var i = k; i < s.m; i++) {
-        acc += vals[at + i] * w[(s.c0 + i) * cc + c];
+    for (var i = o.k; i < o.s.m; i++) {
+        acc += vals[at + i] * w[(o.s.c0 + i) * cc + o.c];
     }
-    y[row * cc + c] = acc;
+    y[o.row * cc + o.c] = acc;
 }

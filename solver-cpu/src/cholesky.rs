@@ -319,6 +319,34 @@ impl SupernodalFactor {
         )
     }
 
+    /// `P b`.
+    fn permuted(&self, b: &[f64]) -> Vec<f64> {
+        self.perm.iter().map(|&p| b[p as usize]).collect()
+    }
+
+    /// `P^T w`.
+    fn unpermuted(&self, w: &[f64]) -> Vec<f64> {
+        let mut x = vec![0.0; w.len()];
+        for (i, &p) in self.perm.iter().enumerate() {
+            x[p as usize] = w[i];
+        }
+        x
+    }
+
+    /// Supernode `s`: first column, columns, value offset, rows of its
+    /// block, and the rows below its diagonal block.
+    fn block(&self, s: usize) -> (usize, usize, usize, usize, &[u32]) {
+        let (m, q) = self.shape(s);
+        let rows = &self.rows[self.row_ptr[s] as usize..self.row_ptr[s + 1] as usize];
+        (
+            self.begin[s] as usize,
+            m,
+            self.val_ptr[s] as usize,
+            m + q,
+            rows,
+        )
+    }
+
     /// Replace each supernode's diagonal block `L_ss` by its inverse (lower
     /// triangular too, in place): a solve then applies `L_ss^-1` as a product,
     /// parallel in all its rows, instead of a column-by-column substitution.
@@ -380,12 +408,9 @@ impl SupernodalFactor {
         if self.inverted {
             return self.solve_inverted(b);
         }
-        let n = self.perm.len();
-        let mut w: Vec<f64> = (0..n).map(|i| b[self.perm[i] as usize]).collect();
+        let mut w = self.permuted(b);
         for s in 0..self.len() {
-            let (m, q) = self.shape(s);
-            let (c0, v, nr) = (self.begin[s] as usize, self.val_ptr[s] as usize, m + q);
-            let rows = &self.rows[self.row_ptr[s] as usize..self.row_ptr[s + 1] as usize];
+            let (c0, m, v, nr, rows) = self.block(s);
             for k in 0..m {
                 w[c0 + k] /= self.value(v + k * nr + k);
                 let x = w[c0 + k];
@@ -398,9 +423,7 @@ impl SupernodalFactor {
             }
         }
         for s in (0..self.len()).rev() {
-            let (m, q) = self.shape(s);
-            let (c0, v, nr) = (self.begin[s] as usize, self.val_ptr[s] as usize, m + q);
-            let rows = &self.rows[self.row_ptr[s] as usize..self.row_ptr[s + 1] as usize];
+            let (c0, m, v, nr, rows) = self.block(s);
             for k in (0..m).rev() {
                 let mut t = w[c0 + k];
                 for i in k + 1..m {
@@ -412,11 +435,7 @@ impl SupernodalFactor {
                 w[c0 + k] = t / self.value(v + k * nr + k);
             }
         }
-        let mut x = vec![0.0; n];
-        for i in 0..n {
-            x[self.perm[i] as usize] = w[i];
-        }
-        x
+        self.unpermuted(&w)
     }
 }
 
@@ -424,12 +443,9 @@ impl SupernodalFactor {
     /// [`SupernodalFactor::solve`] with inverted diagonal blocks, as the GPU
     /// runs it: `y_s = L_ss^-1 (b_s - updates)`, `x_s = L_ss^-T (y_s - ...)`.
     fn solve_inverted(&self, b: &[f64]) -> Vec<f64> {
-        let n = self.perm.len();
-        let mut w: Vec<f64> = (0..n).map(|i| b[self.perm[i] as usize]).collect();
+        let mut w = self.permuted(b);
         for s in 0..self.len() {
-            let (m, q) = self.shape(s);
-            let (c0, v, nr) = (self.begin[s] as usize, self.val_ptr[s] as usize, m + q);
-            let rows = &self.rows[self.row_ptr[s] as usize..self.row_ptr[s + 1] as usize];
+            let (c0, m, v, nr, rows) = self.block(s);
             let y: Vec<f64> = (0..m)
                 .map(|i| {
                     (0..=i)
@@ -444,9 +460,7 @@ impl SupernodalFactor {
             }
         }
         for s in (0..self.len()).rev() {
-            let (m, q) = self.shape(s);
-            let (c0, v, nr) = (self.begin[s] as usize, self.val_ptr[s] as usize, m + q);
-            let rows = &self.rows[self.row_ptr[s] as usize..self.row_ptr[s + 1] as usize];
+            let (c0, m, v, nr, rows) = self.block(s);
             let t: Vec<f64> = (0..m)
                 .map(|k| {
                     let below: f64 = rows
@@ -461,11 +475,7 @@ impl SupernodalFactor {
                 w[c0 + k] = (k..m).map(|i| self.value(v + k * nr + i) * t[i]).sum();
             }
         }
-        let mut x = vec![0.0; n];
-        for i in 0..n {
-            x[self.perm[i] as usize] = w[i];
-        }
-        x
+        self.unpermuted(&w)
     }
 }
 

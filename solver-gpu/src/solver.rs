@@ -479,37 +479,22 @@ impl GpuSolver {
         let spmv = k.spmv(h.bs);
         let mut ws = k.pcg.workspace(&self.ctx, &spmv, &matrix, h.n(), 1, want)?;
         // An f64 factor's solves read and write the f64 vectors in place.
-        let f64_chol = self
-            .chol
-            .as_ref()
-            .filter(|f| f.precision == precision::Precision::F64);
-        if let Some(f) = f64_chol {
-            ws.chol = Some(supernodal::SupernodalSteps::new(
-                &self.ctx,
-                self.chol_kernels.as_ref().unwrap(),
-                f,
-                &ws.r,
-                &ws.z,
-                h.bs,
-                ws.cmax,
-            )?);
+        ws.chol = self.cholesky_steps(precision::Precision::F64, &ws.r, &ws.z, h.bs, ws.cmax)?;
+        if ws.chol.is_some() {
             self.mixed = Some(MixedData { stamp, matrix, ws });
             self.mixed_builds += 1;
             return Ok(());
         }
         let narrow = pcg::Narrow::new(&self.ctx, &k.convert, &ws)?;
-        match (&self.chol, &self.squared) {
-            (Some(f), _) => {
-                ws.chol = Some(supernodal::SupernodalSteps::new(
-                    &self.ctx,
-                    self.chol_kernels.as_ref().unwrap(),
-                    f,
-                    &narrow.r32,
-                    &narrow.z32,
-                    h.bs,
-                    ws.cmax,
-                )?)
-            }
+        let f32_chol = self.cholesky_steps(
+            precision::Precision::F32,
+            &narrow.r32,
+            &narrow.z32,
+            h.bs,
+            ws.cmax,
+        )?;
+        match (f32_chol, &self.squared) {
+            (Some(steps), _) => ws.chol = Some(steps),
             (None, Some((_, mt))) => {
                 let g = self.amg_gpu.as_ref().unwrap();
                 ws.squared = Some(amg_gpu::SquaredSteps::new(
@@ -736,6 +721,24 @@ impl GpuSolver {
         );
         self.amg_host = Some(hier);
         self.amg_setup_seconds = t.elapsed().as_secs_f64();
+    }
+
+    /// The Cholesky preconditioner's steps for the vectors `r` and `z` of a
+    /// workspace of `precision`, where its factor is of that precision.
+    fn cholesky_steps(
+        &self,
+        precision: precision::Precision,
+        r: &wgpu::Buffer,
+        z: &wgpu::Buffer,
+        bs: usize,
+        cmax: usize,
+    ) -> Result<Option<supernodal::SupernodalSteps>, GpuError> {
+        match (&self.chol, &self.chol_kernels) {
+            (Some(f), Some(k)) if f.precision == precision => Ok(Some(
+                supernodal::SupernodalSteps::new(&self.ctx, k, f, r, z, bs, cmax)?,
+            )),
+            _ => Ok(None),
+        }
     }
 
     /// Most columns one PCG batch carries: [`CMAX`], fewer where the Cholesky
@@ -1052,21 +1055,9 @@ impl GpuSolver {
             want,
         )?;
         let mut ws = ws;
-        let chol = self
-            .chol
-            .as_ref()
-            .filter(|f| f.precision == precision::Precision::F32);
-        if let Some(f) = chol {
-            ws.chol = Some(supernodal::SupernodalSteps::new(
-                &self.ctx,
-                self.chol_kernels.as_ref().unwrap(),
-                f,
-                &ws.r,
-                &ws.z,
-                h.bs,
-                ws.cmax,
-            )?);
-        } else if let (Some(g), Some((_, mt))) = (&self.amg_gpu, &self.squared) {
+        ws.chol = self.cholesky_steps(precision::Precision::F32, &ws.r, &ws.z, h.bs, ws.cmax)?;
+        let amg = self.amg_gpu.as_ref().filter(|_| ws.chol.is_none());
+        if let (Some(g), Some((_, mt))) = (amg, &self.squared) {
             ws.squared = Some(amg_gpu::SquaredSteps::new(
                 &self.ctx,
                 &self.k.amg,
@@ -1076,7 +1067,7 @@ impl GpuSolver {
                 &ws.z,
                 ws.cmax,
             )?);
-        } else if let Some(g) = &self.amg_gpu {
+        } else if let Some(g) = amg {
             ws.amg = Some(amg_gpu::VcycleWorkspace::new(
                 &self.ctx,
                 &self.k.amg,
