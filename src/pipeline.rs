@@ -462,7 +462,7 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
     let mut shape_solver = o.backend.shape_solver()?;
     shape_solver.set_system_kind(SystemKind::ScaleDriven);
     let mut model = ShapeModel::with_solver(mesh, &p.topo, p.handles.clone(), shape_solver)?;
-    let face_ordering = fill_orderings(p, o, &mut model);
+    let face_ordering = fill_orderings(p, &mut model);
     crate::memory::release_free_memory();
     model
         .solver()
@@ -690,17 +690,16 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
     })
 }
 
-/// The CPU backends' two large factorizations (scale factors on faces, Eq. 3;
-/// the shape preconditioner on vertices, Eq. 7) each begin with a METIS nested
-/// dissection, several seconds apiece at a million faces. Their patterns are
-/// known once the shape model is set up, so both orderings are computed here at
-/// the same time on two threads; the shape model's solver gets its ordering, the
-/// face ordering is returned for the scale-factor solver. Sizes below
-/// [`NESTED_DISSECTION_FROM`] keep the solvers' own (AMD) choice.
-fn fill_orderings(p: &Problem, o: &Options, model: &mut ShapeModel) -> Option<Vec<usize>> {
-    if !matches!(o.backend, SolverBackend::Cpu | SolverBackend::CpuDirect) {
-        return None;
-    }
+/// Every backend's two large factorizations (scale factors on faces, Eq. 3;
+/// the shape preconditioner on vertices, Eq. 7; made on the host, and
+/// uploaded as the GPU backend's Cholesky preconditioners) each begin with a
+/// METIS nested dissection, several seconds apiece at a million faces. Their
+/// patterns are known once the shape model is set up, so both orderings are
+/// computed here at the same time on two threads; the shape model's solver
+/// gets its ordering, the face ordering is returned for the scale-factor
+/// solver. Sizes below [`NESTED_DISSECTION_FROM`] keep the solvers' own (AMD)
+/// choice.
+fn fill_orderings(p: &Problem, model: &mut ShapeModel) -> Option<Vec<usize>> {
     let (nf, nv) = (p.mesh.num_faces(), p.mesh.num_vertices());
     let faces_big = !p.constraints.is_empty() && nf >= NESTED_DISSECTION_FROM;
     let vertices_big = nv >= NESTED_DISSECTION_FROM;

@@ -224,6 +224,28 @@ impl CholeskySolver {
         }
     }
 
+    /// Stored values of the largest supernode (its `(m + q) x m` block: the
+    /// diagonal block and the rows below it; a simplicial factor's largest
+    /// column); 0 before the symbolic analysis. Where a factor is split over
+    /// several buffers at supernode boundaries, the smallest piece possible.
+    pub fn largest_supernode_nnz(&self) -> usize {
+        match self.symbolic.as_ref().map(|s| s.raw()) {
+            None => 0,
+            Some(SymbolicCholeskyRaw::Simplicial(s)) => s
+                .col_ptr()
+                .windows(2)
+                .map(|w| (w[1] - w[0]) as usize)
+                .max()
+                .unwrap_or(0),
+            Some(SymbolicCholeskyRaw::Supernodal(s)) => s
+                .col_ptr_for_val()
+                .windows(2)
+                .map(|w| (w[1] - w[0]) as usize)
+                .max()
+                .unwrap_or(0),
+        }
+    }
+
     /// Floating-point operations of one numeric factorization, `sum_j c_j^2`
     /// over the factor's column counts `c_j` (0 before the symbolic analysis):
     /// a cost measure that is the same on every run, unlike a timing.

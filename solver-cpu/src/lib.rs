@@ -366,6 +366,8 @@ mod tests {
             assert_eq!(f.rows.len(), slots);
             assert_eq!(f.values64.is_empty(), single);
             assert_eq!(f.val_ptr.last().copied(), Some(f.nnz() as u64));
+            let largest = f.val_ptr.windows(2).map(|w| w[1] - w[0]).max();
+            assert_eq!(largest, Some(solver.largest_supernode_nnz() as u64));
             if supernodal {
                 assert!(
                     (0..f.len()).any(|s| f.shape(s).0 > 1),

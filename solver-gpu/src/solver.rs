@@ -217,7 +217,7 @@ pub fn open_with(opts: OpenOptions) -> Result<GpuSolver, GpuError> {
             c.supernodal = true;
             c
         },
-        chol_unavailable: false,
+        chol_unavailable: [false; 2],
     })
 }
 
@@ -325,9 +325,10 @@ pub struct GpuSolver {
     chol_kind: Option<SystemKind>,
     chol_kernels: Option<std::sync::Arc<supernodal::SupernodalKernels>>,
     chol_host: solver_cpu::CholeskySolver,
-    /// The factor could not be made or kept on this device: the squared
-    /// Laplacian serves instead for the rest of the run.
-    chol_unavailable: bool,
+    /// The factor could not be made or kept on this device, for the shape
+    /// systems ([0]) or the scale factors ([1]): the squared Laplacian or AMG
+    /// serves instead for the rest of the run.
+    chol_unavailable: [bool; 2],
 }
 
 /// The f64 kernels of the mixed-precision solve.
@@ -750,11 +751,45 @@ impl GpuSolver {
         }
     }
 
-    /// Whether the next shape matrix is preconditioned by the Cholesky factor.
+    /// Whether the next matrix is preconditioned by a Cholesky factor: that
+    /// of K for the shape systems (`prepare_shape_owned`), the matrix's own
+    /// for the scale factors' constant Hessian (`prepare`, scalar).
     fn cholesky_wanted(&self) -> bool {
-        self.preconditioner == Preconditioner::Cholesky
-            && !self.chol_unavailable
-            && matches!(self.kind, SystemKind::ScaleDriven | SystemKind::FineTune)
+        self.preconditioner == Preconditioner::Cholesky && !self.chol_unavailable[self.chol_group()]
+    }
+
+    /// Which of [`Self::chol_unavailable`] the current kind reads: the shape
+    /// systems share one (their factors are of the same size), the scale
+    /// factors have their own.
+    fn chol_group(&self) -> usize {
+        usize::from(self.kind == SystemKind::ScaleFactors)
+    }
+
+    /// Keep the Cholesky preconditioner of this kind (`current`: it was made
+    /// for this pattern and kind), or set it up by factoring `k()`; where that
+    /// fails (over the storage bindings, or not positive definite in the
+    /// factor's precision) the kind's other preconditioner is used for the
+    /// rest of the run.
+    fn cholesky_for_kind(&mut self, current: bool, k: impl FnOnce() -> SymCsc) {
+        if !self.cholesky_wanted() {
+            self.drop_cholesky();
+            return;
+        }
+        if current && self.chol.is_some() && self.chol_kind == Some(self.kind) {
+            return;
+        }
+        if let Err(e) = self.setup_cholesky(k()) {
+            log::warn!(
+                "Cholesky preconditioner ({:?} system) unavailable ({e}); {} instead",
+                self.kind,
+                match self.kind {
+                    SystemKind::ScaleFactors => "AMG",
+                    _ => "the squared Laplacian",
+                }
+            );
+            self.drop_cholesky();
+            self.chol_unavailable[self.chol_group()] = true;
+        }
     }
 
     fn drop_cholesky(&mut self) {
@@ -765,10 +800,13 @@ impl GpuSolver {
         }
     }
 
-    /// Factor the isotropic part of `a` (held rows identity) on the host and
-    /// upload it: the preconditioner of this system kind for the rest of the
-    /// run. Any other preconditioner is released.
-    fn setup_cholesky(&mut self, a: &IsoRingSym3, fixed: &[bool]) -> Result<(), GpuError> {
+    /// Factor `k` on the host and upload the factor: the preconditioner of
+    /// this system kind for the rest of the run. For the shape systems `k` is
+    /// the isotropic part K of the matrix (held rows identity); for the scale
+    /// factors the Hessian of Eq. 3 itself, which is constant, so that the
+    /// PCG converges in an iteration or two a round. Any other preconditioner
+    /// is released.
+    fn setup_cholesky(&mut self, k: SymCsc) -> Result<(), GpuError> {
         let t = std::time::Instant::now();
         self.setups += 1;
         self.drop_cholesky();
@@ -789,7 +827,6 @@ impl GpuSolver {
             self.chol_host.supernodal = true;
             self.chol_host.ordering = ordering;
         }
-        let k = a.iso_held_identity(fixed);
         let backend = |e: SolverError| GpuError::Backend(format!("Cholesky factor of K: {e}"));
         // The factor's size is known from the symbolic analysis: one that
         // would not fit the device's storage bindings is refused before the
@@ -1090,7 +1127,14 @@ impl GpuSolver {
                 x[c * n..(c + 1) * n].fill(0.0);
             }
         }
-        let start_mixed = self.mixed_precision.starts_mixed(self.kind) || self.mixed_sticky;
+        // The scale factors' own (f32) factor makes each f64 iteration gain
+        // about seven digits: one mixed round of two or three iterations
+        // ends the solve, where the f32 PCG needs two rounds (two waits).
+        let exact_factor = self.kind == SystemKind::ScaleFactors
+            && self.chol.is_some()
+            && self.mixed_precision == MixedPrecision::ByKind;
+        let start_mixed =
+            self.mixed_precision.starts_mixed(self.kind) || self.mixed_sticky || exact_factor;
         if start_mixed && self.mixed_available() {
             return self.solve_batch_mixed(b, x, ncols, 0);
         }
@@ -1334,8 +1378,11 @@ impl SpdSolver for GpuSolver {
                 a.row_idx.len()
             )));
         }
-        self.drop_cholesky();
         let same = self.same_pattern(1, &a.col_ptr, &a.row_idx);
+        match self.kind {
+            SystemKind::ScaleFactors => self.cholesky_for_kind(same, || a.clone()),
+            _ => self.drop_cholesky(),
+        }
         let mut h = self.take_host(same, a.n, 1, &a.col_ptr, &a.row_idx)?;
         h.fill_scalar(a);
         self.upload(h, same, None).map_err(Into::into)
@@ -1389,19 +1436,11 @@ impl SpdSolver for GpuSolver {
         if !(same && self.ring_slots.as_ref().is_some_and(|r| r.of(&a.rings))) {
             self.ring_slots = Some(RingSlots::new(&a.rings, col_ptr, row_idx)?);
         }
-        if self.cholesky_wanted() {
-            let current = same && self.chol.is_some() && self.chol_kind == Some(self.kind);
-            if !current {
-                if let Err(e) = self.setup_cholesky(&a, fixed) {
-                    log::warn!(
-                        "Cholesky preconditioner unavailable ({e}); the squared Laplacian instead"
-                    );
-                    self.drop_cholesky();
-                    self.chol_unavailable = true;
-                }
+        match self.kind {
+            SystemKind::ScaleDriven | SystemKind::FineTune => {
+                self.cholesky_for_kind(same, || a.iso_held_identity(fixed))
             }
-        } else {
-            self.drop_cholesky();
+            SystemKind::ScaleFactors => self.drop_cholesky(),
         }
         let mut h = self.take_host(same, n, 3, col_ptr, row_idx)?;
         let slots = self.ring_slots.as_ref().unwrap();

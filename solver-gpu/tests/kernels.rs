@@ -1487,3 +1487,71 @@ fn cholesky_factor_over_the_binding_limit_falls_back() {
     let e = rel_err(&x, &y);
     assert!(e < 1e-8, "GPU against CPU {e:e}");
 }
+
+/// The scale factors' Hessian (Eq. 3) is constant for a run: the GPU solver
+/// factors it once (f32) and preconditions its PCG with that exact factor, so
+/// the f64 iteration ends in one round of a few iterations, one host wait.
+#[test]
+fn scale_factor_system_is_preconditioned_by_its_own_factor() {
+    let Some(mut s) = gpu() else { return };
+    let mut rng = Rng(41);
+    let a = spd_scalar(30_000, &mut rng);
+    s.set_system_kind(SystemKind::ScaleFactors);
+    s.prepare(&a).unwrap();
+    assert_eq!(s.active_preconditioner(), Preconditioner::Cholesky);
+    assert_eq!(kernels::cholesky_is_f64(&s), Some(false));
+    let mut reference = CholeskySolver::new();
+    reference.prepare(&a).unwrap();
+    // The preconditioner is the factor's solve, to f32.
+    let r = rng.vec(2 * a.n);
+    let z = kernels::cholesky(&mut s, &f32s(&r), 2).unwrap();
+    let mut want = r.clone();
+    reference.solve_in_place(&mut want, 2).unwrap();
+    let got: Vec<f64> = z.iter().map(|&v| v as f64).collect();
+    let e = rel_err(&got, &want);
+    assert!(e < 1e-4, "factor solve against the f64 reference: {e:e}");
+    // The solves: as the CPU's direct solve, in a few iterations.
+    s.set_tolerance(1e-10);
+    let ncols = 4;
+    for solve in 0..2 {
+        let b = rng.vec(ncols * a.n);
+        let mut x = vec![0.0; b.len()];
+        let waits = s.counters().device_waits;
+        let info = s.solve_with_guess(&b, &mut x, ncols).unwrap();
+        let waits = s.counters().device_waits - waits;
+        let mut y = b.clone();
+        reference.solve_in_place(&mut y, ncols).unwrap();
+        let e = rel_err(&x, &y);
+        assert!(e < 1e-9, "solve {solve}: GPU against CPU {e:e}");
+        assert!(
+            info.iterations <= 3,
+            "solve {solve}: {} iterations",
+            info.iterations
+        );
+        if s.adapter().shader_f64 {
+            // One mixed round; the second solve's batch is sized by the first.
+            let most = if solve == 0 { 2 } else { 1 };
+            assert!(waits <= most, "solve {solve}: {waits} waits");
+        }
+    }
+    // The same (constant) matrix again keeps the factor.
+    let setups = s.counters().preconditioner_setups;
+    s.prepare(&a).unwrap();
+    assert_eq!(s.counters().preconditioner_setups, setups);
+    assert_eq!(s.active_preconditioner(), Preconditioner::Cholesky);
+    // The f32 PCG with the same factor converges too (refinement rounds).
+    s.set_mixed_precision(MixedPrecision::Never);
+    let b = rng.vec(a.n);
+    let mut x = vec![0.0; b.len()];
+    s.set_tolerance(1e-8);
+    let info = s.solve_with_guess(&b, &mut x, 1).unwrap();
+    let mut y = b.clone();
+    reference.solve_in_place(&mut y, 1).unwrap();
+    let e = rel_err(&x, &y);
+    assert!(e < 1e-7, "f32 PCG against CPU {e:e}");
+    assert!(
+        info.iterations <= 6,
+        "f32 PCG: {} iterations",
+        info.iterations
+    );
+}
