@@ -26,7 +26,7 @@
 // entry (i, k) at vals[vo + k (m + q) + i]; the first m rows hold L_ss^-1.
 //
 // Bindings (group 0):
-//   0  P        uniform  own, n_own: this level's own rows (columns) at
+//   0  P        uniform  own, n_own: this level segment's own rows (columns) at
 //                        idx[o_cols + own ..]; below, n_below: its slots at
 //                        idx[o_slots + below ..]; nv: rows of K; stride: length
 //                        of one PCG column (nv * bs); bs: unknowns per vertex;
@@ -38,7 +38,9 @@
 //                        o_tpos); the columns by level (o_cols) and each
 //                        column's supernode (o_owner); the slots by level
 //                        (o_slots) and each slot's supernode (o_slot_owner).
-//   2  vals     read     the factor's values (f32; this shader is also
+//   2  vals     read     the values of this dispatch's supernodes: one of the
+//                        buffers the factor's values are cut into at supernode
+//                        boundaries (vo is an offset in it). (f32; this shader is also
 //                        compiled in f64, every f32 made f64, for the f64
 //                        factor and the mixed-precision PCG's f64 vectors).
 //   3  w        rw       work vector, nv x C (C = bs * NCOLS scalar columns;

@@ -133,9 +133,9 @@ fn open_gpu() -> Result<Box<dyn SpdSolver>> {
 /// (BENCHMARKS.md, "`auto` crossover"). `None`: at no measured size from
 /// which on. On an NVIDIA H100 against its 16-core host (2026-11-24, the
 /// Cholesky preconditioner) the GPU backend was 1.50x slower at 108k faces,
-/// 1.25x faster at 1.2M, and slower at 4.3M, where its factor does not fit
-/// one storage binding; so `auto` uses the CPU until the GPU is ahead from
-/// some size on.
+/// 1.25x faster at 1.2M, and slower at 4.3M, where its factor did not fit
+/// one storage binding then (split over several since, not yet measured);
+/// so `auto` uses the CPU until the GPU is measured ahead from some size on.
 pub const GPU_FASTER_FROM_FACES: Option<usize> = None;
 
 /// Whether `--backend auto` runs a mesh of `faces` faces on the GPU: only on

@@ -464,6 +464,40 @@ impl Context {
         Ok(b)
     }
 
+    /// A storage buffer holding the concatenation of `pieces` (`bytes` in
+    /// all, a multiple of 4), written through one staging allocation that is
+    /// handed to the queue at once: no host copy of the whole is made, and
+    /// several such buffers do not pile up their staging memory.
+    pub fn storage_from_pieces<'a>(
+        &self,
+        what: &str,
+        bytes: u64,
+        pieces: impl IntoIterator<Item = &'a [u8]>,
+    ) -> Result<wgpu::Buffer, GpuError> {
+        let b = self.storage(what, bytes)?;
+        let Some(size) = wgpu::BufferSize::new(bytes) else {
+            return Ok(b);
+        };
+        let mut view = self.queue.write_buffer_with(&b, 0, size).ok_or_else(|| {
+            GpuError::Backend(format!("{what}: no staging memory for {bytes} bytes"))
+        })?;
+        let mut at = 0usize;
+        for p in pieces {
+            let end = at + p.len();
+            if end as u64 > bytes {
+                return Err(GpuError::Backend(format!(
+                    "{what}: pieces longer than {bytes} bytes"
+                )));
+            }
+            view.slice(at..end).copy_from_slice(p);
+            at = end;
+        }
+        drop(view);
+        self.queue.submit(std::iter::empty());
+        self.traffic.to_device.fetch_add(bytes, Ordering::Relaxed);
+        Ok(b)
+    }
+
     pub fn uniform(&self, what: &str, p: &Params) -> Result<wgpu::Buffer, GpuError> {
         self.uniform_of(what, p)
     }

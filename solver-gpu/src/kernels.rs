@@ -303,6 +303,12 @@ pub fn cholesky_is_f64(s: &GpuSolver) -> Option<bool> {
         .map(|f| f.precision == crate::precision::Precision::F64)
 }
 
+/// Storage buffers the active Cholesky preconditioner's values are split
+/// into (one where they fit a binding); `None` when it is not active.
+pub fn cholesky_chunks(s: &GpuSolver) -> Option<usize> {
+    s.chol.as_ref().map(|f| f.chunks())
+}
+
 /// Levels of the active Cholesky preconditioner's elimination tree (dispatches
 /// per triangular solve), and its stored values; `None` when it is not active.
 pub fn cholesky_shape(s: &GpuSolver) -> Option<(usize, usize)> {

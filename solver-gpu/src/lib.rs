@@ -61,8 +61,14 @@
 //! z = P^T L^-T L^-1 P r      GPU, per level of the elimination tree: dot products
 //! ```
 //!
-//! (`supernodal`, `shaders/supernodal.wgsl`). A factor that does not fit one
-//! storage binding, or an f32 one that breaks down, falls back to the
+//! (`supernodal`, `shaders/supernodal.wgsl`; the values split over several
+//! storage bindings at supernode boundaries where they exceed one). The
+//! **scale-factor system** (Eq. 3, scalar, its Hessian constant for the run)
+//! is preconditioned the same way by its own factor, in f32: an exact
+//! preconditioner, so its f64 PCG ends in one round of 1-2 iterations. A
+//! factor whose largest supernode does not fit one storage binding, or an f32
+//! one that breaks down, falls back: the scale factors to the AMG V-cycle
+//! below, the shape systems to the
 //! **squared Laplacian** ([`Preconditioner::SquaredLaplacian`]): their
 //! isotropic part is close to `S Mt^-1 S + c S` (`S` the input's cotangent
 //! Laplacian; E_m's bi-Laplacian and E_f's Laplacian,
@@ -83,7 +89,7 @@
 //! input mesh and the weights only: it is set up once per run and never
 //! refreshed, whatever the outer iteration's matrix values.
 //!
-//! Every other system is preconditioned by one **smoothed-aggregation AMG
+//! Every other system (or every system, as asked) is preconditioned by one **smoothed-aggregation AMG
 //! V-cycle** ([`Preconditioner::AffineAmg`]:
 //! hierarchy built on the CPU in f64 by [`amg`] once per system kind
 //! ([`SpdSolver::set_system_kind`](solver_cpu::SpdSolver::set_system_kind): scale factors, scale-driven shape,

@@ -112,8 +112,12 @@ mod tests {
 /// precision policy"): on the shape systems the f32 PCG converges far slower
 /// than the f64 one with the same f32 preconditioner (its recurrence loses
 /// conjugacy, and each refinement round restarts it), so those start in mixed
-/// precision; the scale-factor systems converge in f32 in one or two rounds
-/// of 8-18 iterations and keep the f32 kernels, which move fewer bytes.
+/// precision; the scale-factor systems converged in f32 in one or two rounds
+/// of 8-18 iterations with the AMG V-cycle and keep the f32 kernels there,
+/// which move fewer bytes. Preconditioned by their own (f32) Cholesky factor,
+/// the default, they too start in mixed precision: each f64 iteration then
+/// gains about seven digits, and one round of 1-2 iterations (one host wait)
+/// ends the solve where f32 refinement needs two rounds.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum MixedPrecision {
     /// After f32 refinement stagnates (the system is too ill-conditioned for
@@ -121,7 +125,8 @@ pub enum MixedPrecision {
     /// every later solve of the same matrix pattern starts in mixed precision.
     Fallback,
     /// The shape systems ([`SystemKind::ScaleDriven`], [`SystemKind::FineTune`])
-    /// in mixed precision from their first solve; the scale-factor systems as
+    /// in mixed precision from their first solve; the scale-factor systems
+    /// too where their Cholesky factor preconditions them, else as
     /// [`MixedPrecision::Fallback`].
     #[default]
     ByKind,

@@ -60,9 +60,13 @@ pub enum Preconditioner {
     /// factor of their isotropic part `K` (held rows identity), made on the host
     /// once per system kind per run and applied on the GPU by level-scheduled
     /// triangular solves (`supernodal.rs`, `shaders/supernodal.wgsl`), the CPU backend's
-    /// preconditioner. Where the factor cannot be made or does not fit the
-    /// device, the shape systems fall back to `SquaredLaplacian`; every other
-    /// system (the scale factors') as `AffineAmg`.
+    /// preconditioner. For the scale factors' scalar system
+    /// ([`solver_cpu::SystemKind::ScaleFactors`], prepared by
+    /// [`solver_cpu::SpdSolver::prepare`]): that matrix's own factor, in f32
+    /// (exact but for rounding: one f64 round of 1-2 iterations). A factor's
+    /// values may span several storage bindings; where its largest supernode
+    /// does not fit one, or it cannot be made, the shape systems fall back to
+    /// `SquaredLaplacian` and the scale factors to `AffineAmg` (a scalar AMG).
     #[default]
     Cholesky,
 }

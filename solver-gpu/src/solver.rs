@@ -827,23 +827,31 @@ impl GpuSolver {
             self.chol_host.supernodal = true;
             self.chol_host.ordering = ordering;
         }
-        let backend = |e: SolverError| GpuError::Backend(format!("Cholesky factor of K: {e}"));
-        // The factor's size is known from the symbolic analysis: one that
+        let backend = |e: SolverError| GpuError::Backend(format!("Cholesky factor: {e}"));
+        // The factor's sizes are known from the symbolic analysis: one that
         // would not fit the device's storage bindings is refused before the
-        // numeric factorization.
+        // numeric factorization. Its values are split over as many bindings
+        // as they need, at supernode boundaries ([`supernodal::GpuFactor`]):
+        // the largest supernode, and the updates of one PCG column, must
+        // each fit one.
         self.chol_host.analyse(&k).map_err(backend)?;
         let b = precision.bytes();
         let limit = matrix::binding_limit(&self.ctx);
-        let values = self.chol_host.factor_nnz() as u64 * b;
-        let update_column = self.chol_host.factor_slots() as u64 * 3 * b;
-        if values > limit || update_column > limit {
+        let supernode = self.chol_host.largest_supernode_nnz() as u64 * b;
+        let bs = if self.kind == SystemKind::ScaleFactors {
+            1
+        } else {
+            3
+        };
+        let update_column = self.chol_host.factor_slots() as u64 * bs * b;
+        if supernode > limit || update_column > limit {
             return Err(GpuError::LimitExceeded {
                 what: format!(
-                    "the Cholesky factor's values ({values} bytes) or one column of its updates \
-                     ({update_column} bytes)"
+                    "the Cholesky factor's largest supernode ({supernode} bytes) or one column \
+                     of its updates ({update_column} bytes)"
                 ),
                 limit_name: "max_storage_buffer_binding_size",
-                needed: values.max(update_column),
+                needed: supernode.max(update_column),
                 limit,
             });
         }
@@ -867,17 +875,18 @@ impl GpuSolver {
         self.amg_gpu = None;
         self.squared = None;
         self.amg_kind = None;
-        let g = supernodal::GpuFactor::upload(&self.ctx, &f)?;
+        let g = supernodal::GpuFactor::upload(&self.ctx, &f, limit)?;
         self.ctx.check()?;
         log::debug!(
             "Cholesky preconditioner ({:?} system, {:?}): {} unknowns, {} supernodes, {} levels, \
-             nnz(L) {}, factor {factor_seconds:.3} s, setup {:.3} s",
+             nnz(L) {} in {} buffers, factor {factor_seconds:.3} s, setup {:.3} s",
             self.kind,
             precision,
             g.nv,
             f.len(),
             g.depth(),
             g.nnz,
+            g.chunks(),
             t.elapsed().as_secs_f64()
         );
         self.chol = Some(g);

@@ -3,7 +3,8 @@
 //! ([`crate::Preconditioner::Cholesky`]), with `L L^T = P K P^T` the
 //! supernodal Cholesky factor of the matrix's isotropic part `K` (`K_ij =
 //! tr(A_ij) / 3`, the held rows identity), as the CPU backend's block PCG
-//! preconditions the same systems (`solver_cpu::pcg`).
+//! preconditions the same systems (`solver_cpu::pcg`); and, with `bs = 1`, the
+//! scale factors' (the factor of their constant Hessian itself).
 //!
 //! The factor is made on the host once per system kind per run (faer, nested
 //! dissection: a shallow elimination tree), its diagonal blocks inverted there
@@ -17,8 +18,12 @@
 //! the level, a dot product each: the dense separators at the top of the tree
 //! spread over the whole GPU instead of one workgroup.
 //!
+//! The values are stored level by level and cut into buffers of at most one
+//! storage binding at supernode boundaries ([`GpuFactor::upload`]); a level
+//! whose supernodes span two buffers is dispatched as two segments.
+//!
 //! Bindings (group 0), as documented in the shader: 0 `P` uniform
-//! ([`SnParams`], one per level), 1 `idx` (the index sections), 2 `vals`,
+//! ([`SnParams`], one per segment of a level), 1 `idx` (the index sections), 2 `vals` (the segment's buffer),
 //! 3 `w`, 4 `y`, 5 `r`, 6 `z`, 7 `contrib` (3, 4, 6, 7 read-write).
 
 use crate::device::{dispatch, Bind, Context, Kernel, KernelWork, Shader, FLAT_WG};
@@ -87,14 +92,17 @@ impl SupernodalKernels {
 /// A supernodal factor on the GPU, with its level schedule.
 pub(crate) struct GpuFactor {
     idx: wgpu::Buffer,
-    vals: wgpu::Buffer,
+    /// The values, in chunks of at most one storage binding each, split at
+    /// supernode boundaries (a supernode's `vo` is its offset in its chunk).
+    vals: Vec<wgpu::Buffer>,
     /// Offsets of the sections of `idx` (as in `SnParams::offsets`).
     offsets: [u32; 9],
     /// Slots of `rows` (one update per slot and column in `contrib`).
     slots: usize,
-    /// Per level, leaves first: `(first, count)` of its columns and of its
-    /// slots in their sections.
-    levels: Vec<[u32; 4]>,
+    /// Per level, leaves first, its segments: `[first, count]` of their
+    /// columns and of their slots in those sections, and the chunk of
+    /// `vals` their values are in (one dispatch per segment and kernel).
+    levels: Vec<Vec<[u32; 5]>>,
     /// Rows of `K`.
     pub nv: usize,
     /// Stored values of the factor.
@@ -132,8 +140,13 @@ fn levels(f: &SupernodalFactor) -> Option<Vec<u32>> {
 }
 
 impl GpuFactor {
-    /// Upload `f` (its diagonal blocks inverted; indices in u32).
-    pub fn upload(ctx: &Context, f: &SupernodalFactor) -> Result<GpuFactor, GpuError> {
+    /// Upload `f` (its diagonal blocks inverted; indices in u32). The values
+    /// are stored level by level, leaves first, and cut into chunks of at
+    /// most `limit` bytes (one storage binding) at supernode boundaries, so
+    /// that a level's supernodes share one chunk but where a cut falls: a
+    /// factor larger than a binding (homer 4.3M's f64 factor, 3.5 GB, against
+    /// the H100's 2 GiB) costs a few dispatches more, not the preconditioner.
+    pub fn upload(ctx: &Context, f: &SupernodalFactor, limit: u64) -> Result<GpuFactor, GpuError> {
         let ns = f.len();
         let bad = |what: &str| GpuError::Backend(format!("supernodal factor: {what}"));
         if !f.inverted {
@@ -143,52 +156,78 @@ impl GpuFactor {
         let n = f.perm.len();
         let nrows = f.rows.len();
         let total = 5 * ns + nrows + n + (n + 1) + nrows + 2 * n + 2 * nrows;
-        if f.nnz() > u32::MAX as usize || total > u32::MAX as usize {
+        if total > u32::MAX as usize {
             return Err(GpuError::LimitExceeded {
-                what: "a Cholesky factor's values or index sections (32-bit offsets)".into(),
+                what: "a Cholesky factor's index sections (32-bit offsets)".into(),
                 limit_name: "u32::MAX",
-                needed: f.nnz().max(total) as u64,
+                needed: total as u64,
                 limit: u32::MAX as u64,
             });
         }
+        let precision = match f.values64.is_empty() {
+            true => Precision::F32,
+            false => Precision::F64,
+        };
+        let b = precision.bytes();
         let depth = level.iter().max().map_or(0, |&l| l as usize + 1);
-        // Columns and slots per level, in supernode order within a level.
-        let mut cols_at = vec![0u32; depth + 1];
-        let mut slots_at = vec![0u32; depth + 1];
-        for (s, &l) in level.iter().enumerate() {
-            let (m, q) = f.shape(s);
-            cols_at[l as usize + 1] += m as u32;
-            slots_at[l as usize + 1] += q as u32;
+        // Supernodes by level, leaves first (by index within a level).
+        let mut order: Vec<usize> = (0..ns).collect();
+        order.sort_by_key(|&s| (level[s], s));
+        // Chunks of at most `cap` values, in that order.
+        let cap = (limit / b).min(u32::MAX as u64) as usize;
+        let size = |s: usize| (f.val_ptr[s + 1] - f.val_ptr[s]) as usize;
+        let mut chunk = vec![0u32; ns];
+        let mut vo = vec![0u32; ns];
+        let mut chunk_len = vec![0usize];
+        for &s in &order {
+            if size(s) > cap {
+                return Err(GpuError::LimitExceeded {
+                    what: format!(
+                        "one supernode of a Cholesky factor ({} x {} values)",
+                        f.shape(s).0 + f.shape(s).1,
+                        f.shape(s).0
+                    ),
+                    limit_name: "max_storage_buffer_binding_size",
+                    needed: size(s) as u64 * b,
+                    limit,
+                });
+            }
+            if chunk_len[chunk_len.len() - 1] + size(s) > cap {
+                chunk_len.push(0);
+            }
+            let k = chunk_len.len() - 1;
+            chunk[s] = k as u32;
+            vo[s] = chunk_len[k] as u32;
+            chunk_len[k] += size(s);
         }
-        for l in 0..depth {
-            cols_at[l + 1] += cols_at[l];
-            slots_at[l + 1] += slots_at[l];
-        }
-        let levels: Vec<[u32; 4]> = (0..depth)
-            .map(|l| {
-                [
-                    cols_at[l],
-                    cols_at[l + 1] - cols_at[l],
-                    slots_at[l],
-                    slots_at[l + 1] - slots_at[l],
-                ]
-            })
-            .collect();
-        let mut cols = vec![0u32; n];
+        // The columns and slots in that order, and each level's segments.
+        let mut levels: Vec<Vec<[u32; 5]>> = vec![Vec::new(); depth];
+        let mut cols = Vec::with_capacity(n);
         let mut owner = vec![0u32; n];
-        let mut slots = vec![0u32; nrows];
+        let mut slots = Vec::with_capacity(nrows);
         let mut slot_owner = vec![0u32; nrows];
-        let (mut nc, mut nsl) = (cols_at, slots_at);
-        for (s, &l) in level.iter().enumerate() {
-            let l = l as usize;
+        for &s in &order {
+            let (m, q) = f.shape(s);
+            let segments = &mut levels[level[s] as usize];
+            match segments.last_mut() {
+                Some(g) if g[4] == chunk[s] => {
+                    g[1] += m as u32;
+                    g[3] += q as u32;
+                }
+                _ => segments.push([
+                    cols.len() as u32,
+                    m as u32,
+                    slots.len() as u32,
+                    q as u32,
+                    chunk[s],
+                ]),
+            }
             for c in f.begin[s]..f.begin[s + 1] {
-                cols[nc[l] as usize] = c;
-                nc[l] += 1;
+                cols.push(c);
                 owner[c as usize] = s as u32;
             }
             for e in f.row_ptr[s]..f.row_ptr[s + 1] {
-                slots[nsl[l] as usize] = e;
-                nsl[l] += 1;
+                slots.push(e);
                 slot_owner[e as usize] = s as u32;
             }
         }
@@ -196,13 +235,7 @@ impl GpuFactor {
         let o_sn = idx.len() as u32;
         for s in 0..ns {
             let (m, q) = f.shape(s);
-            idx.extend_from_slice(&[
-                f.begin[s],
-                m as u32,
-                q as u32,
-                f.row_ptr[s],
-                f.val_ptr[s] as u32,
-            ]);
+            idx.extend_from_slice(&[f.begin[s], m as u32, q as u32, f.row_ptr[s], vo[s]]);
         }
         let o_rows = idx.len() as u32;
         idx.extend_from_slice(&f.rows);
@@ -234,15 +267,26 @@ impl GpuFactor {
         idx.extend_from_slice(&slots);
         let o_slot_owner = idx.len() as u32;
         idx.extend_from_slice(&slot_owner);
-        let precision = match f.values64.is_empty() {
-            true => Precision::F32,
-            false => Precision::F64,
+        let bytes = b * f.nnz() as u64 + 8 * nrows as u64;
+        let piece = |s: usize| -> &[u8] {
+            let r = f.val_ptr[s] as usize..f.val_ptr[s + 1] as usize;
+            match precision {
+                Precision::F32 => bytemuck::cast_slice(&f.values[r]),
+                Precision::F64 => bytemuck::cast_slice(&f.values64[r]),
+            }
         };
-        let bytes = precision.bytes() * f.nnz() as u64 + 8 * nrows as u64;
-        let vals = match precision {
-            Precision::F32 => ctx.storage_init("Cholesky values (f32)", &f.values)?,
-            Precision::F64 => ctx.storage_init("Cholesky values (f64)", &f.values64)?,
-        };
+        let vals = (0..chunk_len.len())
+            .map(|k| {
+                ctx.storage_from_pieces(
+                    &format!("Cholesky values ({precision:?}, chunk {k})"),
+                    chunk_len[k] as u64 * b,
+                    order
+                        .iter()
+                        .filter(|&&s| chunk[s] as usize == k)
+                        .map(|&s| piece(s)),
+                )
+            })
+            .collect::<Result<Vec<_>, _>>()?;
         Ok(GpuFactor {
             idx: ctx.storage_init("Cholesky index sections", &idx)?,
             vals,
@@ -278,16 +322,19 @@ impl GpuFactor {
     pub fn depth(&self) -> usize {
         self.levels.len()
     }
+
+    /// Buffers the values are split into.
+    pub fn chunks(&self) -> usize {
+        self.vals.len()
+    }
 }
 
 /// One recorded application `z = M^-1 r` for a workspace's `r` and `z`.
 pub(crate) struct SupernodalSteps {
     kernels: Arc<SupernodalKernels>,
-    /// Per level: its bind group and the dispatch sizes of its own rows and
-    /// of its slots (for the most columns).
-    groups: Vec<(wgpu::BindGroup, [u32; 2])>,
-    /// Rows and slots per level, for the dispatch sizes of fewer columns.
-    counts: Vec<[u32; 2]>,
+    /// Per level, per segment ([`GpuFactor::levels`]): its bind group and
+    /// its own rows and slots (the dispatch sizes, per column).
+    groups: Vec<Vec<(wgpu::BindGroup, [u32; 2])>>,
     nv: usize,
     bs: usize,
     w: wgpu::Buffer,
@@ -332,48 +379,50 @@ impl SupernodalSteps {
             &format!("Cholesky updates ({} x {})", f.slots, bs * cmax),
             (f.slots * bs * cmax * b) as u64,
         )?;
-        let levels: Vec<[u32; 4]> = if f.levels.is_empty() {
-            vec![[0; 4]]
-        } else {
-            f.levels.clone()
+        // An empty factor still gathers and scatters: one empty segment.
+        let levels = match f.levels.is_empty() {
+            true => vec![vec![[0; 5]]],
+            false => f.levels.clone(),
         };
-        let mut params = Vec::with_capacity(levels.len());
+        let mut params = Vec::new();
         let mut groups = Vec::with_capacity(levels.len());
-        for [own, n_own, below, n_below] in levels.iter().copied() {
-            let p = ctx.uniform_of(
-                "supernodal params",
-                &SnParams {
-                    own,
-                    n_own,
-                    below,
-                    n_below,
-                    nv: f.nv as u32,
-                    stride: stride as u32,
-                    bs: bs as u32,
-                    offsets: f.offsets,
-                },
-            )?;
-            let bg = kernels.shader.bind(
-                ctx,
-                &[
-                    (0, &p),
-                    (1, &f.idx),
-                    (2, &f.vals),
-                    (3, &w),
-                    (4, &y),
-                    (5, r),
-                    (6, z),
-                    (7, &contrib),
-                ],
-            )?;
-            groups.push((bg, [n_own, n_below]));
-            params.push(p);
+        for segments in &levels {
+            let mut level = Vec::with_capacity(segments.len());
+            for &[own, n_own, below, n_below, chunk] in segments {
+                let p = ctx.uniform_of(
+                    "supernodal params",
+                    &SnParams {
+                        own,
+                        n_own,
+                        below,
+                        n_below,
+                        nv: f.nv as u32,
+                        stride: stride as u32,
+                        bs: bs as u32,
+                        offsets: f.offsets,
+                    },
+                )?;
+                let bg = kernels.shader.bind(
+                    ctx,
+                    &[
+                        (0, &p),
+                        (1, &f.idx),
+                        (2, &f.vals[chunk as usize]),
+                        (3, &w),
+                        (4, &y),
+                        (5, r),
+                        (6, z),
+                        (7, &contrib),
+                    ],
+                )?;
+                level.push((bg, [n_own, n_below]));
+                params.push(p);
+            }
+            groups.push(level);
         }
-        let counts = groups.iter().map(|g| g.1).collect();
         Ok(SupernodalSteps {
             kernels: kernels.clone(),
             groups,
-            counts,
             nv: f.nv,
             bs,
             w,
@@ -391,15 +440,19 @@ impl SupernodalSteps {
     }
 
     /// Pipelines for `ncols` PCG columns, with the dispatch sizes of each
-    /// level and of the flat kernels.
+    /// segment and of the flat kernels.
     pub fn pipelines(&self, ctx: &Context, ncols: usize) -> Result<Pipelines, GpuError> {
         let k = &self.kernels.kernels;
         let cc = (self.bs * ncols) as u64;
         let dims =
             |items: u64| ctx.dims("supernodal kernel", (items * cc).div_ceil(FLAT_WG as u64));
-        let mut levels = Vec::with_capacity(self.counts.len());
-        for &[own, below] in &self.counts {
-            levels.push([dims(own as u64)?, dims(below as u64)?]);
+        let mut levels = Vec::with_capacity(self.groups.len());
+        for level in &self.groups {
+            let mut segments = Vec::with_capacity(level.len());
+            for (_, [own, below]) in level {
+                segments.push([dims(*own as u64)?, dims(*below as u64)?]);
+            }
+            levels.push(segments);
         }
         Ok(Pipelines {
             p: [
@@ -422,25 +475,30 @@ impl SupernodalSteps {
     pub fn work(&self, ncols: usize) -> KernelWork {
         let col = self.bytes.1 * ncols as u64;
         let sweep = KernelWork::operator(self.bytes.0 + 4 * col, self.bytes.0 + 2 * col);
-        let levels = self.groups.len() as u64;
+        let segments: usize = self.groups.iter().map(Vec::len).sum();
         KernelWork {
-            dispatches: 2 + 5 * levels,
+            dispatches: 2 + 5 * segments as u64,
             ..sweep.times(2) + KernelWork::other(2 * col).times(2)
         }
     }
 
-    /// Record one application into `pass`.
+    /// Record one application into `pass`. A level's segments are
+    /// independent supernodes (in different chunks of the values).
     pub fn record(&self, pass: &mut wgpu::ComputePass, p: &Pipelines) {
-        let bg0 = &self.groups[0].0;
+        let bg0 = &self.groups[0][0].0;
         dispatch(pass, &p.p[0], bg0, p.flat);
-        for ((bg, _), d) in self.groups.iter().zip(&p.levels) {
-            dispatch(pass, &p.p[1], bg, d[0]);
-            dispatch(pass, &p.p[2], bg, d[0]);
-            dispatch(pass, &p.p[3], bg, d[1]);
+        for (level, dims) in self.groups.iter().zip(&p.levels) {
+            for ((bg, _), d) in level.iter().zip(dims) {
+                dispatch(pass, &p.p[1], bg, d[0]);
+                dispatch(pass, &p.p[2], bg, d[0]);
+                dispatch(pass, &p.p[3], bg, d[1]);
+            }
         }
-        for ((bg, _), d) in self.groups.iter().zip(&p.levels).rev() {
-            dispatch(pass, &p.p[4], bg, d[0]);
-            dispatch(pass, &p.p[5], bg, d[0]);
+        for (level, dims) in self.groups.iter().zip(&p.levels).rev() {
+            for ((bg, _), d) in level.iter().zip(dims) {
+                dispatch(pass, &p.p[4], bg, d[0]);
+                dispatch(pass, &p.p[5], bg, d[0]);
+            }
         }
         dispatch(pass, &p.p[6], bg0, p.flat);
     }
@@ -451,7 +509,7 @@ impl SupernodalSteps {
 pub(crate) struct Pipelines {
     p: [wgpu::ComputePipeline; 7],
     flat: (u32, u32),
-    levels: Vec<[(u32, u32); 2]>,
+    levels: Vec<Vec<[(u32, u32); 2]>>,
 }
 
 #[cfg(test)]
