@@ -233,9 +233,9 @@ impl GpuFactor {
         }
         let mut idx: Vec<u32> = Vec::with_capacity(total);
         let o_sn = idx.len() as u32;
-        for s in 0..ns {
+        for (s, &v) in vo.iter().enumerate() {
             let (m, q) = f.shape(s);
-            idx.extend_from_slice(&[f.begin[s], m as u32, q as u32, f.row_ptr[s], vo[s]]);
+            idx.extend_from_slice(&[f.begin[s], m as u32, q as u32, f.row_ptr[s], v]);
         }
         let o_rows = idx.len() as u32;
         idx.extend_from_slice(&f.rows);

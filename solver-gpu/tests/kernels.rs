@@ -1535,7 +1535,7 @@ fn scalar_grid_3d(m: usize, rng: &mut Rng) -> SymCsc {
         }
     }
     let n = m * m * m;
-    let mut a = SymCsc::from_pattern(n, pairs.into_iter());
+    let mut a = SymCsc::from_pattern(n, pairs);
     let mut diag = vec![0.0; n];
     for j in 0..n {
         for s in a.col_ptr[j]..a.col_ptr[j + 1] {
