@@ -229,21 +229,15 @@ impl CholeskySolver {
     /// column); 0 before the symbolic analysis. Where a factor is split over
     /// several buffers at supernode boundaries, the smallest piece possible.
     pub fn largest_supernode_nnz(&self) -> usize {
-        match self.symbolic.as_ref().map(|s| s.raw()) {
-            None => 0,
-            Some(SymbolicCholeskyRaw::Simplicial(s)) => s
-                .col_ptr()
-                .windows(2)
-                .map(|w| (w[1] - w[0]) as usize)
-                .max()
-                .unwrap_or(0),
-            Some(SymbolicCholeskyRaw::Supernodal(s)) => s
-                .col_ptr_for_val()
-                .windows(2)
-                .map(|w| (w[1] - w[0]) as usize)
-                .max()
-                .unwrap_or(0),
-        }
+        let ptr = match self.symbolic.as_ref().map(|s| s.raw()) {
+            None => return 0,
+            Some(SymbolicCholeskyRaw::Simplicial(s)) => s.col_ptr(),
+            Some(SymbolicCholeskyRaw::Supernodal(s)) => s.col_ptr_for_val(),
+        };
+        ptr.windows(2)
+            .map(|w| (w[1] - w[0]) as usize)
+            .max()
+            .unwrap_or(0)
     }
 
     /// Floating-point operations of one numeric factorization, `sum_j c_j^2`

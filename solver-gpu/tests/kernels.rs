@@ -1350,31 +1350,41 @@ fn iso_grid(nx: usize, ny: usize, rng: &mut Rng) -> solver_cpu::IsoRingSym3 {
     use solver_cpu::{IsoRingSym3, SparseRows};
     let n = nx * ny;
     let edges = grid_edges(nx, ny);
-    let mut k = SymCsc::from_pattern(n, (0..n).map(|i| (i, i)).chain(edges.iter().copied()));
-    let mut diag = vec![0.0; n];
-    for j in 0..n {
-        for s in k.col_ptr[j]..k.col_ptr[j + 1] {
-            let i = k.row_idx[s];
-            if i != j {
-                let w = 1.0 + 0.5 * rng.sym();
-                k.values[s] = -w;
-                diag[i] += w;
-                diag[j] += w;
-            }
-        }
-    }
-    for (j, d) in diag.iter().enumerate() {
-        for s in k.col_ptr[j]..k.col_ptr[j + 1] {
-            if k.row_idx[s] == j {
-                k.values[s] = d + 0.05 * (1.0 + rng.sym());
-            }
-        }
-    }
+    let pairs = (0..n).map(|i| (i, i)).chain(edges.iter().copied());
+    let k = weighted_laplacian(n, pairs, rng, |rng| 0.05 * (1.0 + rng.sym()));
     let rings = std::sync::Arc::new(SparseRows::from_triplets(n, Vec::new(), false));
     let mut a = IsoRingSym3::new(n, k.col_ptr, k.row_idx, rings);
     a.iso.values = k.values;
     a.ring_c = vec![[0.0; 6]; n];
     a
+}
+
+/// The active Cholesky preconditioner's application to `ncols` random
+/// columns of `n` 3-vectors equals `reference`'s f64 solve per component: to
+/// 1e-6 with an f64 factor, 1e-4 with an f32 one (f32 in and out either way).
+fn check_factor_solve(
+    s: &mut GpuSolver,
+    reference: &mut CholeskySolver,
+    n: usize,
+    ncols: usize,
+    rng: &mut Rng,
+    what: &str,
+) {
+    let tol = match kernels::cholesky_is_f64(s).unwrap() {
+        true => 1e-6,
+        false => 1e-4,
+    };
+    let r = rng.vec(3 * n * ncols);
+    let z = kernels::cholesky(s, &f32s(&r), ncols).unwrap();
+    for c in 0..ncols {
+        for q in 0..3 {
+            let mut want: Vec<f64> = (0..n).map(|i| r[c * 3 * n + 3 * i + q]).collect();
+            reference.solve_in_place(&mut want, 1).unwrap();
+            let got: Vec<f64> = (0..n).map(|i| z[c * 3 * n + 3 * i + q] as f64).collect();
+            let e = rel_err(&got, &want);
+            assert!(e < tol, "{what}, column {c}, component {q}: {e:e}");
+        }
+    }
 }
 
 /// The Cholesky preconditioner's triangular solves on the GPU (level by level
@@ -1404,22 +1414,8 @@ fn cholesky_preconditioner_is_the_factor_solve_per_component() {
         let mut reference = CholeskySolver::new();
         reference.prepare(&kh).unwrap();
         for ncols in [1, 3] {
-            let r = rng.vec(3 * n * ncols);
-            let z = kernels::cholesky(&mut s, &f32s(&r), ncols).unwrap();
-            for c in 0..ncols {
-                for q in 0..3 {
-                    let mut want: Vec<f64> = (0..n).map(|i| r[c * 3 * n + 3 * i + q]).collect();
-                    reference.solve_in_place(&mut want, 1).unwrap();
-                    let got: Vec<f64> = (0..n).map(|i| z[c * 3 * n + 3 * i + q] as f64).collect();
-                    let e = rel_err(&got, &want);
-                    // f32 in and out either way; an f64 factor solves in f64.
-                    let tol = if f64 { 1e-6 } else { 1e-4 };
-                    assert!(
-                        e < tol,
-                        "{nx}x{ny}, {ncols} columns, column {c}, component {q}: {e:e}"
-                    );
-                }
-            }
+            let what = format!("{nx}x{ny}, {ncols} columns");
+            check_factor_solve(&mut s, &mut reference, n, ncols, &mut rng, &what);
         }
         // The solve: K (x) I3 itself is preconditioned exactly (to f32).
         let b = rng.vec(3 * n * 2);
@@ -1486,18 +1482,7 @@ fn cholesky_factor_over_one_binding_is_split_over_several() {
     let mut reference = CholeskySolver::new();
     reference.prepare(&kh).unwrap();
     // One column: the updates of two would not fit the lowered binding.
-    let r = rng.vec(3 * n);
-    let z = kernels::cholesky(&mut s, &f32s(&r), 1).unwrap();
-    for c in 0..1 {
-        for q in 0..3 {
-            let mut want: Vec<f64> = (0..n).map(|i| r[c * 3 * n + 3 * i + q]).collect();
-            reference.solve_in_place(&mut want, 1).unwrap();
-            let got: Vec<f64> = (0..n).map(|i| z[c * 3 * n + 3 * i + q] as f64).collect();
-            let e = rel_err(&got, &want);
-            let tol = if f64 { 1e-6 } else { 1e-4 };
-            assert!(e < tol, "column {c}, component {q}: {e:e}");
-        }
-    }
+    check_factor_solve(&mut s, &mut reference, n, 1, &mut rng, "split factor");
     // Two columns: solved in batches whose updates fit.
     let b = rng.vec(3 * n * 2);
     let mut x = vec![0.0; b.len()];
@@ -1534,7 +1519,17 @@ fn scalar_grid_3d(m: usize, rng: &mut Rng) -> SymCsc {
             }
         }
     }
-    let n = m * m * m;
+    weighted_laplacian(m * m * m, pairs, rng, |_| 0.1)
+}
+
+/// The Laplacian of the graph `pairs` (the diagonal included) with random
+/// weights in [0.5, 1.5], plus `shift(rng)` on each diagonal entry.
+fn weighted_laplacian(
+    n: usize,
+    pairs: impl IntoIterator<Item = (usize, usize)>,
+    rng: &mut Rng,
+    shift: impl Fn(&mut Rng) -> f64,
+) -> SymCsc {
     let mut a = SymCsc::from_pattern(n, pairs);
     let mut diag = vec![0.0; n];
     for j in 0..n {
@@ -1550,7 +1545,7 @@ fn scalar_grid_3d(m: usize, rng: &mut Rng) -> SymCsc {
     }
     for (j, d) in diag.iter().enumerate() {
         let s = a.slot(j, j).unwrap();
-        a.values[s] = d + 0.1;
+        a.values[s] = d + shift(rng);
     }
     a
 }
