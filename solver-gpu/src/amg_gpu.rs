@@ -1,26 +1,26 @@
 //! Drives `shaders/amg.wgsl`: the SA-AMG V-cycle `z = M^-1 r` on the GPU (f32)
 //! with the hierarchy built by [`crate::amg`] on the CPU.
 //!
-//! [`GpuHierarchy`] holds the uploaded levels (per level: `A_l`, `P_l`, `R_l` as
+//! `GpuHierarchy` holds the uploaded levels (per level: `A_l`, `P_l`, `R_l` as
 //! block-CSR with `bs` = 3 or 1, the inverted diagonal blocks; the dense inverse
 //! of the coarsest matrix). A hierarchy with the same level patterns (aggregates
 //! reused for a matrix of the same pattern) only rewrites the values. A scalar
 //! hierarchy can also be uploaded to act on 3-vectors
-//! ([`GpuHierarchy::upload_on_3_vectors`]: `A (x) I3` without storing the
+//! (`GpuHierarchy::upload_on_3_vectors`: `A (x) I3` without storing the
 //! blocks `v I3`), its matrices as CSR in storage buffers.
 //!
-//! [`VcycleWorkspace`] holds the per-level vectors (`b_l`, `x_l`, `t_l`, sized for
+//! `VcycleWorkspace` holds the per-level vectors (`b_l`, `x_l`, `t_l`, sized for
 //! `cmax` columns; level 0 uses the PCG's `r` and `z`) and the V-cycle recorded
 //! once as a list of dispatches, each with its own parameters and bind group
 //! (the sequence is in the shader's header). Every dispatch is one invocation per
 //! (block) row, 2-D.
 //!
-//! Bindings of `amg.wgsl` (group 0): 0 `P` uniform [`AmgParams`]; 1 `row_ptr`,
+//! Bindings of `amg.wgsl` (group 0): 0 `P` uniform `AmgParams`; 1 `row_ptr`,
 //! 2 `vals` (f32, the values of the step's matrix block after block, each
 //! row-major; or the dense coarse inverse) and 8 `block_cols` (u32 per block):
 //! the matrix of the step; 4 `x` (read); 5 `b` (read); 6 `y` (written);
 //! 7 `dinv`. Every matrix lives in storage buffers split by block rows into
-//! chunks that each fit one binding ([`crate::matrix::split_rows`]); a step
+//! chunks that each fit one binding (`crate::matrix::split_rows`); a step
 //! on a chunked matrix is one dispatch per chunk.
 
 use crate::amg::{Bsr, Hierarchy, AFFINE_MODES};

@@ -5,7 +5,7 @@
 //! The PCG loop applies the same inverse inside its fused update kernel.
 //!
 //! Bindings (group 0), as the shader's header describes:
-//! - 0 `P` uniform [`Params`](crate::device::Params): rows, bs (1 or 3),
+//! - 0 `P` uniform `Params`: rows, bs (1 or 3),
 //!   n = rows bs, ncols;
 //! - 1 `minv` (read): rows * bs * bs f32;
 //! - 2 `r` (read), 3 `z` (written): column-major, stride n.

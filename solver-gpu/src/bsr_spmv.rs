@@ -3,21 +3,21 @@
 //! dot products `x . y` (the `p . Ap` of PCG) fused in.
 //!
 //! Bindings (group 0), as the shader's header describes:
-//! - 0 `P` uniform [`Params`](crate::device::Params): n = 3 rows, ncols,
+//! - 0 `P` uniform `Params`: n = 3 rows, ncols,
 //!   groups = partial slots per column;
 //! - 1 `row_ptr` (global), 3 `vals` (9 f32 per block) and 7 `cols` (u32 per
-//!   block): the matrix ([`GpuMatrix`]), 2 `C` its chunk
-//!   ([`ChunkParams`](crate::matrix::ChunkParams));
+//!   block): the matrix (`GpuMatrix`), 2 `C` its chunk
+//!   (`ChunkParams`);
 //! - 4 `x` (read in place: the PCG's `p`), 5 `y` (written, column-major,
 //!   stride n);
 //! - 6 `partials` (written): `partials[c * groups + g]`.
 //!
 //! Dispatch: per chunk of the matrix (block rows whose values fit one
-//! storage binding, [`crate::matrix::split_rows`]) its workgroups of 128
+//! storage binding, `crate::matrix::split_rows`) its workgroups of 128
 //! invocations, 2-D (see `Context::dims`); one chunk unless the matrix
 //! passes `max_storage_buffer_binding_size`.
 //!
-//! Also drives `shaders/bsr_spmv_f64.wgsl` ([`new_f64`]), the f64 product of
+//! Also drives `shaders/bsr_spmv_f64.wgsl` (`new_f64`), the f64 product of
 //! the mixed-precision solve: the same blocks as high (the f32 values) and low
 //! f32 parts, `x`, `y` and the partials in f64 buffers (bindings 2 `lo`, 3 `hi`,
 //! 8 `C`; the rest as above).

@@ -3,10 +3,10 @@
 //! per-workgroup partial dot products `x . y` fused in.
 //!
 //! Bindings (group 0), as the shader's header describes:
-//! - 0 `P` uniform [`Params`](crate::device::Params): rows, ncols, n = rows,
+//! - 0 `P` uniform `Params`: rows, ncols, n = rows,
 //!   groups = ceil(rows / 128);
 //! - 1 `row_ptr`, 2 `col_idx`, 3 `vals` (one f32 per entry): the matrix
-//!   ([`GpuMatrix`](crate::matrix::GpuMatrix) with block size 1);
+//!   (`GpuMatrix` with block size 1);
 //! - 4 `x` (read), 5 `y` (written), column-major, stride n;
 //! - 6 `partials` (written): `partials[c * groups + g]`.
 //!

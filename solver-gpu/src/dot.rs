@@ -2,7 +2,7 @@
 //! [`crate::CMAX`] column pairs in two passes.
 //!
 //! Bindings (group 0), as the shader's header describes:
-//! - 0 `P` uniform [`Params`](crate::device::Params): n (column length), ncols,
+//! - 0 `P` uniform `Params`: n (column length), ncols,
 //!   groups = ceil(n / 128);
 //! - 1 `a`, 2 `b` (read, `partial` only): column-major, stride n;
 //! - 3 `partials`: written by `partial` (`partials[c * groups + g]`), read by

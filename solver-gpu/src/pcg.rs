@@ -9,14 +9,14 @@
 //! 4. `finish_beta` (1 workgroup): `beta = rz' / rz`, convergence flag `rr <= thr`;
 //! 5. `direction`: `p = z + beta p` (the SpMV reads `p` in place).
 //!
-//! A block matrix split into chunks ([`crate::matrix::split_rows`], past the
+//! A block matrix split into chunks (`crate::matrix::split_rows`, past the
 //! storage binding limit) makes step 1 one dispatch per chunk.
 //!
 //! With the AMG preconditioner, step 3 is `update_amg` (no `z`, partials of
 //! `r . r` only), then the recorded V-cycle ([`crate::amg_gpu`], reading `r`,
 //! writing `z`), then `dot_rz` (partials of `r . z`).
 //!
-//! The host reads the 32-byte [`ColState`] of each column back after each batch
+//! The host reads the 32-byte `ColState` of each column back after each batch
 //! of iterations (one submission) and stops when every column is done (converged
 //! or broken down) or the iteration budget is spent. Batch sizes adapt: the first
 //! batch has as many iterations as the caller's last run of the same system
@@ -24,8 +24,8 @@
 //! observed residual reduction rate, plus 2), between 2 and `check_every` (the
 //! cap, 32 by default), so few iterations are wasted past convergence.
 //!
-//! Bindings of `pcg.wgsl` (group 0): 0 `P` uniform [`Params`]; 1 `cols`
-//! ([`ColState`] per column); 2 `partials` (slot s, column c, workgroup g at
+//! Bindings of `pcg.wgsl` (group 0): 0 `P` uniform `Params`; 1 `cols`
+//! (`ColState` per column); 2 `partials` (slot s, column c, workgroup g at
 //! `(s ncols + c) groups + g`); 3 `minv` (inverted diagonal blocks); 4 `p`;
 //! 5 `ap`; 6 `x`; 7 `r`; 8 `z` (vectors column-major, stride n). `update`
 //! uses 0-8, `finish_alpha`/`finish_beta` 0-2, `direction` 0, 1, 4, 8; one

@@ -1417,7 +1417,7 @@ impl SpdSolver for GpuSolver {
     }
 
     /// The shape matrix's blocks go straight into the prepared matrix
-    /// ([`HostMatrix::fill_shape`]): no [`BlockSym3`] is built, and the ring
+    /// (`HostMatrix::fill_shape`): no [`BlockSym3`] is built, and the ring
     /// pairs' slots are found once per pattern, not per matrix. Hands `a` back.
     fn prepare_shape_owned(
         &mut self,
