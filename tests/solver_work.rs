@@ -225,15 +225,20 @@ fn squared_laplacian_on(kind: solver_cpu::SystemKind, w: metricdeform::shape::Sh
         let nb: f64 = b.iter().map(|y| y * y).sum();
         (d / nb).sqrt()
     };
+    // System k's GPU solution `x` (preconditioned by `what`) against the CPU's.
+    let close_to_cpu = |what: &str, x: &[f64], k: usize| {
+        let e = rel(x, &cpu[k].0);
+        assert!(
+            e < 1e-6,
+            "{kind:?} system {k}: {what}: GPU and CPU differ by {e:e}"
+        );
+        e
+    };
     for k in 0..2 {
-        let e = rel(&chol[k].0, &cpu[k].0);
+        let e = close_to_cpu("Cholesky", &chol[k].0, k);
         eprintln!(
             "{kind:?} system {k}: Cholesky {} iterations, CPU {}, GPU - CPU {e:.1e}",
             chol[k].1, cpu[k].1
-        );
-        assert!(
-            e < 1e-6,
-            "{kind:?} system {k}: Cholesky: GPU and CPU differ by {e:e}"
         );
         assert!(
             chol[k].1 <= cpu[k].1 + 2,
@@ -248,14 +253,10 @@ fn squared_laplacian_on(kind: solver_cpu::SystemKind, w: metricdeform::shape::Sh
         "the second matrix of the kind keeps the factor"
     );
     for k in 0..2 {
-        let e = rel(&squared[k].0, &cpu[k].0);
+        let e = close_to_cpu("squared Laplacian", &squared[k].0, k);
         eprintln!(
             "{kind:?} system {k}: squared Laplacian {} iterations, affine AMG {}, GPU - CPU {e:.1e}",
             squared[k].1, affine[k].1
-        );
-        assert!(
-            e < 1e-6,
-            "{kind:?} system {k}: GPU and CPU solutions differ by {e:e}"
         );
         assert!(
             squared[k].1 < affine[k].1,

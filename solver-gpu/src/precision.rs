@@ -146,6 +146,16 @@ impl MixedPrecision {
             MixedPrecision::Fallback | MixedPrecision::Never => false,
         }
     }
+
+    /// Whether a solve of `kind` starts in mixed precision when its
+    /// preconditioner is (`own_factor`) or is not the Cholesky factor of its
+    /// matrix itself: with that exact preconditioner each f64 iteration gains
+    /// about seven digits, so under [`MixedPrecision::ByKind`] one mixed round
+    /// of an iteration or two ends the solve where f32 refinement needs two
+    /// rounds (two waits).
+    pub fn starts_mixed_with(self, kind: SystemKind, own_factor: bool) -> bool {
+        self.starts_mixed(kind) || (own_factor && self == MixedPrecision::ByKind)
+    }
 }
 
 impl MixedPrecision {

@@ -766,11 +766,12 @@ impl GpuSolver {
     }
 
     /// Keep the Cholesky preconditioner of this kind (`current`: it was made
-    /// for this pattern and kind), or set it up by factoring `k()`; where that
+    /// for this pattern and kind), or set it up by factoring `k()` (for
+    /// block rows of `bs` unknowns); where that
     /// fails (over the storage bindings, or not positive definite in the
     /// factor's precision) the kind's other preconditioner is used for the
     /// rest of the run.
-    fn cholesky_for_kind(&mut self, current: bool, k: impl FnOnce() -> SymCsc) {
+    fn cholesky_for_kind(&mut self, current: bool, bs: u64, k: impl FnOnce() -> SymCsc) {
         if !self.cholesky_wanted() {
             self.drop_cholesky();
             return;
@@ -778,7 +779,7 @@ impl GpuSolver {
         if current && self.chol.is_some() && self.chol_kind == Some(self.kind) {
             return;
         }
-        if let Err(e) = self.setup_cholesky(k()) {
+        if let Err(e) = self.setup_cholesky(k(), bs) {
             log::warn!(
                 "Cholesky preconditioner ({:?} system) unavailable ({e}); {} instead",
                 self.kind,
@@ -806,7 +807,7 @@ impl GpuSolver {
     /// factors the Hessian of Eq. 3 itself, which is constant, so that the
     /// PCG converges in an iteration or two a round. Any other preconditioner
     /// is released.
-    fn setup_cholesky(&mut self, k: SymCsc) -> Result<(), GpuError> {
+    fn setup_cholesky(&mut self, k: SymCsc, bs: u64) -> Result<(), GpuError> {
         let t = std::time::Instant::now();
         self.setups += 1;
         self.drop_cholesky();
@@ -838,11 +839,6 @@ impl GpuSolver {
         let b = precision.bytes();
         let limit = matrix::binding_limit(&self.ctx);
         let supernode = self.chol_host.largest_supernode_nnz() as u64 * b;
-        let bs = if self.kind == SystemKind::ScaleFactors {
-            1
-        } else {
-            3
-        };
         let update_column = self.chol_host.factor_slots() as u64 * bs * b;
         if supernode > limit || update_column > limit {
             return Err(GpuError::LimitExceeded {
@@ -1136,14 +1132,12 @@ impl GpuSolver {
                 x[c * n..(c + 1) * n].fill(0.0);
             }
         }
-        // The scale factors' own (f32) factor makes each f64 iteration gain
-        // about seven digits: one mixed round of two or three iterations
-        // ends the solve, where the f32 PCG needs two rounds (two waits).
-        let exact_factor = self.kind == SystemKind::ScaleFactors
-            && self.chol.is_some()
-            && self.mixed_precision == MixedPrecision::ByKind;
-        let start_mixed =
-            self.mixed_precision.starts_mixed(self.kind) || self.mixed_sticky || exact_factor;
+        // The scale factors' factor is of their matrix itself.
+        let own_factor = self.kind == SystemKind::ScaleFactors && self.chol.is_some();
+        let start_mixed = self
+            .mixed_precision
+            .starts_mixed_with(self.kind, own_factor)
+            || self.mixed_sticky;
         if start_mixed && self.mixed_available() {
             return self.solve_batch_mixed(b, x, ncols, 0);
         }
@@ -1389,7 +1383,7 @@ impl SpdSolver for GpuSolver {
         }
         let same = self.same_pattern(1, &a.col_ptr, &a.row_idx);
         match self.kind {
-            SystemKind::ScaleFactors => self.cholesky_for_kind(same, || a.clone()),
+            SystemKind::ScaleFactors => self.cholesky_for_kind(same, 1, || a.clone()),
             _ => self.drop_cholesky(),
         }
         let mut h = self.take_host(same, a.n, 1, &a.col_ptr, &a.row_idx)?;
@@ -1447,7 +1441,7 @@ impl SpdSolver for GpuSolver {
         }
         match self.kind {
             SystemKind::ScaleDriven | SystemKind::FineTune => {
-                self.cholesky_for_kind(same, || a.iso_held_identity(fixed))
+                self.cholesky_for_kind(same, 3, || a.iso_held_identity(fixed))
             }
             SystemKind::ScaleFactors => self.drop_cholesky(),
         }

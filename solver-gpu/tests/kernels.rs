@@ -1605,28 +1605,28 @@ fn scale_factor_system_is_preconditioned_by_its_own_factor() {
     let got: Vec<f64> = z.iter().map(|&v| v as f64).collect();
     let e = rel_err(&got, &want);
     assert!(e < 1e-4, "factor solve against the f64 reference: {e:e}");
-    // The solves: as the CPU's direct solve, in a few iterations.
-    s.set_tolerance(1e-10);
-    let ncols = 4;
-    for solve in 0..2 {
+    // A solve of `ncols` random columns to `tol`: its distance from the CPU's
+    // direct solve, its iterations and its host waits.
+    let mut solve = |s: &mut GpuSolver, ncols: usize, tol: f64| {
         let b = rng.vec(ncols * a.n);
         let mut x = vec![0.0; b.len()];
+        s.set_tolerance(tol);
         let waits = s.counters().device_waits;
         let info = s.solve_with_guess(&b, &mut x, ncols).unwrap();
         let waits = s.counters().device_waits - waits;
-        let mut y = b.clone();
+        let mut y = b;
         reference.solve_in_place(&mut y, ncols).unwrap();
-        let e = rel_err(&x, &y);
-        assert!(e < 1e-9, "solve {solve}: GPU against CPU {e:e}");
-        assert!(
-            info.iterations <= 3,
-            "solve {solve}: {} iterations",
-            info.iterations
-        );
+        (rel_err(&x, &y), info.iterations, waits)
+    };
+    // The solves: as the CPU's direct solve, in a few iterations.
+    for k in 0..2 {
+        let (e, iterations, waits) = solve(&mut s, 4, 1e-10);
+        assert!(e < 1e-9, "solve {k}: GPU against CPU {e:e}");
+        assert!(iterations <= 3, "solve {k}: {iterations} iterations");
         if s.adapter().shader_f64 {
             // One mixed round; the second solve's batch is sized by the first.
-            let most = if solve == 0 { 2 } else { 1 };
-            assert!(waits <= most, "solve {solve}: {waits} waits");
+            let most = if k == 0 { 2 } else { 1 };
+            assert!(waits <= most, "solve {k}: {waits} waits");
         }
     }
     // The same (constant) matrix again keeps the factor.
@@ -1636,17 +1636,7 @@ fn scale_factor_system_is_preconditioned_by_its_own_factor() {
     assert_eq!(s.active_preconditioner(), Preconditioner::Cholesky);
     // The f32 PCG with the same factor converges too (refinement rounds).
     s.set_mixed_precision(MixedPrecision::Never);
-    let b = rng.vec(a.n);
-    let mut x = vec![0.0; b.len()];
-    s.set_tolerance(1e-8);
-    let info = s.solve_with_guess(&b, &mut x, 1).unwrap();
-    let mut y = b.clone();
-    reference.solve_in_place(&mut y, 1).unwrap();
-    let e = rel_err(&x, &y);
+    let (e, iterations, _) = solve(&mut s, 1, 1e-8);
     assert!(e < 1e-7, "f32 PCG against CPU {e:e}");
-    assert!(
-        info.iterations <= 6,
-        "f32 PCG: {} iterations",
-        info.iterations
-    );
+    assert!(iterations <= 6, "f32 PCG: {iterations} iterations");
 }
