@@ -530,11 +530,15 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
                             group: g,
                         })
                         .collect();
+                    let waited = sys.counters().device_seconds;
                     let (s, info) = sys.estimate(&cons, o.multipliers)?;
+                    let waited = sys.counters().device_seconds - waited;
                     log::debug!(
-                        "scale factors: {} Newton steps, {:.3} s, resident {:.0} MiB",
+                        "scale factors: {} Newton steps, {:.3} s ({:.3} s of it on the host, \
+                         GPU waits excluded), resident {:.0} MiB",
                         info.newton_iterations,
                         t_iter.elapsed().as_secs_f64(),
+                        t_iter.elapsed().as_secs_f64() - waited,
                         crate::memory::resident_memory_mb()
                     );
                     let m = s.iter().fold(0.0f64, |m, v| m.max((v - 1.0).abs()));
@@ -583,6 +587,7 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
             // vertices' affine motions as near-null space here too (see
             // AFFINE_SCALE_DRIVEN_MIN_VERTICES).
             let t_shape = Instant::now();
+            let shape_waits = model.solver().counters().device_seconds;
             let affine = n >= AFFINE_SCALE_DRIVEN_MIN_VERTICES;
             model.assemble_with_positions(mesh, &x, &s, &c, &o.shape, affine)?;
             let t_solve = Instant::now();
@@ -612,9 +617,12 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
                 seconds: t_iter.elapsed().as_secs_f64(),
             });
             log::debug!(
-                "outer iteration {iterations}: max |s-1| {max_ds:.4}, assemble+factor {:.3} s, solve {:.3} s, total {:.3} s, resident {:.0} MiB (peak {:.0})",
+                "outer iteration {iterations}: max |s-1| {max_ds:.4}, assemble+factor {:.3} s, solve {:.3} s \
+                 (shape step {:.3} s on the host, GPU waits excluded), total {:.3} s, resident {:.0} MiB (peak {:.0})",
                 (t_solve - t_shape).as_secs_f64(),
                 t_solve.elapsed().as_secs_f64(),
+                t_shape.elapsed().as_secs_f64()
+                    - (model.solver().counters().device_seconds - shape_waits),
                 t_iter.elapsed().as_secs_f64(),
                 crate::memory::resident_memory_mb(),
                 crate::memory::peak_memory_mb()
