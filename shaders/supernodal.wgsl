@@ -10,20 +10,23 @@
 //   per level, leaves first:
 //     pull     (own rows)       w_s -= the updates the descendants left in
 //                               `contrib` for the rows of s
-//     fdiag    (own rows)       y_s = L_ss^-1 w_s
-//     fbelow   (rows below)     contrib[slot of row r] = L_rs y_s
+//     forward  (own rows, then  y_s = L_ss^-1 w_s, and contrib[slot of row r]
+//               rows below)     = B_rs w_s with B = L_rs L_ss^-1 (= L_rs y_s)
 //   per level, root first:
-//     bbelow   (own rows)       w_s = y_s - L_rs^T x_r (x of the ancestors,
-//                               final, kept in y)
-//     bdiag    (own rows)       y_s = x_s = L_ss^-T w_s
-//   scatter                     z = P^T y
+//     backward (own rows)       w_s = x_s = L_ss^-T y_s - B_rs^T x_r (x of the
+//                               ancestors, final, kept in w)
+//   scatter                     z = P^T w
+// Three dispatches a level: the factor holds B in place of L_rs
+// (SupernodalFactor::invert_diagonal_blocks), so the diagonal and below
+// products of a sweep read the same vector and share a dispatch.
 // Every kernel is one invocation per (row, scalar column) of its list, each
 // a dot product: no atomics, no barriers, no two invocations write one entry.
 //
 // Supernode s (5 u32 at idx[o_sn + 5 s]): c0 its first column, m columns, q
 // rows below its diagonal block (idx[o_rows + ro ..][..q], permuted
 // numbering), its values the dense column-major (m + q) x m block at vals[vo]:
-// entry (i, k) at vals[vo + k (m + q) + i]; the first m rows hold L_ss^-1.
+// entry (i, k) at vals[vo + k (m + q) + i]; the first m rows hold L_ss^-1,
+// the q below B = L_rs L_ss^-1.
 //
 // Bindings (group 0):
 //   0  P        uniform  own, n_own: this level segment's own rows (columns) at
@@ -139,7 +142,7 @@ fn gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
 fn scatter(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let t = linear(gid, nwg);
     if t < P.nv * P.bs * NCOLS {
-        z[pcg_index(t)] = y[t];
+        z[pcg_index(t)] = w[t];
     }
 }
 
@@ -161,64 +164,45 @@ fn pull(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
     w[row * cc + c] = acc;
 }
 
-// y_i = sum_{k <= i} L_ss^-1[i, k] w_k for row i of supernode s.
+// Forward step of a level segment, after its pull: own row i of supernode s,
+// y_i = sum_{k <= i} L_ss^-1[i, k] w_k; then, past the own rows, slot e = ro + r
+// of supernode s, contrib[e] = sum_k B[r, k] w_k (B = L_rs L_ss^-1, stored
+// in place of L_rs). Both read w_s only, so they share one dispatch.
 @compute @workgroup_size(256)
-fn fdiag(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+fn forward(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let cc = P.bs * NCOLS;
     let t = linear(gid, nwg);
-    if t >= P.n_own * cc {
+    if t < P.n_own * cc {
+        let o = own_row(t);
+        let nr = o.s.m + o.s.q;
+        var acc: f32 = 0.0;
+        for (var k = 0u; k <= o.k; k++) {
+            acc += vals[o.s.vo + k * nr + o.k] * w[(o.s.c0 + k) * cc + o.c];
+        }
+        y[o.row * cc + o.c] = acc;
         return;
     }
-    let o = own_row(t);
-    let nr = o.s.m + o.s.q;
-    var acc: f32 = 0.0;
-    for (var k = 0u; k <= o.k; k++) {
-        acc += vals[o.s.vo + k * nr + o.k] * w[(o.s.c0 + k) * cc + o.c];
-    }
-    y[o.row * cc + o.c] = acc;
-}
-
-// contrib[e] = sum_k L[m + r, k] y_k for the slot e = ro + r of supernode s.
-@compute @workgroup_size(256)
-fn fbelow(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    let cc = P.bs * NCOLS;
-    let t = linear(gid, nwg);
-    if t >= P.n_below * cc {
+    let u = t - P.n_own * cc;
+    if u >= P.n_below * cc {
         return;
     }
-    let e = idx[P.o_slots + P.below + t / cc];
-    let c = t % cc;
+    let e = idx[P.o_slots + P.below + u / cc];
+    let c = u % cc;
     let s = supernode(idx[P.o_slot_owner + e]);
     let at = s.vo + s.m + (e - s.ro);
     let nr = s.m + s.q;
     var acc: f32 = 0.0;
     for (var k = 0u; k < s.m; k++) {
-        acc += vals[at + k * nr] * y[(s.c0 + k) * cc + c];
+        acc += vals[at + k * nr] * w[(s.c0 + k) * cc + c];
     }
     contrib[e * cc + c] = acc;
 }
 
-// w_k = y_k - sum_r L[m + r, k] x_{rows[r]} for row k of supernode s (the
-// ancestors' x are in y).
+// Backward step: x_k = sum_{i >= k} L_ss^-1[i, k] y_i - sum_r B[r, k] x_{rows[r]}
+// for row k of supernode s, into w (the ancestors' x, final, are in w; this
+// level's forward y in y).
 @compute @workgroup_size(256)
-fn bbelow(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    let cc = P.bs * NCOLS;
-    let t = linear(gid, nwg);
-    if t >= P.n_own * cc {
-        return;
-    }
-    let o = own_row(t);
-    let at = o.s.vo + o.k * (o.s.m + o.s.q) + o.s.m;
-    var acc = y[o.row * cc + o.c];
-    for (var rr = 0u; rr < o.s.q; rr++) {
-        acc -= vals[at + rr] * y[idx[P.o_rows + o.s.ro + rr] * cc + o.c];
-    }
-    w[o.row * cc + o.c] = acc;
-}
-
-// x_k = sum_{i >= k} L_ss^-1[i, k] w_i for row k of supernode s, into y.
-@compute @workgroup_size(256)
-fn bdiag(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+fn backward(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let cc = P.bs * NCOLS;
     let t = linear(gid, nwg);
     if t >= P.n_own * cc {
@@ -228,7 +212,10 @@ fn bdiag(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups)
     let at = o.s.vo + o.k * (o.s.m + o.s.q);
     var acc: f32 = 0.0;
     for (var i = o.k; i < o.s.m; i++) {
-        acc += vals[at + i] * w[(o.s.c0 + i) * cc + o.c];
+        acc += vals[at + i] * y[(o.s.c0 + i) * cc + o.c];
     }
-    y[o.row * cc + o.c] = acc;
+    for (var rr = 0u; rr < o.s.q; rr++) {
+        acc -= vals[at + o.s.m + rr] * w[idx[P.o_rows + o.s.ro + rr] * cc + o.c];
+    }
+    w[o.row * cc + o.c] = acc;
 }

@@ -298,8 +298,8 @@ pub struct SupernodalFactor {
     pub values: Vec<f32>,
     /// ... or of an f64 factor (then `values` is empty).
     pub values64: Vec<f64>,
-    /// The diagonal blocks hold their inverses
-    /// ([`SupernodalFactor::invert_diagonal_blocks`]).
+    /// The diagonal blocks hold their inverses and the rows below them
+    /// `L_rs L_ss^-1` ([`SupernodalFactor::invert_diagonal_blocks`]).
     pub inverted: bool,
 }
 
@@ -364,9 +364,13 @@ impl SupernodalFactor {
     }
 
     /// Replace each supernode's diagonal block `L_ss` by its inverse (lower
-    /// triangular too, in place): a solve then applies `L_ss^-1` as a product,
-    /// parallel in all its rows, instead of a column-by-column substitution.
-    /// The blocks are inverted in parallel (faer, in the factor's precision).
+    /// triangular too, in place), and the rows below it `L_rs` by `B_s =
+    /// L_rs L_ss^-1`: a solve then applies `L_ss^-1` as a product, parallel
+    /// in all its rows, instead of a column-by-column substitution, and both
+    /// products of a supernode's sweep read the same vector, so each sweep is
+    /// one step per supernode (forward `y_s = L_ss^-1 w_s` and the updates
+    /// `B_s w_s`; backward `x_s = L_ss^-T y_s - B_s^T x_r`). Done in parallel
+    /// (faer, in the factor's precision).
     pub fn invert_diagonal_blocks(&mut self) {
         use rayon::prelude::*;
         if self.inverted {
@@ -393,16 +397,36 @@ impl SupernodalFactor {
         fn invert<T: faer::traits::ComplexField + Copy + Send>(
             items: Vec<(usize, usize, &mut [T])>,
         ) {
+            use faer::linalg::matmul::triangular::{matmul, BlockStructure};
+            use faer::prelude::{Reborrow, ReborrowMut};
             items.into_par_iter().for_each(|(m, nr, block)| {
                 let par = if m >= 256 {
                     get_global_parallelism()
                 } else {
                     faer::Par::Seq
                 };
-                let src =
-                    faer::MatRef::from_column_major_slice_with_stride(&*block, m, m, nr).to_owned();
-                let dst = faer::MatMut::from_column_major_slice_with_stride_mut(block, m, m, nr);
-                faer::linalg::triangular_inverse::invert_lower_triangular(dst, src.as_ref(), par);
+                let all = faer::MatMut::from_column_major_slice_with_stride_mut(block, nr, m, nr);
+                let (mut diag, mut below) = all.split_at_row_mut(m);
+                let src = diag.rb().to_owned();
+                faer::linalg::triangular_inverse::invert_lower_triangular(
+                    diag.rb_mut(),
+                    src.as_ref(),
+                    par,
+                );
+                if nr > m {
+                    let l = below.rb().to_owned();
+                    matmul(
+                        below.rb_mut(),
+                        BlockStructure::Rectangular,
+                        faer::Accum::Replace,
+                        l.as_ref(),
+                        BlockStructure::Rectangular,
+                        diag.rb(),
+                        BlockStructure::TriangularLower,
+                        T::one_impl(),
+                        par,
+                    );
+                }
             });
         }
         let mut values = std::mem::take(&mut self.values);
@@ -456,40 +480,36 @@ impl SupernodalFactor {
 }
 
 impl SupernodalFactor {
-    /// [`SupernodalFactor::solve`] with inverted diagonal blocks, as the GPU
-    /// runs it: `y_s = L_ss^-1 (b_s - updates)`, `x_s = L_ss^-T (y_s - ...)`.
+    /// [`SupernodalFactor::solve`] in the inverted form, as the GPU runs it:
+    /// forward `y_s = L_ss^-1 w_s` and `w_r -= B_s w_s` (`w_s` after its
+    /// descendants' updates), backward `x_s = L_ss^-T y_s - B_s^T x_r`.
     fn solve_inverted(&self, b: &[f64]) -> Vec<f64> {
         let mut w = self.permuted(b);
         for s in 0..self.len() {
             let (c0, m, v, nr, rows) = self.block(s);
-            let y: Vec<f64> = (0..m)
-                .map(|i| {
-                    (0..=i)
-                        .map(|k| self.value(v + k * nr + i) * w[c0 + k])
-                        .sum()
-                })
-                .collect();
-            w[c0..c0 + m].copy_from_slice(&y);
+            let ws = w[c0..c0 + m].to_vec();
+            for (i, wi) in w[c0..c0 + m].iter_mut().enumerate() {
+                *wi = (0..=i).map(|k| self.value(v + k * nr + i) * ws[k]).sum();
+            }
             for (r, &row) in rows.iter().enumerate() {
-                let d: f64 = (0..m).map(|k| self.value(v + k * nr + m + r) * y[k]).sum();
+                let d: f64 = (0..m).map(|k| self.value(v + k * nr + m + r) * ws[k]).sum();
                 w[row as usize] -= d;
             }
         }
         for s in (0..self.len()).rev() {
             let (c0, m, v, nr, rows) = self.block(s);
-            let t: Vec<f64> = (0..m)
+            let x: Vec<f64> = (0..m)
                 .map(|k| {
+                    let diag: f64 = (k..m).map(|i| self.value(v + k * nr + i) * w[c0 + i]).sum();
                     let below: f64 = rows
                         .iter()
                         .enumerate()
                         .map(|(r, &row)| self.value(v + k * nr + m + r) * w[row as usize])
                         .sum();
-                    w[c0 + k] - below
+                    diag - below
                 })
                 .collect();
-            for k in 0..m {
-                w[c0 + k] = (k..m).map(|i| self.value(v + k * nr + i) * t[i]).sum();
-            }
+            w[c0..c0 + m].copy_from_slice(&x);
         }
         self.unpermuted(&w)
     }

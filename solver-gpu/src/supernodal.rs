@@ -7,16 +7,18 @@
 //! scale factors' (the factor of their constant Hessian itself).
 //!
 //! The factor is made on the host once per system kind per run (faer, nested
-//! dissection: a shallow elimination tree), its diagonal blocks inverted there
-//! ([`SupernodalFactor::invert_diagonal_blocks`]), and goes up once. An
-//! application is `2 + 5 levels` dispatches, no host work, no atomics and no
-//! barriers (the same result on every run): gather `w = P r`; per level of the
-//! supernodal elimination tree, leaves first, pull the descendants' updates,
-//! `y_s = L_ss^-1 w_s`, leave the updates of the rows below; per level, root
-//! first, subtract the ancestors' part and `x_s = L_ss^-T w_s`; scatter
-//! `z = P^T x`. Each kernel runs one invocation per row and scalar column of
-//! the level, a dot product each: the dense separators at the top of the tree
-//! spread over the whole GPU instead of one workgroup.
+//! dissection: a shallow elimination tree), put there in the inverted form
+//! ([`SupernodalFactor::invert_diagonal_blocks`]: `L_ss^-1`, and `B_s = L_rs
+//! L_ss^-1` in place of the rows below), and goes up once. An application is
+//! `2 + 3 levels` dispatches, no host work, no atomics and no barriers (the
+//! same result on every run): gather `w = P r`; per level of the supernodal
+//! elimination tree, leaves first, pull the descendants' updates, then one
+//! step for `y_s = L_ss^-1 w_s` and the updates `B_s w_s` of the rows below
+//! (both read `w_s` only); per level, root first, `x_s = L_ss^-T y_s - B_s^T
+//! x_r` in one step; scatter `z = P^T x`. Each kernel runs one invocation per
+//! row (or slot) and scalar column of the level, a dot product each: the dense
+//! separators at the top of the tree spread over the whole GPU instead of one
+//! workgroup.
 //!
 //! The values are stored level by level and cut into buffers of at most one
 //! storage binding at supernode boundaries ([`GpuFactor::upload`]); a level
@@ -63,8 +65,8 @@ struct SnParams {
 pub(crate) struct SupernodalKernels {
     pub precision: Precision,
     shader: Shader,
-    /// gather, pull, fdiag, fbelow, bbelow, bdiag, scatter.
-    kernels: [Kernel; 7],
+    /// gather, pull, forward, backward, scatter.
+    kernels: [Kernel; 5],
 }
 
 impl SupernodalKernels {
@@ -75,10 +77,8 @@ impl SupernodalKernels {
         let kernels = [
             k("supernodal gather", "gather"),
             k("supernodal pull", "pull"),
-            k("supernodal fdiag", "fdiag"),
-            k("supernodal fbelow", "fbelow"),
-            k("supernodal bbelow", "bbelow"),
-            k("supernodal bdiag", "bdiag"),
+            k("supernodal forward", "forward"),
+            k("supernodal backward", "backward"),
             k("supernodal scatter", "scatter"),
         ];
         Ok(Arc::new(SupernodalKernels {
@@ -450,7 +450,7 @@ impl SupernodalSteps {
         for level in &self.groups {
             let mut segments = Vec::with_capacity(level.len());
             for (_, [own, below]) in level {
-                segments.push([dims(*own as u64)?, dims(*below as u64)?]);
+                segments.push([dims(*own as u64)?, dims(*own as u64 + *below as u64)?]);
             }
             levels.push(segments);
         }
@@ -461,8 +461,6 @@ impl SupernodalSteps {
                 k[2].pipeline(ctx, ncols)?,
                 k[3].pipeline(ctx, ncols)?,
                 k[4].pipeline(ctx, ncols)?,
-                k[5].pipeline(ctx, ncols)?,
-                k[6].pipeline(ctx, ncols)?,
             ],
             flat: dims(self.nv as u64)?,
             levels,
@@ -477,7 +475,7 @@ impl SupernodalSteps {
         let sweep = KernelWork::operator(self.bytes.0 + 4 * col, self.bytes.0 + 2 * col);
         let segments: usize = self.groups.iter().map(Vec::len).sum();
         KernelWork {
-            dispatches: 2 + 5 * segments as u64,
+            dispatches: 2 + 3 * segments as u64,
             ..sweep.times(2) + KernelWork::other(2 * col).times(2)
         }
     }
@@ -490,25 +488,25 @@ impl SupernodalSteps {
         for (level, dims) in self.groups.iter().zip(&p.levels) {
             for ((bg, _), d) in level.iter().zip(dims) {
                 dispatch(pass, &p.p[1], bg, d[0]);
-                dispatch(pass, &p.p[2], bg, d[0]);
-                dispatch(pass, &p.p[3], bg, d[1]);
+                dispatch(pass, &p.p[2], bg, d[1]);
             }
         }
         for (level, dims) in self.groups.iter().zip(&p.levels).rev() {
             for ((bg, _), d) in level.iter().zip(dims) {
-                dispatch(pass, &p.p[4], bg, d[0]);
-                dispatch(pass, &p.p[5], bg, d[0]);
+                dispatch(pass, &p.p[3], bg, d[0]);
             }
         }
-        dispatch(pass, &p.p[6], bg0, p.flat);
+        dispatch(pass, &p.p[4], bg0, p.flat);
     }
 }
 
 /// The pipelines of [`SupernodalSteps`] for one column count, and their
 /// dispatch sizes.
 pub(crate) struct Pipelines {
-    p: [wgpu::ComputePipeline; 7],
+    p: [wgpu::ComputePipeline; 5],
     flat: (u32, u32),
+    /// Per level and segment: the sizes of `pull` and `backward` (its own
+    /// rows), and of `forward` (its own rows and its slots).
     levels: Vec<Vec<[(u32, u32); 2]>>,
 }
 
