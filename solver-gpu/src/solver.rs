@@ -527,7 +527,8 @@ impl GpuSolver {
     }
 
     /// Solve up to CMAX columns in mixed precision from the start `x`: rounds
-    /// of f64 PCG (f32 V-cycle) on the f64 residual. `total`: PCG iterations
+    /// of f64 PCG on the f64 residual (preconditioned by the Cholesky factor
+    /// in its precision, else by the f32 V-cycle). `total`: PCG iterations
     /// already spent on these columns.
     fn solve_batch_mixed(
         &mut self,
@@ -536,7 +537,15 @@ impl GpuSolver {
         ncols: usize,
         mut total: usize,
     ) -> Result<(), GpuError> {
-        log::info!("GPU solve: PCG in f64 with the f32 AMG V-cycle");
+        log::info!(
+            "GPU solve: PCG in f64, preconditioner {:?}{}",
+            self.active_preconditioner(),
+            match self.chol.as_ref().map(|f| f.precision) {
+                Some(precision::Precision::F64) => " (f64 factor)",
+                Some(precision::Precision::F32) => " (f32 factor)",
+                None => " (f32 V-cycle)",
+            }
+        );
         self.stats.mixed = true;
         self.mixed_workspace(ncols)?;
         let h = self.host.as_ref().unwrap();
