@@ -58,7 +58,8 @@
 //! ```text
 //! P K P^T = L L^T            host, faer, f64 where the PCG is f64, once per system kind
 //! L_ss := L_ss^-1            host, each supernode's diagonal block
-//! z = P^T L^-T L^-1 P r      GPU, per level of the elimination tree: dot products
+//! L_rs := L_rs L_ss^-1       host, the rows below it
+//! z = P^T L^-T L^-1 P r      GPU, three dispatches per level of the elimination tree
 //! ```
 //!
 //! (`supernodal`, `shaders/supernodal.wgsl`; the values split over several
