@@ -4,6 +4,7 @@
 //! refinement; an f32 copy and the inverted diagonal blocks go to the GPU.
 
 use crate::device::Context;
+use crate::expand_blocks;
 use crate::precision::Precision;
 use crate::GpuError;
 use rayon::prelude::*;
@@ -25,6 +26,9 @@ pub(crate) struct HostMatrix {
     pub diag: Vec<u32>,
     /// The input pattern (lower CSC), to recognise a repeated pattern.
     pub key: (Vec<usize>, Vec<usize>),
+    /// The held vertices [`Self::fill_lower`] last filled for, and each full
+    /// block's source ([`expand_blocks::block_map`]).
+    fill_map: Option<(Vec<bool>, Vec<u32>)>,
 }
 
 impl HostMatrix {
@@ -130,6 +134,7 @@ impl HostMatrix {
             lower_to_full,
             diag,
             key: (col_ptr.to_vec(), row_idx.to_vec()),
+            fill_map: None,
         })
     }
 
@@ -155,7 +160,7 @@ impl HostMatrix {
     /// Values of a block matrix; rows/columns of fixed vertices become identity
     /// (as `BlockSym3::fill_scalar`).
     pub fn fill_blocks(&mut self, a: &BlockSym3, fixed: &[bool]) {
-        self.fill_lower(&a.col_ptr, &a.row_idx, &a.blocks, fixed);
+        self.fill_lower(&a.blocks, fixed);
     }
 
     /// Values of a shape matrix in isotropic-plus-ring form, `K (x) I3 + sum_i
@@ -172,10 +177,10 @@ impl HostMatrix {
         scratch: &mut Vec<[f64; 9]>,
     ) {
         scratch.clear();
-        scratch.extend(
+        scratch.par_extend(
             a.iso
                 .values
-                .iter()
+                .par_iter()
                 .map(|&v| [v, 0.0, 0.0, 0.0, v, 0.0, 0.0, 0.0, v]),
         );
         let rings = &a.rings;
@@ -198,47 +203,49 @@ impl HostMatrix {
                 }
             }
         }
-        self.fill_lower(&a.iso.col_ptr, &a.iso.row_idx, scratch, fixed);
+        self.fill_lower(scratch, fixed);
     }
 
-    /// Values from lower-CSC 3x3 blocks (the input pattern of [`Self::pattern`]).
-    fn fill_lower(
-        &mut self,
-        col_ptr: &[usize],
-        row_idx: &[usize],
-        blocks: &[[f64; 9]],
-        fixed: &[bool],
-    ) {
+    /// Values from lower-CSC 3x3 blocks (the input pattern of [`Self::pattern`]),
+    /// in parallel over the full blocks: each is written once, from its
+    /// source in [`expand_blocks::block_map`] (kept for the held vertices it
+    /// was made for), as `expand_blocks.wgsl` writes them on the GPU.
+    fn fill_lower(&mut self, blocks: &[[f64; 9]], fixed: &[bool]) {
+        use crate::expand_blocks::{IDENTITY, TRANSPOSE, ZERO};
         debug_assert_eq!(self.bs, 3);
-        let mut k = 0;
-        for j in 0..self.rows {
-            for kk in col_ptr[j]..col_ptr[j + 1] {
-                let i = row_idx[kk];
-                let b = &blocks[kk];
-                let (lo, up) = self.lower_to_full[k];
-                k += 1;
-                let cut = fixed[i] || fixed[j];
-                let dst = &mut self.vals[9 * lo as usize..9 * lo as usize + 9];
-                if cut {
+        if self
+            .fill_map
+            .as_ref()
+            .is_none_or(|(f, _)| f.as_slice() != fixed)
+        {
+            // `pattern` keeps 9 entries a block below 2^32: the lower
+            // indices stay below the transpose bit.
+            let map = expand_blocks::block_map(self, fixed)
+                .expect("block indices below 2^31 (HostMatrix::pattern)");
+            self.fill_map = Some((fixed.to_vec(), map));
+        }
+        let map = &self.fill_map.as_ref().unwrap().1;
+        self.vals
+            .par_chunks_mut(9)
+            .zip(map.par_iter())
+            .for_each(|(dst, &m)| match m {
+                ZERO => dst.fill(0.0),
+                IDENTITY => {
                     dst.fill(0.0);
-                    if i == j {
-                        dst[0] = 1.0;
-                        dst[4] = 1.0;
-                        dst[8] = 1.0;
-                    }
-                } else {
-                    dst.copy_from_slice(b);
+                    dst[0] = 1.0;
+                    dst[4] = 1.0;
+                    dst[8] = 1.0;
                 }
-                if up != u32::MAX {
-                    let dst = &mut self.vals[9 * up as usize..9 * up as usize + 9];
+                _ if m & TRANSPOSE != 0 => {
+                    let b = &blocks[(m & !TRANSPOSE) as usize];
                     for r in 0..3 {
                         for c in 0..3 {
-                            dst[3 * r + c] = if cut { 0.0 } else { b[3 * c + r] };
+                            dst[3 * r + c] = b[3 * c + r];
                         }
                     }
                 }
-            }
-        }
+                _ => dst.copy_from_slice(&blocks[m as usize]),
+            });
     }
 
     /// Values of a scalar matrix.
@@ -413,6 +420,55 @@ mod shape_fill_tests {
         assert_eq!(got.vals, want.vals);
         // Different rings (equal values, another allocation) are not these.
         assert!(!slots.of(&Arc::new((*a.rings).clone())));
+    }
+
+    /// Every full block is the lower block, its transpose above the
+    /// diagonal, or the identity / zero in a held vertex's row or column,
+    /// found here by row and column; a second fill with other held vertices
+    /// follows them (the kept block map is remade).
+    #[test]
+    fn fill_writes_each_block_from_its_source_for_the_held_vertices_given() {
+        let a = strip(11);
+        let (col_ptr, row_idx) = (&a.iso.col_ptr, &a.iso.row_idx);
+        // Off-diagonal blocks made unsymmetric, so that a block copied
+        // where its transpose belongs shows.
+        let mut blocks = a.to_blocks();
+        for j in 0..11 {
+            for k in col_ptr[j] + 1..col_ptr[j + 1] {
+                blocks.blocks[k][1] += 0.25 + k as f64;
+            }
+        }
+        let lower = |i: usize, j: usize| -> [f64; 9] {
+            let k = (col_ptr[j]..col_ptr[j + 1])
+                .find(|&k| row_idx[k] == i)
+                .expect("(i, j) in the lower pattern");
+            blocks.blocks[k]
+        };
+        let mut h = HostMatrix::pattern(11, 3, col_ptr, row_idx).unwrap();
+        for held in [vec![4usize], vec![0, 7, 10]] {
+            let mut fixed = vec![false; 11];
+            held.iter().for_each(|&v| fixed[v] = true);
+            h.fill_blocks(&blocks, &fixed);
+            for i in 0..11 {
+                for f in h.row_ptr[i] as usize..h.row_ptr[i + 1] as usize {
+                    let j = h.col_idx[f] as usize;
+                    let want: [f64; 9] = match (fixed[i] || fixed[j], i >= j) {
+                        (true, _) if i == j => [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+                        (true, _) => [0.0; 9],
+                        (false, true) => lower(i, j),
+                        (false, false) => {
+                            let b = lower(j, i);
+                            std::array::from_fn(|e| b[3 * (e % 3) + e / 3])
+                        }
+                    };
+                    assert_eq!(
+                        h.vals[9 * f..9 * f + 9],
+                        want,
+                        "held {held:?}, block ({i}, {j})"
+                    );
+                }
+            }
+        }
     }
 
     #[test]
