@@ -4,7 +4,6 @@
 //! refinement; an f32 copy and the inverted diagonal blocks go to the GPU.
 
 use crate::device::Context;
-use crate::expand_blocks;
 use crate::precision::Precision;
 use crate::GpuError;
 use rayon::prelude::*;
@@ -26,9 +25,6 @@ pub(crate) struct HostMatrix {
     pub diag: Vec<u32>,
     /// The input pattern (lower CSC), to recognise a repeated pattern.
     pub key: (Vec<usize>, Vec<usize>),
-    /// The held vertices [`Self::fill_lower`] last filled for, and each full
-    /// block's source ([`expand_blocks::block_map`]).
-    fill_map: Option<(Vec<bool>, Vec<u32>)>,
 }
 
 impl HostMatrix {
@@ -134,7 +130,6 @@ impl HostMatrix {
             lower_to_full,
             diag,
             key: (col_ptr.to_vec(), row_idx.to_vec()),
-            fill_map: None,
         })
     }
 
@@ -207,45 +202,52 @@ impl HostMatrix {
     }
 
     /// Values from lower-CSC 3x3 blocks (the input pattern of [`Self::pattern`]),
-    /// in parallel over the full blocks: each is written once, from its
-    /// source in [`expand_blocks::block_map`] (kept for the held vertices it
-    /// was made for), as `expand_blocks.wgsl` writes them on the GPU.
+    /// in parallel over the block rows: each full block is written once, from
+    /// its lower block found in the input pattern (its transpose above the
+    /// diagonal; zero, or the identity on the diagonal, in a held vertex's row
+    /// or column), as `expand_blocks.wgsl` writes them on the GPU. Nothing is
+    /// kept between fills.
     fn fill_lower(&mut self, blocks: &[[f64; 9]], fixed: &[bool]) {
-        use crate::expand_blocks::{IDENTITY, TRANSPOSE, ZERO};
         debug_assert_eq!(self.bs, 3);
-        if self
-            .fill_map
-            .as_ref()
-            .is_none_or(|(f, _)| f.as_slice() != fixed)
-        {
-            // `pattern` keeps 9 entries a block below 2^32: the lower
-            // indices stay below the transpose bit.
-            let map = expand_blocks::block_map(self, fixed)
-                .expect("block indices below 2^31 (HostMatrix::pattern)");
-            self.fill_map = Some((fixed.to_vec(), map));
+        let (col_ptr, row_idx) = (&self.key.0, &self.key.1);
+        let lower = |i: usize, j: usize| -> &[f64; 9] {
+            let (s, e) = (col_ptr[j], col_ptr[j + 1]);
+            // Every full block's pair is in the lower pattern (`pattern`).
+            let k = row_idx[s..e].binary_search(&i).map_or(s, |k| s + k);
+            &blocks[k]
+        };
+        let mut rows: Vec<(usize, &mut [f64])> = Vec::with_capacity(self.rows);
+        let mut rest = self.vals.as_mut_slice();
+        for i in 0..self.rows {
+            let len = 9 * (self.row_ptr[i + 1] - self.row_ptr[i]) as usize;
+            let (row, tail) = std::mem::take(&mut rest).split_at_mut(len);
+            rows.push((i, row));
+            rest = tail;
         }
-        let map = &self.fill_map.as_ref().unwrap().1;
-        self.vals
-            .par_chunks_mut(9)
-            .zip(map.par_iter())
-            .for_each(|(dst, &m)| match m {
-                ZERO => dst.fill(0.0),
-                IDENTITY => {
+        let (row_ptr, col_idx) = (&self.row_ptr, &self.col_idx);
+        rows.into_par_iter().for_each(|(i, row)| {
+            let cols = &col_idx[row_ptr[i] as usize..row_ptr[i + 1] as usize];
+            for (dst, &j) in row.chunks_exact_mut(9).zip(cols) {
+                let j = j as usize;
+                if fixed[i] || fixed[j] {
                     dst.fill(0.0);
-                    dst[0] = 1.0;
-                    dst[4] = 1.0;
-                    dst[8] = 1.0;
-                }
-                _ if m & TRANSPOSE != 0 => {
-                    let b = &blocks[(m & !TRANSPOSE) as usize];
+                    if i == j {
+                        dst[0] = 1.0;
+                        dst[4] = 1.0;
+                        dst[8] = 1.0;
+                    }
+                } else if i >= j {
+                    dst.copy_from_slice(lower(i, j));
+                } else {
+                    let b = lower(j, i);
                     for r in 0..3 {
                         for c in 0..3 {
                             dst[3 * r + c] = b[3 * c + r];
                         }
                     }
                 }
-                _ => dst.copy_from_slice(&blocks[m as usize]),
-            });
+            }
+        });
     }
 
     /// Values of a scalar matrix.
@@ -425,7 +427,7 @@ mod shape_fill_tests {
     /// Every full block is the lower block, its transpose above the
     /// diagonal, or the identity / zero in a held vertex's row or column,
     /// found here by row and column; a second fill with other held vertices
-    /// follows them (the kept block map is remade).
+    /// follows them.
     #[test]
     fn fill_writes_each_block_from_its_source_for_the_held_vertices_given() {
         let a = strip(11);
