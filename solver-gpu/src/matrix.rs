@@ -25,6 +25,8 @@ pub(crate) struct HostMatrix {
     pub diag: Vec<u32>,
     /// The input pattern (lower CSC), to recognise a repeated pattern.
     pub key: (Vec<usize>, Vec<usize>),
+    /// [`Self::norm_inf`] of the current values (reset by every fill).
+    norm: std::sync::OnceLock<f64>,
 }
 
 impl HostMatrix {
@@ -130,6 +132,7 @@ impl HostMatrix {
             lower_to_full,
             diag,
             key: (col_ptr.to_vec(), row_idx.to_vec()),
+            norm: std::sync::OnceLock::new(),
         })
     }
 
@@ -209,6 +212,7 @@ impl HostMatrix {
     /// kept between fills.
     fn fill_lower(&mut self, blocks: &[[f64; 9]], fixed: &[bool]) {
         debug_assert_eq!(self.bs, 3);
+        self.norm = std::sync::OnceLock::new();
         let (col_ptr, row_idx) = (&self.key.0, &self.key.1);
         let lower = |i: usize, j: usize| -> &[f64; 9] {
             let (s, e) = (col_ptr[j], col_ptr[j + 1]);
@@ -253,6 +257,7 @@ impl HostMatrix {
     /// Values of a scalar matrix.
     pub fn fill_scalar(&mut self, a: &SymCsc) {
         debug_assert_eq!(self.bs, 1);
+        self.norm = std::sync::OnceLock::new();
         for (k, &(lo, up)) in self.lower_to_full.iter().enumerate() {
             self.vals[lo as usize] = a.values[k];
             if up != u32::MAX {
@@ -262,8 +267,13 @@ impl HostMatrix {
     }
 
     /// `||A||_inf`, the largest absolute row sum (an upper bound of `||A||_2`
-    /// for a symmetric matrix).
+    /// for a symmetric matrix): one pass over the values after each fill,
+    /// kept for every solve of those values.
     pub fn norm_inf(&self) -> f64 {
+        *self.norm.get_or_init(|| self.row_sums_max())
+    }
+
+    fn row_sums_max(&self) -> f64 {
         let bs = self.bs;
         (0..self.rows)
             .into_par_iter()
@@ -471,6 +481,32 @@ mod shape_fill_tests {
                 }
             }
         }
+    }
+
+    /// `norm_inf` is kept between solves of one set of values and follows
+    /// every new fill (scaled values, then other held vertices).
+    #[test]
+    fn norm_follows_each_fill() {
+        let a = strip(11);
+        let (col_ptr, row_idx) = (&a.iso.col_ptr, &a.iso.row_idx);
+        let mut h = HostMatrix::pattern(11, 3, col_ptr, row_idx).unwrap();
+        let fixed = vec![false; 11];
+        let mut blocks = a.to_blocks();
+        h.fill_blocks(&blocks, &fixed);
+        let n1 = h.norm_inf();
+        assert!(n1 > 1.0, "{n1}");
+        assert_eq!(h.norm_inf(), n1);
+        blocks.blocks.iter_mut().flatten().for_each(|v| *v *= 3.0);
+        h.fill_blocks(&blocks, &fixed);
+        assert!(
+            (h.norm_inf() - 3.0 * n1).abs() <= 1e-12 * n1,
+            "{} against {}",
+            h.norm_inf(),
+            3.0 * n1
+        );
+        // Every vertex held: the identity.
+        h.fill_blocks(&blocks, &[true; 11]);
+        assert_eq!(h.norm_inf(), 1.0);
     }
 
     #[test]
