@@ -10,6 +10,9 @@
 # pipeline bench as `pipeline-bench`; build them with
 #   cargo build --release && cargo bench --bench pipeline --no-run
 #   cp "$(ls -t target/release/deps/pipeline-* | grep -v '\.d$' | head -1)" target/release/pipeline-bench
+#   git rev-parse --short HEAD > target/release/COMMIT
+# ($BIN/COMMIT names the binaries' commit in the header line: binaries carried
+# to another machine are not that machine's checkout.)
 # The bench reads its meshes from data/meshes under the repository root it was
 # built in (its CARGO_MANIFEST_DIR); run this script from the repository root,
 # or link that path to it on another machine. The CPU rows run in their own
@@ -27,7 +30,12 @@ done
 
 device=$("$BIN/metricdeform" adapters 2>/dev/null | sed -n 's/^`--backend gpu` would use: \(.*\) (set .*/\1/p')
 cpu=$( (lscpu 2>/dev/null | sed -n 's/^Model name: *//p' | head -1) || true)
-echo "device: ${device:-none}; CPU: ${cpu:-unknown}, $(nproc) cores; $(date -u +%Y-%m-%d); commit $(git rev-parse --short HEAD 2>/dev/null || echo '?')"
+if [ -s "$BIN/COMMIT" ]; then
+  commit="binaries of $(head -c 40 "$BIN/COMMIT")"
+else
+  commit="checkout $(git rev-parse --short HEAD 2>/dev/null || echo '?') (no $BIN/COMMIT: the binaries' own commit is unknown)"
+fi
+echo "device: ${device:-none}; CPU: ${cpu:-unknown}, $(nproc) cores; $(date -u +%Y-%m-%d); $commit"
 log=$(mktemp -d)
 # Field k of a row's table line: | name | faces | multipliers | iterations | load | sd | ft | total | err | peak |
 field() { awk -F'|' -v k="$2" '/^\| girths/ {gsub(/ /, "", $k); print $k; exit}' "$1"; }
