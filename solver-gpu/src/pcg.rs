@@ -736,13 +736,72 @@ impl Pcg {
                 b?
             }
         };
-        Ok(match ws.precision {
-            Precision::F32 => bytemuck::pod_collect_to_vec::<u8, f32>(&bytes)
-                .into_iter()
-                .map(f64::from)
-                .collect(),
-            Precision::F64 => bytemuck::pod_collect_to_vec::<u8, f64>(&bytes),
-        })
+        let mut x = vec![0.0; count];
+        add_columns(ws.precision, &bytes, &vec![1.0; ncols], &mut x);
+        Ok(x)
+    }
+
+    /// `x_c += scale_c d_c` for the columns with a nonzero `scale`, `d` the
+    /// solution of `run` (from its last read-back where that brought it, else
+    /// read now): no f64 copy of `d` is made on the host.
+    pub fn add_x(
+        &self,
+        ctx: &Context,
+        ws: &mut Workspace,
+        run: &mut PcgRun,
+        scale: &[f64],
+        x: &mut [f64],
+    ) -> Result<(), GpuError> {
+        let count = ws.n() * scale.len();
+        let bytes = match run.x.take() {
+            Some(b) => b,
+            None => {
+                let mut staging = ws.staging_x.take();
+                let b = ctx.read::<u8>(
+                    &ws.x,
+                    count * ws.precision.bytes() as usize,
+                    &mut staging,
+                    None,
+                );
+                ws.staging_x = staging;
+                b?
+            }
+        };
+        add_columns(ws.precision, &bytes, scale, x);
+        Ok(())
+    }
+}
+
+/// `x_c += scale_c d_c` over the columns of `x` (length `n` each) with a
+/// nonzero scale, `d` the bytes of as many columns in `precision`: read in
+/// place where they are aligned for it, else value by value.
+fn add_columns(precision: Precision, d: &[u8], scale: &[f64], x: &mut [f64]) {
+    let n = x.len() / scale.len().max(1);
+    for (c, &s) in scale.iter().enumerate() {
+        if s == 0.0 {
+            continue;
+        }
+        let xc = &mut x[c * n..(c + 1) * n];
+        match precision {
+            Precision::F64 => {
+                let bytes = &d[8 * c * n..8 * (c + 1) * n];
+                match bytemuck::try_cast_slice::<u8, f64>(bytes) {
+                    Ok(dc) => xc.iter_mut().zip(dc).for_each(|(xi, di)| *xi += s * di),
+                    Err(_) => xc
+                        .iter_mut()
+                        .zip(bytes.chunks_exact(8))
+                        .for_each(|(xi, b)| *xi += s * f64::from_ne_bytes(b.try_into().unwrap())),
+                }
+            }
+            Precision::F32 => {
+                let bytes = &d[4 * c * n..4 * (c + 1) * n];
+                xc.iter_mut()
+                    .zip(bytes.chunks_exact(4))
+                    .for_each(|(xi, b)| {
+                        *xi += s * f64::from(f32::from_ne_bytes(b.try_into().unwrap()))
+                    });
+            }
+        }
     }
 }
 
@@ -768,4 +827,38 @@ fn predict(last: Option<&(usize, Vec<ColState>)>, run: &PcgRun, cap: usize) -> u
         need = need.max(left.ceil() + 2.0);
     }
     (need as usize).clamp(2, cap)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{add_columns, Precision};
+
+    /// `x_c += s_c d_c` for the columns with a nonzero scale, from f64 bytes
+    /// aligned or not (a read-back's `Vec<u8>` promises no alignment) and
+    /// from f32 bytes.
+    #[test]
+    fn columns_are_added_from_bytes_in_either_precision_and_alignment() {
+        let n = 5;
+        let d: Vec<f64> = (0..2 * n).map(|i| 0.5 + i as f64).collect();
+        let want = |x0: f64, scale: [f64; 2]| -> Vec<f64> {
+            (0..2 * n).map(|i| x0 + scale[i / n] * d[i]).collect()
+        };
+        let bytes: Vec<u8> = bytemuck::cast_slice(&d).to_vec();
+        let mut shifted = vec![0u8; bytes.len() + 1];
+        shifted[1..].copy_from_slice(&bytes);
+        for (what, b) in [("aligned", &bytes[..]), ("unaligned", &shifted[1..])] {
+            let mut x = vec![1.0; 2 * n];
+            add_columns(Precision::F64, b, &[2.0, 0.0], &mut x);
+            assert_eq!(x, want(1.0, [2.0, 0.0]), "{what}");
+        }
+        let d32: Vec<f32> = d.iter().map(|&v| v as f32).collect();
+        let mut x = vec![-1.0; 2 * n];
+        add_columns(
+            Precision::F32,
+            bytemuck::cast_slice(&d32),
+            &[1.0, -3.0],
+            &mut x,
+        );
+        assert_eq!(x, want(-1.0, [1.0, -3.0]));
+    }
 }

@@ -62,15 +62,8 @@ impl Round<'_> {
         if run.breakdown() {
             return Ok((run.iterations(), true));
         }
-        let d = self.pcg.read_x(self.ctx, ws, ncols, &mut run)?;
-        for (c, &s) in scale.iter().enumerate() {
-            if s != 0.0 {
-                let cols = c * n..(c + 1) * n;
-                for (xi, di) in x[cols.clone()].iter_mut().zip(&d[cols]) {
-                    *xi += s * di;
-                }
-            }
-        }
+        self.pcg
+            .add_x(self.ctx, ws, &mut run, scale, &mut x[..n * ncols])?;
         Ok((run.iterations(), false))
     }
 }
@@ -206,6 +199,7 @@ pub fn open_with(opts: OpenOptions) -> Result<GpuSolver, GpuError> {
         squared: None,
         ring_slots: None,
         lower_scratch: Vec::new(),
+        host_residual: Vec::new(),
         expand: None,
         expansion: None,
         mixed_builds: 0,
@@ -308,6 +302,8 @@ pub struct GpuSolver {
     /// ([`SpdSolver::prepare_shape_owned`]), and the lower blocks summed there.
     ring_slots: Option<RingSlots>,
     lower_scratch: Vec<[f64; 9]>,
+    /// The f64 residuals of the mixed-precision rounds, kept between solves.
+    host_residual: Vec<f64>,
     /// New values of a prepared block pattern go up as their lower triangle
     /// in f64 and are expanded on the GPU (needs `SHADER_F64`): the kernel,
     /// and the recorded expansion with what it was recorded for
@@ -535,7 +531,7 @@ impl GpuSolver {
         b: &[f64],
         x: &mut [f64],
         ncols: usize,
-        mut total: usize,
+        total: usize,
     ) -> Result<(), GpuError> {
         log::info!(
             "GPU solve: PCG in f64, preconditioner {:?}{}",
@@ -548,14 +544,32 @@ impl GpuSolver {
         );
         self.stats.mixed = true;
         self.mixed_workspace(ncols)?;
+        let n = self.host.as_ref().unwrap().n();
+        // The residuals' host vector is kept between solves (no fresh
+        // allocation, zeroed page by page, each time).
+        let mut r = std::mem::take(&mut self.host_residual);
+        r.resize(n * ncols, 0.0);
+        let done = self.mixed_rounds(b, x, ncols, total, &mut r);
+        self.host_residual = r;
+        done
+    }
+
+    /// The rounds of [`Self::solve_batch_mixed`], `r` the residuals' vector.
+    fn mixed_rounds(
+        &mut self,
+        b: &[f64],
+        x: &mut [f64],
+        ncols: usize,
+        mut total: usize,
+        r: &mut [f64],
+    ) -> Result<(), GpuError> {
+        let n = self.host.as_ref().unwrap().n();
         let h = self.host.as_ref().unwrap();
-        let n = h.n();
-        let mut r = vec![0.0; n * ncols];
         let mut prev = f64::INFINITY;
         let anorm = h.norm_inf();
         for round_no in 0.. {
             let h = self.host.as_ref().unwrap();
-            let (rnorm, rel, worst, target) = residuals(h, anorm, b, x, &mut r, ncols, self.tol);
+            let (rnorm, rel, worst, target) = residuals(h, anorm, b, x, r, ncols, self.tol);
             self.stats.residual = worst;
             log::trace!(
                 "mixed round {round_no}: relative residual {worst:.2e} after {total} iterations"
