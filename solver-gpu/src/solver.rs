@@ -615,7 +615,7 @@ impl GpuSolver {
             let active: Vec<f64> = (0..ncols)
                 .map(|c| if rel[c] > target[c] { rnorm[c] } else { 0.0 })
                 .collect();
-            let (it, broke_down) = round.run(ws, bytemuck::cast_slice(&r), &thr, &active, x)?;
+            let (it, broke_down) = round.run(ws, bytemuck::cast_slice(r), &thr, &active, x)?;
             total += it;
             self.stats.rounds += 1;
             self.stats.iterations = total;
