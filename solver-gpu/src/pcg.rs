@@ -721,23 +721,8 @@ impl Pcg {
         ncols: usize,
         run: &mut PcgRun,
     ) -> Result<Vec<f64>, GpuError> {
-        let count = ws.n() * ncols;
-        let bytes = match run.x.take() {
-            Some(b) => b,
-            None => {
-                let mut staging = ws.staging_x.take();
-                let b = ctx.read::<u8>(
-                    &ws.x,
-                    count * ws.precision.bytes() as usize,
-                    &mut staging,
-                    None,
-                );
-                ws.staging_x = staging;
-                b?
-            }
-        };
-        let mut x = vec![0.0; count];
-        add_columns(ws.precision, &bytes, &vec![1.0; ncols], &mut x);
+        let mut x = vec![0.0; ws.n() * ncols];
+        self.add_x(ctx, ws, run, &vec![1.0; ncols], &mut x)?;
         Ok(x)
     }
 
