@@ -1471,15 +1471,21 @@ impl SpdSolver for GpuSolver {
             }
             SystemKind::ScaleFactors => self.drop_cholesky(),
         }
+        let t = std::time::Instant::now();
         let mut h = self.take_host(same, n, 3, col_ptr, row_idx)?;
         let slots = self.ring_slots.as_ref().unwrap();
         h.fill_shape(&a, slots, fixed, &mut self.lower_scratch);
         self.fixed.clear();
         self.fixed.extend_from_slice(fixed);
+        let filled = t.elapsed().as_secs_f64();
         let lower = std::mem::take(&mut self.lower_scratch);
         let done = self.upload(h, same, Some(&lower));
         self.lower_scratch = lower;
         done?;
+        log::debug!(
+            "shape matrix on the host: filled in {filled:.3} s, uploaded in {:.3} s",
+            t.elapsed().as_secs_f64() - filled
+        );
         Ok(Some(a))
     }
 
