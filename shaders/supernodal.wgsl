@@ -6,19 +6,18 @@
 //
 // Driven by solver-gpu/src/supernodal.rs. One application, with the levels of
 // the supernodal elimination tree (a level's supernodes are independent):
-//   gather                      w = P r
 //   per level, leaves first:
-//     pull     (own rows)       w_s -= the updates the descendants left in
-//                               `contrib` for the rows of s
+//     pull     (own rows)       w_s = (P r)_s - the updates the descendants
+//                               left in `contrib` for the rows of s
 //     forward  (own rows, then  y_s = L_ss^-1 w_s, and contrib[slot of row r]
 //               rows below)     = B_rs w_s with B = L_rs L_ss^-1 (= L_rs y_s)
 //   per level, root first:
 //     backward (own rows)       w_s = x_s = L_ss^-T y_s - B_rs^T x_r (x of the
-//                               ancestors, final, kept in w)
-//   scatter                     z = P^T w
-// Three dispatches a level: the factor holds B in place of L_rs
-// (SupernodalFactor::invert_diagonal_blocks), so the diagonal and below
-// products of a sweep read the same vector and share a dispatch.
+//                               ancestors, final, kept in w); z = P^T x
+// Three dispatches a level and nothing else: the factor holds B in place of
+// L_rs (SupernodalFactor::invert_diagonal_blocks), so the diagonal and below
+// products of a sweep read the same vector and share a dispatch, and the
+// permutations are folded into the first and last step of each row.
 // Every kernel is one invocation per (row, scalar column) of its list, each
 // a dot product: no atomics, no barriers, no two invocations write one entry.
 //
@@ -130,23 +129,8 @@ fn pcg_index(t: u32) -> u32 {
     return (c / P.bs) * P.stride + idx[P.o_perm + i] * P.bs + c % P.bs;
 }
 
-@compute @workgroup_size(256)
-fn gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    let t = linear(gid, nwg);
-    if t < P.nv * P.bs * NCOLS {
-        w[t] = r[pcg_index(t)];
-    }
-}
-
-@compute @workgroup_size(256)
-fn scatter(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    let t = linear(gid, nwg);
-    if t < P.nv * P.bs * NCOLS {
-        z[pcg_index(t)] = w[t];
-    }
-}
-
-// w_i -= the descendants' updates of row i.
+// w_i = (P r)_i - the descendants' updates of row i (the gather of r fused:
+// nothing reads w_i before its pull).
 @compute @workgroup_size(256)
 fn pull(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let cc = P.bs * NCOLS;
@@ -156,7 +140,7 @@ fn pull(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
     }
     let row = idx[P.o_cols + P.own + t / cc];
     let c = t % cc;
-    var acc = w[row * cc + c];
+    var acc = r[pcg_index(row * cc + c)];
     let e1 = idx[P.o_tptr + row + 1u];
     for (var e = idx[P.o_tptr + row]; e < e1; e++) {
         acc -= contrib[idx[P.o_tpos + e] * cc + c];
@@ -200,7 +184,7 @@ fn forward(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroup
 
 // Backward step: x_k = sum_{i >= k} L_ss^-1[i, k] y_i - sum_r B[r, k] x_{rows[r]}
 // for row k of supernode s, into w (the ancestors' x, final, are in w; this
-// level's forward y in y).
+// level's forward y in y) and, scattered, into z (z = P^T x).
 @compute @workgroup_size(256)
 fn backward(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let cc = P.bs * NCOLS;
@@ -218,4 +202,5 @@ fn backward(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgrou
         acc -= vals[at + o.s.m + rr] * w[idx[P.o_rows + o.s.ro + rr] * cc + o.c];
     }
     w[o.row * cc + o.c] = acc;
+    z[pcg_index(o.row * cc + o.c)] = acc;
 }

@@ -10,12 +10,12 @@
 //! dissection: a shallow elimination tree), put there in the inverted form
 //! ([`SupernodalFactor::invert_diagonal_blocks`]: `L_ss^-1`, and `B_s = L_rs
 //! L_ss^-1` in place of the rows below), and goes up once. An application is
-//! `2 + 3 levels` dispatches, no host work, no atomics and no barriers (the
-//! same result on every run): gather `w = P r`; per level of the supernodal
-//! elimination tree, leaves first, pull the descendants' updates, then one
+//! `3 levels` dispatches, no host work, no atomics and no barriers (the
+//! same result on every run): per level of the supernodal elimination tree,
+//! leaves first, pull `w_s = (P r)_s` less the descendants' updates, then one
 //! step for `y_s = L_ss^-1 w_s` and the updates `B_s w_s` of the rows below
 //! (both read `w_s` only); per level, root first, `x_s = L_ss^-T y_s - B_s^T
-//! x_r` in one step; scatter `z = P^T x`. Each kernel runs one invocation per
+//! x_r` in one step, written to `z = P^T x` as well. Each kernel runs one invocation per
 //! row (or slot) and scalar column of the level, a dot product each: the dense
 //! separators at the top of the tree spread over the whole GPU instead of one
 //! workgroup.
@@ -65,8 +65,8 @@ struct SnParams {
 pub(crate) struct SupernodalKernels {
     pub precision: Precision,
     shader: Shader,
-    /// gather, pull, forward, backward, scatter.
-    kernels: [Kernel; 5],
+    /// pull, forward, backward.
+    kernels: [Kernel; 3],
 }
 
 impl SupernodalKernels {
@@ -75,11 +75,9 @@ impl SupernodalKernels {
         let shader = Shader::new(ctx, "supernodal.wgsl", &source, &BINDINGS)?;
         let k = |label, entry| Kernel::new(&shader, label, entry);
         let kernels = [
-            k("supernodal gather", "gather"),
             k("supernodal pull", "pull"),
             k("supernodal forward", "forward"),
             k("supernodal backward", "backward"),
-            k("supernodal scatter", "scatter"),
         ];
         Ok(Arc::new(SupernodalKernels {
             precision,
@@ -335,7 +333,6 @@ pub(crate) struct SupernodalSteps {
     /// Per level, per segment ([`GpuFactor::levels`]): its bind group and
     /// its own rows and slots (the dispatch sizes, per column).
     groups: Vec<Vec<(wgpu::BindGroup, [u32; 2])>>,
-    nv: usize,
     bs: usize,
     w: wgpu::Buffer,
     /// Kept alive for the bind groups.
@@ -379,7 +376,7 @@ impl SupernodalSteps {
             &format!("Cholesky updates ({} x {})", f.slots, bs * cmax),
             (f.slots * bs * cmax * b) as u64,
         )?;
-        // An empty factor still gathers and scatters: one empty segment.
+        // An empty factor still records one (empty) segment.
         let levels = match f.levels.is_empty() {
             true => vec![vec![[0; 5]]],
             false => f.levels.clone(),
@@ -423,7 +420,6 @@ impl SupernodalSteps {
         Ok(SupernodalSteps {
             kernels: kernels.clone(),
             groups,
-            nv: f.nv,
             bs,
             w,
             y,
@@ -440,7 +436,7 @@ impl SupernodalSteps {
     }
 
     /// Pipelines for `ncols` PCG columns, with the dispatch sizes of each
-    /// segment and of the flat kernels.
+    /// segment.
     pub fn pipelines(&self, ctx: &Context, ncols: usize) -> Result<Pipelines, GpuError> {
         let k = &self.kernels.kernels;
         let cc = (self.bs * ncols) as u64;
@@ -459,10 +455,7 @@ impl SupernodalSteps {
                 k[0].pipeline(ctx, ncols)?,
                 k[1].pipeline(ctx, ncols)?,
                 k[2].pipeline(ctx, ncols)?,
-                k[3].pipeline(ctx, ncols)?,
-                k[4].pipeline(ctx, ncols)?,
             ],
-            flat: dims(self.nv as u64)?,
             levels,
         })
     }
@@ -475,7 +468,7 @@ impl SupernodalSteps {
         let sweep = KernelWork::operator(self.bytes.0 + 4 * col, self.bytes.0 + 2 * col);
         let segments: usize = self.groups.iter().map(Vec::len).sum();
         KernelWork {
-            dispatches: 2 + 3 * segments as u64,
+            dispatches: 3 * segments as u64,
             ..sweep.times(2) + KernelWork::other(2 * col).times(2)
         }
     }
@@ -483,28 +476,24 @@ impl SupernodalSteps {
     /// Record one application into `pass`. A level's segments are
     /// independent supernodes (in different chunks of the values).
     pub fn record(&self, pass: &mut wgpu::ComputePass, p: &Pipelines) {
-        let bg0 = &self.groups[0][0].0;
-        dispatch(pass, &p.p[0], bg0, p.flat);
         for (level, dims) in self.groups.iter().zip(&p.levels) {
             for ((bg, _), d) in level.iter().zip(dims) {
-                dispatch(pass, &p.p[1], bg, d[0]);
-                dispatch(pass, &p.p[2], bg, d[1]);
+                dispatch(pass, &p.p[0], bg, d[0]);
+                dispatch(pass, &p.p[1], bg, d[1]);
             }
         }
         for (level, dims) in self.groups.iter().zip(&p.levels).rev() {
             for ((bg, _), d) in level.iter().zip(dims) {
-                dispatch(pass, &p.p[3], bg, d[0]);
+                dispatch(pass, &p.p[2], bg, d[0]);
             }
         }
-        dispatch(pass, &p.p[4], bg0, p.flat);
     }
 }
 
 /// The pipelines of [`SupernodalSteps`] for one column count, and their
 /// dispatch sizes.
 pub(crate) struct Pipelines {
-    p: [wgpu::ComputePipeline; 5],
-    flat: (u32, u32),
+    p: [wgpu::ComputePipeline; 3],
     /// Per level and segment: the sizes of `pull` and `backward` (its own
     /// rows), and of `forward` (its own rows and its slots).
     levels: Vec<Vec<[(u32, u32); 2]>>,
