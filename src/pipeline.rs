@@ -533,12 +533,12 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
                     let waited = sys.counters().device_seconds;
                     let (s, info) = sys.estimate(&cons, o.multipliers)?;
                     let waited = sys.counters().device_seconds - waited;
+                    let seconds = t_iter.elapsed().as_secs_f64();
                     log::debug!(
-                        "scale factors: {} Newton steps, {:.3} s ({:.3} s of it on the host, \
+                        "scale factors: {} Newton steps, {seconds:.3} s ({:.3} s of it on the host, \
                          GPU waits excluded), resident {:.0} MiB",
                         info.newton_iterations,
-                        t_iter.elapsed().as_secs_f64(),
-                        t_iter.elapsed().as_secs_f64() - waited,
+                        seconds - waited,
                         crate::memory::resident_memory_mb()
                     );
                     let m = s.iter().fold(0.0f64, |m, v| m.max((v - 1.0).abs()));

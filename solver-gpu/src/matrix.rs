@@ -216,9 +216,11 @@ impl HostMatrix {
         let (col_ptr, row_idx) = (&self.key.0, &self.key.1);
         let lower = |i: usize, j: usize| -> &[f64; 9] {
             let (s, e) = (col_ptr[j], col_ptr[j + 1]);
-            // Every full block's pair is in the lower pattern (`pattern`).
-            let k = row_idx[s..e].binary_search(&i).map_or(s, |k| s + k);
-            &blocks[k]
+            // Every full block's pair is in the lower pattern (`pattern`
+            // derives the one from the other).
+            let k = row_idx[s..e].binary_search(&i);
+            debug_assert!(k.is_ok(), "block ({i}, {j}) outside the lower pattern");
+            &blocks[k.map_or(s, |k| s + k)]
         };
         let mut rows: Vec<(usize, &mut [f64])> = Vec::with_capacity(self.rows);
         let mut rest = self.vals.as_mut_slice();
