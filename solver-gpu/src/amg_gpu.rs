@@ -26,7 +26,7 @@
 use crate::amg::{Bsr, Hierarchy, AFFINE_MODES};
 use crate::device::{dispatch, Bind, Context, Kernel, KernelWork, Shader, ROW_WG};
 use crate::matrix::{
-    high_part, upload_chunks, write_chunk_values, Chunk, GpuMatrix, MatrixStorage,
+    high_part, upload_chunks, write_chunk_values, Chunk, GpuMatrix, MatrixStorage, Values,
 };
 use crate::{GpuError, CMAX};
 
@@ -231,7 +231,7 @@ impl GpuBsr {
             None => (&m.row_ptr, &m.col_idx, &m.vals, m.rows),
         };
         let per_block = layout.per_block();
-        let chunks = upload_chunks(ctx, &what, row_ptr, col_idx, per_block, vals)?;
+        let chunks = upload_chunks(ctx, &what, row_ptr, col_idx, per_block, Values::Flat(vals))?;
         // Values and a u32 column per block, and the row pointers: the least.
         let least = (col_idx.len() * (4 * per_block + 4) + 4 * (rows + 1)) as u64;
         Ok(GpuBsr {
@@ -267,9 +267,21 @@ impl GpuBsr {
         match self.layout {
             Layout::Wide(br, bc) => {
                 let w = m.regroup(br, bc);
-                write_chunk_values(ctx, &self.chunks, per_block, &w.vals, high_part);
+                write_chunk_values(
+                    ctx,
+                    &self.chunks,
+                    per_block,
+                    Values::Flat(&w.vals),
+                    high_part,
+                );
             }
-            _ => write_chunk_values(ctx, &self.chunks, per_block, &m.vals, high_part),
+            _ => write_chunk_values(
+                ctx,
+                &self.chunks,
+                per_block,
+                Values::Flat(&m.vals),
+                high_part,
+            ),
         }
     }
 }

@@ -6,13 +6,15 @@
 //! low parts (`hi + lo` = `v` to 2^-48).
 //!
 //! Bindings (group 0): 0 `C` uniform ([`ExpandParams`], one per chunk); 1
-//! `lower` (read, f64); 2 `map` (read, u32 per block, [`block_map`]); 3 `hi`
+//! `lower` (read, f64); 2 `map` (read, u32 per block, [`HostMatrix::map`]); 3 `hi`
 //! (read-write, the chunk's values); 4 `lo` (read-write, its low parts or a
 //! placeholder). Dispatch: `ceil(blocks / 256)` workgroups per chunk, 2-D.
 //! Needs `SHADER_F64`; without it the host writes the f32 values itself.
 
 use crate::device::{dispatch, Bind, Context, Kernel, KernelWork, Shader, FLAT_WG};
-use crate::matrix::{Chunk, HostMatrix};
+use crate::matrix::Chunk;
+#[cfg(doc)]
+use crate::matrix::HostMatrix;
 use crate::GpuError;
 
 pub(crate) const SOURCE: &str = include_str!("../../shaders/expand_blocks.wgsl");
@@ -25,7 +27,7 @@ const BINDINGS: [(u32, Bind); 5] = [
     (4, Bind::ReadWrite),
 ];
 
-/// `map` entries of [`block_map`] (as in the shader).
+/// `map` entries of [`HostMatrix::map`] (as in the shader).
 pub(crate) const ZERO: u32 = u32::MAX;
 pub(crate) const IDENTITY: u32 = u32::MAX - 1;
 pub(crate) const TRANSPOSE: u32 = 1 << 31;
@@ -38,38 +40,6 @@ struct ExpandParams {
     blocks: u32,
     split: u32,
     pad: u32,
-}
-
-/// For each block of `h`'s full pattern, where its values come from in the
-/// lower-CSC input: the lower block's index (with [`TRANSPOSE`] for the
-/// upper triangle), [`ZERO`] or [`IDENTITY`] for the rows and columns of
-/// held vertices (`fixed`), as [`HostMatrix::fill_blocks`] writes them.
-/// `None` when a lower index does not fit below [`IDENTITY`] without the
-/// transpose bit.
-pub(crate) fn block_map(h: &HostMatrix, fixed: &[bool]) -> Option<Vec<u32>> {
-    let lower = h.lower_to_full().len();
-    if lower as u64 >= u64::from(TRANSPOSE) {
-        return None;
-    }
-    let mut map = vec![ZERO; h.nnz_blocks()];
-    let (col_ptr, row_idx) = (&h.key.0, &h.key.1);
-    let mut k = 0;
-    for j in 0..h.rows {
-        for &i in &row_idx[col_ptr[j]..col_ptr[j + 1]] {
-            let (lo, up) = h.lower_to_full()[k];
-            let cut = fixed[i] || fixed[j];
-            map[lo as usize] = match (cut, i == j) {
-                (true, true) => IDENTITY,
-                (true, false) => ZERO,
-                (false, _) => k as u32,
-            };
-            if up != u32::MAX {
-                map[up as usize] = if cut { ZERO } else { k as u32 | TRANSPOSE };
-            }
-            k += 1;
-        }
-    }
-    Some(map)
 }
 
 pub(crate) struct ExpandBlocks {
@@ -246,6 +216,7 @@ mod tests {
         assert_eq!(up, (72 * b.blocks.len() + 60 * n) as u64);
         let mut want = HostMatrix::pattern(n, 3, &b.col_ptr, &b.row_idx).unwrap();
         want.fill_blocks(&b, &fixed);
+        let want_vals = want.full_values();
         let gpu = s.gpu.as_ref().unwrap();
         let (chunks, _) = gpu.block_parts().unwrap();
         let mixed = s.mixed.as_ref().unwrap();
@@ -257,7 +228,7 @@ mod tests {
             let count = 9 * c.blocks.len();
             let hi: Vec<f32> = s.ctx.read(&c.vals, count, &mut staging, None).unwrap();
             let lo: Vec<f32> = s.ctx.read(lo_buf, count, &mut staging, None).unwrap();
-            let v = &want.vals[9 * c.blocks.start..9 * c.blocks.end];
+            let v = &want_vals[9 * c.blocks.start..9 * c.blocks.end];
             for ((&v, &h), &l) in v.iter().zip(&hi).zip(&lo) {
                 // f32 conversions may round either way in WGSL: one ulp.
                 let ulp = |x: f32| (x.abs() * f32::EPSILON).max(f32::MIN_POSITIVE) as f64;
@@ -276,11 +247,11 @@ mod tests {
                 checked += 1;
             }
         }
-        assert_eq!(checked, want.vals.len());
+        assert_eq!(checked, want_vals.len());
         // The held vertex's row is the identity, its column zero elsewhere.
         let r = want.row_ptr[7] as usize..want.row_ptr[8] as usize;
         assert!(r.clone().all(|k| {
-            let blk = &want.vals[9 * k..9 * k + 9];
+            let blk = &want_vals[9 * k..9 * k + 9];
             match want.col_idx[k] {
                 7 => blk == [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
                 _ => blk.iter().all(|&v| v == 0.0),

@@ -16,7 +16,7 @@ pub struct FullMatrix<'a> {
     pub rows: usize,
     pub row_ptr: &'a [u32],
     pub col_idx: &'a [u32],
-    pub vals: &'a [f64],
+    pub vals: Vec<f64>,
 }
 
 /// The prepared matrix, if any.
@@ -26,7 +26,7 @@ pub fn full_matrix(s: &GpuSolver) -> Option<FullMatrix<'_>> {
         rows: h.rows,
         row_ptr: &h.row_ptr,
         col_idx: &h.col_idx,
-        vals: &h.vals,
+        vals: h.full_values(),
     })
 }
 

@@ -4,20 +4,32 @@
 //! refinement; an f32 copy and the inverted diagonal blocks go to the GPU.
 
 use crate::device::Context;
+use crate::expand_blocks::{IDENTITY, TRANSPOSE, ZERO};
 use crate::precision::Precision;
 use crate::GpuError;
 use rayon::prelude::*;
 use solver_cpu::{BlockSym3, IsoRingSym3, SolverError, SparseRows, SymCsc};
 use std::sync::Arc;
 
-/// Full block-CSR pattern and f64 values (host side).
+/// Full block-CSR pattern and f64 values (host side). A scalar matrix keeps
+/// its values for both triangles; a block matrix keeps only its lower
+/// triangle in input order and, per block of both triangles, where its
+/// values come from ([`Self::map`], as `expand_blocks.wgsl` reads it): half
+/// the bytes, and nothing written per fill beyond the lower blocks.
 pub(crate) struct HostMatrix {
     pub bs: usize,
     pub rows: usize,
     pub row_ptr: Vec<u32>,
     pub col_idx: Vec<u32>,
-    /// `bs * bs` per stored block, row-major.
-    pub vals: Vec<f64>,
+    /// Scalar matrices: one value per stored entry; empty for block ones.
+    vals: Vec<f64>,
+    /// Block matrices: the lower-triangle blocks (row-major), in the order of
+    /// the input's lower CSC.
+    lower: Vec<[f64; 9]>,
+    /// Block matrices: per block of the full pattern, its lower source, see
+    /// [`Self::map`]; made for the held vertices `map_fixed`.
+    map: Vec<u32>,
+    map_fixed: Vec<bool>,
     /// For each lower-triangle input entry: its position in the full pattern, and
     /// the position of its transpose (`u32::MAX` on the diagonal).
     lower_to_full: Vec<(u32, u32)>,
@@ -36,22 +48,24 @@ impl HostMatrix {
         let h = self;
         let bs = h.bs;
         let mut row_ptr = Vec::with_capacity(h.rows * bs + 1);
-        let mut col_idx = Vec::with_capacity(h.vals.len());
-        let mut vals = Vec::with_capacity(h.vals.len());
+        let entries = h.nnz_blocks() * bs * bs;
+        let mut col_idx = Vec::with_capacity(entries);
+        let mut vals = Vec::with_capacity(entries);
         let mut dinv = Vec::with_capacity(h.rows * bs);
         row_ptr.push(0u32);
         for i in 0..h.rows {
             let blocks = h.row_ptr[i] as usize..h.row_ptr[i + 1] as usize;
+            let d = h.block_values(h.diag[i] as usize);
             for q in 0..bs {
                 for k in blocks.clone() {
                     let j = h.col_idx[k] as usize;
+                    let m = h.block_values(k);
                     for t in 0..bs {
                         col_idx.push((j * bs + t) as u32);
-                        vals.push(h.vals[k * bs * bs + q * bs + t]);
+                        vals.push(m[q * bs + t]);
                     }
                 }
-                let d = h.diag[i] as usize * bs * bs + q * bs + q;
-                dinv.push(1.0 / h.vals[d]);
+                dinv.push(1.0 / d[q * bs + q]);
                 row_ptr.push(col_idx.len() as u32);
             }
         }
@@ -128,18 +142,19 @@ impl HostMatrix {
             rows: n,
             row_ptr,
             col_idx,
-            vals: vec![0.0; nnz_full * bs * bs],
+            vals: if bs == 1 {
+                vec![0.0; nnz_full]
+            } else {
+                Vec::new()
+            },
+            lower: Vec::new(),
+            map: Vec::new(),
+            map_fixed: Vec::new(),
             lower_to_full,
             diag,
             key: (col_ptr.to_vec(), row_idx.to_vec()),
             norm: std::sync::OnceLock::new(),
         })
-    }
-
-    /// For each lower-triangle input entry: its position in the full pattern,
-    /// and the position of its transpose (`u32::MAX` on the diagonal).
-    pub fn lower_to_full(&self) -> &[(u32, u32)] {
-        &self.lower_to_full
     }
 
     pub fn same_pattern(&self, bs: usize, col_ptr: &[usize], row_idx: &[usize]) -> bool {
@@ -158,22 +173,19 @@ impl HostMatrix {
     /// Values of a block matrix; rows/columns of fixed vertices become identity
     /// (as `BlockSym3::fill_scalar`).
     pub fn fill_blocks(&mut self, a: &BlockSym3, fixed: &[bool]) {
-        self.fill_lower(&a.blocks, fixed);
+        let mut lower = std::mem::take(&mut self.lower);
+        lower.clear();
+        lower.extend_from_slice(&a.blocks);
+        self.set_lower(lower, fixed);
     }
 
     /// Values of a shape matrix in isotropic-plus-ring form, `K (x) I3 + sum_i
     /// R_i^T C_i R_i`, without its explicit [`BlockSym3`]: the lower blocks are
-    /// summed in `scratch` (kept by the caller, so no allocation after the
-    /// first) with the ring pairs' slots from `slots`, in the order and with
-    /// the arithmetic of [`IsoRingSym3::to_blocks`] (the same values to the
-    /// bit), then expanded as [`Self::fill_blocks`].
-    pub fn fill_shape(
-        &mut self,
-        a: &IsoRingSym3,
-        slots: &RingSlots,
-        fixed: &[bool],
-        scratch: &mut Vec<[f64; 9]>,
-    ) {
+    /// summed in place (no allocation after the first fill of a pattern) with
+    /// the ring pairs' slots from `slots`, in the order and with the
+    /// arithmetic of [`IsoRingSym3::to_blocks`] (the same values to the bit).
+    pub fn fill_shape(&mut self, a: &IsoRingSym3, slots: &RingSlots, fixed: &[bool]) {
+        let mut scratch = std::mem::take(&mut self.lower);
         scratch.clear();
         scratch.par_extend(
             a.iso
@@ -201,59 +213,110 @@ impl HostMatrix {
                 }
             }
         }
-        self.fill_lower(scratch, fixed);
+        self.set_lower(scratch, fixed);
     }
 
-    /// Values from lower-CSC 3x3 blocks (the input pattern of [`Self::pattern`]),
-    /// in parallel over the block rows: each full block is written once, from
-    /// its lower block found in the input pattern (its transpose above the
-    /// diagonal; zero, or the identity on the diagonal, in a held vertex's row
-    /// or column), as `expand_blocks.wgsl` writes them on the GPU. Nothing is
-    /// kept between fills.
-    fn fill_lower(&mut self, blocks: &[[f64; 9]], fixed: &[bool]) {
+    /// New lower blocks (the input pattern's, in its order) with the rows and
+    /// columns of the held vertices `fixed` the identity: the map is made
+    /// again only when the held vertices change.
+    fn set_lower(&mut self, lower: Vec<[f64; 9]>, fixed: &[bool]) {
         debug_assert_eq!(self.bs, 3);
+        debug_assert_eq!(lower.len(), self.lower_to_full.len());
         self.norm = std::sync::OnceLock::new();
-        let (col_ptr, row_idx) = (&self.key.0, &self.key.1);
-        let lower = |i: usize, j: usize| -> &[f64; 9] {
-            let (s, e) = (col_ptr[j], col_ptr[j + 1]);
-            // Every full block's pair is in the lower pattern (`pattern`
-            // derives the one from the other).
-            let k = row_idx[s..e].binary_search(&i);
-            debug_assert!(k.is_ok(), "block ({i}, {j}) outside the lower pattern");
-            &blocks[k.map_or(s, |k| s + k)]
-        };
-        let mut rows: Vec<(usize, &mut [f64])> = Vec::with_capacity(self.rows);
-        let mut rest = self.vals.as_mut_slice();
-        for i in 0..self.rows {
-            let len = 9 * (self.row_ptr[i + 1] - self.row_ptr[i]) as usize;
-            let (row, tail) = std::mem::take(&mut rest).split_at_mut(len);
-            rows.push((i, row));
-            rest = tail;
+        self.lower = lower;
+        if self.map.is_empty() || self.map_fixed != fixed {
+            self.map = self.block_map(fixed);
+            self.map_fixed.clear();
+            self.map_fixed.extend_from_slice(fixed);
         }
-        let (row_ptr, col_idx) = (&self.row_ptr, &self.col_idx);
-        rows.into_par_iter().for_each(|(i, row)| {
-            let cols = &col_idx[row_ptr[i] as usize..row_ptr[i + 1] as usize];
-            for (dst, &j) in row.chunks_exact_mut(9).zip(cols) {
-                let j = j as usize;
-                if fixed[i] || fixed[j] {
-                    dst.fill(0.0);
-                    if i == j {
-                        dst[0] = 1.0;
-                        dst[4] = 1.0;
-                        dst[8] = 1.0;
-                    }
-                } else if i >= j {
-                    dst.copy_from_slice(lower(i, j));
-                } else {
-                    let b = lower(j, i);
-                    for r in 0..3 {
-                        for c in 0..3 {
-                            dst[3 * r + c] = b[3 * c + r];
-                        }
-                    }
+    }
+
+    /// For each block of the full pattern, where its values come from in the
+    /// lower-CSC input: the lower block's index (with [`TRANSPOSE`] for the
+    /// upper triangle), [`ZERO`] or [`IDENTITY`] in the rows and columns of
+    /// held vertices (`fixed`). Every lower index fits below [`IDENTITY`]
+    /// without the transpose bit ([`Self::pattern`] bounds the blocks).
+    fn block_map(&self, fixed: &[bool]) -> Vec<u32> {
+        let mut map = vec![ZERO; self.nnz_blocks()];
+        let (col_ptr, row_idx) = (&self.key.0, &self.key.1);
+        let mut k = 0;
+        for j in 0..self.rows {
+            for &i in &row_idx[col_ptr[j]..col_ptr[j + 1]] {
+                let (lo, up) = self.lower_to_full[k];
+                let cut = fixed[i] || fixed[j];
+                map[lo as usize] = match (cut, i == j) {
+                    (true, true) => IDENTITY,
+                    (true, false) => ZERO,
+                    (false, _) => k as u32,
+                };
+                if up != u32::MAX {
+                    map[up as usize] = if cut { ZERO } else { k as u32 | TRANSPOSE };
                 }
+                k += 1;
             }
-        });
+        }
+        map
+    }
+
+    /// Per block of the full pattern, where its values come from (for
+    /// `expand_blocks.wgsl`): see [`Self::block_map`].
+    pub fn map(&self) -> &[u32] {
+        &self.map
+    }
+
+    /// The lower-triangle blocks of a block matrix, in input order.
+    pub fn lower_blocks(&self) -> &[[f64; 9]] {
+        &self.lower
+    }
+
+    /// The values of stored block `k` (row-major; the first `bs * bs` count).
+    #[inline]
+    pub fn block_values(&self, k: usize) -> [f64; 9] {
+        if self.bs == 1 {
+            let mut v = [0.0; 9];
+            v[0] = self.vals[k];
+            return v;
+        }
+        match self.map[k] {
+            ZERO => [0.0; 9],
+            IDENTITY => [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+            m if m & TRANSPOSE != 0 => {
+                let b = &self.lower[(m & !TRANSPOSE) as usize];
+                [b[0], b[3], b[6], b[1], b[4], b[7], b[2], b[5], b[8]]
+            }
+            m => self.lower[m as usize],
+        }
+    }
+
+    /// Every stored value, `bs * bs` per block in block-CSR order (for the
+    /// AMG set-up, which keeps its own copy, and for tests).
+    pub fn full_values(&self) -> Vec<f64> {
+        if self.bs == 1 {
+            return self.vals.clone();
+        }
+        let mut out = Vec::new();
+        self.values_into(0..self.nnz_blocks(), |v| v, &mut out);
+        out
+    }
+
+    /// The values of blocks `blocks`, each through `part`, appended to `out`
+    /// (in parallel).
+    pub fn values_into<T: Send>(
+        &self,
+        blocks: std::ops::Range<usize>,
+        part: fn(f64) -> T,
+        out: &mut Vec<T>,
+    ) {
+        let bb = self.bs * self.bs;
+        if self.bs == 1 {
+            out.par_extend(self.vals[blocks].par_iter().map(|&v| part(v)));
+            return;
+        }
+        out.par_extend(
+            blocks
+                .into_par_iter()
+                .flat_map_iter(move |k| self.block_values(k).into_iter().take(bb).map(part)),
+        );
     }
 
     /// Values of a scalar matrix.
@@ -282,7 +345,7 @@ impl HostMatrix {
             .map(|row| {
                 let mut acc = [0f64; 3];
                 for k in self.row_ptr[row] as usize..self.row_ptr[row + 1] as usize {
-                    let m = &self.vals[k * bs * bs..(k + 1) * bs * bs];
+                    let m = self.block_values(k);
                     for q in 0..bs {
                         acc[q] += m[q * bs..(q + 1) * bs].iter().map(|v| v.abs()).sum::<f64>();
                     }
@@ -305,7 +368,7 @@ impl HostMatrix {
                     let mut acc = [0f64; 3];
                     for k in self.row_ptr[row] as usize..self.row_ptr[row + 1] as usize {
                         let j = self.col_idx[k] as usize;
-                        let m = &self.vals[k * bs * bs..(k + 1) * bs * bs];
+                        let m = self.block_values(k);
                         for q in 0..bs {
                             let mut s = 0.0;
                             for t in 0..bs {
@@ -422,16 +485,16 @@ mod shape_fill_tests {
         let slots = RingSlots::new(&a.rings, col_ptr, row_idx).unwrap();
         assert!(slots.of(&a.rings));
         let mut got = HostMatrix::pattern(11, 3, col_ptr, row_idx).unwrap();
-        let mut scratch = vec![[9.0; 9]; 2]; // stale contents are discarded
-        got.fill_shape(&a, &slots, &fixed, &mut scratch);
-        assert_eq!(got.vals, want.vals);
-        // New values, the same slots: still equal.
+        got.fill_shape(&a, &slots, &fixed);
+        assert_eq!(got.full_values(), want.full_values());
+        // New values, the same slots: still equal (the first fill's lower
+        // blocks, summed in place, are not added to).
         let mut b = a.clone();
         b.ring_c[2] = [1.0, 0.0, -1.0, 0.5, 0.0, 0.0];
         b.iso.values[0] += 2.0;
         want.fill_blocks(&b.to_blocks(), &fixed);
-        got.fill_shape(&b, &slots, &fixed, &mut scratch);
-        assert_eq!(got.vals, want.vals);
+        got.fill_shape(&b, &slots, &fixed);
+        assert_eq!(got.full_values(), want.full_values());
         // Different rings (equal values, another allocation) are not these.
         assert!(!slots.of(&Arc::new((*a.rings).clone())));
     }
@@ -475,11 +538,7 @@ mod shape_fill_tests {
                             std::array::from_fn(|e| b[3 * (e % 3) + e / 3])
                         }
                     };
-                    assert_eq!(
-                        h.vals[9 * f..9 * f + 9],
-                        want,
-                        "held {held:?}, block ({i}, {j})"
-                    );
+                    assert_eq!(h.block_values(f), want, "held {held:?}, block ({i}, {j})");
                 }
             }
         }
@@ -641,7 +700,37 @@ pub(crate) fn split_rows(
     Ok(out)
 }
 
-/// Upload a block-CSR matrix (`per_block` f64 values per block in `vals`) as
+/// Where the values of an upload are read: a flat array (`per_block` f64
+/// values per block), or a prepared host matrix, whose blocks come from its
+/// lower triangle as they are written.
+#[derive(Clone, Copy)]
+pub(crate) enum Values<'a> {
+    Flat(&'a [f64]),
+    Host(&'a HostMatrix),
+}
+
+impl Values<'_> {
+    /// `part` of the values of blocks `blocks` (`per_block` each), appended
+    /// to `out`.
+    fn band(
+        self,
+        per_block: usize,
+        blocks: std::ops::Range<usize>,
+        part: fn(f64) -> f32,
+        out: &mut Vec<f32>,
+    ) {
+        match self {
+            Values::Flat(v) => out.par_extend(
+                v[per_block * blocks.start..per_block * blocks.end]
+                    .par_iter()
+                    .map(|&x| part(x)),
+            ),
+            Values::Host(h) => h.values_into(blocks, part, out),
+        }
+    }
+}
+
+/// Upload a block-CSR matrix (`per_block` values per block in `vals`) as
 /// chunks that each fit one storage binding, the values as `f32` through
 /// `part` (`hi`: `v as f32`).
 pub(crate) fn upload_chunks(
@@ -650,7 +739,7 @@ pub(crate) fn upload_chunks(
     row_ptr: &[u32],
     col_idx: &[u32],
     per_block: usize,
-    vals: &[f64],
+    vals: Values<'_>,
 ) -> Result<Vec<Chunk>, GpuError> {
     let ranges = split_rows(what, row_ptr, 4 * per_block as u64, binding_limit(ctx))?;
     let mut chunks = Vec::with_capacity(ranges.len());
@@ -688,17 +777,18 @@ pub(crate) fn write_chunk_parts(
     chunks: &[Chunk],
     bufs: &[&wgpu::Buffer],
     per_block: usize,
-    vals: &[f64],
+    vals: Values<'_>,
     part: fn(f64) -> f32,
 ) {
-    const BAND: usize = 1 << 22;
+    let band = ((1 << 22) / per_block.max(1)).max(1);
     let mut out: Vec<f32> = Vec::new();
     for (c, buf) in chunks.iter().zip(bufs) {
-        let v = &vals[per_block * c.blocks.start..per_block * c.blocks.end];
-        for (b, band) in v.chunks(BAND).enumerate() {
+        for start in c.blocks.clone().step_by(band) {
+            let end = (start + band).min(c.blocks.end);
             out.clear();
-            out.par_extend(band.par_iter().map(|&x| part(x)));
-            ctx.write_buffer(buf, (4 * b * BAND) as u64, bytemuck::cast_slice(&out));
+            vals.band(per_block, start..end, part, &mut out);
+            let at = 4 * per_block * (start - c.blocks.start);
+            ctx.write_buffer(buf, at as u64, bytemuck::cast_slice(&out));
         }
     }
 }
@@ -708,7 +798,7 @@ pub(crate) fn write_chunk_values(
     ctx: &Context,
     chunks: &[Chunk],
     per_block: usize,
-    vals: &[f64],
+    vals: Values<'_>,
     part: fn(f64) -> f32,
 ) {
     let bufs: Vec<&wgpu::Buffer> = chunks.iter().map(|c| &c.vals).collect();
@@ -748,14 +838,21 @@ fn chunk_uniforms(ctx: &Context, chunks: &[Chunk]) -> Result<Vec<wgpu::Buffer>, 
 /// The scalar inverse diagonal `1 / a_ii` of a 3x3 block matrix.
 fn split_inverse_diagonal(h: &HostMatrix) -> Vec<f64> {
     (0..3 * h.rows)
-        .map(|r| 1.0 / h.vals[9 * h.diag[r / 3] as usize + 4 * (r % 3)])
+        .map(|r| 1.0 / h.block_values(h.diag[r / 3] as usize)[4 * (r % 3)])
         .collect()
 }
 
 impl GpuMatrix {
     pub fn upload(ctx: &Context, h: &HostMatrix, minv: &[f32]) -> Result<GpuMatrix, GpuError> {
         let storage = if h.bs == 3 {
-            let chunks = upload_chunks(ctx, "block matrix", &h.row_ptr, &h.col_idx, 9, &h.vals)?;
+            let chunks = upload_chunks(
+                ctx,
+                "block matrix",
+                &h.row_ptr,
+                &h.col_idx,
+                9,
+                Values::Host(h),
+            )?;
             MatrixStorage::Blocks {
                 uniforms: chunk_uniforms(ctx, &chunks)?,
                 chunks,
@@ -764,7 +861,7 @@ impl GpuMatrix {
             // Check every size first so the error names the first buffer over a limit.
             ctx.check_storage(
                 &format!("scalar matrix values ({} entries of f32)", h.nnz_blocks()),
-                (h.vals.len() * 4) as u64,
+                (h.nnz_blocks() * 4) as u64,
             )?;
             ctx.check_storage("scalar matrix column indices", (h.col_idx.len() * 4) as u64)?;
             let vals32: Vec<f32> = h.vals.iter().map(|&v| v as f32).collect();
@@ -860,7 +957,7 @@ impl GpuMatrix {
             chunks,
             &lo.iter().collect::<Vec<_>>(),
             9,
-            &h.vals,
+            Values::Host(h),
             low_part,
         );
         let dinv = split_inverse_diagonal(h);
@@ -916,7 +1013,7 @@ impl GpuMatrix {
                 ctx.write_buffer(vals, 0, bytemuck::cast_slice(&vals32));
             }
             MatrixStorage::Blocks { chunks, .. } => {
-                write_chunk_values(ctx, chunks, 9, &h.vals, high_part);
+                write_chunk_values(ctx, chunks, 9, Values::Host(h), high_part);
             }
             // The high parts are the f32 matrix's buffers (rewritten there);
             // the inverse diagonal is f64 here, computed from `h`.
@@ -926,7 +1023,7 @@ impl GpuMatrix {
                     hi,
                     &lo.iter().collect::<Vec<_>>(),
                     9,
-                    &h.vals,
+                    Values::Host(h),
                     low_part,
                 );
                 ctx.write_buffer(

@@ -198,7 +198,6 @@ pub fn open_with(opts: OpenOptions) -> Result<GpuSolver, GpuError> {
         fixed: Vec::new(),
         squared: None,
         ring_slots: None,
-        lower_scratch: Vec::new(),
         host_residual: Vec::new(),
         expand: None,
         expansion: None,
@@ -299,9 +298,8 @@ pub struct GpuSolver {
     /// block row on the GPU.
     pub(crate) squared: Option<(std::sync::Arc<ShapeOperatorModel>, wgpu::Buffer)>,
     /// The ring pairs' slots of the shape matrices' pattern
-    /// ([`SpdSolver::prepare_shape_owned`]), and the lower blocks summed there.
+    /// ([`SpdSolver::prepare_shape_owned`]).
     ring_slots: Option<RingSlots>,
-    lower_scratch: Vec<[f64; 9]>,
     /// The f64 residuals of the mixed-precision rounds, kept between solves.
     host_residual: Vec<f64>,
     /// New values of a prepared block pattern go up as their lower triangle
@@ -682,7 +680,7 @@ impl GpuSolver {
             cols: h.rows,
             row_ptr: h.row_ptr.clone(),
             col_idx: h.col_idx.clone(),
-            vals: h.vals.clone(),
+            vals: h.full_values(),
         };
         let prev = self.amg_host.take();
         let positions = match (&self.positions, self.preconditioner) {
@@ -973,24 +971,15 @@ impl GpuSolver {
         }
     }
 
-    /// Upload a prepared host matrix (pattern if new, else values only);
-    /// `lower`: a block matrix's lower-triangle blocks in input order, which
-    /// carry new values of the same pattern (see [`Self::expand_values`]).
-    fn upload(
-        &mut self,
-        h: HostMatrix,
-        same: bool,
-        lower: Option<&[[f64; 9]]>,
-    ) -> Result<(), GpuError> {
+    /// Upload a prepared host matrix (pattern if new, else values only: a
+    /// block matrix's as its lower triangle, see [`Self::expand_values`]).
+    fn upload(&mut self, h: HostMatrix, same: bool) -> Result<(), GpuError> {
         let minv = block_jacobi::inverse_diagonal(&h).map_err(|e| match e {
             SolverError::NotPositiveDefinite => GpuError::NotPositiveDefinite,
             other => GpuError::Backend(other.to_string()),
         })?;
         let mut same_values_only = false;
-        let expanded = match (same && self.gpu.is_some(), lower) {
-            (true, Some(lower)) => self.expand_values(&h, lower, &minv)?,
-            _ => false,
-        };
+        let expanded = same && self.gpu.is_some() && h.bs == 3 && self.expand_values(&h, &minv)?;
         match (same, self.gpu.as_ref()) {
             (true, Some(_)) if expanded => same_values_only = true,
             (true, Some(gpu)) => {
@@ -1051,12 +1040,8 @@ impl GpuSolver {
     /// writes only the inverse diagonals. `false` (nothing done) where the
     /// adapter lacks `SHADER_F64`, or the lower values would not fit one
     /// storage binding: then the host writes the values.
-    fn expand_values(
-        &mut self,
-        h: &HostMatrix,
-        lower: &[[f64; 9]],
-        minv: &[f32],
-    ) -> Result<bool, GpuError> {
+    fn expand_values(&mut self, h: &HostMatrix, minv: &[f32]) -> Result<bool, GpuError> {
+        let lower = h.lower_blocks();
         if !self.ctx.shader_f64
             || h.bs != 3
             || 72 * lower.len() as u64 > matrix::binding_limit(&self.ctx)
@@ -1072,9 +1057,6 @@ impl GpuSolver {
         });
         if !current {
             self.expansion = None;
-            let Some(map) = expand_blocks::block_map(h, &self.fixed) else {
-                return Ok(false);
-            };
             if self.expand.is_none() {
                 self.expand = Some(expand_blocks::ExpandBlocks::new(&self.ctx)?);
             }
@@ -1086,7 +1068,7 @@ impl GpuSolver {
             let e = self.expand.as_ref().unwrap().expansion(
                 &self.ctx,
                 lower.len(),
-                &map,
+                h.map(),
                 chunks,
                 lo,
             )?;
@@ -1414,7 +1396,7 @@ impl SpdSolver for GpuSolver {
         }
         let mut h = self.take_host(same, a.n, 1, &a.col_ptr, &a.row_idx)?;
         h.fill_scalar(a);
-        self.upload(h, same, None).map_err(Into::into)
+        self.upload(h, same).map_err(Into::into)
     }
 
     fn prepare_blocks(&mut self, a: &BlockSym3, fixed: &[bool]) -> Result<(), SolverError> {
@@ -1433,7 +1415,7 @@ impl SpdSolver for GpuSolver {
         h.fill_blocks(a, fixed);
         self.fixed.clear();
         self.fixed.extend_from_slice(fixed);
-        self.upload(h, same, Some(&a.blocks)).map_err(Into::into)
+        self.upload(h, same).map_err(Into::into)
     }
 
     /// The shape matrix's blocks go straight into the prepared matrix
@@ -1474,14 +1456,11 @@ impl SpdSolver for GpuSolver {
         let t = std::time::Instant::now();
         let mut h = self.take_host(same, n, 3, col_ptr, row_idx)?;
         let slots = self.ring_slots.as_ref().unwrap();
-        h.fill_shape(&a, slots, fixed, &mut self.lower_scratch);
+        h.fill_shape(&a, slots, fixed);
         self.fixed.clear();
         self.fixed.extend_from_slice(fixed);
         let filled = t.elapsed().as_secs_f64();
-        let lower = std::mem::take(&mut self.lower_scratch);
-        let done = self.upload(h, same, Some(&lower));
-        self.lower_scratch = lower;
-        done?;
+        self.upload(h, same)?;
         log::debug!(
             "shape matrix on the host: filled in {filled:.3} s, uploaded in {:.3} s",
             t.elapsed().as_secs_f64() - filled
