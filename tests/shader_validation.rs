@@ -6,7 +6,12 @@ use solver_gpu::naga;
 /// Shaders that also compile in f64 (solver_gpu::precision).
 const F64_VARIANTS: [&str; 2] = ["pcg.wgsl", "csr_spmv.wgsl"];
 /// Shaders written with f64 (they need SHADER_F64, naga's FLOAT64).
-const F64_ONLY: [&str; 3] = ["convert.wgsl", "bsr_spmv_f64.wgsl", "expand_blocks.wgsl"];
+const F64_ONLY: [&str; 4] = [
+    "convert.wgsl",
+    "bsr_spmv_f64.wgsl",
+    "expand_blocks.wgsl",
+    "sum_shape_blocks.wgsl",
+];
 
 /// The f64 variant parses, validates with the FLOAT64 capability, and has no
 /// f32 left.
@@ -69,6 +74,7 @@ fn every_shader_parses_and_validates() {
         "bsr_spmv_f64.wgsl",
         "stream.wgsl",
         "expand_blocks.wgsl",
+        "sum_shape_blocks.wgsl",
         "supernodal.wgsl",
     ] {
         assert!(names.iter().any(|n| n == expected), "{expected} missing");

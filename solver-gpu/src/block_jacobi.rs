@@ -59,7 +59,7 @@ pub(crate) fn inverse_diagonal(h: &HostMatrix) -> Result<Vec<f32>, SolverError> 
     let bb = bs * bs;
     let mut out = vec![0f32; h.rows * bb];
     let ok = out.par_chunks_mut(bb).enumerate().all(|(row, dst)| {
-        let block = h.block_values(h.diag[row] as usize);
+        let block = h.diag_block(row);
         let d = &block[..bb];
         let inv = if bs == 1 {
             (d[0] > 0.0 && d[0].is_finite()).then(|| [1.0 / d[0]; 1].to_vec())

@@ -10,14 +10,32 @@
 //! (read-write, the chunk's values); 4 `lo` (read-write, its low parts or a
 //! placeholder). Dispatch: `ceil(blocks / 256)` workgroups per chunk, 2-D.
 //! Needs `SHADER_F64`; without it the host writes the f32 values itself.
+//!
+//! A shape matrix `K (x) I3 + sum_i R_i^T C_i R_i` goes up as less still:
+//! `K`'s values and the `C_i` (8 bytes a lower entry and 48 a ring), and
+//! `shaders/sum_shape_blocks.wgsl` sums its lower blocks first ([`ShapeSum`];
+//! bindings in the shader's header). Both kernels go in one submission.
 
 use crate::device::{dispatch, Bind, Context, Kernel, KernelWork, Shader, FLAT_WG};
-use crate::matrix::Chunk;
 #[cfg(doc)]
 use crate::matrix::HostMatrix;
+use crate::matrix::{Chunk, RingSlots};
 use crate::GpuError;
+use solver_cpu::{IsoRingSym3, SparseRows};
+use std::sync::Arc;
 
 pub(crate) const SOURCE: &str = include_str!("../../shaders/expand_blocks.wgsl");
+pub(crate) const SUM_SOURCE: &str = include_str!("../../shaders/sum_shape_blocks.wgsl");
+
+const SUM_BINDINGS: [(u32, Bind); 7] = [
+    (0, Bind::Uniform),
+    (1, Bind::Read),
+    (2, Bind::Read),
+    (3, Bind::Read),
+    (4, Bind::Read),
+    (5, Bind::Read),
+    (6, Bind::ReadWrite),
+];
 
 const BINDINGS: [(u32, Bind); 5] = [
     (0, Bind::Uniform),
@@ -45,11 +63,14 @@ struct ExpandParams {
 pub(crate) struct ExpandBlocks {
     shader: Shader,
     kernel: Kernel,
+    sum_shader: Shader,
+    sum_kernel: Kernel,
 }
 
 /// The recorded expansion into one matrix's chunks.
 pub(crate) struct Expansion {
-    /// The lower triangle's f64 values, written by the host per matrix.
+    /// The lower triangle's f64 values, written by the host (or summed by
+    /// [`ShapeSum`]) per matrix.
     pub lower: wgpu::Buffer,
     steps: Vec<(wgpu::BindGroup, (u32, u32))>,
     work: KernelWork,
@@ -61,26 +82,37 @@ pub(crate) struct Expansion {
 impl ExpandBlocks {
     pub fn new(ctx: &Context) -> Result<Self, GpuError> {
         let shader = Shader::new(ctx, "expand_blocks.wgsl", SOURCE, &BINDINGS)?;
+        let sum_shader = Shader::new(ctx, "sum_shape_blocks.wgsl", SUM_SOURCE, &SUM_BINDINGS)?;
         Ok(ExpandBlocks {
             kernel: Kernel::new(&shader, "expand_blocks", "expand_blocks"),
             shader,
+            sum_kernel: Kernel::new(&sum_shader, "sum_shape_blocks", "sum_shape_blocks"),
+            sum_shader,
         })
     }
 
-    /// The expansion of `lower_blocks` lower blocks through `map` into
-    /// `chunks` (their values) and, when given, `lo` (one buffer per chunk).
+    /// The f64 buffer of `lower_blocks` lower blocks that an expansion reads
+    /// (one per pattern, shared by its expansions and its [`ShapeSum`]).
+    pub fn lower_buffer(ctx: &Context, lower_blocks: usize) -> Result<wgpu::Buffer, GpuError> {
+        ctx.storage(
+            &format!("lower-triangle f64 values ({lower_blocks} blocks)"),
+            (72 * lower_blocks.max(1)) as u64,
+        )
+    }
+
+    /// The expansion of the `lower_blocks` lower blocks in `lower` through
+    /// `map` into `chunks` (their values) and, when given, `lo` (one buffer
+    /// per chunk).
     pub fn expansion(
         &self,
         ctx: &Context,
+        lower: &wgpu::Buffer,
         lower_blocks: usize,
         map: &[u32],
         chunks: &[Chunk],
         lo: Option<&[wgpu::Buffer]>,
     ) -> Result<Expansion, GpuError> {
-        let lower = ctx.storage(
-            &format!("lower-triangle f64 values ({lower_blocks} blocks)"),
-            (72 * lower_blocks.max(1)) as u64,
-        )?;
+        let lower = lower.clone();
         let map_buf = ctx.storage_init("block map (full block to lower block)", map)?;
         let placeholder = ctx.storage("expansion placeholder", 4)?;
         let mut steps = Vec::with_capacity(chunks.len());
@@ -128,13 +160,39 @@ impl ExpandBlocks {
     /// Write `lower` (f64, 9 per lower block) and expand it: one submission.
     pub fn run(&self, ctx: &Context, e: &Expansion, lower: &[[f64; 9]]) -> Result<(), GpuError> {
         ctx.write_buffer(&e.lower, 0, bytemuck::cast_slice(lower));
+        self.submit(ctx, e, None)
+    }
+
+    /// Write the shape matrix `a`'s `K` values and `C_i`, sum its lower
+    /// blocks ([`ShapeSum`]) and expand them: one submission.
+    pub fn run_shape(
+        &self,
+        ctx: &Context,
+        e: &Expansion,
+        sum: &ShapeSum,
+        a: &IsoRingSym3,
+    ) -> Result<(), GpuError> {
+        ctx.write_buffer(&sum.iso, 0, bytemuck::cast_slice(&a.iso.values));
+        ctx.write_buffer(&sum.ring_c, 0, bytemuck::cast_slice(&a.ring_c));
+        self.submit(ctx, e, Some(sum))
+    }
+
+    fn submit(&self, ctx: &Context, e: &Expansion, sum: Option<&ShapeSum>) -> Result<(), GpuError> {
         let pipeline = self.kernel.pipeline(ctx, 1)?;
+        let sum_pipeline = match sum {
+            Some(_) => Some(self.sum_kernel.pipeline(ctx, 1)?),
+            None => None,
+        };
         let mut enc = ctx.encoder("expand_blocks");
         {
             let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
                 label: Some("expand_blocks"),
                 timestamp_writes: None,
             });
+            if let (Some(s), Some(p)) = (sum, &sum_pipeline) {
+                dispatch(&mut pass, p, &s.bind, s.dims);
+                ctx.count_kernels(s.work);
+            }
             for (bg, dims) in &e.steps {
                 dispatch(&mut pass, &pipeline, bg, *dims);
             }
@@ -142,6 +200,105 @@ impl ExpandBlocks {
         ctx.count_kernels(e.work);
         ctx.queue.submit([enc.finish()]);
         Ok(())
+    }
+}
+
+/// What `sum_shape_blocks.wgsl` needs beyond a matrix's values, made once
+/// per pattern and rings: per lower block, its ring pairs `(p, q)` in ring
+/// order, as the ring `i` and the weight `R_ip R_iq` of each; and the
+/// buffers each matrix's `K` values and `C_i` are written to.
+pub(crate) struct ShapeSum {
+    /// The rings it was made for (kept to recognise them).
+    rings: Arc<SparseRows>,
+    iso: wgpu::Buffer,
+    ring_c: wgpu::Buffer,
+    bind: wgpu::BindGroup,
+    dims: (u32, u32),
+    work: KernelWork,
+    /// Kept alive for the bind group.
+    #[allow(dead_code)]
+    keep: Vec<wgpu::Buffer>,
+}
+
+/// Parameters of `sum_shape_blocks.wgsl`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+struct SumParams {
+    slots: u32,
+    pad: [u32; 3],
+}
+
+impl ShapeSum {
+    /// Bytes of the buffers a sum over `lower_blocks` lower blocks, `rings`
+    /// rings and `pairs` ring pairs binds, the largest first.
+    fn binding_bytes(lower_blocks: usize, rings: usize, pairs: usize) -> [u64; 5] {
+        let (l, r, p) = (lower_blocks as u64, rings as u64, pairs as u64);
+        [72 * l, 8 * p, 4 * p, 8 * l, 48 * r]
+    }
+
+    /// Whether every buffer of the sum for `a` fits one storage binding.
+    pub fn fits(a: &IsoRingSym3, slots: &RingSlots, limit: u64) -> bool {
+        let b = Self::binding_bytes(a.iso.row_idx.len(), a.rings.len(), slots.pairs());
+        b.iter().all(|&x| x <= limit)
+    }
+
+    /// Whether this was made for `rings`.
+    pub fn of(&self, rings: &Arc<SparseRows>) -> bool {
+        Arc::ptr_eq(&self.rings, rings)
+    }
+
+    /// The sum of `a`'s pattern and rings (pairs' slots `slots`) into
+    /// `lower` (the pattern's [`ExpandBlocks::lower_buffer`]).
+    pub fn new(
+        k: &ExpandBlocks,
+        ctx: &Context,
+        a: &IsoRingSym3,
+        slots: &RingSlots,
+        lower: &wgpu::Buffer,
+    ) -> Result<ShapeSum, GpuError> {
+        let nnz = a.iso.row_idx.len();
+        let (start, ring, f) = slots.by_block(&a.rings, nnz);
+        let iso = ctx.storage("shape sum: K values (f64)", 8 * nnz.max(1) as u64)?;
+        let ring_c = ctx.storage(
+            "shape sum: ring matrices C_i (f64)",
+            48 * a.rings.len().max(1) as u64,
+        )?;
+        let start_buf = ctx.storage_init("shape sum: ring pairs per lower block", &start)?;
+        let ring_buf = ctx.storage_init("shape sum: ring of each pair", &ring)?;
+        let f_buf = ctx.storage_init("shape sum: weight of each pair (f64)", &f)?;
+        let params = ctx.uniform_of(
+            "sum_shape_blocks params",
+            &SumParams {
+                slots: nnz as u32,
+                pad: [0; 3],
+            },
+        )?;
+        let bind = k.sum_shader.bind(
+            ctx,
+            &[
+                (0, &params),
+                (1, &iso),
+                (2, &ring_c),
+                (3, &start_buf),
+                (4, &ring_buf),
+                (5, &f_buf),
+                (6, lower),
+            ],
+        )?;
+        let dims = ctx.dims("sum_shape_blocks", (nnz as u64).div_ceil(FLAT_WG as u64))?;
+        // K once, each block's pairs (ring, weight) and its C_i once, the
+        // lower blocks written.
+        let pairs = f.len() as u64;
+        let bytes = 8 * nnz as u64 + 4 * (nnz as u64 + 1) + pairs * (4 + 8 + 48) + 72 * nnz as u64;
+        Ok(ShapeSum {
+            rings: a.rings.clone(),
+            iso,
+            ring_c,
+            bind,
+            dims,
+            work: KernelWork::other(bytes),
+            keep: vec![params, start_buf, ring_buf, f_buf],
+        })
     }
 }
 
@@ -216,6 +373,23 @@ mod tests {
         assert_eq!(up, (72 * b.blocks.len() + 60 * n) as u64);
         let mut want = HostMatrix::pattern(n, 3, &b.col_ptr, &b.row_idx).unwrap();
         want.fill_blocks(&b, &fixed);
+        check_parts(&s, &want);
+        // The held vertex's row is the identity, its column zero elsewhere.
+        let want_vals = want.full_values();
+        let r = want.row_ptr[7] as usize..want.row_ptr[8] as usize;
+        assert!(r.clone().all(|k| {
+            let blk = &want_vals[9 * k..9 * k + 9];
+            match want.col_idx[k] {
+                7 => blk == [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+                _ => blk.iter().all(|&v| v == 0.0),
+            }
+        }));
+        // And the solve with the expanded matrix is the host's.
+        check_solve(&mut s, &want);
+    }
+
+    /// The GPU's block values (high and low parts) are `want`'s.
+    fn check_parts(s: &crate::GpuSolver, want: &HostMatrix) {
         let want_vals = want.full_values();
         let gpu = s.gpu.as_ref().unwrap();
         let (chunks, _) = gpu.block_parts().unwrap();
@@ -248,21 +422,91 @@ mod tests {
             }
         }
         assert_eq!(checked, want_vals.len());
-        // The held vertex's row is the identity, its column zero elsewhere.
-        let r = want.row_ptr[7] as usize..want.row_ptr[8] as usize;
-        assert!(r.clone().all(|k| {
-            let blk = &want_vals[9 * k..9 * k + 9];
-            match want.col_idx[k] {
-                7 => blk == [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
-                _ => blk.iter().all(|&v| v == 0.0),
-            }
-        }));
-        // And the solve with the expanded matrix is the host's.
+    }
+
+    /// A solve with the prepared matrix has `want`'s residual below 1e-9.
+    fn check_solve(s: &mut crate::GpuSolver, want: &HostMatrix) {
+        let n = want.rows;
         let mut y = vec![1.0; 3 * n];
         s.solve_in_place(&mut y, 1).unwrap();
         let mut r = vec![0.0; 3 * n];
         want.residual(&vec![1.0; 3 * n], &y, &mut r, 1);
         let rel = r.iter().map(|v| v * v).sum::<f64>().sqrt() / (3.0 * n as f64).sqrt();
         assert!(rel < 1e-9, "relative residual {rel:e}");
+    }
+
+    /// A new shape matrix of the prepared pattern is summed on the GPU: the
+    /// host sends `K`'s values and the `C_i` (8 bytes a lower entry, 48 a
+    /// ring) and the inverse diagonals, keeps the matrix in its own form,
+    /// and the blocks the GPU holds are the host's sum (high and low parts);
+    /// the solve's residual is the host-summed matrix's. Taken back, the
+    /// matrix is gone from the solver until the next one.
+    #[test]
+    fn shape_blocks_summed_on_the_gpu_are_the_hosts() {
+        let Ok(mut s) = crate::open() else {
+            assert!(
+                std::env::var("REQUIRE_GPU").map_or(true, |v| v != "1"),
+                "REQUIRE_GPU=1 but no GPU adapter"
+            );
+            return;
+        };
+        if !s.ctx.shader_f64 {
+            return;
+        }
+        s.set_mixed_precision(MixedPrecision::Always);
+        let n = 40;
+        let mut fixed = vec![false; n];
+        fixed[7] = true;
+        // The first matrix of a pattern is summed on the host and handed back.
+        let a = crate::matrix::shape_strip(n, 0.0);
+        let rings = a.rings.clone();
+        let a = s.prepare_shape_owned(a, &fixed).unwrap();
+        assert!(a.is_some(), "the first matrix of a pattern is handed back");
+        let mut x = vec![1.0; 3 * n];
+        s.solve_in_place(&mut x, 1).unwrap();
+        assert!(s.last_solve_mixed());
+        let mut last = None;
+        for seed in [0.25, 0.5] {
+            // The rings of a run are one (the input's Laplacian).
+            let mut a = crate::matrix::shape_strip(n, seed);
+            a.rings = rings.clone();
+            let nnz = a.iso.row_idx.len();
+            let up0 = s.ctx.traffic().to_device;
+            let mut want = HostMatrix::pattern(n, 3, &a.iso.col_ptr, &a.iso.row_idx).unwrap();
+            let slots =
+                crate::matrix::RingSlots::new(&a.rings, &a.iso.col_ptr, &a.iso.row_idx).unwrap();
+            want.fill_shape(&a, &slots, &fixed);
+            let kept = s.prepare_shape_owned(a, &fixed).unwrap();
+            assert!(kept.is_none(), "kept in its form by the solver");
+            let up = s.ctx.traffic().to_device - up0;
+            // The first sum also uploads the pairs (4 + 8 bytes each), their
+            // starts per lower block and its parameters (16 bytes); the
+            // first expansion its block map (4 bytes a block of both
+            // triangles) and its chunk's parameters (16).
+            let pairs = slots.pairs();
+            let each = 8 * nnz + 48 * n + 60 * n;
+            let first = each + 12 * pairs + 4 * (nnz + 1) + 16 + 4 * (2 * nnz - n) + 16;
+            let want_up = if seed == 0.25 { first } else { each };
+            assert_eq!(up, want_up as u64, "seed {seed}");
+            assert!(s.shape_sum.is_some());
+            check_parts(&s, &want);
+            check_solve(&mut s, &want);
+            last = Some(want);
+        }
+        // A new mixed-precision matrix (a new kind's factor makes one) has
+        // its low parts summed and expanded on the GPU too.
+        let want = last.unwrap();
+        s.mixed = None;
+        check_solve(&mut s, &want);
+        check_parts(&s, &want);
+        let h = s.host.as_ref().unwrap();
+        assert!(!h.lower_summed_on_host(), "no blocks summed on the host");
+        let a = s.take_shape_matrix().expect("the kept matrix");
+        assert_eq!(a.iso.values, crate::matrix::shape_strip(n, 0.5).iso.values);
+        let mut x = vec![1.0; 3 * n];
+        assert!(matches!(
+            s.solve_in_place(&mut x, 1),
+            Err(solver_cpu::SolverError::NotPrepared)
+        ));
     }
 }

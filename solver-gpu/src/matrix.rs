@@ -8,8 +8,8 @@ use crate::expand_blocks::{IDENTITY, TRANSPOSE, ZERO};
 use crate::precision::Precision;
 use crate::GpuError;
 use rayon::prelude::*;
-use solver_cpu::{BlockSym3, IsoRingSym3, SolverError, SparseRows, SymCsc};
-use std::sync::Arc;
+use solver_cpu::{BlockRows, BlockSym3, IsoRingSym3, SolverError, SparseRows, SymCsc};
+use std::sync::{Arc, OnceLock};
 
 /// Full block-CSR pattern and f64 values (host side). A scalar matrix keeps
 /// its values for both triangles; a block matrix keeps only its lower
@@ -26,6 +26,11 @@ pub(crate) struct HostMatrix {
     /// Block matrices: the lower-triangle blocks (row-major), in the order of
     /// the input's lower CSC.
     lower: Vec<[f64; 9]>,
+    /// Block matrices whose lower blocks are summed on the GPU: the matrix in
+    /// its isotropic-plus-ring form instead of [`Self::lower`].
+    shape: Option<ShapeForm>,
+    /// The pattern's row index, for products in the isotropic-plus-ring form.
+    shape_rows: OnceLock<BlockRows>,
     /// Block matrices: per block of the full pattern, its lower source, see
     /// [`Self::map`]; made for the held vertices `map_fixed`.
     map: Vec<u32>,
@@ -38,7 +43,18 @@ pub(crate) struct HostMatrix {
     /// The input pattern (lower CSC), to recognise a repeated pattern.
     pub key: (Vec<usize>, Vec<usize>),
     /// [`Self::norm_inf`] of the current values (reset by every fill).
-    norm: std::sync::OnceLock<f64>,
+    norm: OnceLock<f64>,
+}
+
+/// A shape matrix `K (x) I3 + sum_i R_i^T C_i R_i` kept in that form.
+struct ShapeForm {
+    a: IsoRingSym3,
+    slots: Arc<RingSlots>,
+    /// Its diagonal blocks (held vertices' too, as summed).
+    diag: Vec<[f64; 9]>,
+    /// Its lower blocks, summed on the host only where something needs them
+    /// (the host's fallbacks: no `SHADER_F64`, a binding too small, AMG).
+    lower: OnceLock<Vec<[f64; 9]>>,
 }
 
 impl HostMatrix {
@@ -55,7 +71,7 @@ impl HostMatrix {
         row_ptr.push(0u32);
         for i in 0..h.rows {
             let blocks = h.row_ptr[i] as usize..h.row_ptr[i + 1] as usize;
-            let d = h.block_values(h.diag[i] as usize);
+            let d = h.diag_block(i);
             for q in 0..bs {
                 for k in blocks.clone() {
                     let j = h.col_idx[k] as usize;
@@ -148,12 +164,14 @@ impl HostMatrix {
                 Vec::new()
             },
             lower: Vec::new(),
+            shape: None,
+            shape_rows: OnceLock::new(),
             map: Vec::new(),
             map_fixed: Vec::new(),
             lower_to_full,
             diag,
             key: (col_ptr.to_vec(), row_idx.to_vec()),
-            norm: std::sync::OnceLock::new(),
+            norm: OnceLock::new(),
         })
     }
 
@@ -186,34 +204,62 @@ impl HostMatrix {
     /// arithmetic of [`IsoRingSym3::to_blocks`] (the same values to the bit).
     pub fn fill_shape(&mut self, a: &IsoRingSym3, slots: &RingSlots, fixed: &[bool]) {
         let mut scratch = std::mem::take(&mut self.lower);
-        scratch.clear();
-        scratch.par_extend(
-            a.iso
-                .values
-                .par_iter()
-                .map(|&v| [v, 0.0, 0.0, 0.0, v, 0.0, 0.0, 0.0, v]),
-        );
-        let rings = &a.rings;
+        sum_lower(a, slots, &mut scratch);
+        self.set_lower(scratch, fixed);
+    }
+
+    /// A shape matrix kept in its isotropic-plus-ring form, for the GPU to
+    /// sum its blocks (`sum_shape_blocks.wgsl`): the host keeps `a` (for the
+    /// residuals, [`Self::residual`]) and its diagonal blocks, no lower
+    /// blocks. Hand `a` back with [`Self::take_shape`].
+    pub fn set_shape(&mut self, a: IsoRingSym3, slots: Arc<RingSlots>, fixed: &[bool]) {
+        debug_assert_eq!(self.bs, 3);
+        self.norm = OnceLock::new();
+        self.lower = Vec::new();
+        let mut diag: Vec<[f64; 9]> = (0..a.n())
+            .into_par_iter()
+            .map(|v| {
+                let k = a.iso.values[a.diagonal_slot(v)];
+                [k, 0.0, 0.0, 0.0, k, 0.0, 0.0, 0.0, k]
+            })
+            .collect();
+        // The diagonal pairs (p, p) of each ring, in ring order: the sums of
+        // `sum_lower` for the diagonal slots, to the bit.
         for (i, c) in a.ring_c.iter().enumerate() {
-            let pairs = &slots.slot[slots.start[i] as usize..slots.start[i + 1] as usize];
             if *c == [0.0; 6] {
                 continue;
             }
             let m = [c[0], c[3], c[4], c[3], c[1], c[5], c[4], c[5], c[2]];
-            let mut t = pairs.iter();
-            for (p, wp) in rings.row(i) {
-                for (q, wq) in rings.row(i) {
-                    if p >= q {
-                        let s = *t.next().expect("one slot per ring pair") as usize;
-                        let f = wp * wq;
-                        for (o, me) in scratch[s].iter_mut().zip(&m) {
-                            *o += f * me;
-                        }
-                    }
+            for (p, w) in a.rings.row(i) {
+                let f = w * w;
+                for (o, me) in diag[p].iter_mut().zip(&m) {
+                    *o += f * me;
                 }
             }
         }
-        self.set_lower(scratch, fixed);
+        self.shape = Some(ShapeForm {
+            a,
+            slots,
+            diag,
+            lower: OnceLock::new(),
+        });
+        self.set_fixed(fixed);
+    }
+
+    /// The shape matrix kept by [`Self::set_shape`].
+    pub fn shape_form(&self) -> Option<&IsoRingSym3> {
+        self.shape.as_ref().map(|f| &f.a)
+    }
+
+    /// Takes back the shape matrix kept by [`Self::set_shape`]: the matrix
+    /// has no values until the next fill ([`Self::is_filled`]).
+    pub fn take_shape(&mut self) -> Option<IsoRingSym3> {
+        self.shape.take().map(|f| f.a)
+    }
+
+    /// Whether the matrix has values (a shape matrix taken back has none).
+    pub fn is_filled(&self) -> bool {
+        self.bs == 1 || self.shape.is_some() || self.lower.len() == self.lower_to_full.len()
     }
 
     /// New lower blocks (the input pattern's, in its order) with the rows and
@@ -222,8 +268,15 @@ impl HostMatrix {
     fn set_lower(&mut self, lower: Vec<[f64; 9]>, fixed: &[bool]) {
         debug_assert_eq!(self.bs, 3);
         debug_assert_eq!(lower.len(), self.lower_to_full.len());
-        self.norm = std::sync::OnceLock::new();
+        self.norm = OnceLock::new();
         self.lower = lower;
+        self.shape = None;
+        self.set_fixed(fixed);
+    }
+
+    /// The map for the held vertices `fixed`, made again only when they
+    /// change.
+    fn set_fixed(&mut self, fixed: &[bool]) {
         if self.map.is_empty() || self.map_fixed != fixed {
             self.map = self.block_map(fixed);
             self.map_fixed.clear();
@@ -264,9 +317,39 @@ impl HostMatrix {
         &self.map
     }
 
-    /// The lower-triangle blocks of a block matrix, in input order.
+    /// The lower-triangle blocks of a block matrix, in input order (a shape
+    /// matrix's summed on the host when first asked for).
     pub fn lower_blocks(&self) -> &[[f64; 9]] {
-        &self.lower
+        match &self.shape {
+            Some(f) => f.lower.get_or_init(|| {
+                log::debug!("shape matrix: lower blocks summed on the host for a fallback");
+                let mut out = Vec::new();
+                sum_lower(&f.a, &f.slots, &mut out);
+                out
+            }),
+            None => &self.lower,
+        }
+    }
+
+    /// Whether a shape matrix's lower blocks were summed on the host.
+    #[cfg(test)]
+    pub fn lower_summed_on_host(&self) -> bool {
+        self.shape.as_ref().is_some_and(|f| f.lower.get().is_some())
+    }
+
+    /// Lower-triangle blocks of the pattern.
+    pub fn lower_len(&self) -> usize {
+        self.lower_to_full.len()
+    }
+
+    /// The diagonal block of block row `row` (the identity for a held
+    /// vertex).
+    pub fn diag_block(&self, row: usize) -> [f64; 9] {
+        match &self.shape {
+            Some(_) if self.map_fixed[row] => [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+            Some(f) => f.diag[row],
+            None => self.block_values(self.diag[row] as usize),
+        }
     }
 
     /// The values of stored block `k` (row-major; the first `bs * bs` count).
@@ -281,10 +364,10 @@ impl HostMatrix {
             ZERO => [0.0; 9],
             IDENTITY => [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
             m if m & TRANSPOSE != 0 => {
-                let b = &self.lower[(m & !TRANSPOSE) as usize];
+                let b = &self.lower_blocks()[(m & !TRANSPOSE) as usize];
                 [b[0], b[3], b[6], b[1], b[4], b[7], b[2], b[5], b[8]]
             }
-            m => self.lower[m as usize],
+            m => self.lower_blocks()[m as usize],
         }
     }
 
@@ -322,7 +405,7 @@ impl HostMatrix {
     /// Values of a scalar matrix.
     pub fn fill_scalar(&mut self, a: &SymCsc) {
         debug_assert_eq!(self.bs, 1);
-        self.norm = std::sync::OnceLock::new();
+        self.norm = OnceLock::new();
         for (k, &(lo, up)) in self.lower_to_full.iter().enumerate() {
             self.vals[lo as usize] = a.values[k];
             if up != u32::MAX {
@@ -339,6 +422,9 @@ impl HostMatrix {
     }
 
     fn row_sums_max(&self) -> f64 {
+        if let Some(f) = &self.shape {
+            return shape_norm_bound(&f.a, &self.map_fixed);
+        }
         let bs = self.bs;
         (0..self.rows)
             .into_par_iter()
@@ -359,6 +445,32 @@ impl HostMatrix {
     pub fn residual(&self, b: &[f64], x: &[f64], r: &mut [f64], ncols: usize) {
         let n = self.n();
         let bs = self.bs;
+        if let Some(f) = &self.shape {
+            // In the isotropic-plus-ring form, as the CPU backend's product:
+            // held columns dropped, held rows the identity.
+            let rows = self.shape_rows.get_or_init(|| f.a.row_index());
+            let fixed = &self.map_fixed;
+            let mut xm = vec![0.0; n];
+            for c in 0..ncols {
+                let (bc, xc) = (&b[c * n..(c + 1) * n], &x[c * n..(c + 1) * n]);
+                let rc = &mut r[c * n..(c + 1) * n];
+                xm.par_chunks_mut(3).enumerate().for_each(|(v, o)| {
+                    if !fixed[v] {
+                        o.copy_from_slice(&xc[3 * v..3 * v + 3]);
+                    } else {
+                        o.fill(0.0);
+                    }
+                });
+                f.a.mul_vec_rows(rows, &xm, rc);
+                rc.par_chunks_mut(3).enumerate().for_each(|(v, o)| {
+                    for q in 0..3 {
+                        let ax = if fixed[v] { xc[3 * v + q] } else { o[q] };
+                        o[q] = bc[3 * v + q] - ax;
+                    }
+                });
+            }
+            return;
+        }
         for c in 0..ncols {
             let (bc, xc) = (&b[c * n..(c + 1) * n], &x[c * n..(c + 1) * n]);
             r[c * n..(c + 1) * n]
@@ -383,6 +495,80 @@ impl HostMatrix {
                 });
         }
     }
+}
+
+/// The lower blocks of `a` (input order) summed into `out`, with the ring
+/// pairs' slots `slots`, in the order and with the arithmetic of
+/// [`IsoRingSym3::to_blocks`] (the same values to the bit).
+fn sum_lower(a: &IsoRingSym3, slots: &RingSlots, out: &mut Vec<[f64; 9]>) {
+    out.clear();
+    out.par_extend(
+        a.iso
+            .values
+            .par_iter()
+            .map(|&v| [v, 0.0, 0.0, 0.0, v, 0.0, 0.0, 0.0, v]),
+    );
+    let rings = &a.rings;
+    for (i, c) in a.ring_c.iter().enumerate() {
+        let pairs = &slots.slot[slots.start[i] as usize..slots.start[i + 1] as usize];
+        if *c == [0.0; 6] {
+            continue;
+        }
+        let m = [c[0], c[3], c[4], c[3], c[1], c[5], c[4], c[5], c[2]];
+        let mut t = pairs.iter();
+        for (p, wp) in rings.row(i) {
+            for (q, wq) in rings.row(i) {
+                if p >= q {
+                    let s = *t.next().expect("one slot per ring pair") as usize;
+                    let f = wp * wq;
+                    for (o, me) in out[s].iter_mut().zip(&m) {
+                        *o += f * me;
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// An upper bound of `||A||_inf` for a shape matrix `a` with the held
+/// vertices `fixed` (rows of the identity), without its blocks: per row `p`,
+/// `sum_j |K_pj| + sum over the rings i holding p of |R_ip| ||C_i||_inf
+/// sum_q |R_iq|` (the triangle inequality on every block's sum). Used for
+/// the rounding floor of the residual target only.
+fn shape_norm_bound(a: &IsoRingSym3, fixed: &[bool]) -> f64 {
+    let n = a.n();
+    let mut row = vec![0f64; n];
+    let (col_ptr, row_idx, k) = (&a.iso.col_ptr, &a.iso.row_idx, &a.iso.values);
+    for j in 0..n {
+        for s in col_ptr[j]..col_ptr[j + 1] {
+            let i = row_idx[s];
+            row[i] += k[s].abs();
+            if i != j {
+                row[j] += k[s].abs();
+            }
+        }
+    }
+    for (i, c) in a.ring_c.iter().enumerate() {
+        if *c == [0.0; 6] {
+            continue;
+        }
+        let cn = [
+            c[0].abs() + c[3].abs() + c[4].abs(),
+            c[3].abs() + c[1].abs() + c[5].abs(),
+            c[4].abs() + c[5].abs() + c[2].abs(),
+        ]
+        .into_iter()
+        .fold(0.0, f64::max);
+        let sw: f64 = a.rings.row(i).map(|(_, w)| w.abs()).sum();
+        for (p, w) in a.rings.row(i) {
+            row[p] += w.abs() * cn * sw;
+        }
+    }
+    let held = fixed.iter().any(|&f| f);
+    (0..n)
+        .filter(|&p| !fixed[p])
+        .map(|p| row[p])
+        .fold(if held { 1.0 } else { 0.0 }, f64::max)
 }
 
 /// Where [`HostMatrix::fill_shape`] adds each ring pair: for every row `i` of
@@ -443,6 +629,78 @@ impl RingSlots {
     pub fn of(&self, rings: &Arc<SparseRows>) -> bool {
         Arc::ptr_eq(&self.rings, rings)
     }
+
+    /// Ring pairs in all.
+    pub fn pairs(&self) -> usize {
+        self.slot.len()
+    }
+
+    /// The pairs gathered by lower block (`slots` of them), for
+    /// `sum_shape_blocks.wgsl`: block `s`'s pairs are `start[s]..start[s +
+    /// 1]`, each with its ring and weight `R_ip R_iq`, in ring order (the
+    /// order [`HostMatrix::fill_shape`] adds them in).
+    pub fn by_block(&self, rings: &SparseRows, slots: usize) -> (Vec<u32>, Vec<u32>, Vec<f64>) {
+        let mut start = vec![0u32; slots + 1];
+        for &s in &self.slot {
+            start[s as usize + 1] += 1;
+        }
+        for s in 0..slots {
+            start[s + 1] += start[s];
+        }
+        let mut next = start.clone();
+        let mut ring = vec![0u32; self.slot.len()];
+        let mut f = vec![0f64; self.slot.len()];
+        for i in 0..rings.len() {
+            let mut t = self.slot[self.start[i] as usize..self.start[i + 1] as usize].iter();
+            for (p, wp) in rings.row(i) {
+                for (q, wq) in rings.row(i) {
+                    if p >= q {
+                        let s = *t.next().expect("one slot per ring pair") as usize;
+                        let at = next[s] as usize;
+                        next[s] += 1;
+                        ring[at] = i as u32;
+                        f[at] = wp * wq;
+                    }
+                }
+            }
+        }
+        (start, ring, f)
+    }
+}
+
+/// An SPD shape matrix on a strip of `n` vertices (a closed ring): rings of
+/// each vertex and its two neighbours, `K` diagonally dominant on their
+/// 2-ring pattern, `C_i` positive definite on most rings and zero on the
+/// others; values depending on `seed`.
+#[cfg(test)]
+pub(crate) fn shape_strip(n: usize, seed: f64) -> IsoRingSym3 {
+    let mut t = Vec::new();
+    for i in 0..n {
+        for (j, w) in [(i + 1, 1.0 + 0.1 * i as f64), (i + n - 1, 0.7)] {
+            t.push((i as u32, (j % n) as u32, w));
+        }
+    }
+    let rings = Arc::new(SparseRows::from_triplets(n, t, true));
+    let pairs = (0..n).flat_map(|i| [(i, (i + 1) % n), (i, (i + 2) % n)]);
+    let pat = SymCsc::from_pattern(n, pairs);
+    let mut a = IsoRingSym3::new(n, pat.col_ptr, pat.row_idx, rings);
+    for j in 0..n {
+        for s in a.iso.col_ptr[j]..a.iso.col_ptr[j + 1] {
+            let v = ((s as f64 + seed) * 0.37).sin();
+            a.iso.values[s] = if a.iso.row_idx[s] == j {
+                2.0 + seed + 0.3 * v
+            } else {
+                -0.1 * (1.0 + 0.3 * v)
+            };
+        }
+    }
+    for (i, c) in a.ring_c.iter_mut().enumerate() {
+        if i % 5 != 3 {
+            let s = (i as f64 + seed).cos();
+            *c = [0.3 + 0.1 * s, 0.2, 0.4 - 0.1 * s, 0.05 * s, -0.02, 0.04];
+        }
+    }
+    a
 }
 
 #[cfg(test)]
@@ -568,6 +826,84 @@ mod shape_fill_tests {
         // Every vertex held: the identity.
         h.fill_blocks(&blocks, &[true; 11]);
         assert_eq!(h.norm_inf(), 1.0);
+    }
+
+    /// A shape matrix kept in its form answers as its summed blocks do:
+    /// the same diagonal blocks (to the bit), the same residuals (to
+    /// rounding), the lower blocks summed when asked for, and a norm bound
+    /// at least the norm (and within the triangle inequality's slack).
+    #[test]
+    fn shape_form_answers_as_its_blocks() {
+        let n = 23;
+        let a = shape_strip(n, 0.3);
+        let (col_ptr, row_idx) = (&a.iso.col_ptr, &a.iso.row_idx);
+        let slots = Arc::new(RingSlots::new(&a.rings, col_ptr, row_idx).unwrap());
+        for held in [vec![], vec![4usize, 11]] {
+            let mut fixed = vec![false; n];
+            held.iter().for_each(|&v| fixed[v] = true);
+            let mut blocks = HostMatrix::pattern(n, 3, col_ptr, row_idx).unwrap();
+            blocks.fill_shape(&a, &slots, &fixed);
+            let mut form = HostMatrix::pattern(n, 3, col_ptr, row_idx).unwrap();
+            form.set_shape(a.clone(), slots.clone(), &fixed);
+            assert!(form.is_filled() && form.shape_form().is_some());
+            for v in 0..n {
+                assert_eq!(
+                    form.diag_block(v),
+                    blocks.diag_block(v),
+                    "held {held:?}, vertex {v}"
+                );
+            }
+            let x: Vec<f64> = (0..6 * n).map(|i| (i as f64 * 0.71).sin()).collect();
+            let b: Vec<f64> = (0..6 * n).map(|i| (i as f64 * 0.13).cos()).collect();
+            let (mut r1, mut r2) = (vec![0.0; 6 * n], vec![0.0; 6 * n]);
+            blocks.residual(&b, &x, &mut r1, 2);
+            form.residual(&b, &x, &mut r2, 2);
+            for (u, v) in r1.iter().zip(&r2) {
+                assert!((u - v).abs() <= 1e-13 * (1.0 + u.abs()), "{u} vs {v}");
+            }
+            let (exact, bound) = (blocks.norm_inf(), form.norm_inf());
+            assert!(bound >= exact && bound <= 4.0 * exact, "{bound} vs {exact}");
+            assert_eq!(form.full_values(), blocks.full_values());
+        }
+        let mut form = HostMatrix::pattern(n, 3, col_ptr, row_idx).unwrap();
+        form.set_shape(a.clone(), slots, &[false; 23]);
+        assert_eq!(form.take_shape().unwrap().iso.values, a.iso.values);
+        assert!(!form.is_filled());
+    }
+
+    /// The pairs gathered by lower block carry every ring pair once, with
+    /// its ring and weight, in ring order within each block.
+    #[test]
+    fn pairs_by_block_are_the_slots_inverted() {
+        let n = 17;
+        let a = shape_strip(n, 0.0);
+        let (col_ptr, row_idx) = (&a.iso.col_ptr, &a.iso.row_idx);
+        let slots = RingSlots::new(&a.rings, col_ptr, row_idx).unwrap();
+        let nnz = row_idx.len();
+        let (start, ring, f) = slots.by_block(&a.rings, nnz);
+        assert_eq!(start.len(), nnz + 1);
+        assert_eq!(start[nnz] as usize, slots.pairs());
+        let mut want: Vec<Vec<(u32, f64)>> = vec![Vec::new(); nnz];
+        for i in 0..n {
+            let mut t = slots.slot[slots.start[i] as usize..slots.start[i + 1] as usize].iter();
+            for (p, wp) in a.rings.row(i) {
+                for (q, wq) in a.rings.row(i) {
+                    if p >= q {
+                        let s = *t.next().unwrap() as usize;
+                        // The slot is block (p, q) of the lower pattern.
+                        assert_eq!(row_idx[s], p);
+                        assert!((col_ptr[q]..col_ptr[q + 1]).contains(&s));
+                        want[s].push((i as u32, wp * wq));
+                    }
+                }
+            }
+        }
+        for s in 0..nnz {
+            let got: Vec<(u32, f64)> = (start[s]..start[s + 1])
+                .map(|t| (ring[t as usize], f[t as usize]))
+                .collect();
+            assert_eq!(got, want[s], "block {s}");
+        }
     }
 
     #[test]
@@ -838,7 +1174,7 @@ fn chunk_uniforms(ctx: &Context, chunks: &[Chunk]) -> Result<Vec<wgpu::Buffer>, 
 /// The scalar inverse diagonal `1 / a_ii` of a 3x3 block matrix.
 fn split_inverse_diagonal(h: &HostMatrix) -> Vec<f64> {
     (0..3 * h.rows)
-        .map(|r| 1.0 / h.block_values(h.diag[r / 3] as usize)[4 * (r % 3)])
+        .map(|r| 1.0 / h.diag_block(r / 3)[4 * (r % 3)])
         .collect()
 }
 
@@ -927,11 +1263,13 @@ impl GpuMatrix {
     /// `f32_matrix`'s value buffers as the high parts (with its columns, row
     /// pointers and chunk uniforms), new buffers of the low parts
     /// (`v - f64(f32(v))` rounded to f32, so `hi + lo` carries 48 bits) in
-    /// the same chunks, and the scalar inverse diagonal in f64.
+    /// the same chunks, and the scalar inverse diagonal in f64. The low parts
+    /// are written from `h` when `write`, else left for the GPU's expansion.
     pub fn upload_split_f64(
         ctx: &Context,
         h: &HostMatrix,
         f32_matrix: &GpuMatrix,
+        write: bool,
     ) -> Result<GpuMatrix, GpuError> {
         let MatrixStorage::Blocks { chunks, uniforms } = &f32_matrix.storage else {
             return Err(GpuError::Backend(
@@ -952,14 +1290,16 @@ impl GpuMatrix {
                 )
             })
             .collect::<Result<Vec<_>, _>>()?;
-        write_chunk_parts(
-            ctx,
-            chunks,
-            &lo.iter().collect::<Vec<_>>(),
-            9,
-            Values::Host(h),
-            low_part,
-        );
+        if write {
+            write_chunk_parts(
+                ctx,
+                chunks,
+                &lo.iter().collect::<Vec<_>>(),
+                9,
+                Values::Host(h),
+                low_part,
+            );
+        }
         let dinv = split_inverse_diagonal(h);
         let (rows, blocks) = (h.rows as u64, h.nnz_blocks() as u64);
         // hi and lo, 36 bytes each, are the 72 bytes of the f64 values: the

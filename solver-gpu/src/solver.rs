@@ -10,6 +10,7 @@ use solver_cpu::{
     BlockSym3, IsoRingSym3, ShapeOperatorModel, SolveInfo, SolverError, SpdSolver, SymCsc,
     SystemKind, WorkCounters,
 };
+use std::sync::Arc;
 
 use crate::precision::{MixedPrecision, RoundWatch};
 use crate::{
@@ -198,6 +199,8 @@ pub fn open_with(opts: OpenOptions) -> Result<GpuSolver, GpuError> {
         fixed: Vec::new(),
         squared: None,
         ring_slots: None,
+        expand_lower: None,
+        shape_sum: None,
         host_residual: Vec::new(),
         expand: None,
         expansion: None,
@@ -299,7 +302,12 @@ pub struct GpuSolver {
     pub(crate) squared: Option<(std::sync::Arc<ShapeOperatorModel>, wgpu::Buffer)>,
     /// The ring pairs' slots of the shape matrices' pattern
     /// ([`SpdSolver::prepare_shape_owned`]).
-    ring_slots: Option<RingSlots>,
+    ring_slots: Option<Arc<RingSlots>>,
+    /// The f64 lower blocks of the uploaded block pattern (its stamp), which
+    /// the expansions read and the shape sum writes.
+    expand_lower: Option<(usize, wgpu::Buffer)>,
+    /// The shape sum of the uploaded pattern (its stamp) and rings.
+    pub(crate) shape_sum: Option<(usize, expand_blocks::ShapeSum)>,
     /// The f64 residuals of the mixed-precision rounds, kept between solves.
     host_residual: Vec<f64>,
     /// New values of a prepared block pattern go up as their lower triangle
@@ -457,6 +465,34 @@ impl GpuSolver {
             }
         }
         self.mixed = None;
+        // A shape matrix whose blocks the GPU sums has no blocks on the host:
+        // the new matrix's low parts are summed and expanded there too.
+        let on_gpu = self.host.as_ref().is_some_and(|h| h.shape_form().is_some());
+        self.build_mixed(want, stamp, on_gpu)?;
+        if on_gpu {
+            let h = self.host.take().unwrap();
+            let done = self.expand_on_gpu(&h);
+            if matches!(done, Ok(false)) {
+                self.mixed
+                    .as_ref()
+                    .unwrap()
+                    .matrix
+                    .write_values(&self.ctx, &h, &[]);
+            }
+            self.host = Some(h);
+            done?;
+        }
+        Ok(())
+    }
+
+    /// [`Self::mixed_workspace`]'s new matrix and workspace, its low parts
+    /// written from the host unless `unwritten`.
+    fn build_mixed(
+        &mut self,
+        want: usize,
+        stamp: (usize, usize),
+        unwritten: bool,
+    ) -> Result<(), GpuError> {
         if self.mixed_kernels.is_none() {
             self.mixed_kernels = Some(MixedKernels {
                 pcg: pcg::Pcg::new(&self.ctx, precision::Precision::F64)?,
@@ -469,7 +505,7 @@ impl GpuSolver {
         let h = self.host.as_ref().unwrap();
         let matrix = match h.bs {
             1 => GpuMatrix::upload_scalar(&self.ctx, h, precision::Precision::F64)?,
-            _ => GpuMatrix::upload_split_f64(&self.ctx, h, self.gpu.as_ref().unwrap())?,
+            _ => GpuMatrix::upload_split_f64(&self.ctx, h, self.gpu.as_ref().unwrap(), !unwritten)?,
         };
         let spmv = k.spmv(h.bs);
         let mut ws = k.pcg.workspace(&self.ctx, &spmv, &matrix, h.n(), 1, want)?;
@@ -1041,10 +1077,30 @@ impl GpuSolver {
     /// adapter lacks `SHADER_F64`, or the lower values would not fit one
     /// storage binding: then the host writes the values.
     fn expand_values(&mut self, h: &HostMatrix, minv: &[f32]) -> Result<bool, GpuError> {
-        let lower = h.lower_blocks();
+        if !self.expand_on_gpu(h)? {
+            return Ok(false);
+        }
+        let stamp = self.pattern_uploads;
+        self.gpu
+            .as_ref()
+            .unwrap()
+            .write_diagonal(&self.ctx, h, minv);
+        self.value_uploads += 1;
+        if let Some(m) = self.mixed.as_mut().filter(|m| m.stamp.0 == stamp) {
+            m.matrix.write_diagonal(&self.ctx, h, &[]);
+            m.stamp = (stamp, self.value_uploads);
+        }
+        Ok(true)
+    }
+
+    /// The blocks of both triangles of [`Self::expand_values`] (high parts,
+    /// and low parts where the mixed-precision matrix of the pattern exists),
+    /// without the inverse diagonals; `false` where it can not run.
+    fn expand_on_gpu(&mut self, h: &HostMatrix) -> Result<bool, GpuError> {
+        let lower_len = h.lower_len();
         if !self.ctx.shader_f64
             || h.bs != 3
-            || 72 * lower.len() as u64 > matrix::binding_limit(&self.ctx)
+            || 72 * lower_len as u64 > matrix::binding_limit(&self.ctx)
         {
             return Ok(false);
         }
@@ -1065,27 +1121,53 @@ impl GpuSolver {
                 return Ok(false);
             };
             let lo = mixed.and_then(|m| m.matrix.block_parts()).and_then(|p| p.1);
+            if self.expand_lower.as_ref().is_none_or(|(p, _)| *p != stamp) {
+                self.expand_lower = None;
+                let buf = expand_blocks::ExpandBlocks::lower_buffer(&self.ctx, lower_len)?;
+                self.expand_lower = Some((stamp, buf));
+            }
             let e = self.expand.as_ref().unwrap().expansion(
                 &self.ctx,
-                lower.len(),
+                &self.expand_lower.as_ref().unwrap().1,
+                lower_len,
                 h.map(),
                 chunks,
                 lo,
             )?;
             self.expansion = Some((e, stamp, split, self.fixed.clone()));
         }
-        let (e, ..) = self.expansion.as_ref().unwrap();
-        self.expand.as_ref().unwrap().run(&self.ctx, e, lower)?;
-        self.gpu
-            .as_ref()
-            .unwrap()
-            .write_diagonal(&self.ctx, h, minv);
-        self.value_uploads += 1;
-        if let Some(m) = self.mixed.as_mut().filter(|m| m.stamp.0 == stamp) {
-            m.matrix.write_diagonal(&self.ctx, h, &[]);
-            m.stamp = (stamp, self.value_uploads);
+        let k = self.expand.as_ref().unwrap();
+        match (h.shape_form(), self.ring_slots.as_ref()) {
+            (Some(a), Some(slots)) => {
+                let current = self
+                    .shape_sum
+                    .as_ref()
+                    .is_some_and(|(p, sum)| *p == stamp && sum.of(&a.rings));
+                if !current {
+                    self.shape_sum = None;
+                    let lower = &self.expand_lower.as_ref().unwrap().1;
+                    let sum = expand_blocks::ShapeSum::new(k, &self.ctx, a, slots, lower)?;
+                    self.shape_sum = Some((stamp, sum));
+                }
+                let (e, ..) = self.expansion.as_ref().unwrap();
+                k.run_shape(&self.ctx, e, &self.shape_sum.as_ref().unwrap().1, a)?;
+            }
+            _ => {
+                let (e, ..) = self.expansion.as_ref().unwrap();
+                k.run(&self.ctx, e, h.lower_blocks())?;
+            }
         }
         Ok(true)
+    }
+
+    /// Whether a shape matrix `a` of the uploaded block pattern can have its
+    /// blocks summed on the GPU ([`expand_blocks::ShapeSum`]): `SHADER_F64`,
+    /// and every buffer within one storage binding.
+    fn shape_sum_possible(&self, a: &IsoRingSym3, slots: &RingSlots) -> bool {
+        let limit = matrix::binding_limit(&self.ctx);
+        self.ctx.shader_f64
+            && self.gpu.as_ref().and_then(|g| g.block_parts()).is_some()
+            && expand_blocks::ShapeSum::fits(a, slots, limit)
     }
 
     /// The workspace for at least `ncols` columns.
@@ -1270,7 +1352,7 @@ impl GpuSolver {
     }
 
     fn solve(&mut self, b: &[f64], x: &mut [f64], ncols: usize) -> Result<SolveInfo, SolverError> {
-        let Some(h) = self.host.as_ref() else {
+        let Some(h) = self.host.as_ref().filter(|h| h.is_filled()) else {
             return Err(SolverError::NotPrepared);
         };
         let n = h.n();
@@ -1445,7 +1527,7 @@ impl SpdSolver for GpuSolver {
         let (col_ptr, row_idx) = (&a.iso.col_ptr, &a.iso.row_idx);
         let same = self.same_pattern(3, col_ptr, row_idx);
         if !(same && self.ring_slots.as_ref().is_some_and(|r| r.of(&a.rings))) {
-            self.ring_slots = Some(RingSlots::new(&a.rings, col_ptr, row_idx)?);
+            self.ring_slots = Some(Arc::new(RingSlots::new(&a.rings, col_ptr, row_idx)?));
         }
         match self.kind {
             SystemKind::ScaleDriven | SystemKind::FineTune => {
@@ -1455,17 +1537,35 @@ impl SpdSolver for GpuSolver {
         }
         let t = std::time::Instant::now();
         let mut h = self.take_host(same, n, 3, col_ptr, row_idx)?;
-        let slots = self.ring_slots.as_ref().unwrap();
-        h.fill_shape(&a, slots, fixed);
+        let slots = self.ring_slots.clone().unwrap();
+        // A new matrix of the uploaded pattern is summed on the GPU where it
+        // can be: the host keeps the matrix in its own form, not its blocks.
+        let on_gpu = same && self.shape_sum_possible(&a, &slots);
+        let kept = if on_gpu {
+            h.set_shape(a, slots, fixed);
+            None
+        } else {
+            h.fill_shape(&a, &slots, fixed);
+            Some(a)
+        };
         self.fixed.clear();
         self.fixed.extend_from_slice(fixed);
         let filled = t.elapsed().as_secs_f64();
         self.upload(h, same)?;
         log::debug!(
-            "shape matrix on the host: filled in {filled:.3} s, uploaded in {:.3} s",
+            "shape matrix: {} on the host in {filled:.3} s, uploaded in {:.3} s",
+            if on_gpu { "diagonal blocks" } else { "blocks" },
             t.elapsed().as_secs_f64() - filled
         );
-        Ok(Some(a))
+        Ok(kept)
+    }
+
+    fn shape_matrix(&self) -> Option<&IsoRingSym3> {
+        self.host.as_ref().and_then(|h| h.shape_form())
+    }
+
+    fn take_shape_matrix(&mut self) -> Option<IsoRingSym3> {
+        self.host.as_mut().and_then(|h| h.take_shape())
     }
 
     fn solve_in_place(&mut self, rhs: &mut [f64], ncols: usize) -> Result<SolveInfo, SolverError> {

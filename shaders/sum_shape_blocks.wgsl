@@ -1,0 +1,68 @@
+// The lower-triangle 3x3 blocks of a shape matrix in isotropic-plus-ring form,
+// A = K (x) I3 + sum_i R_i^T C_i R_i, summed on the GPU from K's values and
+// the 3x3 symmetric C_i (driven by solver-gpu/src/expand_blocks.rs; its
+// `expand_blocks.wgsl` then writes both triangles from them). Per matrix the
+// host sends 8 bytes per lower entry of K and 48 per ring instead of 72 per
+// lower block. Each lower block s is
+//   K_s I3 + sum over the ring pairs (p, q) of s, in ring order, of f C_i,
+// with f = R_ip R_iq fixed for a run (the rings are the input's Laplacian):
+// the order and arithmetic of the host's sum (`HostMatrix::fill_shape`).
+//
+// Bindings (group 0):
+//   0  C      uniform   slots: the lower blocks of this dispatch (all of them).
+//   1  iso    read      f64, K's value per lower entry (input CSC order).
+//   2  ring_c read      f64, 6 per ring: C_i as (xx, yy, zz, xy, xz, yz).
+//   3  start  read      u32, slots + 1: block s's ring pairs are
+//                       start[s] .. start[s + 1] of the next two arrays.
+//   4  ring   read      u32 per ring pair: the ring i it belongs to.
+//   5  f      read      f64 per ring pair: its weight R_ip R_iq.
+//   6  lower  rw        f64, 9 per lower block (row-major), written whole.
+// One invocation per lower block, 256 per workgroup, 2-D dispatch (linear
+// index gid.x + gid.y * nwg.x * 256); invocations past the blocks return.
+
+struct SumParams {
+    slots: u32,
+    pad0: u32,
+    pad1: u32,
+    pad2: u32,
+}
+
+const FWG: u32 = 256u;
+// Set by the host for every kernel (columns); one matrix here, unused.
+override NCOLS: u32 = 1u;
+
+@group(0) @binding(0) var<uniform> C: SumParams;
+@group(0) @binding(1) var<storage, read> iso: array<f64>;
+@group(0) @binding(2) var<storage, read> ring_c: array<f64>;
+@group(0) @binding(3) var<storage, read> start: array<u32>;
+@group(0) @binding(4) var<storage, read> ring: array<u32>;
+@group(0) @binding(5) var<storage, read> f: array<f64>;
+@group(0) @binding(6) var<storage, read_write> lower: array<f64>;
+
+@compute @workgroup_size(256)
+fn sum_shape_blocks(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let s = gid.x + gid.y * nwg.x * FWG;
+    if s >= C.slots || NCOLS == 0u {
+        return;
+    }
+    let k = iso[s];
+    // Row-major 3x3: xx xy xz / xy yy yz / xz yz zz.
+    var m = array<f64, 9>(k, f64(0.0), f64(0.0), f64(0.0), k, f64(0.0), f64(0.0), f64(0.0), k);
+    for (var t = start[s]; t < start[s + 1u]; t++) {
+        let i = ring[t];
+        let w = f[t];
+        let c = 6u * i;
+        m[0] += w * ring_c[c];
+        m[1] += w * ring_c[c + 3u];
+        m[2] += w * ring_c[c + 4u];
+        m[3] += w * ring_c[c + 3u];
+        m[4] += w * ring_c[c + 1u];
+        m[5] += w * ring_c[c + 5u];
+        m[6] += w * ring_c[c + 4u];
+        m[7] += w * ring_c[c + 5u];
+        m[8] += w * ring_c[c + 2u];
+    }
+    for (var q = 0u; q < 9u; q++) {
+        lower[9u * s + q] = m[q];
+    }
+}
