@@ -46,9 +46,12 @@
 //! in f64 (the host converts nothing) and `shaders/expand_blocks.wgsl` writes
 //! both triangles, the held rows and the f32 high and low parts on the GPU
 //! (where the adapter has `SHADER_F64`; else the host writes f32 values). A
-//! shape matrix in isotropic-plus-ring form ([`solver_cpu::IsoRingSym3`]) is
-//! summed into those lower blocks with its ring pairs' slots found once per
-//! pattern, without an explicit [`solver_cpu::BlockSym3`].
+//! shape matrix in isotropic-plus-ring form ([`solver_cpu::IsoRingSym3`],
+//! `K (x) I3 + sum_i R_i^T C_i R_i`) goes up as less still, `K`'s values and
+//! the `C_i`: `shaders/sum_shape_blocks.wgsl` sums its lower blocks on the GPU
+//! (each block's ring pairs and weights found once per pattern and rings),
+//! and the host keeps the matrix in that form, as the CPU backend does, for
+//! its residuals (matrix-free) and diagonal blocks: no blocks on the host.
 //!
 //! The **shape systems** (the scale-driven ones, Eq. 7, and the fine-tune's,
 //! Eq. 8) are preconditioned by default as the CPU backend's block PCG is,

@@ -1,7 +1,10 @@
 //! The prepared matrix: the lower-triangle CSC input expanded to a full
 //! (both triangles) block-CSR with block size 3 (vertex systems) or 1 (scalar
-//! system). An f64 copy stays on the host for the residuals of iterative
-//! refinement; an f32 copy and the inverted diagonal blocks go to the GPU.
+//! system). The host keeps what the f64 residuals of iterative refinement
+//! need: a scalar matrix's values, a block matrix's lower triangle and where
+//! each full block comes from, or a shape matrix in its isotropic-plus-ring
+//! form (its blocks summed on the GPU only) with its diagonal blocks; f32
+//! values and the inverted diagonal blocks go to the GPU.
 
 use crate::device::Context;
 use crate::expand_blocks::{IDENTITY, TRANSPOSE, ZERO};
@@ -1043,6 +1046,8 @@ pub(crate) fn split_rows(
 pub(crate) enum Values<'a> {
     Flat(&'a [f64]),
     Host(&'a HostMatrix),
+    /// None now: the GPU's expansion writes them.
+    Later,
 }
 
 impl Values<'_> {
@@ -1062,6 +1067,7 @@ impl Values<'_> {
                     .map(|&x| part(x)),
             ),
             Values::Host(h) => h.values_into(blocks, part, out),
+            Values::Later => {}
         }
     }
 }
@@ -1116,6 +1122,9 @@ pub(crate) fn write_chunk_parts(
     vals: Values<'_>,
     part: fn(f64) -> f32,
 ) {
+    if let Values::Later = vals {
+        return;
+    }
     let band = ((1 << 22) / per_block.max(1)).max(1);
     let mut out: Vec<f32> = Vec::new();
     for (c, buf) in chunks.iter().zip(bufs) {
@@ -1179,7 +1188,15 @@ fn split_inverse_diagonal(h: &HostMatrix) -> Vec<f64> {
 }
 
 impl GpuMatrix {
-    pub fn upload(ctx: &Context, h: &HostMatrix, minv: &[f32]) -> Result<GpuMatrix, GpuError> {
+    /// The matrix `h` with the inverse diagonal `minv`; a block matrix's
+    /// values are written from `h` when `write`, else left for the GPU's
+    /// expansion.
+    pub fn upload(
+        ctx: &Context,
+        h: &HostMatrix,
+        minv: &[f32],
+        write: bool,
+    ) -> Result<GpuMatrix, GpuError> {
         let storage = if h.bs == 3 {
             let chunks = upload_chunks(
                 ctx,
@@ -1187,7 +1204,11 @@ impl GpuMatrix {
                 &h.row_ptr,
                 &h.col_idx,
                 9,
-                Values::Host(h),
+                if write {
+                    Values::Host(h)
+                } else {
+                    Values::Later
+                },
             )?;
             MatrixStorage::Blocks {
                 uniforms: chunk_uniforms(ctx, &chunks)?,

@@ -1026,8 +1026,17 @@ impl GpuSolver {
             _ => {
                 self.gpu = None;
                 self.drop_workspaces();
-                self.gpu = Some(GpuMatrix::upload(&self.ctx, &h, &minv)?);
+                // A shape matrix kept in its form is summed on the GPU from
+                // the start: its pattern goes up with no values.
+                let shape = h.shape_form().is_some();
+                self.gpu = Some(GpuMatrix::upload(&self.ctx, &h, &minv, !shape)?);
                 self.pattern_uploads += 1;
+                if shape && !self.expand_on_gpu(&h)? {
+                    self.gpu
+                        .as_ref()
+                        .unwrap()
+                        .write_values(&self.ctx, &h, &minv);
+                }
                 self.mixed_sticky = false;
                 self.hints.clear();
             }
@@ -1160,14 +1169,11 @@ impl GpuSolver {
         Ok(true)
     }
 
-    /// Whether a shape matrix `a` of the uploaded block pattern can have its
-    /// blocks summed on the GPU ([`expand_blocks::ShapeSum`]): `SHADER_F64`,
+    /// Whether a shape matrix `a` can have its blocks summed on the GPU ([`expand_blocks::ShapeSum`]): `SHADER_F64`,
     /// and every buffer within one storage binding.
     fn shape_sum_possible(&self, a: &IsoRingSym3, slots: &RingSlots) -> bool {
         let limit = matrix::binding_limit(&self.ctx);
-        self.ctx.shader_f64
-            && self.gpu.as_ref().and_then(|g| g.block_parts()).is_some()
-            && expand_blocks::ShapeSum::fits(a, slots, limit)
+        self.ctx.shader_f64 && expand_blocks::ShapeSum::fits(a, slots, limit)
     }
 
     /// The workspace for at least `ncols` columns.
@@ -1538,9 +1544,9 @@ impl SpdSolver for GpuSolver {
         let t = std::time::Instant::now();
         let mut h = self.take_host(same, n, 3, col_ptr, row_idx)?;
         let slots = self.ring_slots.clone().unwrap();
-        // A new matrix of the uploaded pattern is summed on the GPU where it
-        // can be: the host keeps the matrix in its own form, not its blocks.
-        let on_gpu = same && self.shape_sum_possible(&a, &slots);
+        // A shape matrix is summed on the GPU where it can be (the first of a
+        // pattern too): the host keeps it in its own form, not its blocks.
+        let on_gpu = self.shape_sum_possible(&a, &slots);
         let kept = if on_gpu {
             h.set_shape(a, slots, fixed);
             None

@@ -2,7 +2,9 @@
 //! Without an adapter each test prints "skipping: no GPU adapter" and passes,
 //! unless REQUIRE_GPU=1, where it fails.
 
-use solver_cpu::{BlockSym3, CholeskySolver, SolverError, SpdSolver, SymCsc, SystemKind};
+use solver_cpu::{
+    BlockSym3, CholeskySolver, IsoRingSym3, SolverError, SpdSolver, SymCsc, SystemKind,
+};
 use solver_gpu::{kernels, GpuError, GpuSolver, MixedPrecision, OpenOptions, Preconditioner};
 
 fn require_gpu() -> bool {
@@ -1404,7 +1406,7 @@ fn cholesky_preconditioner_is_the_factor_solve_per_component() {
         let fixed = fixed_every(n, 61);
         let kh = a.iso_held_identity(&fixed);
         s.set_system_kind(SystemKind::ScaleDriven);
-        let a = s.prepare_shape_owned(a, &fixed).unwrap().unwrap();
+        let a = prepare_shape(&mut s, a, &fixed);
         assert_eq!(s.active_preconditioner(), Preconditioner::Cholesky);
         let (depth, nnz) = kernels::cholesky_shape(&s).unwrap();
         // In f64 where the shape systems' PCG starts in f64 (the default).
@@ -1470,7 +1472,7 @@ fn cholesky_factor_over_one_binding_is_split_over_several() {
         return;
     };
     s.set_system_kind(SystemKind::ScaleDriven);
-    let a = s.prepare_shape_owned(a, &fixed).unwrap().unwrap();
+    let a = prepare_shape(&mut s, a, &fixed);
     assert_eq!(s.active_preconditioner(), Preconditioner::Cholesky);
     let chunks = kernels::cholesky_chunks(&s).unwrap();
     let least = factor_bytes.div_ceil(limit) as usize;
@@ -1639,4 +1641,13 @@ fn scale_factor_system_is_preconditioned_by_its_own_factor() {
     let (e, iterations, _) = solve(&mut s, 1, 1e-8);
     assert!(e < 1e-7, "f32 PCG against CPU {e:e}");
     assert!(iterations <= 6, "f32 PCG: {iterations} iterations");
+}
+
+/// `s` prepared with the shape matrix `a`; `a` back (a copy of it where the
+/// solver keeps it).
+fn prepare_shape(s: &mut GpuSolver, a: IsoRingSym3, fixed: &[bool]) -> IsoRingSym3 {
+    match s.prepare_shape_owned(a, fixed).unwrap() {
+        Some(a) => a,
+        None => s.shape_matrix().expect("the kept matrix").clone(),
+    }
 }
