@@ -335,19 +335,25 @@ mod tests {
         a
     }
 
-    #[test]
-    fn expanded_values_are_the_hosts_high_and_low_parts() {
+    /// A solver on the adapter, always in mixed precision; `None` (the test
+    /// passes) without an adapter or without `SHADER_F64`.
+    fn mixed_solver() -> Option<crate::GpuSolver> {
         let Ok(mut s) = crate::open() else {
             assert!(
                 std::env::var("REQUIRE_GPU").map_or(true, |v| v != "1"),
                 "REQUIRE_GPU=1 but no GPU adapter"
             );
+            return None;
+        };
+        s.set_mixed_precision(MixedPrecision::Always);
+        s.ctx.shader_f64.then_some(s)
+    }
+
+    #[test]
+    fn expanded_values_are_the_hosts_high_and_low_parts() {
+        let Some(mut s) = mixed_solver() else {
             return;
         };
-        if !s.ctx.shader_f64 {
-            return;
-        }
-        s.set_mixed_precision(MixedPrecision::Always);
         let n = 40;
         let mut fixed = vec![false; n];
         fixed[7] = true;
@@ -443,17 +449,9 @@ mod tests {
     /// the matrix is gone from the solver until the next one.
     #[test]
     fn shape_blocks_summed_on_the_gpu_are_the_hosts() {
-        let Ok(mut s) = crate::open() else {
-            assert!(
-                std::env::var("REQUIRE_GPU").map_or(true, |v| v != "1"),
-                "REQUIRE_GPU=1 but no GPU adapter"
-            );
+        let Some(mut s) = mixed_solver() else {
             return;
         };
-        if !s.ctx.shader_f64 {
-            return;
-        }
-        s.set_mixed_precision(MixedPrecision::Always);
         let n = 40;
         let mut fixed = vec![false; n];
         fixed[7] = true;

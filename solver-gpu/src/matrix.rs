@@ -677,16 +677,7 @@ impl RingSlots {
 /// others; values depending on `seed`.
 #[cfg(test)]
 pub(crate) fn shape_strip(n: usize, seed: f64) -> IsoRingSym3 {
-    let mut t = Vec::new();
-    for i in 0..n {
-        for (j, w) in [(i + 1, 1.0 + 0.1 * i as f64), (i + n - 1, 0.7)] {
-            t.push((i as u32, (j % n) as u32, w));
-        }
-    }
-    let rings = Arc::new(SparseRows::from_triplets(n, t, true));
-    let pairs = (0..n).flat_map(|i| [(i, (i + 1) % n), (i, (i + 2) % n)]);
-    let pat = SymCsc::from_pattern(n, pairs);
-    let mut a = IsoRingSym3::new(n, pat.col_ptr, pat.row_idx, rings);
+    let mut a = strip_pattern(n);
     for j in 0..n {
         for s in a.iso.col_ptr[j]..a.iso.col_ptr[j + 1] {
             let v = ((s as f64 + seed) * 0.37).sin();
@@ -706,23 +697,30 @@ pub(crate) fn shape_strip(n: usize, seed: f64) -> IsoRingSym3 {
     a
 }
 
+/// The zero shape matrix on a strip of `n` vertices (a closed ring): rings
+/// of each vertex and its two neighbours, `K`'s pattern their 2-ring.
+#[cfg(test)]
+fn strip_pattern(n: usize) -> IsoRingSym3 {
+    let mut t = Vec::new();
+    for i in 0..n {
+        for (j, w) in [(i + 1, 1.0 + 0.1 * i as f64), (i + n - 1, 0.7)] {
+            t.push((i as u32, (j % n) as u32, w));
+        }
+    }
+    let rings = Arc::new(SparseRows::from_triplets(n, t, true));
+    let pairs = (0..n).flat_map(|i| [(i, (i + 1) % n), (i, (i + 2) % n)]);
+    let pat = SymCsc::from_pattern(n, pairs);
+    IsoRingSym3::new(n, pat.col_ptr, pat.row_idx, rings)
+}
+
 #[cfg(test)]
 mod shape_fill_tests {
     use super::*;
 
-    /// A shape matrix on a strip of `n` vertices: rings of each vertex and its
-    /// two neighbours, `K` on their 2-ring pattern, `C_i` nonzero on most rows.
+    /// A shape matrix on a strip of `n` vertices ([`strip_pattern`]), `C_i`
+    /// nonzero on most rows (not positive definite).
     fn strip(n: usize) -> IsoRingSym3 {
-        let mut t = Vec::new();
-        for i in 0..n {
-            for (j, w) in [(i + 1, 1.0 + 0.1 * i as f64), (i + n - 1, 0.7)] {
-                t.push((i as u32, (j % n) as u32, w));
-            }
-        }
-        let rings = Arc::new(SparseRows::from_triplets(n, t, true));
-        let pairs = (0..n).flat_map(|i| [(i, (i + 1) % n), (i, (i + 2) % n)]);
-        let pat = SymCsc::from_pattern(n, pairs);
-        let mut a = IsoRingSym3::new(n, pat.col_ptr, pat.row_idx, rings);
+        let mut a = strip_pattern(n);
         for (k, v) in a.iso.values.iter_mut().enumerate() {
             *v = 1.0 + (k as f64 * 0.37).sin();
         }
