@@ -340,6 +340,33 @@ impl HostMatrix {
         self.shape.as_ref().is_some_and(|f| f.lower.get().is_some())
     }
 
+    /// Bytes of host memory this matrix holds beyond the shape matrix's own
+    /// form (which the caller, or the CPU backend, holds as well): its
+    /// pattern, values, maps and indices, by their vectors' capacities.
+    pub fn host_bytes(&self) -> usize {
+        #[allow(clippy::ptr_arg)]
+        fn b<T>(v: &Vec<T>) -> usize {
+            v.capacity() * std::mem::size_of::<T>()
+        }
+        let mut n = b(&self.row_ptr)
+            + b(&self.col_idx)
+            + b(&self.vals)
+            + b(&self.lower)
+            + b(&self.map)
+            + b(&self.map_fixed)
+            + b(&self.lower_to_full)
+            + b(&self.diag)
+            + b(&self.key.0)
+            + b(&self.key.1);
+        if let Some(f) = &self.shape {
+            n += b(&f.diag) + f.lower.get().map_or(0, b);
+        }
+        if let Some(r) = self.shape_rows.get() {
+            n += b(&r.row_ptr) + b(&r.entries);
+        }
+        n
+    }
+
     /// Lower-triangle blocks of the pattern.
     pub fn lower_len(&self) -> usize {
         self.lower_to_full.len()
@@ -847,6 +874,14 @@ mod shape_fill_tests {
             let mut form = HostMatrix::pattern(n, 3, col_ptr, row_idx).unwrap();
             form.set_shape(a.clone(), slots.clone(), &fixed);
             assert!(form.is_filled() && form.shape_form().is_some());
+            // The form holds diagonal blocks, not the lower ones.
+            let lower = blocks.lower_len();
+            assert!(
+                blocks.host_bytes() >= form.host_bytes() + 72 * (lower - n),
+                "{} against {}",
+                blocks.host_bytes(),
+                form.host_bytes()
+            );
             for v in 0..n {
                 assert_eq!(
                     form.diag_block(v),

@@ -1559,9 +1559,11 @@ impl SpdSolver for GpuSolver {
         let filled = t.elapsed().as_secs_f64();
         self.upload(h, same)?;
         log::debug!(
-            "shape matrix: {} on the host in {filled:.3} s, uploaded in {:.3} s",
+            "shape matrix: {} on the host in {filled:.3} s, uploaded in {:.3} s; \
+             the solver's host copy {:.1} MB (beyond the matrix's own form)",
             if on_gpu { "diagonal blocks" } else { "blocks" },
-            t.elapsed().as_secs_f64() - filled
+            t.elapsed().as_secs_f64() - filled,
+            self.host.as_ref().map_or(0, |h| h.host_bytes()) as f64 / 1e6
         );
         Ok(kept)
     }
