@@ -94,6 +94,18 @@ impl SparseRows {
         )
     }
 
+    /// The pairs `(p, q)` of row `i`'s entries with `p >= q`, each with its
+    /// weight `R_ip R_iq`: the `(p, q)` blocks `R_i^T C_i R_i` adds to, in
+    /// the order every sum of those blocks uses (row order twice nested).
+    #[inline]
+    pub fn pairs(&self, i: usize) -> impl Iterator<Item = (usize, usize, f64)> + '_ {
+        self.row(i).flat_map(move |(p, wp)| {
+            self.row(i)
+                .filter(move |&(q, _)| p >= q)
+                .map(move |(q, wq)| (p, q, wp * wq))
+        })
+    }
+
     /// Coefficient `R_ij` (0 when `j` is not in row `i`).
     #[inline]
     pub fn coefficient(&self, i: usize, j: usize) -> f64 {
@@ -129,6 +141,13 @@ impl SparseRows {
             })
         })
     }
+}
+
+/// The symmetric 3x3 `C` stored as (xx, yy, zz, xy, xz, yz), as a row-major
+/// 3x3 block.
+#[inline]
+pub fn sym3_block(c: &[f64; 6]) -> [f64; 9] {
+    [c[0], c[3], c[4], c[3], c[1], c[5], c[4], c[5], c[2]]
 }
 
 /// `C x` for a symmetric 3x3 `C` stored as (xx, yy, zz, xy, xz, yz).
@@ -336,16 +355,11 @@ impl IsoRingSym3 {
             if *c == [0.0; 6] {
                 continue;
             }
-            let m = [c[0], c[3], c[4], c[3], c[1], c[5], c[4], c[5], c[2]];
-            for (p, wp) in self.rings.row(i) {
-                for (q, wq) in self.rings.row(i) {
-                    if p >= q {
-                        let (s, _) = b.slot(p, q).expect("ring pair inside the pattern");
-                        let f = wp * wq;
-                        for (o, me) in b.blocks[s].iter_mut().zip(&m) {
-                            *o += f * me;
-                        }
-                    }
+            let m = sym3_block(c);
+            for (p, q, f) in self.rings.pairs(i) {
+                let (s, _) = b.slot(p, q).expect("ring pair inside the pattern");
+                for (o, me) in b.blocks[s].iter_mut().zip(&m) {
+                    *o += f * me;
                 }
             }
         }

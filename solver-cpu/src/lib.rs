@@ -13,7 +13,7 @@ pub mod pcg;
 
 pub use block::{BlockRows, BlockSym3};
 pub use cholesky::{nested_dissection_of_pattern, CholeskySolver, FillOrdering, SupernodalFactor};
-pub use iso_ring::{IsoRingSym3, SparseRows};
+pub use iso_ring::{sym3_block, IsoRingSym3, SparseRows};
 pub use pcg::{BlockPcgParams, BlockPcgSolver};
 
 /// Failure of a linear solve.

@@ -11,7 +11,7 @@ use crate::expand_blocks::{IDENTITY, TRANSPOSE, ZERO};
 use crate::precision::Precision;
 use crate::GpuError;
 use rayon::prelude::*;
-use solver_cpu::{BlockRows, BlockSym3, IsoRingSym3, SolverError, SparseRows, SymCsc};
+use solver_cpu::{sym3_block, BlockRows, BlockSym3, IsoRingSym3, SolverError, SparseRows, SymCsc};
 use std::sync::{Arc, OnceLock};
 
 /// Full block-CSR pattern and f64 values (host side). A scalar matrix keeps
@@ -232,7 +232,7 @@ impl HostMatrix {
             if *c == [0.0; 6] {
                 continue;
             }
-            let m = [c[0], c[3], c[4], c[3], c[1], c[5], c[4], c[5], c[2]];
+            let m = sym3_block(c);
             for (p, w) in a.rings.row(i) {
                 let f = w * w;
                 for (o, me) in diag[p].iter_mut().zip(&m) {
@@ -544,17 +544,11 @@ fn sum_lower(a: &IsoRingSym3, slots: &RingSlots, out: &mut Vec<[f64; 9]>) {
         if *c == [0.0; 6] {
             continue;
         }
-        let m = [c[0], c[3], c[4], c[3], c[1], c[5], c[4], c[5], c[2]];
-        let mut t = pairs.iter();
-        for (p, wp) in rings.row(i) {
-            for (q, wq) in rings.row(i) {
-                if p >= q {
-                    let s = *t.next().expect("one slot per ring pair") as usize;
-                    let f = wp * wq;
-                    for (o, me) in out[s].iter_mut().zip(&m) {
-                        *o += f * me;
-                    }
-                }
+        let m = sym3_block(c);
+        // One slot per ring pair, in the same order (`RingSlots::new`).
+        for (&s, (_, _, f)) in pairs.iter().zip(rings.pairs(i)) {
+            for (o, me) in out[s as usize].iter_mut().zip(&m) {
+                *o += f * me;
             }
         }
     }
@@ -627,24 +621,19 @@ impl RingSlots {
         let mut slot = Vec::new();
         start.push(0u32);
         for i in 0..rings.len() {
-            for (p, _) in rings.row(i) {
-                for (q, _) in rings.row(i) {
-                    if p < q {
-                        continue;
-                    }
-                    let found = (q < n)
-                        .then(|| {
-                            let (s, e) = (col_ptr[q], col_ptr[q + 1]);
-                            row_idx[s..e].binary_search(&p).ok().map(|k| s + k)
-                        })
-                        .flatten();
-                    let Some(k) = found else {
-                        return Err(SolverError::DimensionMismatch(format!(
-                            "ring pair ({p}, {q}) of row {i} is outside the matrix pattern"
-                        )));
-                    };
-                    slot.push(k as u32);
-                }
+            for (p, q, _) in rings.pairs(i) {
+                let found = (q < n)
+                    .then(|| {
+                        let (s, e) = (col_ptr[q], col_ptr[q + 1]);
+                        row_idx[s..e].binary_search(&p).ok().map(|k| s + k)
+                    })
+                    .flatten();
+                let Some(k) = found else {
+                    return Err(SolverError::DimensionMismatch(format!(
+                        "ring pair ({p}, {q}) of row {i} is outside the matrix pattern"
+                    )));
+                };
+                slot.push(k as u32);
             }
             start.push(slot.len() as u32);
         }
@@ -681,17 +670,12 @@ impl RingSlots {
         let mut ring = vec![0u32; self.slot.len()];
         let mut f = vec![0f64; self.slot.len()];
         for i in 0..rings.len() {
-            let mut t = self.slot[self.start[i] as usize..self.start[i + 1] as usize].iter();
-            for (p, wp) in rings.row(i) {
-                for (q, wq) in rings.row(i) {
-                    if p >= q {
-                        let s = *t.next().expect("one slot per ring pair") as usize;
-                        let at = next[s] as usize;
-                        next[s] += 1;
-                        ring[at] = i as u32;
-                        f[at] = wp * wq;
-                    }
-                }
+            let slots = &self.slot[self.start[i] as usize..self.start[i + 1] as usize];
+            for (&s, (_, _, w)) in slots.iter().zip(rings.pairs(i)) {
+                let at = next[s as usize] as usize;
+                next[s as usize] += 1;
+                ring[at] = i as u32;
+                f[at] = w;
             }
         }
         (start, ring, f)

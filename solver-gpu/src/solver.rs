@@ -1079,10 +1079,11 @@ impl GpuSolver {
     }
 
     /// New values of the uploaded block pattern from their lower triangle:
-    /// the f64 lower blocks go up (72 bytes a lower block) and
-    /// `expand_blocks.wgsl` writes both triangles, held rows, f32 high parts
-    /// and, once the mixed-precision matrix exists, its low parts; the host
-    /// writes only the inverse diagonals. `false` (nothing done) where the
+    /// the f64 lower blocks go up (72 bytes a lower block), or a shape
+    /// matrix's `K` values and `C_i` for `sum_shape_blocks.wgsl` to sum them,
+    /// and `expand_blocks.wgsl` writes both triangles, held rows, f32 high
+    /// parts and, once the mixed-precision matrix exists, its low parts; the
+    /// host writes only the inverse diagonals. `false` (nothing done) where the
     /// adapter lacks `SHADER_F64`, or the lower values would not fit one
     /// storage binding: then the host writes the values.
     fn expand_values(&mut self, h: &HostMatrix, minv: &[f32]) -> Result<bool, GpuError> {
@@ -1169,8 +1170,9 @@ impl GpuSolver {
         Ok(true)
     }
 
-    /// Whether a shape matrix `a` can have its blocks summed on the GPU ([`expand_blocks::ShapeSum`]): `SHADER_F64`,
-    /// and every buffer within one storage binding.
+    /// Whether a shape matrix `a` can have its blocks summed on the GPU
+    /// ([`expand_blocks::ShapeSum`]): `SHADER_F64`, and every buffer within
+    /// one storage binding.
     fn shape_sum_possible(&self, a: &IsoRingSym3, slots: &RingSlots) -> bool {
         let limit = matrix::binding_limit(&self.ctx);
         self.ctx.shader_f64 && expand_blocks::ShapeSum::fits(a, slots, limit)
@@ -1506,9 +1508,12 @@ impl SpdSolver for GpuSolver {
         self.upload(h, same).map_err(Into::into)
     }
 
-    /// The shape matrix's blocks go straight into the prepared matrix
-    /// (`HostMatrix::fill_shape`): no [`BlockSym3`] is built, and the ring
-    /// pairs' slots are found once per pattern, not per matrix. Hands `a` back.
+    /// No [`BlockSym3`] is built, and the ring pairs' slots are found once
+    /// per pattern, not per matrix. Where the adapter can sum the blocks
+    /// (`HostMatrix::set_shape`, `sum_shape_blocks.wgsl`) the solver keeps
+    /// `a` (read it with `shape_matrix`, take it back with
+    /// `take_shape_matrix`); else the host sums them
+    /// (`HostMatrix::fill_shape`) and hands `a` back.
     fn prepare_shape_owned(
         &mut self,
         a: IsoRingSym3,
