@@ -12,7 +12,7 @@ mod common;
 
 use metricdeform::job::{Job, JobFormat};
 use metricdeform::memory::peak_memory_mb;
-use metricdeform::pipeline::{deform, Options, SolverBackend, SolverSummary};
+use metricdeform::pipeline::{deform, Options, Progress, SolverBackend, SolverSummary};
 use metricdeform::problem::{max_error, Problem};
 use std::path::Path;
 use std::time::Instant;
@@ -52,7 +52,8 @@ fn row(
     let mut options = Options::from_spec(&job.spec.solver);
     options.preview = preview;
     options.backend = backend;
-    let out = deform(&problem, &options, &mut |_| {}).unwrap();
+    let mut cpu_marks = Vec::new();
+    let out = deform(&problem, &options, &mut host_cpu_marks(&mut cpu_marks)).unwrap();
     let total = t0.elapsed().as_secs_f64();
     let peak = peak_memory_mb();
     println!(
@@ -74,18 +75,25 @@ fn row(
         peak
     );
     if backend == SolverBackend::Cpu || std::env::args().any(|a| a == "--gpu-only") {
-        proxies(name, backend.name(), &out.solver, None);
+        proxies(name, backend.name(), &out.solver, &cpu_marks, None);
     } else {
         options.backend = SolverBackend::Cpu;
-        let cpu = deform(&problem, &options, &mut |_| {}).unwrap();
+        let mut cpu_run_marks = Vec::new();
+        let cpu = deform(&problem, &options, &mut host_cpu_marks(&mut cpu_run_marks)).unwrap();
         let dev = common::max_deviation(&problem.mesh, &cpu.positions, &out.positions);
         println!(
             "{name} ({}): largest vertex deviation from the CPU result {:.2e} % of the bbox diagonal",
             backend.name(),
             100.0 * dev
         );
-        proxies(name, "cpu", &cpu.solver, None);
-        proxies(name, backend.name(), &out.solver, Some(&cpu.solver));
+        proxies(name, "cpu", &cpu.solver, &cpu_run_marks, None);
+        proxies(
+            name,
+            backend.name(),
+            &out.solver,
+            &cpu_marks,
+            Some(&cpu.solver),
+        );
     }
 }
 
@@ -104,23 +112,69 @@ fn later_outer_seconds(s: &SolverSummary) -> (f64, f64) {
     )
 }
 
+/// CPU seconds the host's threads (this one and rayon's workers) have run,
+/// from the kernel's per-thread clocks. Unlike wall seconds outside the GPU
+/// waits, these leave out time a host thread stood descheduled: on lavapipe
+/// the emulated GPU runs submitted work on the same cores while the host goes
+/// on, which a discrete GPU does elsewhere.
+fn host_cpu_seconds() -> f64 {
+    fn own() -> f64 {
+        let mut t = libc::timespec {
+            tv_sec: 0,
+            tv_nsec: 0,
+        };
+        // SAFETY: `t` is a valid timespec for the call to fill.
+        let ok = unsafe { libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut t) } == 0;
+        assert!(ok, "clock_gettime(CLOCK_THREAD_CPUTIME_ID) failed");
+        t.tv_sec as f64 + 1e-9 * t.tv_nsec as f64
+    }
+    own() + rayon::broadcast(|_| own()).iter().sum::<f64>()
+}
+
+/// A progress callback that marks [`host_cpu_seconds`] at each scale-driven
+/// iteration's report (after its scale factors, before its shape step).
+fn host_cpu_marks(marks: &mut Vec<f64>) -> impl FnMut(Progress) + '_ {
+    move |p| {
+        if let Progress::ScaleDriven { .. } = p {
+            marks.push(host_cpu_seconds());
+        }
+    }
+}
+
+/// Mean host CPU seconds between consecutive marks from the second on: one
+/// shape step and the next iteration's scale factors each, the first shape
+/// step (pattern analysis, first uploads) left out.
+fn later_outer_cpu_seconds(marks: &[f64]) -> Option<f64> {
+    let later = marks.get(1..).filter(|m| m.len() >= 2)?;
+    Some((later[later.len() - 1] - later[0]) / (later.len() - 1) as f64)
+}
+
 /// The counts that predict a discrete GPU's cost (issue: GPU that
 /// accelerates), one line per run: host seconds per outer iteration after
-/// the first without the waits on the GPU (against the CPU backend's outer
-/// iteration when `cpu` is given), PCG iterations per shape solve, host waits
+/// the first without the waits on the GPU, and the CPU seconds the host's
+/// threads ran in that time (both against the CPU backend's outer iteration
+/// when `cpu` is given), PCG iterations per shape solve, host waits
 /// per PCG iteration, preconditioner set-ups per system kind, bytes moved;
 /// kernel dispatches and modelled device bytes per PCG iteration, against the
 /// least bytes of the operator applications (`solver_gpu::KernelWork`).
-fn proxies(name: &str, backend: &str, s: &SolverSummary, cpu: Option<&SolverSummary>) {
+fn proxies(
+    name: &str,
+    backend: &str,
+    s: &SolverSummary,
+    marks: &[f64],
+    cpu: Option<&SolverSummary>,
+) {
     let (wall, host) = later_outer_seconds(s);
+    let host_cpu = later_outer_cpu_seconds(marks);
     let shape = &s.scale_driven;
     let all_iterations = s.scale_factors.iterations + shape.iterations + s.fine_tune.iterations;
     let waits = s.scale_factors.device_waits + shape.device_waits + s.fine_tune.device_waits;
     let mut line = format!(
         "{name} ({backend}) proxies: outer iteration after the first {wall:.3} s, {host:.3} s of it \
-         on the host; shape solves: {} scale-driven with {:.1} iterations on average (most {}), \
+         on the host ({} CPU seconds of the host's threads); shape solves: {} scale-driven with {:.1} iterations on average (most {}), \
          {} fine-tune with at most {}; host waits per PCG iteration {:.3} ({waits} / {all_iterations}); \
          preconditioner set-ups {} + {} + {} (scale factors, scale-driven, fine-tune); {:.1} MB moved",
+        host_cpu.map_or("no".into(), |c| format!("{c:.3}")),
         shape.solves,
         shape.iterations as f64 / shape.solves.max(1) as f64,
         shape.iterations_max,
@@ -156,6 +210,12 @@ fn proxies(name: &str, backend: &str, s: &SolverSummary, cpu: Option<&SolverSumm
             "; host seconds per outer iteration / the CPU backend's outer iteration: {:.1} %",
             100.0 * host / cpu_wall
         ));
+        if let Some(c) = host_cpu {
+            line.push_str(&format!(
+                " (host CPU seconds: {:.1} %)",
+                100.0 * c / cpu_wall
+            ));
+        }
     }
     println!("{line}");
 }
