@@ -80,9 +80,50 @@ pub fn constrained_step_warm(
     solver.solve_with_guess(&rhs, warm, k + 1)?;
     let rows: Vec<&[f64]> = rhs[n..].chunks(n.max(1)).collect();
     let (y, ycols) = warm.split_at(n);
+    step_from_solutions(y.to_vec(), &lin.values, &rows, ycols)
+}
+
+/// As [`constrained_step_warm`] with `y = H^-1 (-grad E)` known: only the
+/// k columns of `Y = H^-1 L^T` are solved (`warm`: their initial guess and
+/// solutions).
+pub fn constrained_step_given(
+    solver: &mut dyn SpdSolver,
+    y: Vec<f64>,
+    lin: Linearized,
+    warm: &mut Vec<f64>,
+) -> Result<Step> {
+    let n = y.len();
+    let k = lin.values.len();
+    if k == 0 {
+        return step_from_solutions(y, &lin.values, &[], &[]);
+    }
+    let mut rhs = Vec::with_capacity(n * k);
+    for r in lin.rows {
+        rhs.extend_from_slice(&r);
+    }
+    if warm.len() != rhs.len() {
+        warm.clear();
+        warm.resize(rhs.len(), 0.0);
+    }
+    solver.solve_with_guess(&rhs, warm, k)?;
+    let rows: Vec<&[f64]> = rhs.chunks(n.max(1)).collect();
+    step_from_solutions(y, &lin.values, &rows, warm)
+}
+
+/// Eqs. 17-18 from the solutions of Eq. 16: `y = H^-1 (-grad E)` and the
+/// columns of `Y = H^-1 L^T` (column j, for the Jacobian row `rows[j]`, at
+/// `ycols[j n..(j + 1) n]`); `values` are the constraints' values `F`.
+pub fn step_from_solutions(
+    y: Vec<f64>,
+    values: &[f64],
+    rows: &[&[f64]],
+    ycols: &[f64],
+) -> Result<Step> {
+    let n = y.len();
+    let k = values.len();
     if k == 0 {
         return Ok(Step {
-            dx: y.to_vec(),
+            dx: y,
             lambda: vec![],
         });
     }
@@ -90,13 +131,13 @@ pub fn constrained_step_warm(
     let mut s = Mat::<f64>::zeros(k, k);
     let mut r = vec![0.0; k];
     for i in 0..k {
-        r[i] = dot(rows[i], y) + lin.values[i];
+        r[i] = dot(rows[i], &y) + values[i];
         for j in 0..k {
             s[(i, j)] = dot(rows[i], &ycols[j * n..(j + 1) * n]);
         }
     }
     let lambda = pinv_solve(&s, &r)?;
-    let mut dx = y.to_vec();
+    let mut dx = y;
     for j in 0..k {
         let col = &ycols[j * n..(j + 1) * n];
         let l = lambda[j];

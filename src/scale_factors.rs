@@ -6,9 +6,13 @@
 //! `Q` is the set of adjacent face pairs, `rho_i = A_i / mean(A)` with input face
 //! areas (pitfall (a): an unweighted regulariser makes `s` non-uniform and
 //! resolution-dependent; `Regulariser::Uniform` keeps the paper's literal form).
-//! The Hessian is constant for the whole run: it is factored once.
+//! The Hessian `H` is constant for the whole run: it is factored once. Of a
+//! Newton step's solves (Eq. 16), `y = H^-1 (-grad E) = 1 - s` needs none
+//! (`grad E = H (s - 1)`), and a column of `Y = H^-1 L^T` is solved only when
+//! its Jacobian row changed: a degree-1 constraint's row is the same at every
+//! Newton step of one estimation.
 
-use crate::constrained_step::{constrained_step_warm, Linearized, Multipliers};
+use crate::constrained_step::{step_from_solutions, Linearized, Multipliers};
 use crate::Result;
 use solver_cpu::{SpdSolver, SymCsc};
 
@@ -59,10 +63,12 @@ pub struct ScaleInfo {
 /// The prefactored scale-factor system of one mesh.
 pub struct ScaleFactorSystem {
     n: usize,
-    hessian: SymCsc,
     solver: Box<dyn SpdSolver>,
-    /// Solutions of the last Newton step (initial guess of iterative solvers).
-    warm: Vec<f64>,
+    /// The Jacobian rows `Y`'s columns were last solved for.
+    rows: Vec<Vec<f64>>,
+    /// `Y = H^-1 L^T` of those rows, column j at `j n..(j + 1) n` (also the
+    /// initial guess of an iterative solver when a row changes).
+    ycols: Vec<f64>,
 }
 
 impl ScaleFactorSystem {
@@ -107,10 +113,42 @@ impl ScaleFactorSystem {
         solver.prepare(&h)?;
         Ok(ScaleFactorSystem {
             n,
-            hessian: h,
             solver,
-            warm: Vec::new(),
+            rows: Vec::new(),
+            ycols: Vec::new(),
         })
+    }
+
+    /// Make `ycols` the solutions `H^-1 r` of the Jacobian rows `rows`: the
+    /// columns whose row changed since they were solved are solved together
+    /// (their previous solutions the initial guess), the others kept.
+    fn jacobian_solutions(&mut self, rows: Vec<Vec<f64>>) -> Result<()> {
+        let (n, k) = (self.n, rows.len());
+        if self.rows.len() != k || self.ycols.len() != n * k {
+            self.rows = vec![Vec::new(); k];
+            self.ycols = vec![0.0; n * k];
+        }
+        let changed: Vec<usize> = (0..k).filter(|&j| self.rows[j] != rows[j]).collect();
+        // The old rows are no longer needed: free them before the solve.
+        self.rows = Vec::new();
+        if !changed.is_empty() {
+            let mut rhs = Vec::with_capacity(n * changed.len());
+            let mut x = Vec::with_capacity(n * changed.len());
+            for &j in &changed {
+                rhs.extend_from_slice(&rows[j]);
+                x.extend_from_slice(&self.ycols[j * n..(j + 1) * n]);
+            }
+            let solved = self.solver.solve_with_guess(&rhs, &mut x, changed.len());
+            if let Err(e) = solved {
+                self.ycols.clear();
+                return Err(e.into());
+            }
+            for (c, &j) in changed.iter().enumerate() {
+                self.ycols[j * n..(j + 1) * n].copy_from_slice(&x[c * n..(c + 1) * n]);
+            }
+        }
+        self.rows = rows;
+        Ok(())
     }
 
     /// Solve Eq. 3 by sequential linearly constrained Newton steps from `s = 1`.
@@ -127,8 +165,6 @@ impl ScaleFactorSystem {
             Multipliers::PerConstraint => 30,
             Multipliers::PerKind => 60,
         };
-        let mut grad = vec![0.0; n];
-        let mut sm1 = vec![0.0; n];
         for it in 0..max_iter {
             let values: Vec<f64> = constraints.iter().map(|c| c.value(&s)).collect();
             let max_res = values.iter().fold(0.0f64, |m, v| m.max(v.abs()));
@@ -137,12 +173,6 @@ impl ScaleFactorSystem {
             if max_res < 1e-12 {
                 break;
             }
-            // grad E = H (s - 1): the smoothness term vanishes on constants.
-            for i in 0..n {
-                sm1[i] = s[i] - 1.0;
-            }
-            self.hessian.mul_vec(&sm1, &mut grad);
-            let neg: Vec<f64> = grad.iter().map(|g| -g).collect();
             let rows: Vec<Vec<f64>> = constraints
                 .iter()
                 .map(|c| {
@@ -155,7 +185,12 @@ impl ScaleFactorSystem {
             if mode == Multipliers::PerKind {
                 lin = lin.grouped(&groups);
             }
-            let step = constrained_step_warm(self.solver.as_mut(), neg, lin, &mut self.warm)?;
+            self.jacobian_solutions(lin.rows)?;
+            // y = H^-1 (-grad E) = 1 - s: the smoothness term vanishes on
+            // constants, so grad E = H (s - 1).
+            let y: Vec<f64> = s.iter().map(|v| 1.0 - v).collect();
+            let rows: Vec<&[f64]> = self.rows.iter().map(|r| &r[..]).collect();
+            let step = step_from_solutions(y, &lin.values, &rows, &self.ycols)?;
             // Keep every scale factor positive (a face cannot be scaled through zero).
             let mut alpha: f64 = 1.0;
             for i in 0..n {
@@ -179,5 +214,145 @@ impl ScaleFactorSystem {
             .map(|c| c.value(&s).abs())
             .fold(0.0, f64::max);
         Ok((s, info))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use solver_cpu::{CholeskySolver, SolveInfo, SolverError, WorkCounters};
+    use std::sync::{Arc, Mutex};
+
+    /// A direct solver that records how many columns each solve had.
+    struct Columns(CholeskySolver, Arc<Mutex<Vec<usize>>>);
+
+    impl SpdSolver for Columns {
+        fn prepare(&mut self, a: &SymCsc) -> std::result::Result<(), SolverError> {
+            self.0.prepare(a)
+        }
+        fn prepare_blocks(
+            &mut self,
+            a: &solver_cpu::BlockSym3,
+            fixed: &[bool],
+        ) -> std::result::Result<(), SolverError> {
+            self.0.prepare_blocks(a, fixed)
+        }
+        fn solve_in_place(
+            &mut self,
+            rhs: &mut [f64],
+            ncols: usize,
+        ) -> std::result::Result<SolveInfo, SolverError> {
+            self.1.lock().unwrap().push(ncols);
+            self.0.solve_in_place(rhs, ncols)
+        }
+        fn counters(&self) -> WorkCounters {
+            self.0.counters()
+        }
+        fn name(&self) -> &str {
+            "columns"
+        }
+    }
+
+    /// A strip of `n` faces, each adjacent to the next, of growing areas.
+    fn strip(n: usize, solver: Box<dyn SpdSolver>) -> (ScaleFactorSystem, SymCsc) {
+        let pairs: Vec<[u32; 2]> = (1..n as u32).map(|f| [f - 1, f]).collect();
+        let areas: Vec<f64> = (0..n).map(|f| 1.0 + 0.1 * f as f64).collect();
+        let sys =
+            ScaleFactorSystem::with_solver(&pairs, &areas, 1.0, 0.1, Regulariser::Area, solver)
+                .unwrap();
+        // The same Hessian, for the optimality check.
+        let mut h = SymCsc::from_pattern(n, pairs.iter().map(|p| (p[0] as usize, p[1] as usize)));
+        let mean = areas.iter().sum::<f64>() / n as f64;
+        for (i, a) in areas.iter().enumerate() {
+            let sl = h.slot(i, i).unwrap();
+            h.values[sl] += 0.2 * a / mean;
+        }
+        for p in &pairs {
+            let (a, b) = (p[0] as usize, p[1] as usize);
+            for (r, c, v) in [(a, a, 2.0), (b, b, 2.0), (a, b, -2.0)] {
+                let sl = h.slot(r, c).unwrap();
+                h.values[sl] += v;
+            }
+        }
+        (sys, h)
+    }
+
+    #[test]
+    fn newton_steps_solve_only_the_jacobian_columns_that_changed() {
+        let n = 40;
+        let solved = Arc::new(Mutex::new(Vec::new()));
+        let (mut sys, h) = strip(n, Box::new(Columns(CholeskySolver::new(), solved.clone())));
+        let constraints = [
+            // A length (degree 1: its row does not depend on s), 20 % longer.
+            ScaleConstraint {
+                coeffs: (0..20).map(|f| (f, 1.0)).collect(),
+                degree: 1,
+                target: 24.0,
+                group: 0,
+            },
+            // An area (degree 2), 30 % smaller.
+            ScaleConstraint {
+                coeffs: (10..40).map(|f| (f, 1.0 + 0.01 * f as f64)).collect(),
+                degree: 2,
+                target: 0.7 * (10..40).map(|f| 1.0 + 0.01 * f as f64).sum::<f64>(),
+                group: 1,
+            },
+        ];
+        let (s, info) = sys
+            .estimate(&constraints, Multipliers::PerConstraint)
+            .unwrap();
+        assert!(info.max_residual < 1e-12, "{info:?}");
+        assert!(info.newton_iterations >= 3, "{info:?}");
+        // Both columns once, then the area's alone at every later step; no
+        // solve for H^-1 grad E.
+        let calls = solved.lock().unwrap().clone();
+        assert_eq!(calls.len(), info.newton_iterations, "{calls:?}");
+        assert_eq!(calls[0], 2, "{calls:?}");
+        assert!(calls[1..].iter().all(|&c| c == 1), "{calls:?}");
+        // The same Newton steps with every column solved, H^-1 (-grad E)
+        // included (Eq. 16 as printed), give the same scale factors.
+        let mut reference = CholeskySolver::new();
+        reference.prepare(&h).unwrap();
+        let mut r = vec![1.0; n];
+        let mut warm = Vec::new();
+        for _ in 0..info.newton_iterations {
+            let rm1: Vec<f64> = r.iter().map(|v| v - 1.0).collect();
+            let mut grad = vec![0.0; n];
+            h.mul_vec(&rm1, &mut grad);
+            let lin = Linearized {
+                values: constraints.iter().map(|c| c.value(&r)).collect(),
+                rows: constraints
+                    .iter()
+                    .map(|c| {
+                        let mut row = vec![0.0; n];
+                        c.gradient(&r, &mut row);
+                        row
+                    })
+                    .collect(),
+            };
+            let neg = grad.iter().map(|g| -g).collect();
+            let step =
+                crate::constrained_step::constrained_step_warm(&mut reference, neg, lin, &mut warm)
+                    .unwrap();
+            assert!(step.dx.iter().all(|d| *d > -0.5), "no step is clipped here");
+            r.iter_mut().zip(&step.dx).for_each(|(v, d)| *v += d);
+        }
+        let apart = s
+            .iter()
+            .zip(&r)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f64::max);
+        let moved = s.iter().map(|v| (v - 1.0).abs()).fold(0.0, f64::max);
+        assert!(moved > 0.05, "the constraints move s: {moved}");
+        assert!(apart < 1e-12, "{apart:e} from the reference");
+        // A second estimation with the same constraints starts from s = 1:
+        // its first step's rows differ from the last ones (the area's), except
+        // the length's, which is kept.
+        solved.lock().unwrap().clear();
+        let (s2, _) = sys
+            .estimate(&constraints, Multipliers::PerConstraint)
+            .unwrap();
+        assert_eq!(s, s2);
+        assert!(solved.lock().unwrap().iter().all(|&c| c == 1));
     }
 }
