@@ -3,7 +3,9 @@
 //! ([`crate::constrained_step`], Eqs. 15-18) on one factored Hessian, with an
 //! exact-penalty line search.
 
-use crate::constrained_step::{constrained_step_warm, Linearized, Multipliers};
+use crate::constrained_step::{
+    constrained_step_given, constrained_step_warm, Linearized, Multipliers,
+};
 use crate::problem::Problem;
 use crate::shape::{ShapeModel, ShapeWeights};
 use crate::Result;
@@ -66,14 +68,16 @@ pub fn fine_tune(
     let mut c = residuals(&x);
     // Solutions of the previous Newton step: the initial guess of iterative solvers.
     let mut warm = Vec::new();
+    // y0 = H^-1 (-g0), the first step's y. The energy is quadratic in dx
+    // with gradient H dx + g0 (zero at held vertices, where dx is zero too),
+    // so later steps' y = H^-1 (-grad E) is y0 - dx, with no solve.
+    let mut y0: Option<Vec<f64>> = None;
     while it < params.max_iterations {
         let err = c.iter().fold(0.0f64, |m, v| m.max(v.abs()));
         progress(it, err)?;
         if err <= goal {
             break;
         }
-        let g = model.gradient_at(&dx);
-        let neg: Vec<f64> = g.iter().map(|v| -v).collect();
         let rows: Vec<Vec<f64>> = p
             .constraints
             .iter()
@@ -95,7 +99,18 @@ pub fn fine_tune(
         if params.multipliers == Multipliers::PerKind {
             lin = lin.grouped(groups);
         }
-        let step = constrained_step_warm(model.solver(), neg, lin, &mut warm)?;
+        let step = match &y0 {
+            None => {
+                let neg: Vec<f64> = model.gradient_at(&dx).iter().map(|v| -v).collect();
+                let step = constrained_step_warm(model.solver(), neg, lin, &mut warm)?;
+                y0 = Some(warm.drain(..3 * n).collect());
+                step
+            }
+            Some(y0) => {
+                let y = y0.iter().zip(&dx).map(|(a, d)| a - d).collect();
+                constrained_step_given(model.solver(), y, lin, &mut warm)?
+            }
+        };
         let lam_max = match params.multipliers {
             Multipliers::PerConstraint => step.lambda.iter().fold(0.0f64, |m, l| m.max(l.abs())),
             Multipliers::PerKind => groups

@@ -794,6 +794,56 @@ mod tests {
         (mesh, model)
     }
 
+    /// The energy is quadratic in the increment with gradient `H dx + g0`
+    /// (held entries zero): the Newton direction `H^-1 (-grad E)` at `dx` is
+    /// the one at zero minus `dx`, which the fine-tune uses instead of a
+    /// solve after its first step.
+    #[test]
+    fn newton_direction_at_dx_is_the_one_at_zero_minus_dx() {
+        let (mesh, _) = spot_model();
+        // A direct solver: its solves are exact to rounding.
+        let topo = Topology::build(&mesh);
+        let solver = Box::new(solver_cpu::CholeskySolver::new());
+        let mut model = ShapeModel::with_solver(&mesh, &topo, Vec::new(), solver).unwrap();
+        let nf = mesh.num_faces();
+        let n = mesh.num_vertices();
+        let s: Vec<f64> = (0..nf).map(|f| 1.1 + 0.05 * (f as f64).sin()).collect();
+        let c = vec![1.1; n];
+        let w = ShapeWeights {
+            k_f: 1.0,
+            k_m: 100.0,
+            k_l: 100.0,
+            k_p: 0.0,
+        };
+        model
+            .assemble_and_factor(&mesh, &mesh.positions, &s, &c, &w)
+            .unwrap();
+        let direction = |model: &mut ShapeModel, dx: &[f64]| {
+            let mut y: Vec<f64> = model.gradient_at(dx).iter().map(|g| -g).collect();
+            model.solver().solve_in_place(&mut y, 1).unwrap();
+            y
+        };
+        let zero = vec![0.0; 3 * n];
+        let dx: Vec<f64> = (0..3 * n)
+            .map(|i| match model.fixed[i / 3] {
+                true => 0.0,
+                false => 1e-2 * (0.7 * i as f64).cos(),
+            })
+            .collect();
+        let y0 = direction(&mut model, &zero);
+        let y = direction(&mut model, &dx);
+        let scale = y.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        assert!(scale > 1e-3, "{scale}");
+        for i in 0..3 * n {
+            assert!(
+                (y[i] - (y0[i] - dx[i])).abs() <= 1e-9 * scale,
+                "entry {i}: {} against {}",
+                y[i],
+                y0[i] - dx[i]
+            );
+        }
+    }
+
     /// The E_m Hessian added on the fly through the mean-value pair slots equals
     /// the stored one (the path of meshes whose Laplacians differ in pattern).
     #[test]
