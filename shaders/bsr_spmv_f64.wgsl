@@ -10,8 +10,9 @@
 // layout, shared with its columns and chunks), so the f64 product adds one
 // buffer of 36 bytes a block (lo): 76 bytes a block read, the least for f64
 // values (72) and a u32 column. The mixed-precision solve's accuracy does not
-// rest on the 48 bits: its residuals are recomputed on the host in f64 with the
-// exact matrix every round.
+// rest on the 48 bits: its residuals are recomputed in f64 with the exact matrix
+// every round, on the GPU from the f64 lower blocks (refine_product.wgsl), or on
+// the host where those are not on the GPU.
 //
 // As in bsr_spmv.wgsl the matrix is split by block rows into chunks that each
 // fit one storage binding, one dispatch per chunk.

@@ -6,11 +6,13 @@ use solver_gpu::naga;
 /// Shaders that also compile in f64 (solver_gpu::precision).
 const F64_VARIANTS: [&str; 2] = ["pcg.wgsl", "csr_spmv.wgsl"];
 /// Shaders written with f64 (they need SHADER_F64, naga's FLOAT64).
-const F64_ONLY: [&str; 4] = [
+const F64_ONLY: [&str; 6] = [
     "convert.wgsl",
     "bsr_spmv_f64.wgsl",
     "expand_blocks.wgsl",
     "sum_shape_blocks.wgsl",
+    "refine.wgsl",
+    "refine_product.wgsl",
 ];
 
 /// The f64 variant parses, validates with the FLOAT64 capability, and has no
@@ -76,6 +78,8 @@ fn every_shader_parses_and_validates() {
         "expand_blocks.wgsl",
         "sum_shape_blocks.wgsl",
         "supernodal.wgsl",
+        "refine.wgsl",
+        "refine_product.wgsl",
     ] {
         assert!(names.iter().any(|n| n == expected), "{expected} missing");
     }

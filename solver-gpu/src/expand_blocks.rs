@@ -72,6 +72,9 @@ pub(crate) struct Expansion {
     /// The lower triangle's f64 values, written by the host (or summed by
     /// [`ShapeSum`]) per matrix.
     pub lower: wgpu::Buffer,
+    /// Per block of both triangles, its lower block (the shader's `map`);
+    /// the refinement's exact product reads it too ([`crate::refine`]).
+    pub map: wgpu::Buffer,
     steps: Vec<(wgpu::BindGroup, (u32, u32))>,
     work: KernelWork,
     /// Kept alive for the bind groups.
@@ -151,6 +154,7 @@ impl ExpandBlocks {
         let bytes = 4 * full + 72 * lower_blocks as u64 + 36 * parts * full;
         Ok(Expansion {
             lower,
+            map: map_buf.clone(),
             steps,
             work: KernelWork::other(bytes),
             keep,
@@ -395,6 +399,112 @@ mod tests {
     }
 
     /// The GPU's block values (high and low parts) are `want`'s.
+    /// A ring's graph Laplacian (neighbours 1 and 2 apart) with weights of
+    /// full f64 mantissas, times I3, plus a small diagonal `eps_i`: SPD, and
+    /// for a smooth right-hand side the solution is large (about 1 / eps)
+    /// against `b`, so 48-bit values (relative error 2^-48 an entry) leave a
+    /// residual far above f64's.
+    fn screened_ring(n: usize, seed: f64) -> BlockSym3 {
+        let pairs = (0..n).flat_map(|i| [(i, (i + 1) % n), (i, (i + 2) % n)]);
+        let mut a = BlockSym3::from_pattern(n, pairs);
+        let mut diag = vec![0.0; n];
+        for j in 0..n {
+            for k in a.col_ptr[j]..a.col_ptr[j + 1] {
+                let i = a.row_idx[k];
+                if i != j {
+                    let w = 1.0 + 0.3 * ((seed + k as f64) * 0.7).sin();
+                    diag[i] += w;
+                    diag[j] += w;
+                    for q in [0, 4, 8] {
+                        a.blocks[k][q] = -w;
+                    }
+                }
+            }
+        }
+        for j in 0..n {
+            for k in a.col_ptr[j]..a.col_ptr[j + 1] {
+                if a.row_idx[k] == j {
+                    let eps = 1e-3 * (1.0 + 0.5 * ((seed + j as f64) * 1.3).sin());
+                    for q in [0, 4, 8] {
+                        a.blocks[k][q] = diag[j] + eps;
+                    }
+                }
+            }
+        }
+        a
+    }
+
+    /// The mixed-precision rounds of a block matrix whose f64 lower blocks
+    /// are on the GPU form their residuals there with those exact values
+    /// (`refine_product.wgsl`), not the product's 48-bit parts: on a matrix
+    /// where 48 bits leave a residual far above f64's the result is as
+    /// accurate as asked against the host's matrix, and the host formed no
+    /// residual. The pattern's first matrix, written by the host, is refined
+    /// on the host.
+    #[test]
+    fn block_residuals_are_formed_on_the_gpu_with_the_exact_values() {
+        let Some(mut s) = mixed_solver() else {
+            return;
+        };
+        let n = 300;
+        let fixed = vec![false; n];
+        s.prepare_blocks(&screened_ring(n, 0.0), &fixed).unwrap();
+        let tol = 5e-12;
+        s.set_tolerance(tol);
+        let b: Vec<f64> = (0..2 * 3 * n)
+            .map(|i| 1.0 + 0.1 * (0.01 * i as f64).sin())
+            .collect();
+        let mut x = vec![0.0; b.len()];
+        let host = s.host_residuals;
+        s.solve_with_guess(&b, &mut x, 2).unwrap();
+        assert!(s.host_residuals > host, "the host wrote the first matrix");
+        for seed in [0.25, 0.5] {
+            let a = screened_ring(n, seed);
+            s.prepare_blocks(&a, &fixed).unwrap();
+            let host = s.host_residuals;
+            x.fill(0.0);
+            s.solve_with_guess(&b, &mut x, 2).unwrap();
+            assert_eq!(s.host_residuals, host, "residuals on the GPU");
+            assert!(s.last_solve_mixed());
+            // The round's last product A x (left in the PCG's `Ap`) is the
+            // exact matrix's: within f64 rounding of the host's, where the
+            // 48-bit parts are off by up to 2^-48 an entry.
+            let ap = &s.mixed.as_ref().unwrap().ws.ap;
+            let gpu_ax: Vec<f64> = s.ctx.read(ap, x.len(), &mut None, None).unwrap();
+            let mut abs = a.clone();
+            abs.blocks.iter_mut().flatten().for_each(|v| *v = v.abs());
+            let mut worst = 0.0f64;
+            for c in 0..2 {
+                let col = c * 3 * n..(c + 1) * 3 * n;
+                let (mut ax, mut bound) = (vec![0.0; 3 * n], vec![0.0; 3 * n]);
+                a.mul_vec(&x[col.clone()], &mut ax);
+                let xa: Vec<f64> = x[col.clone()].iter().map(|v| v.abs()).collect();
+                abs.mul_vec(&xa, &mut bound);
+                for i in 0..3 * n {
+                    worst = worst.max((gpu_ax[col.start + i] - ax[i]).abs() / bound[i]);
+                }
+            }
+            eprintln!("seed {seed}: product error {worst:e} of |A| |x|");
+            assert!(worst < 4e-16, "seed {seed}: {worst:e} of |A| |x|");
+            for c in 0..2 {
+                let col = c * 3 * n..(c + 1) * 3 * n;
+                let mut ax = vec![0.0; 3 * n];
+                a.mul_vec(&x[col.clone()], &mut ax);
+                let rr: f64 = b[col.clone()]
+                    .iter()
+                    .zip(&ax)
+                    .map(|(u, v)| (u - v) * (u - v))
+                    .sum();
+                let bb: f64 = b[col.clone()].iter().map(|v| v * v).sum();
+                let xx: f64 = x[col].iter().map(|v| v * v).sum();
+                assert!(xx.sqrt() > 300.0 * bb.sqrt(), "a large solution");
+                let rel = (rr / bb).sqrt();
+                eprintln!("seed {seed}, column {c}: {rel:e}");
+                assert!(rel <= tol, "seed {seed}, column {c}: {rel:e}");
+            }
+        }
+    }
+
     fn check_parts(s: &crate::GpuSolver, want: &HostMatrix) {
         let want_vals = want.full_values();
         let gpu = s.gpu.as_ref().unwrap();

@@ -370,6 +370,7 @@ pub fn pcg(
         rel_tol == 0.0,
         Some(&s.k.amg),
         None,
+        None,
     )?;
     let x = s.k.pcg.read_x(&s.ctx, ws, ncols, &mut run)?;
     Ok(PcgOutput::new(x, &run, &bb))
@@ -434,6 +435,7 @@ pub fn scalar_pcg(
         s.check_every,
         None,
         rel_tol == 0.0,
+        None,
         None,
         None,
     )?;

@@ -37,7 +37,15 @@
 //! vectors, scalars and SpMV (3x3 blocks as high and low f32 parts in two
 //! storage buffers, `shaders/bsr_spmv_f64.wgsl`; a scalar matrix as f64 CSR),
 //! preconditioned by the same f32 AMG V-cycle on f32 copies of `r` and `z`
-//! (`shaders/convert.wgsl`). On the shape systems the f32 PCG converges far
+//! (`shaders/convert.wgsl`). Its rounds are the loop above with every step
+//! on the GPU (`refine`, `shaders/refine.wgsl`): `b` and the guess go up once
+//! per solve, the f64 residual `b - A x` (with the exact matrix: the f64
+//! CSR values, or a block matrix's f64 lower blocks through
+//! `shaders/refine_product.wgsl`) and its norms are formed after each batch
+//! that may end a round, in the same submission, and the host reads the norms
+//! and `x` with the PCG's column states; it forms no residual. (A block
+//! matrix whose f64 values are not on the GPU, written by the host, has its
+//! residuals formed on the host.) On the shape systems the f32 PCG converges far
 //! slower than this one with the same preconditioner (homer, 12k faces: 112
 //! against 41 PCG iterations per scale-driven solve, 446 against 182 in the
 //! fine-tune; at 108k faces the first f32 round broke down after ~480).
@@ -143,6 +151,7 @@ pub mod kernels;
 mod matrix;
 pub mod pcg;
 pub mod precision;
+mod refine;
 mod scale_rows;
 #[cfg(feature = "bench-kernels")]
 pub mod stream;

@@ -1360,6 +1360,16 @@ impl GpuMatrix {
 
     /// The value storage of a block matrix: its chunks (the f32 values, or the
     /// high parts) and, for the f64 split matrix, the low parts' buffers.
+    /// The chunks' uniforms ([`ChunkParams`]) of a block matrix (none for a
+    /// scalar one).
+    pub fn chunk_uniforms(&self) -> &[wgpu::Buffer] {
+        match &self.storage {
+            MatrixStorage::Csr { .. } => &[],
+            MatrixStorage::Blocks { uniforms, .. } => uniforms,
+            MatrixStorage::SplitBlocks { uniforms, .. } => uniforms,
+        }
+    }
+
     pub fn block_parts(&self) -> Option<(&[Chunk], Option<&[wgpu::Buffer]>)> {
         match &self.storage {
             MatrixStorage::Csr { .. } => None,

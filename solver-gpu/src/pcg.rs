@@ -294,8 +294,22 @@ pub(crate) struct PcgRun {
     /// Iterations dispatched (the largest per-column count is `max(cols.iters)`).
     pub dispatched: usize,
     pub cols: Vec<ColState>,
-    /// `x` (bytes in the run's precision) where the last read-back brought it.
+    /// `x` (bytes in the run's precision) where the last read-back brought it;
+    /// in a refined run the refinement's `x'`.
     pub x: Option<Vec<u8>>,
+    /// A refined run's sums after it ([`crate::refine`]) where the last
+    /// read-back brought them.
+    pub norms: Option<Vec<u8>>,
+}
+
+/// The refinement round around a PCG run ([`crate::refine`]): its start is
+/// recorded before the run's first iterations, its end after each batch
+/// that reads `x` back.
+pub(crate) struct Refined<'a> {
+    pub refinement: &'a crate::refine::Refinement,
+    pub kernels: &'a crate::refine::RefineKernels,
+    /// The solve's first round (the guess's residual is formed first).
+    pub first: bool,
 }
 
 impl PcgRun {
@@ -437,6 +451,7 @@ impl Pcg {
         fixed_batches: bool,
         amg: Option<&AmgKernels>,
         convert: Option<&Convert>,
+        refine: Option<&Refined>,
     ) -> Result<PcgRun, GpuError> {
         assert!(ncols >= 1 && ncols <= ws.cmax && thr.len() == ncols);
         assert_eq!(ws.precision, self.precision);
@@ -562,6 +577,10 @@ impl Pcg {
         let (dir, dir_dims) = (&self.direction, flat_dims);
         let k_dir = dir.pipeline(ctx, ncols)?;
         let mut enc = ctx.encoder("pcg init");
+        if let Some(rf) = refine {
+            rf.refinement
+                .record_start(ctx, rf.kernels, &k_spmv, &mut enc, ncols, rf.first)?;
+        }
         for b in [&ws.x, &ws.p, &ws.ap] {
             enc.clear_buffer(b, 0, Some(used));
         }
@@ -610,11 +629,27 @@ impl Pcg {
             dispatched += k;
             ctx.count_kernels(iteration_work.times(k as u64));
             ctx.resolve_pass_time(&mut enc);
+            let refined = refine.filter(|_| with_x);
+            if let Some(rf) = refined {
+                if let Err(e) = rf
+                    .refinement
+                    .record_end(ctx, rf.kernels, &k_spmv, &mut enc, ncols)
+                {
+                    break Err(e);
+                }
+            }
             let bytes = (ncols * self.precision.col_state_bytes()) as u64;
-            // Column states, then x when asked for, then the pass's timestamps.
+            // Column states, then x when asked for (a refined run's sums and
+            // x'), then the pass's timestamps.
             let mut parts: Vec<(&wgpu::Buffer, u64)> = vec![(&ws.cols, bytes)];
-            if with_x {
-                parts.push((&ws.x, x_bytes));
+            match refined {
+                Some(rf) => {
+                    let norms = (crate::refine::NORMS_PER_COLUMN * ncols * 8) as u64;
+                    parts.push((&rf.refinement.norms, norms));
+                    parts.push((&rf.refinement.xnew, x_bytes));
+                }
+                None if with_x => parts.push((&ws.x, x_bytes)),
+                None => {}
             }
             parts.extend(ctx.pass_time_buffer());
             let mut read = match ctx.read_parts(&parts, &mut staging, Some(enc)) {
@@ -628,10 +663,12 @@ impl Pcg {
             let cols = self
                 .precision
                 .read_col_states(&read.next().unwrap_or_default());
+            let norms = refined.and_then(|_| read.next());
             let run = PcgRun {
                 dispatched,
                 cols,
                 x: read.next(),
+                norms,
             };
             log::trace!(
                 "PCG ({:?}) batch to {dispatched}: rr / thr per column {:?}",

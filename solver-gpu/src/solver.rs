@@ -15,7 +15,7 @@ use std::sync::Arc;
 use crate::precision::{MixedPrecision, RoundWatch};
 use crate::{
     amg, amg_gpu, block_jacobi, bsr_spmv, convert, csr_spmv, default_adapter, device, dot,
-    expand_blocks, matrix, pcg, precision, supernodal, AdapterSummary, OpenOptions,
+    expand_blocks, matrix, pcg, precision, refine, supernodal, AdapterSummary, OpenOptions,
 };
 use crate::{GpuError, Preconditioner, CMAX, SQUARED_LAPLACIAN_SWEEPS};
 
@@ -59,6 +59,7 @@ impl Round<'_> {
             false,
             Some(self.amg),
             self.convert,
+            None,
         )?;
         if run.breakdown() {
             return Ok((run.iterations(), true));
@@ -201,10 +202,13 @@ pub fn open_with(opts: OpenOptions) -> Result<GpuSolver, GpuError> {
         ring_slots: None,
         expand_lower: None,
         shape_sum: None,
-        host_residual: Vec::new(),
         expand: None,
         expansion: None,
         mixed_builds: 0,
+        host_residuals: 0,
+        matrices: 0,
+        lower_of: None,
+        expansions: 0,
         chol: None,
         chol_kind: None,
         chol_kernels: None,
@@ -308,8 +312,6 @@ pub struct GpuSolver {
     expand_lower: Option<(usize, wgpu::Buffer)>,
     /// The shape sum of the uploaded pattern (its stamp) and rings.
     pub(crate) shape_sum: Option<(usize, expand_blocks::ShapeSum)>,
-    /// The f64 residuals of the mixed-precision rounds, kept between solves.
-    host_residual: Vec<f64>,
     /// New values of a prepared block pattern go up as their lower triangle
     /// in f64 and are expanded on the GPU (needs `SHADER_F64`): the kernel,
     /// and the recorded expansion with what it was recorded for
@@ -319,6 +321,15 @@ pub struct GpuSolver {
     pub(crate) expansion: Option<(expand_blocks::Expansion, usize, Option<usize>, Vec<bool>)>,
     /// Mixed-precision matrices built (each has its own low-part buffers).
     mixed_builds: usize,
+    /// Residuals `b - A x` formed on the host (the f32 refinement's; the
+    /// mixed-precision solve forms them on the GPU).
+    pub(crate) host_residuals: usize,
+    /// Matrices uploaded ([`Self::upload`] calls), and the one whose f64
+    /// lower blocks the GPU holds (summed or expanded there).
+    matrices: usize,
+    lower_of: Option<usize>,
+    /// Expansions made (each with its own block map).
+    expansions: usize,
     /// The Cholesky preconditioner's factor on the GPU
     /// ([`Preconditioner::Cholesky`]), the kind it was made for, its kernels,
     /// and the host factorization (its symbolic analysis serves every kind of
@@ -341,6 +352,8 @@ struct MixedKernels {
     /// 3x3 block matrices: high and low f32 parts in storage buffers.
     bsr: bsr_spmv::BsrSpmv,
     convert: convert::Convert,
+    /// The refinement rounds on the GPU.
+    refine: refine::RefineKernels,
 }
 
 impl MixedKernels {
@@ -363,6 +376,8 @@ pub(crate) struct MixedData {
     /// Read through the workspace's bind groups only.
     pub(crate) matrix: GpuMatrix,
     pub(crate) ws: Workspace,
+    /// The refinement's vectors ([`crate::refine`]).
+    refine: refine::Refinement,
 }
 
 impl GpuSolver {
@@ -499,6 +514,7 @@ impl GpuSolver {
                 csr: csr_spmv::new_in(&self.ctx, precision::Precision::F64)?,
                 bsr: bsr_spmv::new_f64(&self.ctx)?,
                 convert: convert::Convert::new(&self.ctx)?,
+                refine: refine::RefineKernels::new(&self.ctx)?,
             });
         }
         let k = self.mixed_kernels.as_ref().unwrap();
@@ -509,10 +525,16 @@ impl GpuSolver {
         };
         let spmv = k.spmv(h.bs);
         let mut ws = k.pcg.workspace(&self.ctx, &spmv, &matrix, h.n(), 1, want)?;
+        let refine = refine::Refinement::new(&self.ctx, &k.refine, &spmv, &matrix, &ws)?;
         // An f64 factor's solves read and write the f64 vectors in place.
         ws.chol = self.cholesky_steps(precision::Precision::F64, &ws.r, &ws.z, h.bs, ws.cmax)?;
         if ws.chol.is_some() {
-            self.mixed = Some(MixedData { stamp, matrix, ws });
+            self.mixed = Some(MixedData {
+                stamp,
+                matrix,
+                ws,
+                refine,
+            });
             self.mixed_builds += 1;
             return Ok(());
         }
@@ -551,21 +573,27 @@ impl GpuSolver {
             }
         }
         ws.narrow = Some(narrow);
-        self.mixed = Some(MixedData { stamp, matrix, ws });
+        self.mixed = Some(MixedData {
+            stamp,
+            matrix,
+            ws,
+            refine,
+        });
         self.mixed_builds += 1;
         Ok(())
     }
 
     /// Solve up to CMAX columns in mixed precision from the start `x`: rounds
     /// of f64 PCG on the f64 residual (preconditioned by the Cholesky factor
-    /// in its precision, else by the f32 V-cycle). `total`: PCG iterations
-    /// already spent on these columns.
+    /// in its precision, else by the f32 V-cycle), refined on the GPU
+    /// ([`crate::refine`]). `total`: PCG iterations already spent on these
+    /// columns.
     fn solve_batch_mixed(
         &mut self,
         b: &[f64],
         x: &mut [f64],
         ncols: usize,
-        total: usize,
+        mut total: usize,
     ) -> Result<(), GpuError> {
         log::info!(
             "GPU solve: PCG in f64, preconditioner {:?}{}",
@@ -579,17 +607,129 @@ impl GpuSolver {
         self.stats.mixed = true;
         self.mixed_workspace(ncols)?;
         let n = self.host.as_ref().unwrap().n();
-        // The residuals' host vector is kept between solves (no fresh
-        // allocation, zeroed page by page, each time).
-        let mut r = std::mem::take(&mut self.host_residual);
-        r.resize(n * ncols, 0.0);
-        let done = self.mixed_rounds(b, x, ncols, total, &mut r);
-        self.host_residual = r;
-        done
+        if !self.refine_on_gpu()? {
+            let mut r = vec![0.0; n * ncols];
+            return self.mixed_rounds_host(b, x, ncols, total, &mut r);
+        }
+        let anorm = self.host.as_ref().unwrap().norm_inf();
+        let bnorm: Vec<f64> = (0..ncols).map(|c| norm(&b[c * n..(c + 1) * n])).collect();
+        let x = &mut x[..n * ncols];
+        let mixed = self.mixed.as_ref().unwrap();
+        mixed.refine.load(
+            &self.ctx,
+            b,
+            x,
+            ncols,
+            &bnorm,
+            self.tol,
+            f64::EPSILON * anorm,
+        )?;
+        let mut prev = f64::INFINITY;
+        for round_no in 0.. {
+            let k = self.mixed_kernels.as_ref().unwrap();
+            let mixed = self.mixed.as_mut().unwrap();
+            let spmv = k.spmv(self.host.as_ref().unwrap().bs);
+            let refined = pcg::Refined {
+                refinement: &mixed.refine,
+                kernels: &k.refine,
+                first: round_no == 0,
+            };
+            // The thresholds are the GPU's (`refine.wgsl`'s `start`).
+            let thr = vec![0.0; ncols];
+            let mut run = k.pcg.run(
+                &self.ctx,
+                &spmv,
+                &mut mixed.ws,
+                ncols,
+                &thr,
+                self.max_iterations - total,
+                self.check_every,
+                self.hints.first_batch(self.kind, true, round_no),
+                false,
+                Some(&self.k.amg),
+                Some(&k.convert),
+                Some(&refined),
+            )?;
+            let it = run.iterations();
+            total += it;
+            self.stats.rounds += 1;
+            self.stats.iterations = total;
+            if run.breakdown() {
+                return Err(GpuError::NotPositiveDefinite);
+            }
+            self.hints.record(self.kind, true, round_no, it);
+            // The round's end where the last batch did not bring it.
+            let (norms, xbytes) = match (run.norms.take(), run.x.take()) {
+                (Some(s), Some(v)) => (s, v),
+                _ => {
+                    let mut enc = self.ctx.encoder("refinement: round end");
+                    let pipe = spmv.kernel().pipeline(&self.ctx, ncols)?;
+                    mixed
+                        .refine
+                        .record_end(&self.ctx, &k.refine, &pipe, &mut enc, ncols)?;
+                    let sums = (refine::NORMS_PER_COLUMN * ncols * 8) as u64;
+                    let mut got = self.ctx.read_parts(
+                        &[
+                            (&mixed.refine.norms, sums),
+                            (&mixed.refine.xnew, (n * ncols * 8) as u64),
+                        ],
+                        &mut None,
+                        Some(enc),
+                    )?;
+                    let v = got.pop().unwrap_or_default();
+                    (got.pop().unwrap_or_default(), v)
+                }
+            };
+            let sums = refine::decode_norms(&norms, ncols);
+            let mut worst = 0.0f64;
+            let mut done = true;
+            for (c, &(rn, xn)) in sums.iter().enumerate() {
+                if bnorm[c] == 0.0 {
+                    continue;
+                }
+                let rel = rn / bnorm[c];
+                let target = self.tol.max(f64::EPSILON * anorm * xn / bnorm[c]);
+                worst = worst.max(rel);
+                // NaN compares false: not done.
+                done &= rel <= target;
+            }
+            self.stats.residual = worst;
+            log::trace!(
+                "mixed round {round_no}: relative residual {worst:.2e} after {total} iterations"
+            );
+            if done {
+                let d: Vec<f64> = bytemuck::pod_collect_to_vec(&xbytes);
+                if d.len() < x.len() {
+                    return Err(GpuError::Backend(format!(
+                        "refinement read back {} values for {}",
+                        d.len(),
+                        x.len()
+                    )));
+                }
+                x.copy_from_slice(&d[..x.len()]);
+                return Ok(());
+            }
+            // f64 rounds each gain many digits: two that do not halve the
+            // residual mean the iteration itself stagnates.
+            if !worst.is_finite()
+                || round_no >= 4
+                || worst > 0.5 * prev
+                || total >= self.max_iterations
+            {
+                return Err(GpuError::NoConvergence {
+                    iterations: total,
+                    residual: worst,
+                });
+            }
+            prev = worst;
+        }
+        unreachable!()
     }
 
-    /// The rounds of [`Self::solve_batch_mixed`], `r` the residuals' vector.
-    fn mixed_rounds(
+    /// The rounds of [`Self::solve_batch_mixed`] with the residuals formed
+    /// on the host (`r` their vector): for a block matrix whose exact f64
+    /// values are not on the GPU (the host wrote them).
+    fn mixed_rounds_host(
         &mut self,
         b: &[f64],
         x: &mut [f64],
@@ -603,6 +743,7 @@ impl GpuSolver {
         let anorm = h.norm_inf();
         for round_no in 0.. {
             let h = self.host.as_ref().unwrap();
+            self.host_residuals += 1;
             let (rnorm, rel, worst, target) = residuals(h, anorm, b, x, r, ncols, self.tol);
             self.stats.residual = worst;
             log::trace!(
@@ -659,6 +800,38 @@ impl GpuSolver {
             self.hints.record(self.kind, true, round_no, it);
         }
         unreachable!()
+    }
+
+    /// Whether the mixed-precision rounds can form their residuals on the GPU
+    /// with the exact matrix: a scalar matrix (f64 CSR) always; a block
+    /// matrix where its f64 lower blocks are on the GPU for these values
+    /// (summed or expanded there), its exact product bound to them.
+    fn refine_on_gpu(&mut self) -> Result<bool, GpuError> {
+        let h = self.host.as_ref().unwrap();
+        if h.bs == 1 {
+            return Ok(true);
+        }
+        let Some((e, ..)) = self
+            .expansion
+            .as_ref()
+            .filter(|_| self.lower_of == Some(self.matrices))
+        else {
+            return Ok(false);
+        };
+        let mixed = self.mixed.as_mut().unwrap();
+        if !mixed.refine.exact_for(self.expansions) {
+            let k = self.mixed_kernels.as_ref().unwrap();
+            mixed.refine.bind_exact(
+                &self.ctx,
+                &k.refine,
+                &mixed.matrix,
+                &e.map,
+                &e.lower,
+                h.lower_len(),
+                self.expansions,
+            )?;
+        }
+        Ok(mixed.refine.exact_for(self.expansions))
     }
 
     /// The preconditioner asked for.
@@ -1010,6 +1183,7 @@ impl GpuSolver {
     /// Upload a prepared host matrix (pattern if new, else values only: a
     /// block matrix's as its lower triangle, see [`Self::expand_values`]).
     fn upload(&mut self, h: HostMatrix, same: bool) -> Result<(), GpuError> {
+        self.matrices += 1;
         let minv = block_jacobi::inverse_diagonal(&h).map_err(|e| match e {
             SolverError::NotPositiveDefinite => GpuError::NotPositiveDefinite,
             other => GpuError::Backend(other.to_string()),
@@ -1145,6 +1319,7 @@ impl GpuSolver {
                 lo,
             )?;
             self.expansion = Some((e, stamp, split, self.fixed.clone()));
+            self.expansions += 1;
         }
         let k = self.expand.as_ref().unwrap();
         match (h.shape_form(), self.ring_slots.as_ref()) {
@@ -1167,6 +1342,7 @@ impl GpuSolver {
                 k.run(&self.ctx, e, h.lower_blocks())?;
             }
         }
+        self.lower_of = Some(self.matrices);
         Ok(true)
     }
 
@@ -1248,6 +1424,7 @@ impl GpuSolver {
         let mut watch = RoundWatch::default();
         let anorm = self.host.as_ref().unwrap().norm_inf();
         for round in 0.. {
+            self.host_residuals += 1;
             let (rnorm, rel, worst, target) = residuals(
                 self.host.as_ref().unwrap(),
                 anorm,

@@ -1,0 +1,118 @@
+// y = A x in f64 with the matrix's exact f64 values, for the residuals of the
+// mixed-precision solve's refinement rounds (driven by solver-gpu/src/refine.rs;
+// its `refine.wgsl` forms b - y). The PCG's own f64 product reads each value as
+// two f32 parts (48 bits, bsr_spmv_f64.wgsl); the residual that decides when a
+// solve is done must be of the matrix itself, as the host's was. So each block
+// is read from the f64 lower triangle that `sum_shape_blocks.wgsl` or the host
+// wrote and `expand_blocks.wgsl` expanded, through the same block map: 72 bytes
+// a lower block and 4 a block of both triangles, once per round, not per
+// iteration.
+//
+// As in bsr_spmv_f64.wgsl the blocks' columns come in chunks of block rows,
+// one dispatch per chunk.
+//
+// Bindings (group 0):
+//   0  P       uniform  n = length of one column (3 x block rows), ncols
+//                       (= NCOLS).
+//   1  row_ptr read     block rows + 1 offsets into the blocks (whole matrix).
+//   2  map     read     u32 per block of both triangles (block-CSR order): its
+//                       lower block, bit 31 set for the transpose; 0xFFFFFFFF
+//                       a zero block, 0xFFFFFFFE the identity (held vertices).
+//   3  lower   read     f64, 9 per lower block, row-major.
+//   4  x       read     f64, ncols columns of length n, column-major.
+//   5  y       rw       y = A x, same layout; every entry of the chunk's rows
+//                       in the first ncols columns is written.
+//   6  cols    read     u32 block column per block of the chunk.
+//   7  C       uniform  this chunk: block rows row0..row1, its first block
+//                       block0 (group0 unused here).
+// One invocation per block row of the chunk, WG per workgroup, 2-D dispatch
+// (local workgroup index wid.x + wid.y * nwg.x).
+
+struct Params {
+    rows: u32,
+    ncols: u32,
+    n: u32,
+    groups: u32,
+    bs: u32,
+    pad0: u32,
+    pad1: u32,
+    pad2: u32,
+}
+
+struct Chunk {
+    row0: u32,
+    row1: u32,
+    group0: u32,
+    block0: u32,
+}
+
+const WG: u32 = 128u;
+const ZERO: u32 = 0xFFFFFFFFu;
+const IDENTITY: u32 = 0xFFFFFFFEu;
+const TRANSPOSE: u32 = 0x80000000u;
+override NCOLS: u32 = 1u;
+
+@group(0) @binding(0) var<uniform> P: Params;
+@group(0) @binding(1) var<storage, read> row_ptr: array<u32>;
+@group(0) @binding(2) var<storage, read> map: array<u32>;
+@group(0) @binding(3) var<storage, read> lower: array<f64>;
+@group(0) @binding(4) var<storage, read> x: array<f64>;
+@group(0) @binding(5) var<storage, read_write> y: array<f64>;
+@group(0) @binding(6) var<storage, read> cols: array<u32>;
+@group(0) @binding(7) var<uniform> C: Chunk;
+
+fn xv(c: u32, j: u32) -> vec3<f64> {
+    let o = c * P.n + 3u * j;
+    return vec3<f64>(x[o], x[o + 1u], x[o + 2u]);
+}
+
+@compute @workgroup_size(128)
+fn refine_product(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let row = C.row0 + (wid.x + wid.y * nwg.x) * WG + lid;
+    if row >= C.row1 {
+        return;
+    }
+    var yv: array<vec3<f64>, 8>;
+    for (var c = 0u; c < NCOLS; c++) {
+        yv[c] = vec3<f64>(f64(0.0), f64(0.0), f64(0.0));
+    }
+    for (var k = row_ptr[row]; k < row_ptr[row + 1u]; k++) {
+        let m = map[k];
+        if m == ZERO {
+            continue;
+        }
+        let j = cols[k - C.block0];
+        var m0 = vec3<f64>(f64(1.0), f64(0.0), f64(0.0));
+        var m1 = vec3<f64>(f64(0.0), f64(1.0), f64(0.0));
+        var m2 = vec3<f64>(f64(0.0), f64(0.0), f64(1.0));
+        if m != IDENTITY {
+            let o = 9u * (m & ~TRANSPOSE);
+            let r0 = vec3<f64>(lower[o], lower[o + 1u], lower[o + 2u]);
+            let r1 = vec3<f64>(lower[o + 3u], lower[o + 4u], lower[o + 5u]);
+            let r2 = vec3<f64>(lower[o + 6u], lower[o + 7u], lower[o + 8u]);
+            if (m & TRANSPOSE) != 0u {
+                m0 = vec3<f64>(r0.x, r1.x, r2.x);
+                m1 = vec3<f64>(r0.y, r1.y, r2.y);
+                m2 = vec3<f64>(r0.z, r1.z, r2.z);
+            } else {
+                m0 = r0;
+                m1 = r1;
+                m2 = r2;
+            }
+        }
+        for (var c = 0u; c < NCOLS; c++) {
+            let v = xv(c, j);
+            yv[c] += vec3<f64>(dot(m0, v), dot(m1, v), dot(m2, v));
+        }
+    }
+    for (var c = 0u; c < NCOLS; c++) {
+        let o = c * P.n + 3u * row;
+        y[o] = yv[c].x;
+        y[o + 1u] = yv[c].y;
+        y[o + 2u] = yv[c].z;
+    }
+}
