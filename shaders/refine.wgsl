@@ -76,6 +76,21 @@ override NCOLS: u32 = 1u;
 
 var<workgroup> red: array<f64, 512>; // 2 WG
 
+// The workgroup's sums of `rr` and `xx` into red[0] and red[WG] (tree
+// reduction; every invocation of the workgroup calls it).
+fn sum_pairs(lid: u32, rr: f64, xx: f64) {
+    red[lid] = rr;
+    red[WG + lid] = xx;
+    workgroupBarrier();
+    for (var h = WG / 2u; h > 0u; h >>= 1u) {
+        if lid < h {
+            red[lid] += red[lid + h];
+            red[WG + lid] += red[WG + lid + h];
+        }
+        workgroupBarrier();
+    }
+}
+
 @compute @workgroup_size(256)
 fn add(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let i = gid.x + gid.y * nwg.x * WG;
@@ -112,16 +127,7 @@ fn residual(
         rr = r * r;
         xx = xnew[i] * xnew[i];
     }
-    red[lid] = rr;
-    red[WG + lid] = xx;
-    workgroupBarrier();
-    for (var h = WG / 2u; h > 0u; h >>= 1u) {
-        if lid < h {
-            red[lid] += red[lid + h];
-            red[WG + lid] += red[WG + lid + h];
-        }
-        workgroupBarrier();
-    }
+    sum_pairs(lid, rr, xx);
     if lid == 0u {
         partials[c * P.groups + g] = red[0];
         partials[(NCOLS + c) * P.groups + g] = red[WG];
@@ -137,16 +143,7 @@ fn finish(@builtin(local_invocation_index) lid: u32) {
             rr += partials[c * P.groups + g];
             xx += partials[(NCOLS + c) * P.groups + g];
         }
-        red[lid] = rr;
-        red[WG + lid] = xx;
-        workgroupBarrier();
-        for (var h = WG / 2u; h > 0u; h >>= 1u) {
-            if lid < h {
-                red[lid] += red[lid + h];
-                red[WG + lid] += red[WG + lid + h];
-            }
-            workgroupBarrier();
-        }
+        sum_pairs(lid, rr, xx);
         if lid == 0u {
             norms[3u * c] = red[0];
             norms[3u * c + 1u] = red[WG];

@@ -421,12 +421,12 @@ mod tests {
                 }
             }
         }
-        for j in 0..n {
+        for (j, d) in diag.iter().enumerate() {
             for k in a.col_ptr[j]..a.col_ptr[j + 1] {
                 if a.row_idx[k] == j {
                     let eps = 1e-3 * (1.0 + 0.5 * ((seed + j as f64) * 1.3).sin());
                     for q in [0, 4, 8] {
-                        a.blocks[k][q] = diag[j] + eps;
+                        a.blocks[k][q] = d + eps;
                     }
                 }
             }

@@ -223,18 +223,18 @@ impl Refinement {
     }
 
     /// Bind the exact product of the block matrix `m` (its chunks' columns
-    /// and row pointers) with the f64 lower blocks `lower` and the block
-    /// `map` of its values `key` (`lower_blocks` of them).
+    /// and row pointers) with the f64 lower blocks and the block map of the
+    /// expansion `e` (`lower_blocks` lower blocks), made for the values `key`.
     pub fn bind_exact(
         &mut self,
         ctx: &Context,
         k: &RefineKernels,
         m: &GpuMatrix,
-        map: &wgpu::Buffer,
-        lower: &wgpu::Buffer,
+        e: &crate::expand_blocks::Expansion,
         lower_blocks: usize,
         key: usize,
     ) -> Result<(), GpuError> {
+        let (map, lower) = (&e.map, &e.lower);
         self.exact = None;
         let Some((chunks, _)) = m.block_parts() else {
             return Ok(());

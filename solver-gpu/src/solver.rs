@@ -709,21 +709,32 @@ impl GpuSolver {
                 x.copy_from_slice(&d[..x.len()]);
                 return Ok(());
             }
-            // f64 rounds each gain many digits: two that do not halve the
-            // residual mean the iteration itself stagnates.
-            if !worst.is_finite()
-                || round_no >= 4
-                || worst > 0.5 * prev
-                || total >= self.max_iterations
-            {
-                return Err(GpuError::NoConvergence {
-                    iterations: total,
-                    residual: worst,
-                });
-            }
+            self.mixed_round_progressed(worst, prev, round_no, total)?;
             prev = worst;
         }
         unreachable!()
+    }
+
+    /// After mixed-precision round `round_no` left the largest relative
+    /// residual `worst` (`prev` before it) with `total` iterations spent and
+    /// not every column done: an error where the solve should stop. f64
+    /// rounds each gain many digits: two that do not halve the residual mean
+    /// the iteration itself stagnates.
+    fn mixed_round_progressed(
+        &self,
+        worst: f64,
+        prev: f64,
+        round_no: usize,
+        total: usize,
+    ) -> Result<(), GpuError> {
+        if !worst.is_finite() || round_no >= 4 || worst > 0.5 * prev || total >= self.max_iterations
+        {
+            return Err(GpuError::NoConvergence {
+                iterations: total,
+                residual: worst,
+            });
+        }
+        Ok(())
     }
 
     /// The rounds of [`Self::solve_batch_mixed`] with the residuals formed
@@ -752,18 +763,7 @@ impl GpuSolver {
             if (0..ncols).all(|c| rel[c] <= target[c]) {
                 return Ok(());
             }
-            // f64 rounds each gain many digits: two that do not halve the
-            // residual mean the iteration itself stagnates.
-            if !worst.is_finite()
-                || round_no >= 4
-                || worst > 0.5 * prev
-                || total >= self.max_iterations
-            {
-                return Err(GpuError::NoConvergence {
-                    iterations: total,
-                    residual: worst,
-                });
-            }
+            self.mixed_round_progressed(worst, prev, round_no, total)?;
             prev = worst;
             let mut thr = vec![0f64; ncols];
             for c in 0..ncols {
@@ -825,8 +825,7 @@ impl GpuSolver {
                 &self.ctx,
                 &k.refine,
                 &mixed.matrix,
-                &e.map,
-                &e.lower,
+                e,
                 h.lower_len(),
                 self.expansions,
             )?;
