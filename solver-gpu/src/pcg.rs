@@ -604,8 +604,10 @@ impl Pcg {
             first_batch.unwrap_or(FIRST_BATCH).clamp(1, check_every)
         };
         // A batch sized to finish the run (from a hint or a prediction) brings
-        // x back with the column states: one host wait instead of two.
-        let mut with_x = !fixed_batches && first_batch.is_some();
+        // x back with the column states: one host wait instead of two. A
+        // refined run's every batch does (x' and the sums): its first, with
+        // no hint, often ends the round.
+        let mut with_x = !fixed_batches && (first_batch.is_some() || refine.is_some());
         let x_bytes = used;
         let mut last: Option<(usize, Vec<ColState>)> = None;
         let result = loop {

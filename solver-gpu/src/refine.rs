@@ -521,5 +521,21 @@ mod tests {
             assert!(rel <= 1e-10, "column {c} from a rough guess: {rel:e}");
         }
         assert_eq!(s.host_residuals, residuals);
+        // A kind with no earlier run (no batch hint): the PCG's first batch
+        // ends the round and brings x back, one wait for the solve.
+        // (A better conditioned matrix of the pattern, which takes few
+        // iterations.)
+        s.set_system_kind(solver_cpu::SystemKind::FineTune);
+        let mut easy = a.clone();
+        for i in 0..n {
+            let d = easy.slot(i, i).unwrap();
+            easy.values[d] += 4.0;
+        }
+        s.prepare(&easy).unwrap();
+        x.fill(0.0);
+        let waits = s.ctx.traffic().waits;
+        let info = s.solve_with_guess(&b, &mut x, 3).unwrap();
+        assert!(info.iterations <= crate::pcg::FIRST_BATCH, "{info:?}");
+        assert_eq!(s.ctx.traffic().waits - waits, 1);
     }
 }
