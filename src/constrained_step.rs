@@ -67,20 +67,33 @@ pub fn constrained_step_warm(
 ) -> Result<Step> {
     let n = neg_grad.len();
     let k = lin.values.len();
-    let mut rhs = Vec::with_capacity(n * (k + 1));
-    rhs.extend_from_slice(&neg_grad);
-    drop(neg_grad);
-    for r in lin.rows {
-        rhs.extend_from_slice(&r);
+    let cols = std::iter::once(neg_grad).chain(lin.rows);
+    let rhs = solve_stacked(solver, cols, n, k + 1, warm)?;
+    let rows: Vec<&[f64]> = rhs[n..].chunks(n.max(1)).collect();
+    let (y, ycols) = warm.split_at(n);
+    step_from_solutions(y.to_vec(), &lin.values, &rows, ycols)
+}
+
+/// The `ncols` columns `cols` (each of length `n`) moved one at a time into
+/// one right-hand side and solved, `warm` the initial guess (zero when its
+/// size does not match) and then the solutions; returns the right-hand side.
+fn solve_stacked(
+    solver: &mut dyn SpdSolver,
+    cols: impl IntoIterator<Item = Vec<f64>>,
+    n: usize,
+    ncols: usize,
+    warm: &mut Vec<f64>,
+) -> Result<Vec<f64>> {
+    let mut rhs = Vec::with_capacity(n * ncols);
+    for c in cols {
+        rhs.extend_from_slice(&c);
     }
     if warm.len() != rhs.len() {
         warm.clear();
         warm.resize(rhs.len(), 0.0);
     }
-    solver.solve_with_guess(&rhs, warm, k + 1)?;
-    let rows: Vec<&[f64]> = rhs[n..].chunks(n.max(1)).collect();
-    let (y, ycols) = warm.split_at(n);
-    step_from_solutions(y.to_vec(), &lin.values, &rows, ycols)
+    solver.solve_with_guess(&rhs, warm, ncols)?;
+    Ok(rhs)
 }
 
 /// As [`constrained_step_warm`] with `y = H^-1 (-grad E)` known: only the
@@ -97,15 +110,7 @@ pub fn constrained_step_given(
     if k == 0 {
         return step_from_solutions(y, &lin.values, &[], &[]);
     }
-    let mut rhs = Vec::with_capacity(n * k);
-    for r in lin.rows {
-        rhs.extend_from_slice(&r);
-    }
-    if warm.len() != rhs.len() {
-        warm.clear();
-        warm.resize(rhs.len(), 0.0);
-    }
-    solver.solve_with_guess(&rhs, warm, k)?;
+    let rhs = solve_stacked(solver, lin.rows, n, k, warm)?;
     let rows: Vec<&[f64]> = rhs.chunks(n.max(1)).collect();
     step_from_solutions(y, &lin.values, &rows, warm)
 }

@@ -206,6 +206,7 @@ pub fn open_with(opts: OpenOptions) -> Result<GpuSolver, GpuError> {
         expansion: None,
         mixed_builds: 0,
         host_residuals: 0,
+        host_residual: Vec::new(),
         matrices: 0,
         lower_of: None,
         expansions: 0,
@@ -324,6 +325,9 @@ pub struct GpuSolver {
     /// Residuals `b - A x` formed on the host (the f32 refinement's; the
     /// mixed-precision solve forms them on the GPU).
     pub(crate) host_residuals: usize,
+    /// The residuals of the mixed-precision rounds formed on the host
+    /// ([`Self::mixed_rounds_host`]), kept between solves.
+    host_residual: Vec<f64>,
     /// Matrices uploaded ([`Self::upload`] calls), and the one whose f64
     /// lower blocks the GPU holds (summed or expanded there).
     matrices: usize,
@@ -608,8 +612,13 @@ impl GpuSolver {
         self.mixed_workspace(ncols)?;
         let n = self.host.as_ref().unwrap().n();
         if !self.refine_on_gpu()? {
-            let mut r = vec![0.0; n * ncols];
-            return self.mixed_rounds_host(b, x, ncols, total, &mut r);
+            // The residuals' host vector is kept between solves (no fresh
+            // allocation, zeroed page by page, each time).
+            let mut r = std::mem::take(&mut self.host_residual);
+            r.resize(n * ncols, 0.0);
+            let done = self.mixed_rounds_host(b, x, ncols, total, &mut r);
+            self.host_residual = r;
+            return done;
         }
         let anorm = self.host.as_ref().unwrap().norm_inf();
         let bnorm: Vec<f64> = (0..ncols).map(|c| norm(&b[c * n..(c + 1) * n])).collect();
@@ -623,7 +632,7 @@ impl GpuSolver {
             &bnorm,
             self.tol,
             f64::EPSILON * anorm,
-        )?;
+        );
         let mut prev = f64::INFINITY;
         for round_no in 0.. {
             let k = self.mixed_kernels.as_ref().unwrap();
