@@ -40,7 +40,7 @@ impl ScaleConstraint {
         let sum: f64 = self
             .coeffs
             .iter()
-            .map(|&(f, c)| c * s[f as usize].powi(self.degree))
+            .map(|&(f, c)| c * power(s[f as usize], self.degree))
             .sum();
         sum / self.target - 1.0
     }
@@ -48,8 +48,22 @@ impl ScaleConstraint {
     pub fn gradient(&self, s: &[f64], out: &mut [f64]) {
         let p = self.degree as f64;
         for &(f, c) in &self.coeffs {
-            out[f as usize] += p * c * s[f as usize].powi(self.degree - 1) / self.target;
+            out[f as usize] += p * c * power(s[f as usize], self.degree - 1) / self.target;
         }
+    }
+}
+
+/// `s^p` for a metric's degree: its products for `p` up to 3 (what `powi`
+/// computes, without the call `powi` makes for an exponent not known at
+/// compile time: a volume's row evaluates it on every face, every Newton step).
+#[inline]
+fn power(s: f64, p: i32) -> f64 {
+    match p {
+        0 => 1.0,
+        1 => s,
+        2 => s * s,
+        3 => s * s * s,
+        _ => s.powi(p),
     }
 }
 
@@ -354,5 +368,24 @@ mod tests {
             .unwrap();
         assert_eq!(s, s2);
         assert!(solved.lock().unwrap().iter().all(|&c| c == 1));
+    }
+
+    #[test]
+    fn power_is_powi_to_the_bit() {
+        for &s in &[
+            0.05,
+            0.3,
+            0.999_999_9,
+            1.0,
+            1.000_000_1,
+            1.7,
+            3.25,
+            1e-3,
+            7e2,
+        ] {
+            for p in 0..=5 {
+                assert_eq!(power(s, p).to_bits(), s.powi(p).to_bits(), "{s}^{p}");
+            }
+        }
     }
 }
