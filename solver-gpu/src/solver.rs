@@ -707,15 +707,17 @@ impl GpuSolver {
                 "mixed round {round_no}: relative residual {worst:.2e} after {total} iterations"
             );
             if done {
-                let d: Vec<f64> = bytemuck::pod_collect_to_vec(&xbytes);
-                if d.len() < x.len() {
+                // Straight from the read-back bytes into `x` (no f64 vector
+                // in between: a fresh one per solve, page-faulted in).
+                let dst: &mut [u8] = bytemuck::cast_slice_mut(x);
+                let Some(src) = xbytes.get(..dst.len()) else {
                     return Err(GpuError::Backend(format!(
                         "refinement read back {} values for {}",
-                        d.len(),
+                        xbytes.len() / 8,
                         x.len()
                     )));
-                }
-                x.copy_from_slice(&d[..x.len()]);
+                };
+                dst.copy_from_slice(src);
                 return Ok(());
             }
             self.mixed_round_progressed(worst, prev, round_no, total)?;
@@ -1651,8 +1653,10 @@ impl GpuSolver {
     }
 }
 
+/// `||v||_2` through faer (SIMD partial sums; an in-order sum cannot
+/// vectorise).
 fn norm(v: &[f64]) -> f64 {
-    v.iter().map(|a| a * a).sum::<f64>().sqrt()
+    faer::ColRef::from_slice(v).norm_l2()
 }
 
 impl SpdSolver for GpuSolver {
