@@ -473,6 +473,9 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
 
     let mut x = x0.clone();
     let mut best = (max_error(p, &x), x.clone());
+    // The largest metric error at `x`, measured once per position (the
+    // end of one outer iteration reports the start of the next).
+    let mut err_at_x = best.0;
     let mut iterations = 0usize;
     let mut history: Vec<f64> = Vec::new();
     let mut stop_reason = String::from("no constraints");
@@ -546,7 +549,7 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
                 }
                 None => (vec![1.0; nf], 0.0),
             };
-            let err = max_error(p, &x);
+            let err = err_at_x;
             progress(Progress::ScaleDriven {
                 iteration: iterations,
                 max_error: err,
@@ -628,6 +631,7 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
                 crate::memory::peak_memory_mb()
             );
             let e = max_error(p, &x);
+            err_at_x = e;
             if e < best.0 || has_handles || has_curvature {
                 best = (e, x.clone());
             }
