@@ -145,7 +145,17 @@ impl ScaleFactorSystem {
         let changed: Vec<usize> = (0..k).filter(|&j| self.rows[j] != rows[j]).collect();
         // The old rows are no longer needed: free them before the solve.
         self.rows = Vec::new();
-        if !changed.is_empty() {
+        if let [j] = changed[..] {
+            // One column (a volume's or an area's row, at every Newton step
+            // after the first): solved in place, its row the right-hand side.
+            let solved =
+                self.solver
+                    .solve_with_guess(&rows[j], &mut self.ycols[j * n..(j + 1) * n], 1);
+            if let Err(e) = solved {
+                self.ycols.clear();
+                return Err(e.into());
+            }
+        } else if !changed.is_empty() {
             let mut rhs = Vec::with_capacity(n * changed.len());
             let mut x = Vec::with_capacity(n * changed.len());
             for &j in &changed {
