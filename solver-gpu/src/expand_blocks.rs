@@ -53,11 +53,11 @@ pub(crate) const TRANSPOSE: u32 = 1 << 31;
 /// Parameters of one chunk, as `ExpandParams` in `expand_blocks.wgsl`.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
-struct ExpandParams {
-    block0: u32,
-    blocks: u32,
-    split: u32,
-    pad: u32,
+pub(crate) struct ExpandParams {
+    pub(crate) block0: u32,
+    pub(crate) blocks: u32,
+    pub(crate) split: u32,
+    pub(crate) pad: u32,
 }
 
 pub(crate) struct ExpandBlocks {
@@ -227,9 +227,9 @@ pub(crate) struct ShapeSum {
 /// Parameters of `sum_shape_blocks.wgsl`.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
-struct SumParams {
-    slots: u32,
-    pad: [u32; 3],
+pub(crate) struct SumParams {
+    pub(crate) slots: u32,
+    pub(crate) pad: [u32; 3],
 }
 
 impl ShapeSum {

@@ -163,6 +163,8 @@ pub use wgpu::naga;
 
 mod error;
 mod preconditioner;
+#[cfg(test)]
+mod shader_layout_tests;
 mod solver;
 
 pub use error::GpuError;

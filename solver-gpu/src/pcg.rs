@@ -64,15 +64,15 @@ pub(crate) struct ColState {
 /// scalars in f64 (56 bytes, 8-aligned).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
-struct ColState64 {
-    rz: f64,
-    pap: f64,
-    alpha: f64,
-    beta: f64,
-    rr: f64,
-    thr: f64,
-    done: u32,
-    iters: u32,
+pub(crate) struct ColState64 {
+    pub(crate) rz: f64,
+    pub(crate) pap: f64,
+    pub(crate) alpha: f64,
+    pub(crate) beta: f64,
+    pub(crate) rr: f64,
+    pub(crate) thr: f64,
+    pub(crate) done: u32,
+    pub(crate) iters: u32,
 }
 
 impl Precision {

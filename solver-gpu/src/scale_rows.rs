@@ -17,10 +17,10 @@ const BINDINGS: [(u32, Bind); 3] = [(0, Bind::Uniform), (1, Bind::Read), (2, Bin
 /// Parameters, as `ScaleParams` in `scale_rows.wgsl`.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
-struct ScaleParams {
-    n: u32,
-    bs: u32,
-    pad: [u32; 2],
+pub(crate) struct ScaleParams {
+    pub(crate) n: u32,
+    pub(crate) bs: u32,
+    pub(crate) pad: [u32; 2],
 }
 
 pub(crate) struct ScaleRows {

@@ -50,15 +50,15 @@ const BINDINGS: [(u32, Bind); 8] = [
 /// Parameters, as `Params` in `supernodal.wgsl`.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
-struct SnParams {
-    own: u32,
-    n_own: u32,
-    below: u32,
-    n_below: u32,
-    nv: u32,
-    stride: u32,
-    bs: u32,
-    offsets: [u32; 9],
+pub(crate) struct SnParams {
+    pub(crate) own: u32,
+    pub(crate) n_own: u32,
+    pub(crate) below: u32,
+    pub(crate) n_below: u32,
+    pub(crate) nv: u32,
+    pub(crate) stride: u32,
+    pub(crate) bs: u32,
+    pub(crate) offsets: [u32; 9],
 }
 
 /// The entry points, in one precision.
