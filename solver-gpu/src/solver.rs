@@ -105,42 +105,6 @@ impl BatchHints {
     }
 }
 
-/// Per column: the f64 residual `r = b - A x` (in `r`), its norm, the relative
-/// residual `||r|| / ||b||`, and the target it must reach: `tol`, or the f64
-/// rounding floor `eps ||A|| ||x|| / ||b||` where that is larger (a smooth
-/// right-hand side of a stiff system has a large solution, and no f64 solver,
-/// Cholesky included, gets its relative residual below that floor). Also the
-/// largest relative residual. `anorm`: `||A||_inf` (`HostMatrix::norm_inf`,
-/// computed once per solve).
-fn residuals(
-    h: &HostMatrix,
-    anorm: f64,
-    b: &[f64],
-    x: &[f64],
-    r: &mut [f64],
-    ncols: usize,
-    tol: f64,
-) -> (Vec<f64>, Vec<f64>, f64, Vec<f64>) {
-    let n = h.n();
-    h.residual(b, x, r, ncols);
-    let rnorm: Vec<f64> = (0..ncols).map(|c| norm(&r[c * n..(c + 1) * n])).collect();
-    let mut target = vec![tol; ncols];
-    let rel: Vec<f64> = (0..ncols)
-        .map(|c| {
-            let bn = norm(&b[c * n..(c + 1) * n]);
-            if bn == 0.0 {
-                0.0
-            } else {
-                let floor = f64::EPSILON * anorm * norm(&x[c * n..(c + 1) * n]) / bn;
-                target[c] = tol.max(floor);
-                rnorm[c] / bn
-            }
-        })
-        .collect();
-    let worst = rel.iter().cloned().fold(0.0, f64::max);
-    (rnorm, rel, worst, target)
-}
-
 /// Whether some adapter is available.
 pub fn gpu_available() -> bool {
     default_adapter().is_ok()
@@ -748,6 +712,46 @@ impl GpuSolver {
         Ok(())
     }
 
+    /// Per column: the f64 residual `r = b - A x` of the host's matrix (in
+    /// `r`), its norm, the relative residual `||r|| / ||b||`, and the target it
+    /// must reach: the tolerance, or the f64 rounding floor `eps ||A|| ||x|| /
+    /// ||b||` where that is larger (a smooth right-hand side of a stiff system
+    /// has a large solution, and no f64 solver, Cholesky included, gets its
+    /// relative residual below that floor). Also the largest relative
+    /// residual. `anorm`: `||A||_inf` (`HostMatrix::norm_inf`, computed once
+    /// per solve). The one place a residual is formed on the host: counted in
+    /// `host_residuals`.
+    fn host_residuals_of(
+        &mut self,
+        anorm: f64,
+        b: &[f64],
+        x: &[f64],
+        r: &mut [f64],
+        ncols: usize,
+    ) -> (Vec<f64>, Vec<f64>, f64, Vec<f64>) {
+        self.host_residuals += 1;
+        let tol = self.tol;
+        let h = self.host.as_ref().unwrap();
+        let n = h.n();
+        h.residual(b, x, r, ncols);
+        let rnorm: Vec<f64> = (0..ncols).map(|c| norm(&r[c * n..(c + 1) * n])).collect();
+        let mut target = vec![tol; ncols];
+        let rel: Vec<f64> = (0..ncols)
+            .map(|c| {
+                let bn = norm(&b[c * n..(c + 1) * n]);
+                if bn == 0.0 {
+                    0.0
+                } else {
+                    let floor = f64::EPSILON * anorm * norm(&x[c * n..(c + 1) * n]) / bn;
+                    target[c] = tol.max(floor);
+                    rnorm[c] / bn
+                }
+            })
+            .collect();
+        let worst = rel.iter().cloned().fold(0.0, f64::max);
+        (rnorm, rel, worst, target)
+    }
+
     /// The rounds of [`Self::solve_batch_mixed`] with the residuals formed
     /// on the host (`r` their vector): for a block matrix whose exact f64
     /// values are not on the GPU (the host wrote them).
@@ -764,9 +768,7 @@ impl GpuSolver {
         let mut prev = f64::INFINITY;
         let anorm = h.norm_inf();
         for round_no in 0.. {
-            let h = self.host.as_ref().unwrap();
-            self.host_residuals += 1;
-            let (rnorm, rel, worst, target) = residuals(h, anorm, b, x, r, ncols, self.tol);
+            let (rnorm, rel, worst, target) = self.host_residuals_of(anorm, b, x, r, ncols);
             self.stats.residual = worst;
             log::trace!(
                 "mixed round {round_no}: relative residual {worst:.2e} after {total} iterations"
@@ -1434,16 +1436,7 @@ impl GpuSolver {
         let mut watch = RoundWatch::default();
         let anorm = self.host.as_ref().unwrap().norm_inf();
         for round in 0.. {
-            self.host_residuals += 1;
-            let (rnorm, rel, worst, target) = residuals(
-                self.host.as_ref().unwrap(),
-                anorm,
-                b,
-                x,
-                &mut r,
-                ncols,
-                self.tol,
-            );
+            let (rnorm, rel, worst, target) = self.host_residuals_of(anorm, b, x, &mut r, ncols);
             self.stats.residual = self.stats.residual.max(worst);
             log::trace!(
                 "f32 round {round}: relative residual {worst:.2e} after {total} iterations"
