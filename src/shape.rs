@@ -458,6 +458,10 @@ impl ShapeModel {
         // E_l (Eq. 6): zero gradient at xc, Hessian sum_i 2 a_i L_i^T ([d]x^T [d]x) L_i
         // with [d]x^T [d]x = |d|^2 I - d d^T = (2/3)|d|^2 I + ((1/3)|d|^2 I - d d^T):
         // the isotropic part goes to K, the traceless rest is the ring's C_i.
+        // Where the solver no longer reads K apart (its preconditioner of this
+        // kind is made), all of it is the ring's C_i: the same matrix, without
+        // the scatter of every ring pair into K's slots.
+        let whole_ring = !self.solver.wants_isotropic_part();
         if w.k_l > 0.0 {
             let d = self.mv.apply_all(xc);
             let ms: f64 = (0..n)
@@ -474,6 +478,17 @@ impl ShapeModel {
                     }
                     let di = d[i];
                     let dd = di.length_squared();
+                    if whole_ring {
+                        h.ring_c[i] = [
+                            a * (dd - di.x * di.x),
+                            a * (dd - di.y * di.y),
+                            a * (dd - di.z * di.z),
+                            -a * di.x * di.y,
+                            -a * di.x * di.z,
+                            -a * di.y * di.z,
+                        ];
+                        continue;
+                    }
                     let third = dd / 3.0;
                     h.ring_c[i] = [
                         a * (third - di.x * di.x),
@@ -841,6 +856,105 @@ mod tests {
                 y[i],
                 y0[i] - dx[i]
             );
+        }
+    }
+
+    /// A solver that no longer reads `K` apart: the model puts E_l's whole
+    /// term into the rings' `C_i`.
+    struct WholeRings(solver_cpu::CholeskySolver);
+
+    impl SpdSolver for WholeRings {
+        fn prepare(
+            &mut self,
+            a: &solver_cpu::SymCsc,
+        ) -> std::result::Result<(), solver_cpu::SolverError> {
+            self.0.prepare(a)
+        }
+        fn prepare_blocks(
+            &mut self,
+            a: &solver_cpu::BlockSym3,
+            fixed: &[bool],
+        ) -> std::result::Result<(), solver_cpu::SolverError> {
+            self.0.prepare_blocks(a, fixed)
+        }
+        fn wants_isotropic_part(&self) -> bool {
+            false
+        }
+        fn solve_in_place(
+            &mut self,
+            rhs: &mut [f64],
+            ncols: usize,
+        ) -> std::result::Result<solver_cpu::SolveInfo, solver_cpu::SolverError> {
+            self.0.solve_in_place(rhs, ncols)
+        }
+        fn counters(&self) -> solver_cpu::WorkCounters {
+            self.0.counters()
+        }
+        fn name(&self) -> &str {
+            "whole rings"
+        }
+    }
+
+    /// With E_l's isotropic part in the rings instead of `K`, the matrix is
+    /// the same (its product to rounding, its solution too), `K` lacks E_l's
+    /// part, and the `C_i` are no longer traceless.
+    #[test]
+    fn el_term_in_the_rings_gives_the_same_matrix() {
+        let (mesh, _) = spot_model();
+        let topo = Topology::build(&mesh);
+        let (nf, n) = (mesh.num_faces(), mesh.num_vertices());
+        let s: Vec<f64> = (0..nf).map(|f| 1.1 + 0.05 * (f as f64).sin()).collect();
+        let c = vec![1.05; n];
+        let w = ShapeWeights {
+            k_f: 1.0,
+            k_m: 100.0,
+            k_l: 100.0,
+            k_p: 0.0,
+        };
+        let split_solver = Box::new(solver_cpu::CholeskySolver::new());
+        let mut split = ShapeModel::with_solver(&mesh, &topo, Vec::new(), split_solver).unwrap();
+        let whole_solver = Box::new(WholeRings(solver_cpu::CholeskySolver::new()));
+        let mut whole = ShapeModel::with_solver(&mesh, &topo, Vec::new(), whole_solver).unwrap();
+        for m in [&mut split, &mut whole] {
+            m.assemble_and_factor(&mesh, &mesh.positions, &s, &c, &w)
+                .unwrap();
+        }
+        let (a, b) = (split.matrix(), whole.matrix());
+        let trace = |c: &[f64; 6]| c[0] + c[1] + c[2];
+        let scale_c = a.ring_c.iter().fold(0.0f64, |m, c| m.max(c[0].abs()));
+        assert!(a.ring_c.iter().all(|c| trace(c).abs() <= 1e-12 * scale_c));
+        assert!(b.ring_c.iter().any(|c| trace(c) > 1e-3 * scale_c));
+        let kmax = a.iso.values.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        let kdiff = a
+            .iso
+            .values
+            .iter()
+            .zip(&b.iso.values)
+            .fold(0.0f64, |m, (p, q)| m.max((p - q).abs()));
+        assert!(kdiff > 1e-6 * kmax, "K still holds E_l's part: {kdiff}");
+        let x: Vec<f64> = (0..3 * n).map(|i| (0.37 * i as f64).sin()).collect();
+        let (mut ya, mut yb) = (vec![0.0; 3 * n], vec![0.0; 3 * n]);
+        a.mul_vec(&x, &mut ya);
+        b.mul_vec(&x, &mut yb);
+        let ymax = ya.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        assert!(ymax > 0.0);
+        for i in 0..3 * n {
+            assert!(
+                (ya[i] - yb[i]).abs() <= 1e-12 * ymax,
+                "entry {i}: {} against {}",
+                ya[i],
+                yb[i]
+            );
+        }
+        let g = split.reference_gradient().to_vec();
+        assert_eq!(g, whole.reference_gradient());
+        let (mut da, mut db) = (g.clone(), g);
+        split.solver().solve_in_place(&mut da, 1).unwrap();
+        whole.solver().solve_in_place(&mut db, 1).unwrap();
+        let dmax = da.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        assert!(dmax > 0.0);
+        for i in 0..3 * n {
+            assert!((da[i] - db[i]).abs() <= 1e-9 * dmax, "solution entry {i}");
         }
     }
 

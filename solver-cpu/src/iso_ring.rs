@@ -13,6 +13,9 @@
 //! When every `C_i` is traceless (as the shape model builds them), `K` is the
 //! isotropic part of `A` (`K_pq = tr(A_pq) / 3`), which is what the PCG of
 //! [`crate::BlockPcgSolver`] factors as its preconditioner; it then needs no copy.
+//! A backend that reads `K` apart no longer (its preconditioner of the kind
+//! is made: [`crate::SpdSolver::wants_isotropic_part`]) gets the whole
+//! direction term in the `C_i`: the same `A`, a different split.
 
 use crate::{BlockRows, BlockSym3, SymCsc};
 use glam::DVec3;

@@ -244,6 +244,15 @@ pub trait SpdSolver {
     ) -> Result<Option<IsoRingSym3>, SolverError> {
         self.prepare_blocks(&a.to_blocks(), fixed).map(|()| Some(a))
     }
+    /// Whether the next shape matrix must carry its whole isotropic part in
+    /// `K` (default: always). A backend whose preconditioner of the current
+    /// system kind is made (from an earlier matrix's `K`) and never reads `K`
+    /// again says no: the assembly may then put an isotropic term of ring
+    /// form, `R_i^T (a_i I3) R_i`, into `C_i` instead (the same matrix,
+    /// without scattering `a_i R_ip R_iq` into `K`'s slots).
+    fn wants_isotropic_part(&self) -> bool {
+        true
+    }
     /// The matrix kept by `prepare_shape_owned`.
     fn shape_matrix(&self) -> Option<&IsoRingSym3> {
         None

@@ -577,7 +577,10 @@ mod tests {
             let slots =
                 crate::matrix::RingSlots::new(&a.rings, &a.iso.col_ptr, &a.iso.row_idx).unwrap();
             want.fill_shape(&a, &slots, &fixed);
+            // K is read apart (factored) for the kind's first matrix only.
+            assert_eq!(s.wants_isotropic_part(), seed == 0.0, "seed {seed}");
             let kept = s.prepare_shape_owned(a, &fixed).unwrap();
+            assert!(!s.wants_isotropic_part(), "the kind's factor is made");
             assert!(kept.is_none(), "kept in its form by the solver");
             let up = s.ctx.traffic().to_device - up0;
             // After the first (the pattern, the pairs, their starts and
@@ -597,6 +600,11 @@ mod tests {
             assert!(!h.lower_summed_on_host(), "seed {seed}: summed on the host");
             last = Some(want);
         }
+        // A new kind's first matrix is factored: its K must be whole again.
+        s.set_system_kind(solver_cpu::SystemKind::FineTune);
+        assert!(s.wants_isotropic_part());
+        s.set_system_kind(solver_cpu::SystemKind::ScaleDriven);
+        assert!(!s.wants_isotropic_part());
         // A new mixed-precision matrix (a new kind's factor makes one) has
         // its low parts summed and expanded on the GPU too.
         let want = last.unwrap();

@@ -1755,6 +1755,18 @@ impl SpdSolver for GpuSolver {
         Ok(kept)
     }
 
+    /// No once the Cholesky preconditioner of this shape kind is made: it is
+    /// never made again for the kind, and nothing else reads `K` apart (the
+    /// products, the diagonal blocks and the norm bound take any split of the
+    /// matrix between `K` and the `C_i`).
+    fn wants_isotropic_part(&self) -> bool {
+        let made = self.kind != SystemKind::ScaleFactors
+            && self.cholesky_wanted()
+            && self.chol.is_some()
+            && self.chol_kind == Some(self.kind);
+        !made
+    }
+
     fn shape_matrix(&self) -> Option<&IsoRingSym3> {
         self.host.as_ref().and_then(|h| h.shape_form())
     }
