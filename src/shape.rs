@@ -478,26 +478,20 @@ impl ShapeModel {
                     }
                     let di = d[i];
                     let dd = di.length_squared();
-                    if whole_ring {
-                        h.ring_c[i] = [
-                            a * (dd - di.x * di.x),
-                            a * (dd - di.y * di.y),
-                            a * (dd - di.z * di.z),
-                            -a * di.x * di.y,
-                            -a * di.x * di.z,
-                            -a * di.y * di.z,
-                        ];
-                        continue;
-                    }
+                    // C_i's diagonal: all of |d|^2 in the ring, or its third.
                     let third = dd / 3.0;
+                    let on_diag = if whole_ring { dd } else { third };
                     h.ring_c[i] = [
-                        a * (third - di.x * di.x),
-                        a * (third - di.y * di.y),
-                        a * (third - di.z * di.z),
+                        a * (on_diag - di.x * di.x),
+                        a * (on_diag - di.y * di.y),
+                        a * (on_diag - di.z * di.z),
                         -a * di.x * di.y,
                         -a * di.x * di.z,
                         -a * di.y * di.z,
                     ];
+                    if whole_ring {
+                        continue;
+                    }
                     let iso = a * 2.0 * third;
                     let mut slots = self.mv_slots[self.mv_slot_ptr[i]..].iter();
                     for (p, cp) in self.mv.row(i) {
@@ -809,6 +803,20 @@ mod tests {
         (mesh, model)
     }
 
+    /// Scale factors varying over the faces, curvature targets and
+    /// fine-tune-like weights (E_m and E_l strong) for `nf` faces and `n`
+    /// vertices.
+    fn varied_job(nf: usize, n: usize) -> (Vec<f64>, Vec<f64>, ShapeWeights) {
+        let s = (0..nf).map(|f| 1.1 + 0.05 * (f as f64).sin()).collect();
+        let w = ShapeWeights {
+            k_f: 1.0,
+            k_m: 100.0,
+            k_l: 100.0,
+            k_p: 0.0,
+        };
+        (s, vec![1.1; n], w)
+    }
+
     /// The energy is quadratic in the increment with gradient `H dx + g0`
     /// (held entries zero): the Newton direction `H^-1 (-grad E)` at `dx` is
     /// the one at zero minus `dx`, which the fine-tune uses instead of a
@@ -820,16 +828,8 @@ mod tests {
         let topo = Topology::build(&mesh);
         let solver = Box::new(solver_cpu::CholeskySolver::new());
         let mut model = ShapeModel::with_solver(&mesh, &topo, Vec::new(), solver).unwrap();
-        let nf = mesh.num_faces();
         let n = mesh.num_vertices();
-        let s: Vec<f64> = (0..nf).map(|f| 1.1 + 0.05 * (f as f64).sin()).collect();
-        let c = vec![1.1; n];
-        let w = ShapeWeights {
-            k_f: 1.0,
-            k_m: 100.0,
-            k_l: 100.0,
-            k_p: 0.0,
-        };
+        let (s, c, w) = varied_job(mesh.num_faces(), n);
         model
             .assemble_and_factor(&mesh, &mesh.positions, &s, &c, &w)
             .unwrap();
@@ -902,15 +902,8 @@ mod tests {
     fn el_term_in_the_rings_gives_the_same_matrix() {
         let (mesh, _) = spot_model();
         let topo = Topology::build(&mesh);
-        let (nf, n) = (mesh.num_faces(), mesh.num_vertices());
-        let s: Vec<f64> = (0..nf).map(|f| 1.1 + 0.05 * (f as f64).sin()).collect();
-        let c = vec![1.05; n];
-        let w = ShapeWeights {
-            k_f: 1.0,
-            k_m: 100.0,
-            k_l: 100.0,
-            k_p: 0.0,
-        };
+        let n = mesh.num_vertices();
+        let (s, c, w) = varied_job(mesh.num_faces(), n);
         let split_solver = Box::new(solver_cpu::CholeskySolver::new());
         let mut split = ShapeModel::with_solver(&mesh, &topo, Vec::new(), split_solver).unwrap();
         let whole_solver = Box::new(WholeRings(solver_cpu::CholeskySolver::new()));
