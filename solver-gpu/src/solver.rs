@@ -554,11 +554,12 @@ impl GpuSolver {
     /// Solve up to CMAX columns in mixed precision from the start `x`: rounds
     /// of f64 PCG on the f64 residual (preconditioned by the Cholesky factor
     /// in its precision, else by the f32 V-cycle), refined on the GPU
-    /// ([`crate::refine`]). `total`: PCG iterations already spent on these
-    /// columns.
+    /// ([`crate::refine`]). `bnorm`: the columns' `||b||`; `total`: PCG
+    /// iterations already spent on these columns.
     fn solve_batch_mixed(
         &mut self,
         b: &[f64],
+        bnorm: &[f64],
         x: &mut [f64],
         ncols: usize,
         mut total: usize,
@@ -580,12 +581,11 @@ impl GpuSolver {
             // allocation, zeroed page by page, each time).
             let mut r = std::mem::take(&mut self.host_residual);
             r.resize(n * ncols, 0.0);
-            let done = self.mixed_rounds_host(b, x, ncols, total, &mut r);
+            let done = self.mixed_rounds_host(b, bnorm, x, ncols, total, &mut r);
             self.host_residual = r;
             return done;
         }
         let anorm = self.host.as_ref().unwrap().norm_inf();
-        let bnorm: Vec<f64> = (0..ncols).map(|c| norm(&b[c * n..(c + 1) * n])).collect();
         let x = &mut x[..n * ncols];
         let mixed = self.mixed.as_ref().unwrap();
         mixed.refine.load(
@@ -593,7 +593,7 @@ impl GpuSolver {
             b,
             x,
             ncols,
-            &bnorm,
+            bnorm,
             self.tol,
             f64::EPSILON * anorm,
         );
@@ -661,7 +661,7 @@ impl GpuSolver {
                     continue;
                 }
                 let rel = rn / bnorm[c];
-                let target = self.tol.max(f64::EPSILON * anorm * xn / bnorm[c]);
+                let target = self.residual_target(anorm, xn, bnorm[c]);
                 worst = worst.max(rel);
                 // NaN compares false: not done.
                 done &= rel <= target;
@@ -712,38 +712,43 @@ impl GpuSolver {
         Ok(())
     }
 
+    /// The relative residual a column must reach: the tolerance, or the f64
+    /// rounding floor `eps ||A|| ||x|| / ||b||` where that is larger (a smooth
+    /// right-hand side of a stiff system has a large solution, and no f64
+    /// solver, Cholesky included, gets its relative residual below that
+    /// floor). `anorm`: `||A||_inf` (`HostMatrix::norm_inf`). The GPU's
+    /// refinement applies the same rule (`refine.wgsl`'s `start`).
+    fn residual_target(&self, anorm: f64, xnorm: f64, bnorm: f64) -> f64 {
+        self.tol.max(f64::EPSILON * anorm * xnorm / bnorm)
+    }
+
     /// Per column: the f64 residual `r = b - A x` of the host's matrix (in
-    /// `r`), its norm, the relative residual `||r|| / ||b||`, and the target it
-    /// must reach: the tolerance, or the f64 rounding floor `eps ||A|| ||x|| /
-    /// ||b||` where that is larger (a smooth right-hand side of a stiff system
-    /// has a large solution, and no f64 solver, Cholesky included, gets its
-    /// relative residual below that floor). Also the largest relative
-    /// residual. `anorm`: `||A||_inf` (`HostMatrix::norm_inf`, computed once
-    /// per solve). The one place a residual is formed on the host: counted in
-    /// `host_residuals`.
+    /// `r`), its norm, the relative residual `||r|| / ||b||` (`bnorm`: the
+    /// columns' `||b||`) and its [`Self::residual_target`]. Also the largest
+    /// relative residual. The one place a residual is formed on the host:
+    /// counted in `host_residuals`.
     fn host_residuals_of(
         &mut self,
         anorm: f64,
         b: &[f64],
+        bnorm: &[f64],
         x: &[f64],
         r: &mut [f64],
         ncols: usize,
     ) -> (Vec<f64>, Vec<f64>, f64, Vec<f64>) {
         self.host_residuals += 1;
-        let tol = self.tol;
         let h = self.host.as_ref().unwrap();
         let n = h.n();
         h.residual(b, x, r, ncols);
-        let rnorm: Vec<f64> = (0..ncols).map(|c| norm(&r[c * n..(c + 1) * n])).collect();
-        let mut target = vec![tol; ncols];
+        let rnorm = column_norms(r, n, ncols);
+        let mut target = vec![self.tol; ncols];
         let rel: Vec<f64> = (0..ncols)
             .map(|c| {
-                let bn = norm(&b[c * n..(c + 1) * n]);
+                let bn = bnorm[c];
                 if bn == 0.0 {
                     0.0
                 } else {
-                    let floor = f64::EPSILON * anorm * norm(&x[c * n..(c + 1) * n]) / bn;
-                    target[c] = tol.max(floor);
+                    target[c] = self.residual_target(anorm, norm(&x[c * n..(c + 1) * n]), bn);
                     rnorm[c] / bn
                 }
             })
@@ -758,17 +763,17 @@ impl GpuSolver {
     fn mixed_rounds_host(
         &mut self,
         b: &[f64],
+        bnorm: &[f64],
         x: &mut [f64],
         ncols: usize,
         mut total: usize,
         r: &mut [f64],
     ) -> Result<(), GpuError> {
         let n = self.host.as_ref().unwrap().n();
-        let h = self.host.as_ref().unwrap();
         let mut prev = f64::INFINITY;
-        let anorm = h.norm_inf();
+        let anorm = self.host.as_ref().unwrap().norm_inf();
         for round_no in 0.. {
-            let (rnorm, rel, worst, target) = self.host_residuals_of(anorm, b, x, r, ncols);
+            let (rnorm, rel, worst, target) = self.host_residuals_of(anorm, b, bnorm, x, r, ncols);
             self.stats.residual = worst;
             log::trace!(
                 "mixed round {round_no}: relative residual {worst:.2e} after {total} iterations"
@@ -1412,7 +1417,7 @@ impl GpuSolver {
     /// Solve up to CMAX columns: `x` holds the start on entry.
     fn solve_batch(&mut self, b: &[f64], x: &mut [f64], ncols: usize) -> Result<(), GpuError> {
         let n = self.host.as_ref().unwrap().n();
-        let bnorm: Vec<f64> = (0..ncols).map(|c| norm(&b[c * n..(c + 1) * n])).collect();
+        let bnorm = column_norms(b, n, ncols);
         for c in 0..ncols {
             if bnorm[c] == 0.0 {
                 x[c * n..(c + 1) * n].fill(0.0);
@@ -1425,7 +1430,7 @@ impl GpuSolver {
             .starts_mixed_with(self.kind, own_factor)
             || self.mixed_sticky;
         if start_mixed && self.mixed_available() {
-            return self.solve_batch_mixed(b, x, ncols, 0);
+            return self.solve_batch_mixed(b, &bnorm, x, ncols, 0);
         }
         self.workspace(ncols)?;
         let mut r = vec![0.0; n * ncols];
@@ -1436,7 +1441,8 @@ impl GpuSolver {
         let mut watch = RoundWatch::default();
         let anorm = self.host.as_ref().unwrap().norm_inf();
         for round in 0.. {
-            let (rnorm, rel, worst, target) = self.host_residuals_of(anorm, b, x, &mut r, ncols);
+            let (rnorm, rel, worst, target) =
+                self.host_residuals_of(anorm, b, &bnorm, x, &mut r, ncols);
             self.stats.residual = self.stats.residual.max(worst);
             log::trace!(
                 "f32 round {round}: relative residual {worst:.2e} after {total} iterations"
@@ -1469,7 +1475,7 @@ impl GpuSolver {
                     // Later solves of this pattern start in mixed precision:
                     // the neighbouring systems are as hard.
                     self.mixed_sticky = true;
-                    return self.solve_batch_mixed(b, x, ncols, total);
+                    return self.solve_batch_mixed(b, &bnorm, x, ncols, total);
                 }
                 self.stats.residual = worst;
                 return Err(GpuError::NoConvergence {
@@ -1532,7 +1538,7 @@ impl GpuSolver {
                 }
                 log::info!("f32 PCG broke down after {total} iterations");
                 self.mixed_sticky = true;
-                return self.solve_batch_mixed(b, x, ncols, total);
+                return self.solve_batch_mixed(b, &bnorm, x, ncols, total);
             }
             self.hints.record(self.kind, false, round_no, iterations);
         }
@@ -1650,6 +1656,11 @@ impl GpuSolver {
 /// vectorise).
 fn norm(v: &[f64]) -> f64 {
     faer::ColRef::from_slice(v).norm_l2()
+}
+
+/// [`norm`] of each of the `ncols` columns of length `n` in `v`.
+fn column_norms(v: &[f64], n: usize, ncols: usize) -> Vec<f64> {
+    (0..ncols).map(|c| norm(&v[c * n..(c + 1) * n])).collect()
 }
 
 impl SpdSolver for GpuSolver {
