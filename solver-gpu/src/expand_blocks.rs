@@ -398,7 +398,6 @@ mod tests {
         check_solve(&mut s, &want);
     }
 
-    /// The GPU's block values (high and low parts) are `want`'s.
     /// A ring's graph Laplacian (neighbours 1 and 2 apart) with weights of
     /// full f64 mantissas, times I3, plus a small diagonal `eps_i`: SPD, and
     /// for a smooth right-hand side the solution is large (about 1 / eps)
@@ -505,6 +504,7 @@ mod tests {
         }
     }
 
+    /// The GPU's block values (high and low parts) are `want`'s.
     fn check_parts(s: &crate::GpuSolver, want: &HostMatrix) {
         let want_vals = want.full_values();
         let gpu = s.gpu.as_ref().unwrap();

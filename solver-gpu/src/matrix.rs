@@ -1358,8 +1358,6 @@ impl GpuMatrix {
         })
     }
 
-    /// The value storage of a block matrix: its chunks (the f32 values, or the
-    /// high parts) and, for the f64 split matrix, the low parts' buffers.
     /// The chunks' uniforms ([`ChunkParams`]) of a block matrix (none for a
     /// scalar one).
     pub fn chunk_uniforms(&self) -> &[wgpu::Buffer] {
@@ -1370,6 +1368,8 @@ impl GpuMatrix {
         }
     }
 
+    /// The value storage of a block matrix: its chunks (the f32 values, or the
+    /// high parts) and, for the f64 split matrix, the low parts' buffers.
     pub fn block_parts(&self) -> Option<(&[Chunk], Option<&[wgpu::Buffer]>)> {
         match &self.storage {
             MatrixStorage::Csr { .. } => None,
