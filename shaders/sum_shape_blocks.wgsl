@@ -7,6 +7,9 @@
 //   K_s I3 + sum over the ring pairs (p, q) of s, in ring order, of f C_i,
 // with f = R_ip R_iq fixed for a run (the rings are the input's Laplacian):
 // the order and arithmetic of the host's sum (`HostMatrix::fill_shape`).
+// Where the matrices name a constant term (E_m's Hessian S Mt^-1 S, kept
+// out of K: `IsoRingSym3::laplacian_square`), its value per lower entry,
+// uploaded once per model, is added to K's first: K_s + square_s.
 //
 // Bindings (group 0):
 //   0  C      uniform   slots: the lower blocks of this dispatch (all of them).
@@ -17,14 +20,17 @@
 //   4  ring   read      u32 per ring pair: the ring i it belongs to.
 //   5  f      read      f64 per ring pair: its weight R_ip R_iq.
 //   6  lower  rw        f64, 9 per lower block (row-major), written whole.
+//   7  square read      f64, the constant term's value per lower entry
+//                       (read only where C.square is 1).
 // One invocation per lower block, 256 per workgroup, 2-D dispatch (linear
 // index gid.x + gid.y * nwg.x * 256); invocations past the blocks return.
 
 struct SumParams {
     slots: u32,
+    // 1: add `square` to K's values; 0: no constant term.
+    square: u32,
     pad0: u32,
     pad1: u32,
-    pad2: u32,
 }
 
 const FWG: u32 = 256u;
@@ -38,6 +44,7 @@ override NCOLS: u32 = 1u;
 @group(0) @binding(4) var<storage, read> ring: array<u32>;
 @group(0) @binding(5) var<storage, read> f: array<f64>;
 @group(0) @binding(6) var<storage, read_write> lower: array<f64>;
+@group(0) @binding(7) var<storage, read> square: array<f64>;
 
 @compute @workgroup_size(256)
 fn sum_shape_blocks(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
@@ -45,7 +52,10 @@ fn sum_shape_blocks(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_
     if s >= C.slots || NCOLS == 0u {
         return;
     }
-    let k = iso[s];
+    var k = iso[s];
+    if C.square != 0u {
+        k = k + square[s];
+    }
     // Row-major 3x3: xx xy xz / xy yy yz / xz yz zz.
     var m = array<f64, 9>(k, f64(0.0), f64(0.0), f64(0.0), k, f64(0.0), f64(0.0), f64(0.0), k);
     for (var t = start[s]; t < start[s + 1u]; t++) {

@@ -360,10 +360,24 @@ impl ShapeModel {
             })?,
         };
         let h = &mut h_owned;
+        // Where the solver no longer reads K apart (its preconditioner of this
+        // kind is made), E_l's whole term goes into the rings' C_i (below),
+        // and E_m's constant Hessian may be left to the solver, named by its
+        // operator model instead of scattered into K (the same matrix).
+        let whole_ring = !self.solver.wants_isotropic_part();
+        h.laplacian_square = if whole_ring
+            && w.k_m > 0.0
+            && self.hm.is_empty()
+            && self.solver.adds_laplacian_square()
+        {
+            self.operator_model(w)
+        } else {
+            None
+        };
         if self.hm.is_empty() {
             h.iso.values.iter_mut().for_each(|v| *v = 0.0);
             // E_m's Hessian sum_i 2 m_i delta_i^T delta_i, on mv's pair slots.
-            if w.k_m > 0.0 {
+            if w.k_m > 0.0 && h.laplacian_square.is_none() {
                 for i in 0..n {
                     if self.vertex_area[i] <= 0.0 {
                         continue;
@@ -435,7 +449,8 @@ impl ShapeModel {
             }
         }
 
-        // E_m (Eqs. 5, 21): gradient at xc; the Hessian is the constant part above.
+        // E_m (Eqs. 5, 21): gradient at xc; the Hessian is the constant part
+        // above (or the solver's).
         if w.k_m > 0.0 {
             for i in 0..n {
                 if self.vertex_area[i] <= 0.0 {
@@ -458,10 +473,8 @@ impl ShapeModel {
         // E_l (Eq. 6): zero gradient at xc, Hessian sum_i 2 a_i L_i^T ([d]x^T [d]x) L_i
         // with [d]x^T [d]x = |d|^2 I - d d^T = (2/3)|d|^2 I + ((1/3)|d|^2 I - d d^T):
         // the isotropic part goes to K, the traceless rest is the ring's C_i.
-        // Where the solver no longer reads K apart (its preconditioner of this
-        // kind is made), all of it is the ring's C_i: the same matrix, without
-        // the scatter of every ring pair into K's slots.
-        let whole_ring = !self.solver.wants_isotropic_part();
+        // With `whole_ring`, all of it is the ring's C_i: the same matrix,
+        // without the scatter of every ring pair into K's slots.
         if w.k_l > 0.0 {
             let d = self.mv.apply_all(xc);
             let ms: f64 = (0..n)
@@ -860,8 +873,9 @@ mod tests {
     }
 
     /// A solver that no longer reads `K` apart: the model puts E_l's whole
-    /// term into the rings' `C_i`.
-    struct WholeRings(solver_cpu::CholeskySolver);
+    /// term into the rings' `C_i`; with `.1`, it adds E_m's Hessian itself
+    /// (its own `to_blocks` does), so the model leaves it out of `K`.
+    struct WholeRings(solver_cpu::CholeskySolver, bool);
 
     impl SpdSolver for WholeRings {
         fn prepare(
@@ -880,6 +894,9 @@ mod tests {
         fn wants_isotropic_part(&self) -> bool {
             false
         }
+        fn adds_laplacian_square(&self) -> bool {
+            self.1
+        }
         fn solve_in_place(
             &mut self,
             rhs: &mut [f64],
@@ -895,24 +912,33 @@ mod tests {
         }
     }
 
-    /// With E_l's isotropic part in the rings instead of `K`, the matrix is
-    /// the same (its product to rounding, its solution too), `K` lacks E_l's
-    /// part, and the `C_i` are no longer traceless.
+    /// With E_l's isotropic part in the rings instead of `K`, and E_m's
+    /// Hessian named instead of in `K` where the solver adds it, the matrix
+    /// is the same (its product to rounding, its energy and its solution
+    /// too), `K` lacks those parts, and the `C_i` are no longer traceless.
     #[test]
     fn el_term_in_the_rings_gives_the_same_matrix() {
+        for square in [false, true] {
+            el_term_in_the_rings_gives_the_same_matrix_with(square);
+        }
+    }
+
+    fn el_term_in_the_rings_gives_the_same_matrix_with(square: bool) {
         let (mesh, _) = spot_model();
         let topo = Topology::build(&mesh);
         let n = mesh.num_vertices();
         let (s, c, w) = varied_job(mesh.num_faces(), n);
         let split_solver = Box::new(solver_cpu::CholeskySolver::new());
         let mut split = ShapeModel::with_solver(&mesh, &topo, Vec::new(), split_solver).unwrap();
-        let whole_solver = Box::new(WholeRings(solver_cpu::CholeskySolver::new()));
+        let whole_solver = Box::new(WholeRings(solver_cpu::CholeskySolver::new(), square));
         let mut whole = ShapeModel::with_solver(&mesh, &topo, Vec::new(), whole_solver).unwrap();
         for m in [&mut split, &mut whole] {
             m.assemble_and_factor(&mesh, &mesh.positions, &s, &c, &w)
                 .unwrap();
         }
         let (a, b) = (split.matrix(), whole.matrix());
+        assert!(a.laplacian_square.is_none());
+        assert_eq!(b.laplacian_square.is_some(), square);
         let trace = |c: &[f64; 6]| c[0] + c[1] + c[2];
         let scale_c = a.ring_c.iter().fold(0.0f64, |m, c| m.max(c[0].abs()));
         assert!(a.ring_c.iter().all(|c| trace(c).abs() <= 1e-12 * scale_c));
@@ -925,7 +951,17 @@ mod tests {
             .zip(&b.iso.values)
             .fold(0.0f64, |m, (p, q)| m.max((p - q).abs()));
         assert!(kdiff > 1e-6 * kmax, "K still holds E_l's part: {kdiff}");
+        if square {
+            // E_m's Hessian dominates K's diagonal on this job.
+            let d = |h: &IsoRingSym3, v: usize| h.iso.values[h.diagonal_slot(v)];
+            assert!((0..n).all(|v| d(b, v) < 0.5 * d(a, v)), "K still holds E_m");
+        }
         let x: Vec<f64> = (0..3 * n).map(|i| (0.37 * i as f64).sin()).collect();
+        let (ea, eb) = (split.energy(&x), whole.energy(&x));
+        assert!(
+            (ea - eb).abs() <= 1e-12 * ea.abs(),
+            "energy {ea} against {eb}"
+        );
         let (mut ya, mut yb) = (vec![0.0; 3 * n], vec![0.0; 3 * n]);
         a.mul_vec(&x, &mut ya);
         b.mul_vec(&x, &mut yb);

@@ -16,8 +16,14 @@
 //! A backend that reads `K` apart no longer (its preconditioner of the kind
 //! is made: [`crate::SpdSolver::wants_isotropic_part`]) gets the whole
 //! direction term in the `C_i`: the same `A`, a different split.
+//!
+//! One more term may be named instead of stored: E_m's Hessian
+//! `S Mt^-1 S (x) I3` ([`IsoRingSym3::laplacian_square`], `S` the input's
+//! cotangent Laplacian). It is constant for a run, so a backend that keeps
+//! its values itself ([`crate::SpdSolver::adds_laplacian_square`]) gets
+//! matrices whose `K` goes without it; the products here add it from `S`.
 
-use crate::{BlockRows, BlockSym3, SymCsc};
+use crate::{BlockRows, BlockSym3, ShapeOperatorModel, SymCsc};
 use glam::DVec3;
 use rayon::prelude::*;
 use std::sync::Arc;
@@ -163,7 +169,9 @@ fn sym3_mul(c: &[f64; 6], x: [f64; 3]) -> [f64; 3] {
     ]
 }
 
-/// A symmetric `3n x 3n` matrix `K (x) I3 + sum_i R_i^T C_i R_i` (see module docs).
+/// A symmetric `3n x 3n` matrix `K (x) I3 + sum_i R_i^T C_i R_i`, plus
+/// `S Mt^-1 S (x) I3` where [`Self::laplacian_square`] names it (see module
+/// docs).
 #[derive(Debug, Clone, Default)]
 pub struct IsoRingSym3 {
     /// `K`: lower-triangular CSC on the vertex pattern, diagonal first in each column.
@@ -176,6 +184,10 @@ pub struct IsoRingSym3 {
     /// entry `i = idx[k]` of row `p` (the transpose's weights in `rings`' layout),
     /// for a gather-only parallel `R^T t`. Empty otherwise (sequential scatter).
     ring_t: Vec<f64>,
+    /// E_m's Hessian `S Mt^-1 S (x) I3` of this model, when it is part of
+    /// the matrix but not of `K` (`None`: `K` holds every isotropic term).
+    /// Its pairs `(p, q)` must lie in the pattern of `iso`.
+    pub laplacian_square: Option<Arc<ShapeOperatorModel>>,
 }
 
 impl IsoRingSym3 {
@@ -206,12 +218,13 @@ impl IsoRingSym3 {
             ring_c: vec![[0.0; 6]; n],
             rings,
             ring_t,
+            laplacian_square: None,
         }
     }
 
-    /// Block rows (vertices).
     /// `K` with the held rows and columns made identity (`fixed` per vertex):
-    /// the matrix whose factor preconditions a system with held vertices.
+    /// the matrix whose factor preconditions a system with held vertices
+    /// (`K` alone: without [`Self::laplacian_square`]).
     pub fn iso_held_identity(&self, fixed: &[bool]) -> SymCsc {
         let mut k = self.iso.clone();
         if fixed.iter().any(|&f| f) {
@@ -227,6 +240,7 @@ impl IsoRingSym3 {
         k
     }
 
+    /// Block rows (vertices).
     pub fn n(&self) -> usize {
         self.iso.n
     }
@@ -234,6 +248,7 @@ impl IsoRingSym3 {
     pub fn clear(&mut self) {
         self.iso.values.iter_mut().for_each(|v| *v = 0.0);
         self.ring_c.iter_mut().for_each(|c| *c = [0.0; 6]);
+        self.laplacian_square = None;
     }
 
     /// Slot of the diagonal entry of vertex `v` in `iso.values`.
@@ -306,6 +321,42 @@ impl IsoRingSym3 {
         } else {
             self.scatter_rings(&t, y);
         }
+        self.add_laplacian_square(x, y);
+    }
+
+    /// `y += S^T diag(m) S x` on x, y and z alike, for the term
+    /// [`Self::laplacian_square`] names (`m_i = 1 / Mt_i`); nothing without it.
+    fn add_laplacian_square(&self, x: &[f64], y: &mut [f64]) {
+        let Some(model) = &self.laplacian_square else {
+            return;
+        };
+        let s = &*model.laplacian;
+        let t: Vec<[f64; 3]> = (0..s.len())
+            .into_par_iter()
+            .map(|i| {
+                let m = model.square_weight(i);
+                if m == 0.0 {
+                    return [0.0; 3];
+                }
+                let mut r = [0.0; 3];
+                for (q, w) in s.row(i) {
+                    for c in 0..3 {
+                        r[c] += w * x[3 * q + c];
+                    }
+                }
+                r.map(|v| m * v)
+            })
+            .collect();
+        for (i, ti) in t.iter().enumerate() {
+            if *ti == [0.0; 3] {
+                continue;
+            }
+            for (p, w) in s.row(i) {
+                for c in 0..3 {
+                    y[3 * p + c] += w * ti[c];
+                }
+            }
+        }
     }
 
     fn scatter_rings(&self, t: &[[f64; 3]], y: &mut [f64]) {
@@ -338,18 +389,39 @@ impl IsoRingSym3 {
         }
         let t = self.ring_terms(x);
         self.scatter_rings(&t, y);
+        self.add_laplacian_square(x, y);
     }
 
     /// The same matrix as explicit 3x3 blocks (for backends that take blocks).
-    /// Panics if a ring pair lies outside the pattern of `K`.
+    /// Panics if a ring pair (or a pair of [`Self::laplacian_square`]'s rows)
+    /// lies outside the pattern of `K`.
     pub fn to_blocks(&self) -> BlockSym3 {
+        // K's value per lower entry plus the Laplacian square's (summed
+        // apart, over its rows' pairs in order), then the rings: the order
+        // of every sum of these blocks.
+        let mut k = self.iso.values.clone();
+        if let Some(model) = &self.laplacian_square {
+            let mut square = vec![0.0; k.len()];
+            for i in 0..model.laplacian.len() {
+                let m = model.square_weight(i);
+                if m == 0.0 {
+                    continue;
+                }
+                for (p, q, f) in model.laplacian.pairs(i) {
+                    let s = self
+                        .iso
+                        .slot(p, q)
+                        .expect("Laplacian pair inside the pattern");
+                    square[s] += m * f;
+                }
+            }
+            k.iter_mut().zip(&square).for_each(|(v, q)| *v += q);
+        }
         let mut b = BlockSym3 {
             n: self.n(),
             col_ptr: self.iso.col_ptr.clone(),
             row_idx: self.iso.row_idx.clone(),
-            blocks: self
-                .iso
-                .values
+            blocks: k
                 .iter()
                 .map(|&v| [v, 0.0, 0.0, 0.0, v, 0.0, 0.0, 0.0, v])
                 .collect(),
@@ -444,6 +516,71 @@ mod tests {
         }
         // Off-diagonal ring coupling is present (the blocks are not isotropic).
         assert!(b.blocks.iter().any(|blk| blk[1].abs() > 1e-3));
+    }
+
+    /// A Laplacian square term the matrix names is in every product and in
+    /// its blocks, as if its values were added to `K` (here by hand).
+    #[test]
+    fn a_named_laplacian_square_is_in_every_product() {
+        let n = 40;
+        let plain = sample(n);
+        let r = &plain.rings;
+        let w: Vec<f64> = (0..r.w.len())
+            .map(|k| r.w[k] * (1.5 + (k as f64).cos()))
+            .collect();
+        let diag = (0..n)
+            .map(|i| w[r.start[i]..r.start[i + 1]].iter().sum())
+            .collect();
+        let laplacian = Arc::new(SparseRows {
+            start: r.start.clone(),
+            idx: r.idx.clone(),
+            w,
+            diag,
+        });
+        let mt: Vec<f64> = (0..n)
+            .map(|i| if i == 3 { 0.0 } else { 0.2 + 0.01 * i as f64 })
+            .collect();
+        let mut named = plain.clone();
+        named.laplacian_square = Some(Arc::new(ShapeOperatorModel {
+            laplacian: laplacian.clone(),
+            mt: mt.clone(),
+            c: 0.0,
+        }));
+        let mut explicit = plain.clone();
+        for (i, &mti) in mt.iter().enumerate() {
+            if mti == 0.0 {
+                continue;
+            }
+            for (p, wp) in laplacian.row(i) {
+                for (q, wq) in laplacian.row(i) {
+                    if p >= q {
+                        let s = explicit.iso.slot(p, q).unwrap();
+                        explicit.iso.values[s] += wp * wq / mti;
+                    }
+                }
+            }
+        }
+        let x: Vec<f64> = (0..3 * n).map(|i| (i as f64 * 0.37).sin() + 0.1).collect();
+        let mut want = vec![0.0; 3 * n];
+        explicit.mul_vec(&x, &mut want);
+        let (mut seq, mut par, mut blk, mut without) = (
+            vec![f64::NAN; 3 * n],
+            vec![f64::NAN; 3 * n],
+            vec![0.0; 3 * n],
+            vec![0.0; 3 * n],
+        );
+        named.mul_vec(&x, &mut seq);
+        named.mul_vec_rows(&named.row_index(), &x, &mut par);
+        named.to_blocks().mul_vec(&x, &mut blk);
+        plain.mul_vec(&x, &mut without);
+        let scale = want.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        let far = (0..3 * n).fold(0.0f64, |m, i| m.max((without[i] - want[i]).abs()));
+        assert!(far > 0.1 * scale, "the term matters: {far} of {scale}");
+        for i in 0..3 * n {
+            assert!((seq[i] - want[i]).abs() < 1e-12 * scale, "sequential {i}");
+            assert!((par[i] - want[i]).abs() < 1e-12 * scale, "parallel {i}");
+            assert!((blk[i] - want[i]).abs() < 1e-12 * scale, "blocks {i}");
+        }
     }
 
     #[test]

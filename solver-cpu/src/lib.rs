@@ -188,9 +188,6 @@ impl SymCsc {
     }
 }
 
-/// A solver for symmetric positive definite systems: `prepare` once per matrix,
-/// then solve many right-hand sides. Implemented by the CPU Cholesky reference
-/// backend and by the GPU preconditioned-conjugate-gradient backend.
 /// What a preconditioner may know of a shape matrix beyond its values: its
 /// isotropic part `K` is close to `S Mt^-1 S + c S`, with `S` the input's
 /// cotangent Laplacian (E_m's Hessian is `S diag(m) S`, `m_i = k_m / (2 A_i)`,
@@ -207,6 +204,22 @@ pub struct ShapeOperatorModel {
     pub c: f64,
 }
 
+impl ShapeOperatorModel {
+    /// `1 / Mt_i`, E_m's weight `m_i` of vertex `i` in `S diag(m) S` (0
+    /// where `Mt_i` is 0: a vertex outside every face).
+    pub fn square_weight(&self, i: usize) -> f64 {
+        let mt = self.mt[i];
+        if mt > 0.0 {
+            1.0 / mt
+        } else {
+            0.0
+        }
+    }
+}
+
+/// A solver for symmetric positive definite systems: `prepare` once per matrix,
+/// then solve many right-hand sides. Implemented by the CPU Cholesky reference
+/// backend and by the GPU preconditioned-conjugate-gradient backend.
 pub trait SpdSolver {
     /// Factor (or upload) a scalar matrix. The symbolic analysis is reused while
     /// the sparsity pattern is unchanged.
@@ -252,6 +265,16 @@ pub trait SpdSolver {
     /// without scattering `a_i R_ip R_iq` into `K`'s slots).
     fn wants_isotropic_part(&self) -> bool {
         true
+    }
+    /// Whether the next shape matrix may leave E_m's Hessian out of `K` and
+    /// name it instead ([`IsoRingSym3::laplacian_square`]: `S Mt^-1 S (x)
+    /// I3` of a [`ShapeOperatorModel`]), for the solver to add it itself
+    /// (default: never). A backend says yes where it keeps that constant
+    /// term's values apart from the host (made once per model, added to
+    /// every later matrix of it), and never while it wants `K`'s whole
+    /// isotropic part ([`Self::wants_isotropic_part`]).
+    fn adds_laplacian_square(&self) -> bool {
+        false
     }
     /// The matrix kept by `prepare_shape_owned`.
     fn shape_matrix(&self) -> Option<&IsoRingSym3> {

@@ -14,20 +14,23 @@
 //! A shape matrix `K (x) I3 + sum_i R_i^T C_i R_i` goes up as less still:
 //! `K`'s values and the `C_i` (8 bytes a lower entry and 48 a ring), and
 //! `shaders/sum_shape_blocks.wgsl` sums its lower blocks first ([`ShapeSum`];
-//! bindings in the shader's header). Both kernels go in one submission.
+//! bindings in the shader's header). Both kernels go in one submission. A
+//! constant term the matrices name, E_m's `S Mt^-1 S`
+//! ([`IsoRingSym3::laplacian_square`]), goes up once per model and is added
+//! to every later matrix's `K` there.
 
 use crate::device::{dispatch, Bind, Context, Kernel, KernelWork, Shader, FLAT_WG};
 #[cfg(doc)]
 use crate::matrix::HostMatrix;
 use crate::matrix::{Chunk, RingSlots};
 use crate::GpuError;
-use solver_cpu::{IsoRingSym3, SparseRows};
+use solver_cpu::{IsoRingSym3, ShapeOperatorModel, SparseRows};
 use std::sync::Arc;
 
 pub(crate) const SOURCE: &str = include_str!("../../shaders/expand_blocks.wgsl");
 pub(crate) const SUM_SOURCE: &str = include_str!("../../shaders/sum_shape_blocks.wgsl");
 
-const SUM_BINDINGS: [(u32, Bind); 7] = [
+const SUM_BINDINGS: [(u32, Bind); 8] = [
     (0, Bind::Uniform),
     (1, Bind::Read),
     (2, Bind::Read),
@@ -35,6 +38,7 @@ const SUM_BINDINGS: [(u32, Bind); 7] = [
     (4, Bind::Read),
     (5, Bind::Read),
     (6, Bind::ReadWrite),
+    (7, Bind::Read),
 ];
 
 const BINDINGS: [(u32, Bind); 5] = [
@@ -176,6 +180,7 @@ impl ExpandBlocks {
         sum: &ShapeSum,
         a: &IsoRingSym3,
     ) -> Result<(), GpuError> {
+        debug_assert!(sum.adds(a.laplacian_square.as_ref()));
         ctx.write_buffer(&sum.iso, 0, bytemuck::cast_slice(&a.iso.values));
         ctx.write_buffer(&sum.ring_c, 0, bytemuck::cast_slice(&a.ring_c));
         self.submit(ctx, e, Some(sum))
@@ -195,7 +200,7 @@ impl ExpandBlocks {
             });
             if let (Some(s), Some(p)) = (sum, &sum_pipeline) {
                 dispatch(&mut pass, p, &s.bind, s.dims);
-                ctx.count_kernels(s.work);
+                ctx.count_kernels(s.work());
             }
             for (bg, dims) in &e.steps {
                 dispatch(&mut pass, &pipeline, bg, *dims);
@@ -209,16 +214,23 @@ impl ExpandBlocks {
 
 /// What `sum_shape_blocks.wgsl` needs beyond a matrix's values, made once
 /// per pattern and rings: per lower block, its ring pairs `(p, q)` in ring
-/// order, as the ring `i` and the weight `R_ip R_iq` of each; and the
-/// buffers each matrix's `K` values and `C_i` are written to.
+/// order, as the ring `i` and the weight `R_ip R_iq` of each; the buffers
+/// each matrix's `K` values and `C_i` are written to; and the values of
+/// the constant term the matrices name, if any (once per model).
 pub(crate) struct ShapeSum {
     /// The rings it was made for (kept to recognise them).
     rings: Arc<SparseRows>,
     iso: wgpu::Buffer,
     ring_c: wgpu::Buffer,
+    /// The Laplacian square term's value per lower entry, of `square_of`.
+    square: wgpu::Buffer,
+    square_of: Option<Arc<ShapeOperatorModel>>,
+    params: wgpu::Buffer,
+    nnz: usize,
     bind: wgpu::BindGroup,
     dims: (u32, u32),
-    work: KernelWork,
+    /// Bytes of a sum without the constant term.
+    bytes: u64,
     /// Kept alive for the bind group.
     #[allow(dead_code)]
     keep: Vec<wgpu::Buffer>,
@@ -229,7 +241,9 @@ pub(crate) struct ShapeSum {
 #[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
 pub(crate) struct SumParams {
     pub(crate) slots: u32,
-    pub(crate) pad: [u32; 3],
+    /// 1 where the constant term's values are added, else 0.
+    pub(crate) square: u32,
+    pub(crate) pad: [u32; 2],
 }
 
 impl ShapeSum {
@@ -237,6 +251,7 @@ impl ShapeSum {
     /// rings and `pairs` ring pairs binds, the largest first.
     fn binding_bytes(lower_blocks: usize, rings: usize, pairs: usize) -> [u64; 5] {
         let (l, r, p) = (lower_blocks as u64, rings as u64, pairs as u64);
+        // The constant term's values are as large as K's (8 l).
         [72 * l, 8 * p, 4 * p, 8 * l, 48 * r]
     }
 
@@ -249,6 +264,61 @@ impl ShapeSum {
     /// Whether this was made for `rings`.
     pub fn of(&self, rings: &Arc<SparseRows>) -> bool {
         Arc::ptr_eq(&self.rings, rings)
+    }
+
+    /// Whether it adds the term of `model` (by identity), or none for `None`.
+    pub fn adds(&self, model: Option<&Arc<ShapeOperatorModel>>) -> bool {
+        match (&self.square_of, model) {
+            (Some(a), Some(b)) => Arc::ptr_eq(a, b),
+            (None, None) => true,
+            _ => false,
+        }
+    }
+
+    /// From now on, add the term of `model` with its `values` per lower
+    /// entry ([`crate::matrix::laplacian_square_values`]), or none; an error
+    /// where a model comes without one value per lower entry.
+    pub fn set_square(
+        &mut self,
+        ctx: &Context,
+        model: Option<Arc<ShapeOperatorModel>>,
+        values: Option<&[f64]>,
+    ) -> Result<(), GpuError> {
+        self.square_of = None;
+        if model.is_some() {
+            let v = values.filter(|v| v.len() == self.nnz).ok_or_else(|| {
+                GpuError::Backend(format!(
+                    "shape sum: the constant term needs {} values, got {}",
+                    self.nnz,
+                    values.map_or(0, <[f64]>::len)
+                ))
+            })?;
+            ctx.write_buffer(&self.square, 0, bytemuck::cast_slice(v));
+        }
+        let params = self.params_of(model.is_some());
+        ctx.write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
+        self.square_of = model;
+        Ok(())
+    }
+
+    fn params_of(&self, square: bool) -> SumParams {
+        SumParams {
+            slots: self.nnz as u32,
+            square: square as u32,
+            pad: [0; 2],
+        }
+    }
+
+    /// What one sum reads and writes: K once (and the constant term's
+    /// values where added), each block's pairs (ring, weight) and its C_i
+    /// once, the lower blocks written.
+    fn work(&self) -> KernelWork {
+        let square = if self.square_of.is_some() {
+            8 * self.nnz as u64
+        } else {
+            0
+        };
+        KernelWork::other(self.bytes + square)
     }
 
     /// The sum of `a`'s pattern and rings (pairs' slots `slots`) into
@@ -267,6 +337,10 @@ impl ShapeSum {
             "shape sum: ring matrices C_i (f64)",
             48 * a.rings.len().max(1) as u64,
         )?;
+        let square = ctx.storage(
+            "shape sum: constant term's values (f64)",
+            8 * nnz.max(1) as u64,
+        )?;
         let start_buf = ctx.storage_init("shape sum: ring pairs per lower block", &start)?;
         let ring_buf = ctx.storage_init("shape sum: ring of each pair", &ring)?;
         let f_buf = ctx.storage_init("shape sum: weight of each pair (f64)", &f)?;
@@ -274,7 +348,8 @@ impl ShapeSum {
             "sum_shape_blocks params",
             &SumParams {
                 slots: nnz as u32,
-                pad: [0; 3],
+                square: 0,
+                pad: [0; 2],
             },
         )?;
         let bind = k.sum_shader.bind(
@@ -287,21 +362,24 @@ impl ShapeSum {
                 (4, &ring_buf),
                 (5, &f_buf),
                 (6, lower),
+                (7, &square),
             ],
         )?;
         let dims = ctx.dims("sum_shape_blocks", (nnz as u64).div_ceil(FLAT_WG as u64))?;
-        // K once, each block's pairs (ring, weight) and its C_i once, the
-        // lower blocks written.
         let pairs = f.len() as u64;
         let bytes = 8 * nnz as u64 + 4 * (nnz as u64 + 1) + pairs * (4 + 8 + 48) + 72 * nnz as u64;
         Ok(ShapeSum {
             rings: a.rings.clone(),
             iso,
             ring_c,
+            square,
+            square_of: None,
+            params,
+            nnz,
             bind,
             dims,
-            work: KernelWork::other(bytes),
-            keep: vec![params, start_buf, ring_buf, f_buf],
+            bytes,
+            keep: vec![start_buf, ring_buf, f_buf],
         })
     }
 }
@@ -311,6 +389,7 @@ mod tests {
     use crate::matrix::{high_part, low_part, HostMatrix};
     use crate::MixedPrecision;
     use solver_cpu::{BlockSym3, SpdSolver};
+    use std::sync::Arc;
 
     /// A block matrix on a ring of `n` vertices (neighbours 1 and 2 apart),
     /// SPD diagonal blocks, values depending on `seed`.
@@ -555,8 +634,11 @@ mod tests {
     /// then the host sends `K`'s values and the `C_i` (8 bytes a lower entry,
     /// 48 a ring) and the inverse diagonals, keeps the matrix in its own
     /// form, and the blocks the GPU holds are the host's sum (high and low
-    /// parts); the solve's residual is the host-summed matrix's. Taken back,
-    /// the matrix is gone from the solver until the next one.
+    /// parts); the solve's residual is the host-summed matrix's. Once the
+    /// kind's factor is made, the solver adds a Laplacian square term the
+    /// matrices name: its values go up once, and the blocks and solves are
+    /// still the host's sum's. Taken back, the matrix is gone from the
+    /// solver until the next one.
     #[test]
     fn shape_blocks_summed_on_the_gpu_are_the_hosts() {
         let Some(mut s) = mixed_solver() else {
@@ -566,17 +648,25 @@ mod tests {
         let mut fixed = vec![false; n];
         fixed[7] = true;
         let rings = crate::matrix::shape_strip(n, 0.0).rings;
+        let mut square = None;
         let mut last = None;
-        for seed in [0.0, 0.25, 0.5] {
+        for seed in [0.0, 0.25, 0.5, 0.75] {
             // The rings of a run are one (the input's Laplacian).
             let mut a = crate::matrix::shape_strip(n, seed);
             a.rings = rings.clone();
+            // The solver says when it adds the term: once the kind's
+            // factor is made and it sums the blocks.
+            assert_eq!(s.adds_laplacian_square(), seed > 0.0, "seed {seed}");
+            if seed >= 0.5 {
+                let m = square.get_or_insert_with(|| crate::matrix::square_model(&a));
+                a.laplacian_square = Some(Arc::clone(m));
+            }
             let nnz = a.iso.row_idx.len();
             let up0 = s.ctx.traffic().to_device;
             let mut want = HostMatrix::pattern(n, 3, &a.iso.col_ptr, &a.iso.row_idx).unwrap();
             let slots =
                 crate::matrix::RingSlots::new(&a.rings, &a.iso.col_ptr, &a.iso.row_idx).unwrap();
-            want.fill_shape(&a, &slots, &fixed);
+            want.fill_shape(&a, &slots, &fixed).unwrap();
             // K is read apart (factored) for the kind's first matrix only.
             assert_eq!(s.wants_isotropic_part(), seed == 0.0, "seed {seed}");
             let kept = s.prepare_shape_owned(a, &fixed).unwrap();
@@ -586,10 +676,12 @@ mod tests {
             // After the first (the pattern, the pairs, their starts and
             // weights), the values go up as K's values, the C_i and the
             // inverse diagonals (f32 3x3 and f64 scalar), nothing else (the
-            // mixed-precision matrix's expansion was made at its build).
+            // mixed-precision matrix's expansion was made at its build);
+            // the term's values (and the sum's parameters) once.
             let each = 8 * nnz + 48 * n + 60 * n;
+            let square_once = if seed == 0.5 { 8 * nnz + 16 } else { 0 };
             if seed > 0.0 {
-                assert_eq!(up, each as u64, "seed {seed}");
+                assert_eq!(up, (each + square_once) as u64, "seed {seed}");
             }
             assert!(s.shape_sum.is_some());
             // (The first solve builds the mixed-precision matrix.)
@@ -614,7 +706,8 @@ mod tests {
         let h = s.host.as_ref().unwrap();
         assert!(!h.lower_summed_on_host(), "no blocks summed on the host");
         let a = s.take_shape_matrix().expect("the kept matrix");
-        assert_eq!(a.iso.values, crate::matrix::shape_strip(n, 0.5).iso.values);
+        assert_eq!(a.iso.values, crate::matrix::shape_strip(n, 0.75).iso.values);
+        assert!(a.laplacian_square.is_some());
         let mut x = vec![1.0; 3 * n];
         assert!(matches!(
             s.solve_in_place(&mut x, 1),

@@ -60,6 +60,10 @@
 //! (each block's ring pairs and weights found once per pattern and rings),
 //! and the host keeps the matrix in that form, as the CPU backend does, for
 //! its residuals (matrix-free) and diagonal blocks: no blocks on the host.
+//! Once a kind's factor is made, the later matrices leave E_m's constant
+//! Hessian `S Mt^-1 S` out of `K` and name it
+//! ([`IsoRingSym3::laplacian_square`](solver_cpu::IsoRingSym3::laplacian_square)):
+//! its values go up once per weight set and the sum adds them to `K`.
 //!
 //! The **shape systems** (the scale-driven ones, Eq. 7, and the fine-tune's,
 //! Eq. 8) are preconditioned by default as the CPU backend's block PCG is,

@@ -11,7 +11,10 @@ use crate::expand_blocks::{IDENTITY, TRANSPOSE, ZERO};
 use crate::precision::Precision;
 use crate::GpuError;
 use rayon::prelude::*;
-use solver_cpu::{sym3_block, BlockRows, BlockSym3, IsoRingSym3, SolverError, SparseRows, SymCsc};
+use solver_cpu::{
+    sym3_block, BlockRows, BlockSym3, IsoRingSym3, ShapeOperatorModel, SolverError, SparseRows,
+    SymCsc,
+};
 use std::sync::{Arc, OnceLock};
 
 /// Full block-CSR pattern and f64 values (host side). A scalar matrix keeps
@@ -58,6 +61,91 @@ struct ShapeForm {
     /// Its lower blocks, summed on the host only where something needs them
     /// (the host's fallbacks: no `SHADER_F64`, a binding too small, AMG).
     lower: OnceLock<Vec<[f64; 9]>>,
+    /// What the host keeps of its [`IsoRingSym3::laplacian_square`] term.
+    square: Option<Arc<SquareParts>>,
+}
+
+/// What the host keeps of a constant term `S Mt^-1 S (x) I3`
+/// ([`IsoRingSym3::laplacian_square`]) whose values the GPU holds
+/// ([`laplacian_square_values`], added by `sum_shape_blocks.wgsl`): its
+/// diagonal and its absolute row sums, one value a vertex each.
+pub(crate) struct SquareParts {
+    /// The model whose term this is.
+    pub model: Arc<ShapeOperatorModel>,
+    /// The term's value at each vertex's diagonal slot.
+    diag: Vec<f64>,
+    /// The term's absolute row sums (for [`shape_norm_bound`]).
+    row_abs: Vec<f64>,
+}
+
+impl SquareParts {
+    /// The parts of `values` ([`laplacian_square_values`] of `model`) on
+    /// the lower pattern of `a`.
+    pub fn new(model: Arc<ShapeOperatorModel>, a: &IsoRingSym3, values: &[f64]) -> SquareParts {
+        let n = a.n();
+        let (col_ptr, row_idx) = (&a.iso.col_ptr, &a.iso.row_idx);
+        let diag = (0..n).map(|v| values[a.diagonal_slot(v)]).collect();
+        let mut row_abs = vec![0f64; n];
+        for j in 0..n {
+            for s in col_ptr[j]..col_ptr[j + 1] {
+                let i = row_idx[s];
+                row_abs[i] += values[s].abs();
+                if i != j {
+                    row_abs[j] += values[s].abs();
+                }
+            }
+        }
+        SquareParts {
+            model,
+            diag,
+            row_abs,
+        }
+    }
+
+    /// Whether these are the parts of `model` (by identity).
+    pub fn of(&self, model: &Arc<ShapeOperatorModel>) -> bool {
+        Arc::ptr_eq(&self.model, model)
+    }
+}
+
+/// The values on `a`'s lower pattern of its [`IsoRingSym3::laplacian_square`]
+/// term `S Mt^-1 S`, `m_i S_ip S_iq` summed over each row `i` of `S` and
+/// its pairs `(p, q)` in [`SparseRows::pairs`] order (`None` without the
+/// term). Through `slots` where `S` has the rings' rows' columns (E_m's
+/// cotangent and E_l's mean-value Laplacian of one mesh), else by binary
+/// search; an error names a pair outside the pattern.
+pub(crate) fn laplacian_square_values(
+    a: &IsoRingSym3,
+    slots: &RingSlots,
+) -> Result<Option<Vec<f64>>, SolverError> {
+    let Some(model) = &a.laplacian_square else {
+        return Ok(None);
+    };
+    let s = &*model.laplacian;
+    let mut values = vec![0f64; a.iso.row_idx.len()];
+    let same = s.start == a.rings.start && s.idx == a.rings.idx && slots.of(&a.rings);
+    for i in 0..s.len() {
+        let m = model.square_weight(i);
+        if m == 0.0 {
+            continue;
+        }
+        if same {
+            let pairs = &slots.slot[slots.start[i] as usize..slots.start[i + 1] as usize];
+            for (&k, (_, _, f)) in pairs.iter().zip(s.pairs(i)) {
+                values[k as usize] += m * f;
+            }
+            continue;
+        }
+        for (p, q, f) in s.pairs(i) {
+            let Some(k) = a.iso.slot(p, q) else {
+                return Err(SolverError::DimensionMismatch(format!(
+                    "Laplacian pair ({p}, {q}) of row {i} is outside the matrix pattern"
+                )));
+            };
+            values[k] += m * f;
+        }
+    }
+    Ok(Some(values))
 }
 
 impl HostMatrix {
@@ -205,24 +293,46 @@ impl HostMatrix {
     /// summed in place (no allocation after the first fill of a pattern) with
     /// the ring pairs' slots from `slots`, in the order and with the
     /// arithmetic of [`IsoRingSym3::to_blocks`] (the same values to the bit).
-    pub fn fill_shape(&mut self, a: &IsoRingSym3, slots: &RingSlots, fixed: &[bool]) {
+    pub fn fill_shape(
+        &mut self,
+        a: &IsoRingSym3,
+        slots: &RingSlots,
+        fixed: &[bool],
+    ) -> Result<(), SolverError> {
         let mut scratch = std::mem::take(&mut self.lower);
-        sum_lower(a, slots, &mut scratch);
+        let square = laplacian_square_values(a, slots)?;
+        sum_lower(a, slots, square.as_deref(), &mut scratch);
         self.set_lower(scratch, fixed);
+        Ok(())
     }
 
     /// A shape matrix kept in its isotropic-plus-ring form, for the GPU to
     /// sum its blocks (`sum_shape_blocks.wgsl`): the host keeps `a` (for the
     /// residuals, [`Self::residual`]) and its diagonal blocks, no lower
-    /// blocks. Hand `a` back with [`Self::take_shape`].
-    pub fn set_shape(&mut self, a: IsoRingSym3, slots: Arc<RingSlots>, fixed: &[bool]) {
+    /// blocks. Hand `a` back with [`Self::take_shape`]. A term `a` names
+    /// ([`IsoRingSym3::laplacian_square`]) comes with its `square` parts.
+    pub fn set_shape(
+        &mut self,
+        a: IsoRingSym3,
+        slots: Arc<RingSlots>,
+        fixed: &[bool],
+        square: Option<Arc<SquareParts>>,
+    ) {
         debug_assert_eq!(self.bs, 3);
+        debug_assert_eq!(
+            a.laplacian_square.as_ref().map(Arc::as_ptr),
+            square.as_ref().map(|q| Arc::as_ptr(&q.model))
+        );
         self.norm = OnceLock::new();
         self.lower = Vec::new();
         let mut diag: Vec<[f64; 9]> = (0..a.n())
             .into_par_iter()
             .map(|v| {
-                let k = a.iso.values[a.diagonal_slot(v)];
+                // K's value, plus the constant term's as the GPU adds it.
+                let mut k = a.iso.values[a.diagonal_slot(v)];
+                if let Some(q) = &square {
+                    k += q.diag[v];
+                }
                 [k, 0.0, 0.0, 0.0, k, 0.0, 0.0, 0.0, k]
             })
             .collect();
@@ -245,6 +355,7 @@ impl HostMatrix {
             slots,
             diag,
             lower: OnceLock::new(),
+            square,
         });
         self.set_fixed(fixed);
     }
@@ -327,7 +438,11 @@ impl HostMatrix {
             Some(f) => f.lower.get_or_init(|| {
                 log::debug!("shape matrix: lower blocks summed on the host for a fallback");
                 let mut out = Vec::new();
-                sum_lower(&f.a, &f.slots, &mut out);
+                // The host keeps the term's parts, not its values: found
+                // again (they were found for these slots when the parts
+                // were made, so this can not fail).
+                let square = laplacian_square_values(&f.a, &f.slots).ok().flatten();
+                sum_lower(&f.a, &f.slots, square.as_deref(), &mut out);
                 out
             }),
             None => &self.lower,
@@ -453,7 +568,8 @@ impl HostMatrix {
 
     fn row_sums_max(&self) -> f64 {
         if let Some(f) = &self.shape {
-            return shape_norm_bound(&f.a, &self.map_fixed);
+            let square = f.square.as_ref().map(|q| q.row_abs.as_slice());
+            return shape_norm_bound(&f.a, square, &self.map_fixed);
         }
         let bs = self.bs;
         (0..self.rows)
@@ -529,15 +645,27 @@ impl HostMatrix {
 
 /// The lower blocks of `a` (input order) summed into `out`, with the ring
 /// pairs' slots `slots`, in the order and with the arithmetic of
-/// [`IsoRingSym3::to_blocks`] (the same values to the bit).
-fn sum_lower(a: &IsoRingSym3, slots: &RingSlots, out: &mut Vec<[f64; 9]>) {
+/// [`IsoRingSym3::to_blocks`] (the same values to the bit), and of
+/// `sum_shape_blocks.wgsl`: `K`'s value plus, where `a` names a Laplacian
+/// square, its value in `square` ([`laplacian_square_values`]), then the rings.
+fn sum_lower(a: &IsoRingSym3, slots: &RingSlots, square: Option<&[f64]>, out: &mut Vec<[f64; 9]>) {
     out.clear();
-    out.par_extend(
-        a.iso
-            .values
-            .par_iter()
-            .map(|&v| [v, 0.0, 0.0, 0.0, v, 0.0, 0.0, 0.0, v]),
-    );
+    match square {
+        Some(sq) => out.par_extend(
+            a.iso
+                .values
+                .par_iter()
+                .zip(sq)
+                .map(|(&v, &q)| v + q)
+                .map(|v| [v, 0.0, 0.0, 0.0, v, 0.0, 0.0, 0.0, v]),
+        ),
+        None => out.par_extend(
+            a.iso
+                .values
+                .par_iter()
+                .map(|&v| [v, 0.0, 0.0, 0.0, v, 0.0, 0.0, 0.0, v]),
+        ),
+    }
     let rings = &a.rings;
     for (i, c) in a.ring_c.iter().enumerate() {
         let pairs = &slots.slot[slots.start[i] as usize..slots.start[i + 1] as usize];
@@ -557,11 +685,15 @@ fn sum_lower(a: &IsoRingSym3, slots: &RingSlots, out: &mut Vec<[f64; 9]>) {
 /// An upper bound of `||A||_inf` for a shape matrix `a` with the held
 /// vertices `fixed` (rows of the identity), without its blocks: per row `p`,
 /// `sum_j |K_pj| + sum over the rings i holding p of |R_ip| ||C_i||_inf
-/// sum_q |R_iq|` (the triangle inequality on every block's sum). Used for
+/// sum_q |R_iq|` (the triangle inequality on every block's sum), plus the
+/// absolute row sums `square` of a Laplacian square term it names. Used for
 /// the rounding floor of the residual target only.
-fn shape_norm_bound(a: &IsoRingSym3, fixed: &[bool]) -> f64 {
+fn shape_norm_bound(a: &IsoRingSym3, square: Option<&[f64]>, fixed: &[bool]) -> f64 {
     let n = a.n();
-    let mut row = vec![0f64; n];
+    let mut row = match square {
+        Some(r) => r.to_vec(),
+        None => vec![0f64; n],
+    };
     let (col_ptr, row_idx, k) = (&a.iso.col_ptr, &a.iso.row_idx, &a.iso.values);
     for j in 0..n {
         for s in col_ptr[j]..col_ptr[j + 1] {
@@ -724,6 +856,34 @@ fn strip_pattern(n: usize) -> IsoRingSym3 {
     IsoRingSym3::new(n, pat.col_ptr, pat.row_idx, rings)
 }
 
+/// A Laplacian square model for `a`: rows with the columns of `a`'s rings
+/// (as E_m's cotangent rows have E_l's mean-value rows' columns) and other
+/// weights, `Mt` 0 at vertex 2 (a vertex outside every face).
+#[cfg(test)]
+pub(crate) fn square_model(a: &IsoRingSym3) -> Arc<ShapeOperatorModel> {
+    let r = &a.rings;
+    let w: Vec<f64> = (0..r.w.len())
+        .map(|k| r.w[k] * (1.3 + 0.2 * (k as f64).sin()))
+        .collect();
+    let diag = (0..r.len())
+        .map(|i| w[r.start[i]..r.start[i + 1]].iter().sum())
+        .collect();
+    let laplacian = Arc::new(SparseRows {
+        start: r.start.clone(),
+        idx: r.idx.clone(),
+        w,
+        diag,
+    });
+    let mt = (0..r.len())
+        .map(|i| if i == 2 { 0.0 } else { 0.5 + 0.1 * i as f64 })
+        .collect();
+    Arc::new(ShapeOperatorModel {
+        laplacian,
+        mt,
+        c: 0.0,
+    })
+}
+
 #[cfg(test)]
 mod shape_fill_tests {
     use super::*;
@@ -755,7 +915,7 @@ mod shape_fill_tests {
         let slots = RingSlots::new(&a.rings, col_ptr, row_idx).unwrap();
         assert!(slots.of(&a.rings));
         let mut got = HostMatrix::pattern(11, 3, col_ptr, row_idx).unwrap();
-        got.fill_shape(&a, &slots, &fixed);
+        got.fill_shape(&a, &slots, &fixed).unwrap();
         assert_eq!(got.full_values(), want.full_values());
         // New values, the same slots: still equal (the first fill's lower
         // blocks, summed in place, are not added to).
@@ -763,10 +923,26 @@ mod shape_fill_tests {
         b.ring_c[2] = [1.0, 0.0, -1.0, 0.5, 0.0, 0.0];
         b.iso.values[0] += 2.0;
         want.fill_blocks(&b.to_blocks(), &fixed);
-        got.fill_shape(&b, &slots, &fixed);
+        got.fill_shape(&b, &slots, &fixed).unwrap();
         assert_eq!(got.full_values(), want.full_values());
         // Different rings (equal values, another allocation) are not these.
-        assert!(!slots.of(&Arc::new((*a.rings).clone())));
+        let other = RingSlots::new(&Arc::new((*a.rings).clone()), col_ptr, row_idx).unwrap();
+        assert!(!slots.of(&other.rings));
+        // A Laplacian square term the matrix names: summed as `to_blocks`
+        // sums it, and its values are the same through the ring slots and
+        // by search (slots of other rings).
+        b.laplacian_square = Some(square_model(&b));
+        want.fill_blocks(&b.to_blocks(), &fixed);
+        got.fill_shape(&b, &slots, &fixed).unwrap();
+        assert_eq!(got.full_values(), want.full_values());
+        let fast = laplacian_square_values(&b, &slots).unwrap().unwrap();
+        let searched = laplacian_square_values(&b, &other).unwrap().unwrap();
+        assert_eq!(fast, searched);
+        assert!(fast.iter().filter(|v| **v != 0.0).count() > 11);
+        // Without the term's values the sum differs.
+        b.laplacian_square = None;
+        want.fill_blocks(&b.to_blocks(), &fixed);
+        assert_ne!(got.full_values(), want.full_values());
     }
 
     /// Every full block is the lower block, its transpose above the
@@ -847,16 +1023,25 @@ mod shape_fill_tests {
     #[test]
     fn shape_form_answers_as_its_blocks() {
         let n = 23;
-        let a = shape_strip(n, 0.3);
-        let (col_ptr, row_idx) = (&a.iso.col_ptr, &a.iso.row_idx);
-        let slots = Arc::new(RingSlots::new(&a.rings, col_ptr, row_idx).unwrap());
-        for held in [vec![], vec![4usize, 11]] {
+        let plain = shape_strip(n, 0.3);
+        let mut named = plain.clone();
+        named.laplacian_square = Some(square_model(&plain));
+        let (col_ptr, row_idx) = (&plain.iso.col_ptr, &plain.iso.row_idx);
+        let slots = Arc::new(RingSlots::new(&plain.rings, col_ptr, row_idx).unwrap());
+        let cases = [vec![], vec![4usize, 11]]
+            .into_iter()
+            .flat_map(|held| [(held.clone(), &plain), (held, &named)]);
+        for (held, a) in cases {
             let mut fixed = vec![false; n];
             held.iter().for_each(|&v| fixed[v] = true);
             let mut blocks = HostMatrix::pattern(n, 3, col_ptr, row_idx).unwrap();
-            blocks.fill_shape(&a, &slots, &fixed);
+            blocks.fill_shape(a, &slots, &fixed).unwrap();
             let mut form = HostMatrix::pattern(n, 3, col_ptr, row_idx).unwrap();
-            form.set_shape(a.clone(), slots.clone(), &fixed);
+            let square = laplacian_square_values(a, &slots).unwrap().map(|v| {
+                let model = a.laplacian_square.clone().unwrap();
+                Arc::new(SquareParts::new(model, a, &v))
+            });
+            form.set_shape(a.clone(), slots.clone(), &fixed, square);
             assert!(form.is_filled() && form.shape_form().is_some());
             // The form holds diagonal blocks, not the lower ones.
             let lower = blocks.lower_len();
@@ -886,8 +1071,8 @@ mod shape_fill_tests {
             assert_eq!(form.full_values(), blocks.full_values());
         }
         let mut form = HostMatrix::pattern(n, 3, col_ptr, row_idx).unwrap();
-        form.set_shape(a.clone(), slots, &[false; 23]);
-        assert_eq!(form.take_shape().unwrap().iso.values, a.iso.values);
+        form.set_shape(plain.clone(), slots, &[false; 23], None);
+        assert_eq!(form.take_shape().unwrap().iso.values, plain.iso.values);
         assert!(!form.is_filled());
     }
 

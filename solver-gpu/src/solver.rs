@@ -166,6 +166,8 @@ pub fn open_with(opts: OpenOptions) -> Result<GpuSolver, GpuError> {
         ring_slots: None,
         expand_lower: None,
         shape_sum: None,
+        square: None,
+        square_values: None,
         expand: None,
         expansion: None,
         mixed_builds: 0,
@@ -277,6 +279,11 @@ pub struct GpuSolver {
     expand_lower: Option<(usize, wgpu::Buffer)>,
     /// The shape sum of the uploaded pattern (its stamp) and rings.
     pub(crate) shape_sum: Option<(usize, expand_blocks::ShapeSum)>,
+    /// The host's parts of the Laplacian square term the shape matrices
+    /// name ([`IsoRingSym3::laplacian_square`]; made once per model), and
+    /// its values until the shape sum takes them up.
+    square: Option<Arc<matrix::SquareParts>>,
+    square_values: Option<Vec<f64>>,
     /// New values of a prepared block pattern go up as their lower triangle
     /// in f64 and are expanded on the GPU (needs `SHADER_F64`): the kernel,
     /// and the recorded expansion with what it was recorded for
@@ -1351,8 +1358,18 @@ impl GpuSolver {
                     let sum = expand_blocks::ShapeSum::new(k, &self.ctx, a, slots, lower)?;
                     self.shape_sum = Some((stamp, sum));
                 }
+                let sum = &mut self.shape_sum.as_mut().unwrap().1;
+                if !sum.adds(a.laplacian_square.as_ref()) {
+                    // A new model's term (or none): its values go up once.
+                    let values = match self.square_values.take() {
+                        Some(v) => Some(v),
+                        None => matrix::laplacian_square_values(a, slots)
+                            .map_err(|e| GpuError::Backend(e.to_string()))?,
+                    };
+                    sum.set_square(&self.ctx, a.laplacian_square.clone(), values.as_deref())?;
+                }
                 let (e, ..) = self.expansion.as_ref().unwrap();
-                k.run_shape(&self.ctx, e, &self.shape_sum.as_ref().unwrap().1, a)?;
+                k.run_shape(&self.ctx, e, sum, a)?;
             }
             _ => {
                 let (e, ..) = self.expansion.as_ref().unwrap();
@@ -1361,6 +1378,28 @@ impl GpuSolver {
         }
         self.lower_of = Some(self.matrices);
         Ok(true)
+    }
+
+    /// The host's parts of the Laplacian square term `a` names (`None`
+    /// without one): made once per model, when its values are found and
+    /// kept in `square_values` for the shape sum to take up.
+    fn square_parts(
+        &mut self,
+        a: &IsoRingSym3,
+        slots: &RingSlots,
+    ) -> Result<Option<Arc<matrix::SquareParts>>, SolverError> {
+        let Some(model) = &a.laplacian_square else {
+            return Ok(None);
+        };
+        if let Some(q) = self.square.as_ref().filter(|q| q.of(model)) {
+            return Ok(Some(q.clone()));
+        }
+        self.square = None;
+        let values = matrix::laplacian_square_values(a, slots)?.unwrap_or_default();
+        let q = Arc::new(matrix::SquareParts::new(model.clone(), a, &values));
+        self.square = Some(q.clone());
+        self.square_values = Some(values);
+        Ok(Some(q))
     }
 
     /// Whether a shape matrix `a` can have its blocks summed on the GPU
@@ -1746,16 +1785,20 @@ impl SpdSolver for GpuSolver {
         // pattern too): the host keeps it in its own form, not its blocks.
         let on_gpu = self.shape_sum_possible(&a, &slots);
         let kept = if on_gpu {
-            h.set_shape(a, slots, fixed);
+            let square = self.square_parts(&a, &slots)?;
+            h.set_shape(a, slots, fixed, square);
             None
         } else {
-            h.fill_shape(&a, &slots, fixed);
+            h.fill_shape(&a, &slots, fixed)?;
             Some(a)
         };
         self.fixed.clear();
         self.fixed.extend_from_slice(fixed);
         let filled = t.elapsed().as_secs_f64();
-        self.upload(h, same)?;
+        let uploaded = self.upload(h, same);
+        // Taken up by the shape sum, or not needed.
+        self.square_values = None;
+        uploaded?;
         log::debug!(
             "shape matrix: {} on the host in {filled:.3} s, uploaded in {:.3} s; \
              the solver's host copy {:.1} MB (beyond the matrix's own form)",
@@ -1776,6 +1819,14 @@ impl SpdSolver for GpuSolver {
             && self.chol.is_some()
             && self.chol_kind == Some(self.kind);
         !made
+    }
+
+    /// Yes where `K` is not read apart and the GPU sums the shape blocks
+    /// (`sum_shape_blocks.wgsl` adds the term's values, uploaded once per
+    /// model): E_m's constant Hessian is then not assembled on the host
+    /// again for every matrix.
+    fn adds_laplacian_square(&self) -> bool {
+        !self.wants_isotropic_part() && self.shape_sum.is_some()
     }
 
     fn shape_matrix(&self) -> Option<&IsoRingSym3> {
