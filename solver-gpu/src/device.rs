@@ -75,7 +75,14 @@ pub(crate) struct Context {
     traffic: Traffic,
     /// Timestamps around the PCG's passes, where the adapter has them.
     timer: Option<PassTimer>,
+    /// Byte vectors of earlier read-backs handed back ([`Context::recycle`])
+    /// for later ones to fill again: a solve's `x` is not read into fresh
+    /// memory, page-faulted in, each time.
+    read_pool: Mutex<Vec<Vec<u8>>>,
 }
+
+/// Read-back vectors kept for reuse at most ([`Context::recycle`]).
+const READ_POOL: usize = 8;
 
 /// Timestamp queries written at the start and end of a compute pass
 /// (`TIMESTAMP_QUERY`), resolved into a buffer that the pass's read-back
@@ -330,6 +337,7 @@ impl Context {
             lost,
             traffic: Traffic::default(),
             timer,
+            read_pool: Mutex::new(Vec::new()),
         })
     }
 
@@ -675,14 +683,47 @@ impl Context {
     ) -> Result<Vec<T>, GpuError> {
         let bytes = (count * std::mem::size_of::<T>()) as u64;
         let mut parts = self.read_parts(&[(src, bytes)], staging, enc)?;
-        Ok(bytemuck::pod_collect_to_vec(
-            &parts.pop().unwrap_or_default(),
-        ))
+        let part = parts.pop().unwrap_or_default();
+        let out = bytemuck::pod_collect_to_vec(&part);
+        self.recycle(part);
+        Ok(out)
+    }
+
+    /// Hands a read-back's bytes ([`Self::read_parts`]) back for a later
+    /// read to fill: the largest few are kept.
+    pub fn recycle(&self, bytes: Vec<u8>) {
+        if bytes.capacity() == 0 {
+            return;
+        }
+        let mut pool = self.read_pool.lock().unwrap_or_else(|e| e.into_inner());
+        pool.push(bytes);
+        if pool.len() > READ_POOL {
+            pool.sort_unstable_by_key(|v| std::cmp::Reverse(v.capacity()));
+            pool.truncate(READ_POOL);
+        }
+    }
+
+    /// An empty vector for `bytes` bytes: the smallest kept one that holds
+    /// them, else a new one.
+    fn pooled(&self, bytes: usize) -> Vec<u8> {
+        let mut pool = self.read_pool.lock().unwrap_or_else(|e| e.into_inner());
+        let best = (0..pool.len())
+            .filter(|&i| pool[i].capacity() >= bytes)
+            .min_by_key(|&i| pool[i].capacity());
+        match best {
+            Some(i) => {
+                let mut v = pool.swap_remove(i);
+                v.clear();
+                v
+            }
+            None => Vec::with_capacity(bytes),
+        }
     }
 
     /// Copy the first `bytes` bytes of each buffer into the host in one
     /// submission and one wait (one staging buffer, kept in `staging` and
-    /// reused while large enough); the bytes of each, in order.
+    /// reused while large enough); the bytes of each, in order, in vectors
+    /// of earlier reads where they were handed back ([`Self::recycle`]).
     pub fn read_parts(
         &self,
         parts: &[(&wgpu::Buffer, u64)],
@@ -744,7 +785,11 @@ impl Context {
             parts
                 .iter()
                 .zip(&offsets)
-                .map(|(&(_, bytes), &at)| view[at as usize..(at + bytes) as usize].to_vec())
+                .map(|(&(_, bytes), &at)| {
+                    let mut v = self.pooled(bytes as usize);
+                    v.extend_from_slice(&view[at as usize..(at + bytes) as usize]);
+                    v
+                })
                 .collect()
         };
         st.unmap();
@@ -982,5 +1027,39 @@ mod tests {
         assert!(short.is_err());
         let long = ctx.storage_from_pieces_in("test", 8, pieces.iter().copied(), 64);
         assert!(long.is_err());
+    }
+
+    /// A read-back's bytes handed back are filled again by a later read of
+    /// no more bytes (the same memory), with that read's bytes.
+    #[test]
+    fn read_backs_reuse_the_vectors_handed_back() {
+        let Ok(s) = crate::open() else {
+            assert!(
+                std::env::var("REQUIRE_GPU").map_or(true, |v| v != "1"),
+                "REQUIRE_GPU=1 but no GPU adapter"
+            );
+            return;
+        };
+        let ctx = &s.ctx;
+        let data: Vec<u8> = (0..4096u32).map(|i| (i * 13 % 251) as u8).collect();
+        let b = ctx.storage_init("test", &data).unwrap();
+        let mut staging = None;
+        let first = ctx.read_parts(&[(&b, 4096)], &mut staging, None).unwrap();
+        let first = first.into_iter().next().unwrap();
+        assert_eq!(first, data);
+        let at = first.as_ptr();
+        ctx.recycle(first);
+        let again = ctx.read_parts(&[(&b, 1000)], &mut staging, None).unwrap();
+        let again = again.into_iter().next().unwrap();
+        assert_eq!(again.as_ptr(), at, "the vector handed back is filled again");
+        assert_eq!(again, data[..1000]);
+        ctx.recycle(again);
+        // A read of more bytes than any kept vector holds is whole too.
+        let twice = ctx
+            .storage_init("test", &[&data[..], &data[..]].concat())
+            .unwrap();
+        let big = ctx.read::<u8>(&twice, 8192, &mut staging, None).unwrap();
+        assert_eq!(big[..4096], data[..]);
+        assert_eq!(big[4096..], data[..]);
     }
 }

@@ -659,12 +659,14 @@ impl Pcg {
                 Err(e) => break Err(e),
             };
             if ctx.pass_time_buffer().is_some() {
-                ctx.count_pass_time(&read.pop().unwrap_or_default());
+                let times = read.pop().unwrap_or_default();
+                ctx.count_pass_time(&times);
+                ctx.recycle(times);
             }
             let mut read = read.into_iter();
-            let cols = self
-                .precision
-                .read_col_states(&read.next().unwrap_or_default());
+            let states = read.next().unwrap_or_default();
+            let cols = self.precision.read_col_states(&states);
+            ctx.recycle(states);
             let norms = refined.and_then(|_| read.next());
             let run = PcgRun {
                 dispatched,
@@ -792,6 +794,7 @@ impl Pcg {
             }
         };
         add_columns(ws.precision, &bytes, scale, x);
+        ctx.recycle(bytes);
         Ok(())
     }
 }

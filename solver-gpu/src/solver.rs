@@ -661,6 +661,7 @@ impl GpuSolver {
                 }
             };
             let sums = refine::decode_norms(&norms, ncols);
+            self.ctx.recycle(norms);
             let mut worst = 0.0f64;
             let mut done = true;
             for (c, &(rn, xn)) in sums.iter().enumerate() {
@@ -689,8 +690,10 @@ impl GpuSolver {
                     )));
                 };
                 dst.copy_from_slice(src);
+                self.ctx.recycle(xbytes);
                 return Ok(());
             }
+            self.ctx.recycle(xbytes);
             self.mixed_round_progressed(worst, prev, round_no, total)?;
             prev = worst;
         }
