@@ -682,10 +682,6 @@ impl ShapeModel {
     }
 }
 
-/// Connected components of faces through shared vertices: (label per vertex, count).
-/// Lower block pattern of the 2-ring: (i, j) for every pair inside one closed
-/// 1-ring of `ring` (whose rows list the closed 1-rings), built column by column
-/// in parallel.
 /// E_m's unscaled Hessian `sum_i 2 delta_i^T delta_i / (4 A_i)`, one value per
 /// entry of `h`'s `K`.
 fn em_hessian(cot: &Laplacian, vertex_area: &[f64], h: &IsoRingSym3) -> Vec<f64> {
@@ -708,7 +704,9 @@ fn em_hessian(cot: &Laplacian, vertex_area: &[f64], h: &IsoRingSym3) -> Vec<f64>
 }
 
 /// Lower-triangular pattern `(col_ptr, row_idx)` of the vertex pairs within two
-/// rings of each other, diagonal first in every column.
+/// rings of each other (every pair inside one closed 1-ring of `ring`, whose
+/// rows list the closed 1-rings), diagonal first in every column; built column
+/// by column in parallel.
 fn two_ring_pattern(ring: &Laplacian) -> (Vec<usize>, Vec<usize>) {
     use rayon::prelude::*;
     let n = ring.diag.len();
