@@ -63,6 +63,9 @@ struct ShapeForm {
     lower: OnceLock<Vec<[f64; 9]>>,
     /// What the host keeps of its [`IsoRingSym3::laplacian_square`] term.
     square: Option<Arc<SquareParts>>,
+    /// Per row `p`, the rings' part of [`shape_norm_bound`]: the sum over
+    /// the rings `i` holding `p` of `|R_ip| ||C_i||_inf sum_q |R_iq|`.
+    ring_abs: Vec<f64>,
 }
 
 /// What the host keeps of a constant term `S Mt^-1 S (x) I3`
@@ -337,17 +340,21 @@ impl HostMatrix {
             })
             .collect();
         // The diagonal pairs (p, p) of each ring, in ring order: the sums of
-        // `sum_lower` for the diagonal slots, to the bit.
+        // `sum_lower` for the diagonal slots, to the bit. In the same pass,
+        // the rings' part of the norm bound (`shape_norm_bound`).
+        let mut ring_abs = vec![0f64; a.n()];
         for (i, c) in a.ring_c.iter().enumerate() {
             if *c == [0.0; 6] {
                 continue;
             }
             let m = sym3_block(c);
+            let cs = sym3_norm_inf(c) * slots.abs_sum[i];
             for (p, w) in a.rings.row(i) {
                 let f = w * w;
                 for (o, me) in diag[p].iter_mut().zip(&m) {
                     *o += f * me;
                 }
+                ring_abs[p] += w.abs() * cs;
             }
         }
         self.shape = Some(ShapeForm {
@@ -356,6 +363,7 @@ impl HostMatrix {
             diag,
             lower: OnceLock::new(),
             square,
+            ring_abs,
         });
         self.set_fixed(fixed);
     }
@@ -569,7 +577,7 @@ impl HostMatrix {
     fn row_sums_max(&self) -> f64 {
         if let Some(f) = &self.shape {
             let square = f.square.as_ref().map(|q| q.row_abs.as_slice());
-            return shape_norm_bound(&f.a, square, &self.map_fixed);
+            return shape_norm_bound(&f.a, square, &f.ring_abs, &self.map_fixed);
         }
         let bs = self.bs;
         (0..self.rows)
@@ -684,11 +692,18 @@ fn sum_lower(a: &IsoRingSym3, slots: &RingSlots, square: Option<&[f64]>, out: &m
 
 /// An upper bound of `||A||_inf` for a shape matrix `a` with the held
 /// vertices `fixed` (rows of the identity), without its blocks: per row `p`,
-/// `sum_j |K_pj| + sum over the rings i holding p of |R_ip| ||C_i||_inf
-/// sum_q |R_iq|` (the triangle inequality on every block's sum), plus the
-/// absolute row sums `square` of a Laplacian square term it names. Used for
-/// the rounding floor of the residual target only.
-fn shape_norm_bound(a: &IsoRingSym3, square: Option<&[f64]>, fixed: &[bool]) -> f64 {
+/// `sum_j |K_pj|`, plus the rings' part `ring_abs[p]` (the sum over the
+/// rings `i` holding `p` of `|R_ip| ||C_i||_inf sum_q |R_iq|`, found with
+/// the diagonal blocks by [`HostMatrix::set_shape`]), plus the absolute row
+/// sums `square` of a Laplacian square term it names (the triangle
+/// inequality on every block's sum). Used for the rounding floor of the
+/// residual target only.
+fn shape_norm_bound(
+    a: &IsoRingSym3,
+    square: Option<&[f64]>,
+    ring_abs: &[f64],
+    fixed: &[bool],
+) -> f64 {
     let n = a.n();
     let mut row = match square {
         Some(r) => r.to_vec(),
@@ -704,27 +719,22 @@ fn shape_norm_bound(a: &IsoRingSym3, square: Option<&[f64]>, fixed: &[bool]) -> 
             }
         }
     }
-    for (i, c) in a.ring_c.iter().enumerate() {
-        if *c == [0.0; 6] {
-            continue;
-        }
-        let cn = [
-            c[0].abs() + c[3].abs() + c[4].abs(),
-            c[3].abs() + c[1].abs() + c[5].abs(),
-            c[4].abs() + c[5].abs() + c[2].abs(),
-        ]
-        .into_iter()
-        .fold(0.0, f64::max);
-        let sw: f64 = a.rings.row(i).map(|(_, w)| w.abs()).sum();
-        for (p, w) in a.rings.row(i) {
-            row[p] += w.abs() * cn * sw;
-        }
-    }
     let held = fixed.iter().any(|&f| f);
     (0..n)
         .filter(|&p| !fixed[p])
-        .map(|p| row[p])
+        .map(|p| row[p] + ring_abs[p])
         .fold(if held { 1.0 } else { 0.0 }, f64::max)
+}
+
+/// `||C||_inf` of a symmetric 3x3 `C` stored as (xx, yy, zz, xy, xz, yz).
+fn sym3_norm_inf(c: &[f64; 6]) -> f64 {
+    [
+        c[0].abs() + c[3].abs() + c[4].abs(),
+        c[3].abs() + c[1].abs() + c[5].abs(),
+        c[4].abs() + c[5].abs() + c[2].abs(),
+    ]
+    .into_iter()
+    .fold(0.0, f64::max)
 }
 
 /// Where [`HostMatrix::fill_shape`] adds each ring pair: for every row `i` of
@@ -738,6 +748,8 @@ pub(crate) struct RingSlots {
     /// Per row `i`, its pairs' slots are `slot[start[i]..start[i + 1]]`.
     start: Vec<u32>,
     slot: Vec<u32>,
+    /// Per row `i`, `sum_q |R_iq|` (for [`shape_norm_bound`]'s rings' part).
+    abs_sum: Vec<f64>,
 }
 
 impl RingSlots {
@@ -769,10 +781,14 @@ impl RingSlots {
             }
             start.push(slot.len() as u32);
         }
+        let abs_sum = (0..rings.len())
+            .map(|i| rings.row(i).map(|(_, w)| w.abs()).sum())
+            .collect();
         Ok(RingSlots {
             rings: rings.clone(),
             start,
             slot,
+            abs_sum,
         })
     }
 
