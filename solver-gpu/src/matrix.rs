@@ -127,15 +127,24 @@ pub(crate) fn laplacian_square_values(
     let s = &*model.laplacian;
     let mut values = vec![0f64; a.iso.row_idx.len()];
     let same = s.start == a.rings.start && s.idx == a.rings.idx && slots.of(&a.rings);
+    let mut row = Vec::new();
     for i in 0..s.len() {
         let m = model.square_weight(i);
         if m == 0.0 {
             continue;
         }
         if same {
-            let pairs = &slots.slot[slots.start[i] as usize..slots.start[i + 1] as usize];
-            for (&k, (_, _, f)) in pairs.iter().zip(s.pairs(i)) {
-                values[k as usize] += m * f;
+            // The pairs of `SparseRows::pairs`, in its order, from the row
+            // read once.
+            row.clear();
+            row.extend(s.row(i));
+            let mut k = slots.slot[slots.start[i] as usize..slots.start[i + 1] as usize].iter();
+            for &(p, wp) in &row {
+                for &(q, wq) in &row {
+                    if p >= q {
+                        values[*k.next().unwrap() as usize] += m * (wp * wq);
+                    }
+                }
             }
             continue;
         }
