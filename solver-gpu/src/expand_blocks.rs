@@ -421,13 +421,7 @@ mod tests {
     /// A solver on the adapter, always in mixed precision; `None` (the test
     /// passes) without an adapter or without `SHADER_F64`.
     fn mixed_solver() -> Option<crate::GpuSolver> {
-        let Ok(mut s) = crate::open() else {
-            assert!(
-                std::env::var("REQUIRE_GPU").map_or(true, |v| v != "1"),
-                "REQUIRE_GPU=1 but no GPU adapter"
-            );
-            return None;
-        };
+        let mut s = crate::test_solver()?;
         s.set_mixed_precision(MixedPrecision::Always);
         s.ctx.shader_f64.then_some(s)
     }

@@ -176,6 +176,23 @@ pub use precision::MixedPrecision;
 pub use preconditioner::{squared_laplacian_vcycles, Preconditioner, SQUARED_LAPLACIAN_SWEEPS};
 pub use solver::{gpu_available, open, open_with, GpuSolver, SolveStats};
 
+/// The default adapter's solver for a unit test, or `None` (the test passes
+/// without running) where there is none; with `REQUIRE_GPU=1` (as in CI)
+/// none fails the test.
+#[cfg(test)]
+pub(crate) fn test_solver() -> Option<GpuSolver> {
+    match open() {
+        Ok(s) => Some(s),
+        Err(e) => {
+            assert!(
+                std::env::var("REQUIRE_GPU").map_or(true, |v| v != "1"),
+                "REQUIRE_GPU=1 but no GPU adapter: {e}"
+            );
+            None
+        }
+    }
+}
+
 /// Most right-hand sides one PCG batch carries (more are solved in batches).
 pub const CMAX: usize = 8;
 

@@ -89,15 +89,7 @@ impl SquareParts {
         let (col_ptr, row_idx) = (&a.iso.col_ptr, &a.iso.row_idx);
         let diag = (0..n).map(|v| values[a.diagonal_slot(v)]).collect();
         let mut row_abs = vec![0f64; n];
-        for j in 0..n {
-            for s in col_ptr[j]..col_ptr[j + 1] {
-                let i = row_idx[s];
-                row_abs[i] += values[s].abs();
-                if i != j {
-                    row_abs[j] += values[s].abs();
-                }
-            }
-        }
+        add_abs_row_sums(col_ptr, row_idx, values, &mut row_abs);
         SquareParts {
             model,
             diag,
@@ -718,21 +710,26 @@ fn shape_norm_bound(
         Some(r) => r.to_vec(),
         None => vec![0f64; n],
     };
-    let (col_ptr, row_idx, k) = (&a.iso.col_ptr, &a.iso.row_idx, &a.iso.values);
-    for j in 0..n {
-        for s in col_ptr[j]..col_ptr[j + 1] {
-            let i = row_idx[s];
-            row[i] += k[s].abs();
-            if i != j {
-                row[j] += k[s].abs();
-            }
-        }
-    }
+    add_abs_row_sums(&a.iso.col_ptr, &a.iso.row_idx, &a.iso.values, &mut row);
     let held = fixed.iter().any(|&f| f);
     (0..n)
         .filter(|&p| !fixed[p])
         .map(|p| row[p] + ring_abs[p])
         .fold(if held { 1.0 } else { 0.0 }, f64::max)
+}
+
+/// `row[p] += sum_j |A_pj|` for the symmetric matrix `A` of lower-CSC
+/// `(col_ptr, row_idx, values)`.
+fn add_abs_row_sums(col_ptr: &[usize], row_idx: &[usize], values: &[f64], row: &mut [f64]) {
+    for j in 0..col_ptr.len().saturating_sub(1) {
+        for s in col_ptr[j]..col_ptr[j + 1] {
+            let i = row_idx[s];
+            row[i] += values[s].abs();
+            if i != j {
+                row[j] += values[s].abs();
+            }
+        }
+    }
 }
 
 /// `||C||_inf` of a symmetric 3x3 `C` stored as (xx, yy, zz, xy, xz, yz).

@@ -456,11 +456,7 @@ mod tests {
     /// column is kept without PCG iterations.
     #[test]
     fn mixed_solves_refine_on_the_gpu() {
-        let Ok(mut s) = crate::open() else {
-            assert!(
-                std::env::var("REQUIRE_GPU").map_or(true, |v| v != "1"),
-                "REQUIRE_GPU=1 but no GPU adapter"
-            );
+        let Some(mut s) = crate::test_solver() else {
             return;
         };
         if !s.ctx.shader_f64 {
