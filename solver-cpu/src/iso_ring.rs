@@ -23,7 +23,7 @@
 //! its values itself ([`crate::SpdSolver::adds_laplacian_square`]) gets
 //! matrices whose `K` goes without it; the products here add it from `S`.
 
-use crate::{BlockRows, BlockSym3, ShapeOperatorModel, SymCsc};
+use crate::{BlockRows, BlockSym3, ShapeOperatorModel, SolverError, SymCsc};
 use glam::DVec3;
 use rayon::prelude::*;
 use std::sync::Arc;
@@ -399,6 +399,33 @@ impl IsoRingSym3 {
         self.add_laplacian_square(x, y);
     }
 
+    /// The values on `K`'s lower pattern of the term
+    /// [`Self::laplacian_square`] names (`None` without one): `m_i S_ip S_iq`
+    /// summed over each row `i` of `S` and its pairs `(p, q)`, in
+    /// [`SparseRows::pairs`] order, each found by search; an error names a
+    /// pair outside the pattern.
+    pub fn laplacian_square_values(&self) -> Result<Option<Vec<f64>>, SolverError> {
+        let Some(model) = &self.laplacian_square else {
+            return Ok(None);
+        };
+        let mut values = vec![0.0; self.iso.values.len()];
+        for i in 0..model.laplacian.len() {
+            let m = model.square_weight(i);
+            if m == 0.0 {
+                continue;
+            }
+            for (p, q, f) in model.laplacian.pairs(i) {
+                let Some(s) = self.iso.slot(p, q) else {
+                    return Err(SolverError::DimensionMismatch(format!(
+                        "Laplacian pair ({p}, {q}) of row {i} is outside the matrix pattern"
+                    )));
+                };
+                values[s] += m * f;
+            }
+        }
+        Ok(Some(values))
+    }
+
     /// The same matrix as explicit 3x3 blocks (for backends that take blocks).
     /// Panics if a ring pair (or a pair of [`Self::laplacian_square`]'s rows)
     /// lies outside the pattern of `K`.
@@ -407,21 +434,10 @@ impl IsoRingSym3 {
         // apart, over its rows' pairs in order), then the rings: the order
         // of every sum of these blocks.
         let mut k = self.iso.values.clone();
-        if let Some(model) = &self.laplacian_square {
-            let mut square = vec![0.0; k.len()];
-            for i in 0..model.laplacian.len() {
-                let m = model.square_weight(i);
-                if m == 0.0 {
-                    continue;
-                }
-                for (p, q, f) in model.laplacian.pairs(i) {
-                    let s = self
-                        .iso
-                        .slot(p, q)
-                        .expect("Laplacian pair inside the pattern");
-                    square[s] += m * f;
-                }
-            }
+        let square = self
+            .laplacian_square_values()
+            .expect("Laplacian pair inside the pattern");
+        if let Some(square) = square {
             k.iter_mut().zip(&square).for_each(|(v, q)| *v += q);
         }
         let mut b = BlockSym3 {

@@ -104,11 +104,10 @@ impl SquareParts {
 }
 
 /// The values on `a`'s lower pattern of its [`IsoRingSym3::laplacian_square`]
-/// term `S Mt^-1 S`, `m_i S_ip S_iq` summed over each row `i` of `S` and
-/// its pairs `(p, q)` in [`SparseRows::pairs`] order (`None` without the
-/// term). Through `slots` where `S` has the rings' rows' columns (E_m's
-/// cotangent and E_l's mean-value Laplacian of one mesh), else by binary
-/// search; an error names a pair outside the pattern.
+/// term `S Mt^-1 S`, as [`IsoRingSym3::laplacian_square_values`] sums them
+/// (to the bit), through `slots` where `S` has the rings' rows' columns
+/// (E_m's cotangent and E_l's mean-value Laplacian of one mesh) instead of
+/// a search per pair.
 pub(crate) fn laplacian_square_values(
     a: &IsoRingSym3,
     slots: &RingSlots,
@@ -117,36 +116,27 @@ pub(crate) fn laplacian_square_values(
         return Ok(None);
     };
     let s = &*model.laplacian;
+    if !(s.start == a.rings.start && s.idx == a.rings.idx && slots.of(&a.rings)) {
+        return a.laplacian_square_values();
+    }
     let mut values = vec![0f64; a.iso.row_idx.len()];
-    let same = s.start == a.rings.start && s.idx == a.rings.idx && slots.of(&a.rings);
     let mut row = Vec::new();
     for i in 0..s.len() {
         let m = model.square_weight(i);
         if m == 0.0 {
             continue;
         }
-        if same {
-            // The pairs of `SparseRows::pairs`, in its order, from the row
-            // read once.
-            row.clear();
-            row.extend(s.row(i));
-            let mut k = slots.slot[slots.start[i] as usize..slots.start[i + 1] as usize].iter();
-            for &(p, wp) in &row {
-                for &(q, wq) in &row {
-                    if p >= q {
-                        values[*k.next().unwrap() as usize] += m * (wp * wq);
-                    }
+        // The pairs of `SparseRows::pairs`, in its order, from the row read
+        // once; one slot per pair (the same columns as the rings').
+        row.clear();
+        row.extend(s.row(i));
+        let mut k = slots.slot[slots.start[i] as usize..slots.start[i + 1] as usize].iter();
+        for &(p, wp) in &row {
+            for &(q, wq) in &row {
+                if p >= q {
+                    values[*k.next().unwrap() as usize] += m * (wp * wq);
                 }
             }
-            continue;
-        }
-        for (p, q, f) in s.pairs(i) {
-            let Some(k) = a.iso.slot(p, q) else {
-                return Err(SolverError::DimensionMismatch(format!(
-                    "Laplacian pair ({p}, {q}) of row {i} is outside the matrix pattern"
-                )));
-            };
-            values[k] += m * f;
         }
     }
     Ok(Some(values))
