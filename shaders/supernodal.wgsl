@@ -8,13 +8,15 @@
 // the supernodal elimination tree (a level's supernodes are independent):
 //   per level, leaves first:
 //     pull     (own rows)       w_s = (P r)_s - the updates the descendants
-//                               left in `contrib` for the rows of s
+//                               left in `contrib` for the rows of s (once
+//                               per update buffer holding some)
 //     forward  (own rows, then  y_s = L_ss^-1 w_s, and contrib[slot of row r]
 //               rows below)     = B_rs w_s with B = L_rs L_ss^-1 (= L_rs y_s)
 //   per level, root first:
 //     backward (own rows)       w_s = x_s = L_ss^-T y_s - B_rs^T x_r (x of the
 //                               ancestors, final, kept in w); z = P^T x
-// Three dispatches a level and nothing else: the factor holds B in place of
+// Three dispatches a level (where the updates fit one binding) and nothing
+// else: the factor holds B in place of
 // L_rs (SupernodalFactor::invert_diagonal_blocks), so the diagonal and below
 // products of a sweep read the same vector and share a dispatch, and the
 // permutations are folded into the first and last step of each row.
@@ -23,23 +25,27 @@
 //
 // Supernode s (5 u32 at idx[o_sn + 5 s]): c0 its first column, m columns, q
 // rows below its diagonal block (idx[o_rows + ro ..][..q], permuted
-// numbering), its values the dense column-major (m + q) x m block at vals[vo]:
+// numbering; the slots ro .. ro + q in the slots' level order), its values the dense column-major (m + q) x m block at vals[vo]:
 // entry (i, k) at vals[vo + k (m + q) + i]; the first m rows hold L_ss^-1,
 // the q below B = L_rs L_ss^-1.
 //
 // Bindings (group 0):
 //   0  P        uniform  own, n_own: this level segment's own rows (columns) at
-//                        idx[o_cols + own ..]; below, n_below: its slots at
-//                        idx[o_slots + below ..]; nv: rows of K; stride: length
+//                        idx[o_cols + own ..]; below, n_below: its slots, from
+//                        slot `below` on (level order); nv: rows of K; stride: length
 //                        of one PCG column (nv * bs); bs: unknowns per vertex;
-//                        the offsets of the sections of `idx`.
+//                        the offsets of the sections of `idx`; update0,
+//                        update1: the slots (level order) whose updates the
+//                        bound `contrib` holds; first: pull starts from r
+//                        (else from w, after an earlier buffer's pull).
 //   1  idx      read     u32 sections: per supernode c0, m, q, ro, vo (o_sn);
-//                        the rows below each diagonal block (o_rows); perm[new]
-//                        = old vertex (o_perm); per row i the slots e of `rows`
-//                        holding i, tpos[tptr[i] .. tptr[i + 1]] (o_tptr,
-//                        o_tpos); the columns by level (o_cols) and each
-//                        column's supernode (o_owner); the slots by level
-//                        (o_slots) and each slot's supernode (o_slot_owner).
+//                        the rows below the diagonal blocks, one per slot, the
+//                        slots in level order: the supernodes by level, leaves
+//                        first (o_rows); perm[new] = old vertex (o_perm); per
+//                        row i the slots holding i, ascending, tpos[tptr[i] ..
+//                        tptr[i + 1]] (o_tptr, o_tpos); the columns by level
+//                        (o_cols) and each column's supernode (o_owner); each
+//                        slot's supernode (o_slot_owner).
 //   2  vals     read     the values of this dispatch's supernodes: one of the
 //                        buffers the factor's values are cut into at supernode
 //                        boundaries (vo is an offset in it). (f32; this shader is also
@@ -50,7 +56,10 @@
 //   4  y        rw       second work vector, same layout.
 //   5  r        read     PCG residual, NCOLS columns of stride `stride`.
 //   6  z        rw       preconditioned residual, same layout.
-//   7  contrib  rw       one update per slot e of `rows` and column: at e * C + c.
+//   7  contrib  rw       one update per slot and column, the slots in level
+//                        order: slot p's at (p - update0) * C + c. The updates
+//                        are cut into buffers of at most one binding at
+//                        supernode boundaries, one bound per dispatch.
 // 256 invocations per workgroup, 2-D dispatch (linear index gid.x + gid.y *
 // nwg.x * 256); invocations past the list do nothing.
 
@@ -69,8 +78,12 @@ struct Params {
     o_tpos: u32,
     o_cols: u32,
     o_owner: u32,
-    o_slots: u32,
     o_slot_owner: u32,
+    update0: u32,
+    update1: u32,
+    first: u32,
+    pad0: u32,
+    pad1: u32,
 }
 
 const FWG: u32 = 256u;
@@ -130,7 +143,9 @@ fn pcg_index(t: u32) -> u32 {
 }
 
 // w_i = (P r)_i - the descendants' updates of row i (the gather of r fused:
-// nothing reads w_i before its pull).
+// nothing reads w_i before its pull), those in the bound update buffer; the
+// buffers in order, the first from r, the later ones from w (the same sums
+// in the same order as with one buffer).
 @compute @workgroup_size(256)
 fn pull(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let cc = P.bs * NCOLS;
@@ -140,18 +155,29 @@ fn pull(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
     }
     let row = idx[P.o_cols + P.own + t / cc];
     let c = t % cc;
-    var acc = r[pcg_index(row * cc + c)];
+    var acc: f32;
+    if P.first != 0u {
+        acc = r[pcg_index(row * cc + c)];
+    } else {
+        acc = w[row * cc + c];
+    }
     let e1 = idx[P.o_tptr + row + 1u];
     for (var e = idx[P.o_tptr + row]; e < e1; e++) {
-        acc -= contrib[idx[P.o_tpos + e] * cc + c];
+        let p = idx[P.o_tpos + e];
+        if p >= P.update1 {
+            break;
+        }
+        if p >= P.update0 {
+            acc -= contrib[(p - P.update0) * cc + c];
+        }
     }
     w[row * cc + c] = acc;
 }
 
 // Forward step of a level segment, after its pull: own row i of supernode s,
-// y_i = sum_{k <= i} L_ss^-1[i, k] w_k; then, past the own rows, slot e = ro + r
-// of supernode s, contrib[e] = sum_k B[r, k] w_k (B = L_rs L_ss^-1, stored
-// in place of L_rs). Both read w_s only, so they share one dispatch.
+// y_i = sum_{k <= i} L_ss^-1[i, k] w_k; then, past the own rows, slot p = ro + r
+// (level order) of supernode s, contrib[p] = sum_k B[r, k] w_k
+// (B = L_rs L_ss^-1, stored in place of L_rs). Both read w_s only, so they share one dispatch.
 @compute @workgroup_size(256)
 fn forward(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let cc = P.bs * NCOLS;
@@ -170,16 +196,16 @@ fn forward(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroup
     if u >= P.n_below * cc {
         return;
     }
-    let e = idx[P.o_slots + P.below + u / cc];
+    let p = P.below + u / cc;
     let c = u % cc;
-    let s = supernode(idx[P.o_slot_owner + e]);
-    let at = s.vo + s.m + (e - s.ro);
+    let s = supernode(idx[P.o_slot_owner + p]);
+    let at = s.vo + s.m + (p - s.ro);
     let nr = s.m + s.q;
     var acc: f32 = 0.0;
     for (var k = 0u; k < s.m; k++) {
         acc += vals[at + k * nr] * w[(s.c0 + k) * cc + c];
     }
-    contrib[e * cc + c] = acc;
+    contrib[(p - P.update0) * cc + c] = acc;
 }
 
 // Backward step: x_k = sum_{i >= k} L_ss^-1[i, k] y_i - sum_r B[r, k] x_{rows[r]}

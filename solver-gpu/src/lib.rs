@@ -77,8 +77,9 @@
 //! z = P^T L^-T L^-1 P r      GPU, three dispatches per level of the elimination tree
 //! ```
 //!
-//! (`supernodal`, `shaders/supernodal.wgsl`; the values split over several
-//! storage bindings at supernode boundaries where they exceed one). The
+//! (`supernodal`, `shaders/supernodal.wgsl`; the values, and the updates its
+//! solves pass up the tree, split over several storage bindings at supernode
+//! boundaries where they exceed one). The
 //! **scale-factor system** (Eq. 3, scalar, its Hessian constant for the run)
 //! is preconditioned the same way by its own factor, in f32: an exact
 //! preconditioner, so its f64 PCG ends in one round of 1-2 iterations. A

@@ -992,9 +992,18 @@ impl GpuSolver {
         cmax: usize,
     ) -> Result<Option<supernodal::SupernodalSteps>, GpuError> {
         match (&self.chol, &self.chol_kernels) {
-            (Some(f), Some(k)) if f.precision == precision => Ok(Some(
-                supernodal::SupernodalSteps::new(&self.ctx, k, f, r, z, bs, cmax)?,
-            )),
+            (Some(f), Some(k)) if f.precision == precision => {
+                Ok(Some(supernodal::SupernodalSteps::new(
+                    &self.ctx,
+                    k,
+                    f,
+                    r,
+                    z,
+                    bs,
+                    cmax,
+                    matrix::binding_limit(&self.ctx),
+                )?))
+            }
             _ => Ok(None),
         }
     }
@@ -1023,12 +1032,11 @@ impl GpuSolver {
     }
 
     /// Keep the Cholesky preconditioner of this kind (`current`: it was made
-    /// for this pattern and kind), or set it up by factoring `k()` (for
-    /// block rows of `bs` unknowns); where that
+    /// for this pattern and kind), or set it up by factoring `k()`; where that
     /// fails (over the storage bindings, or not positive definite in the
     /// factor's precision) the kind's other preconditioner is used for the
     /// rest of the run.
-    fn cholesky_for_kind(&mut self, current: bool, bs: u64, k: impl FnOnce() -> SymCsc) {
+    fn cholesky_for_kind(&mut self, current: bool, k: impl FnOnce() -> SymCsc) {
         if !self.cholesky_wanted() {
             self.drop_cholesky();
             return;
@@ -1036,7 +1044,7 @@ impl GpuSolver {
         if current && self.chol.is_some() && self.chol_kind == Some(self.kind) {
             return;
         }
-        if let Err(e) = self.setup_cholesky(k(), bs) {
+        if let Err(e) = self.setup_cholesky(k()) {
             log::warn!(
                 "Cholesky preconditioner ({:?} system) unavailable ({e}); {} instead",
                 self.kind,
@@ -1064,7 +1072,7 @@ impl GpuSolver {
     /// factors the Hessian of Eq. 3 itself, which is constant, so that the
     /// PCG converges in an iteration or two a round. Any other preconditioner
     /// is released.
-    fn setup_cholesky(&mut self, k: SymCsc, bs: u64) -> Result<(), GpuError> {
+    fn setup_cholesky(&mut self, k: SymCsc) -> Result<(), GpuError> {
         let t = std::time::Instant::now();
         self.setups += 1;
         self.drop_cholesky();
@@ -1088,23 +1096,20 @@ impl GpuSolver {
         let backend = |e: SolverError| GpuError::Backend(format!("Cholesky factor: {e}"));
         // The factor's sizes are known from the symbolic analysis: one that
         // would not fit the device's storage bindings is refused before the
-        // numeric factorization. Its values are split over as many bindings
-        // as they need, at supernode boundaries ([`supernodal::GpuFactor`]):
-        // the largest supernode, and the updates of one PCG column, must
-        // each fit one.
+        // numeric factorization. Its values, and the updates of its
+        // triangular solves, are split over as many bindings as they need,
+        // at supernode boundaries ([`supernodal::GpuFactor`],
+        // [`supernodal::SupernodalSteps`]): the largest supernode must fit
+        // one.
         self.chol_host.analyse(&k).map_err(backend)?;
         let b = precision.bytes();
         let limit = matrix::binding_limit(&self.ctx);
         let supernode = self.chol_host.largest_supernode_nnz() as u64 * b;
-        let update_column = self.chol_host.factor_slots() as u64 * bs * b;
-        if supernode > limit || update_column > limit {
+        if supernode > limit {
             return Err(GpuError::LimitExceeded {
-                what: format!(
-                    "the Cholesky factor's largest supernode ({supernode} bytes) or one column \
-                     of its updates ({update_column} bytes)"
-                ),
+                what: format!("the Cholesky factor's largest supernode ({supernode} bytes)"),
                 limit_name: "max_storage_buffer_binding_size",
-                needed: supernode.max(update_column),
+                needed: supernode,
                 limit,
             });
         }
@@ -1716,7 +1721,7 @@ impl SpdSolver for GpuSolver {
         }
         let same = self.same_pattern(1, &a.col_ptr, &a.row_idx);
         match self.kind {
-            SystemKind::ScaleFactors => self.cholesky_for_kind(same, 1, || a.clone()),
+            SystemKind::ScaleFactors => self.cholesky_for_kind(same, || a.clone()),
             _ => self.drop_cholesky(),
         }
         let mut h = self.take_host(same, a.n, 1, &a.col_ptr, &a.row_idx)?;
@@ -1777,7 +1782,7 @@ impl SpdSolver for GpuSolver {
         }
         match self.kind {
             SystemKind::ScaleDriven | SystemKind::FineTune => {
-                self.cholesky_for_kind(same, 3, || a.iso_held_identity(fixed))
+                self.cholesky_for_kind(same, || a.iso_held_identity(fixed))
             }
             SystemKind::ScaleFactors => self.drop_cholesky(),
         }

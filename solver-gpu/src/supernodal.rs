@@ -22,7 +22,14 @@
 //!
 //! The values are stored level by level and cut into buffers of at most one
 //! storage binding at supernode boundaries ([`GpuFactor::upload`]); a level
-//! whose supernodes span two buffers is dispatched as two segments.
+//! whose supernodes span two buffers is dispatched as two segments. The
+//! updates `B_s w_s` (one per slot below a diagonal block and scalar column,
+//! kept in the slots' level order) are cut the same way
+//! ([`SupernodalSteps::new`]; homer 1.2M's, 180 MB for one PCG column, over
+//! lavapipe's 128 MiB binding): a segment is dispatched as one piece per
+//! update buffer its slots fill, and a level's rows pull once from each
+//! buffer that holds updates of theirs, in order (the same sums in the same
+//! order as with one buffer).
 //!
 //! Bindings (group 0), as documented in the shader: 0 `P` uniform
 //! ([`SnParams`], one per segment of a level), 1 `idx` (the index sections), 2 `vals` (the segment's buffer),
@@ -58,7 +65,15 @@ pub(crate) struct SnParams {
     pub(crate) nv: u32,
     pub(crate) stride: u32,
     pub(crate) bs: u32,
-    pub(crate) offsets: [u32; 9],
+    pub(crate) offsets: [u32; 8],
+    /// The bound update buffer's slots, `[update0, update1)` in the level
+    /// order of the slots.
+    pub(crate) update0: u32,
+    pub(crate) update1: u32,
+    /// Whether `pull` starts from `r` (the first update buffer) or from `w`.
+    pub(crate) first: u32,
+    pub(crate) pad0: u32,
+    pub(crate) pad1: u32,
 }
 
 /// The entry points, in one precision.
@@ -94,13 +109,16 @@ pub(crate) struct GpuFactor {
     /// supernode boundaries (a supernode's `vo` is its offset in its chunk).
     vals: Vec<wgpu::Buffer>,
     /// Offsets of the sections of `idx` (as in `SnParams::offsets`).
-    offsets: [u32; 9],
+    offsets: [u32; 8],
     /// Slots of `rows` (one update per slot and column in `contrib`).
     slots: usize,
-    /// Per level, leaves first, its segments: `[first, count]` of their
-    /// columns and of their slots in those sections, and the chunk of
-    /// `vals` their values are in (one dispatch per segment and kernel).
-    levels: Vec<Vec<[u32; 5]>>,
+    /// Per level, leaves first, its segments (one dispatch per segment and
+    /// kernel).
+    levels: Vec<Vec<Segment>>,
+    /// Each supernode's columns and slots below its diagonal block, the
+    /// supernodes in level order ([`Segment::sn`]): where the updates may be
+    /// cut.
+    sizes: Vec<[u32; 2]>,
     /// Rows of `K`.
     pub nv: usize,
     /// Stored values of the factor.
@@ -109,6 +127,23 @@ pub(crate) struct GpuFactor {
     pub precision: Precision,
     /// Bytes of the factor's values and row indices (read twice an application).
     bytes: u64,
+}
+
+/// Supernodes of one level whose values are in one chunk, consecutive in the
+/// level order: `[own, own + n_own)` their columns in the `cols` section,
+/// `[below, below + n_below)` their slots in the slots' level order (the
+/// `rows` section, and an update's position in `contrib`), and `[sn, sn +
+/// n_sn)` the supernodes themselves in that order.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+struct Segment {
+    own: u32,
+    n_own: u32,
+    below: u32,
+    n_below: u32,
+    /// The chunk of the values.
+    chunk: u32,
+    sn: u32,
+    n_sn: u32,
 }
 
 /// Levels of the supernodal elimination tree: a supernode's parent owns its
@@ -153,7 +188,7 @@ impl GpuFactor {
         let level = levels(f).ok_or_else(|| bad("supernodes out of topological order"))?;
         let n = f.perm.len();
         let nrows = f.rows.len();
-        let total = 5 * ns + nrows + n + (n + 1) + nrows + 2 * n + 2 * nrows;
+        let total = 5 * ns + nrows + n + (n + 1) + nrows + 2 * n + nrows;
         if total > u32::MAX as usize {
             return Err(GpuError::LimitExceeded {
                 what: "a Cholesky factor's index sections (32-bit offsets)".into(),
@@ -199,47 +234,55 @@ impl GpuFactor {
             chunk_len[k] += size(s);
         }
         // The columns and slots in that order, and each level's segments.
-        let mut levels: Vec<Vec<[u32; 5]>> = vec![Vec::new(); depth];
+        let mut levels: Vec<Vec<Segment>> = vec![Vec::new(); depth];
         let mut cols = Vec::with_capacity(n);
         let mut owner = vec![0u32; n];
-        let mut slots = Vec::with_capacity(nrows);
-        let mut slot_owner = vec![0u32; nrows];
+        // The slots in level order: each supernode's rows below its diagonal
+        // block from `po[s]` on, and the supernode of each.
+        let mut rows = Vec::with_capacity(nrows);
+        let mut slot_owner = Vec::with_capacity(nrows);
+        let mut po = vec![0u32; ns];
+        let mut sizes = Vec::with_capacity(ns);
         for &s in &order {
             let (m, q) = f.shape(s);
             let segments = &mut levels[level[s] as usize];
             match segments.last_mut() {
-                Some(g) if g[4] == chunk[s] => {
-                    g[1] += m as u32;
-                    g[3] += q as u32;
+                Some(g) if g.chunk == chunk[s] => {
+                    g.n_own += m as u32;
+                    g.n_below += q as u32;
+                    g.n_sn += 1;
                 }
-                _ => segments.push([
-                    cols.len() as u32,
-                    m as u32,
-                    slots.len() as u32,
-                    q as u32,
-                    chunk[s],
-                ]),
+                _ => segments.push(Segment {
+                    own: cols.len() as u32,
+                    n_own: m as u32,
+                    below: rows.len() as u32,
+                    n_below: q as u32,
+                    chunk: chunk[s],
+                    sn: sizes.len() as u32,
+                    n_sn: 1,
+                }),
             }
+            sizes.push([m as u32, q as u32]);
             for c in f.begin[s]..f.begin[s + 1] {
                 cols.push(c);
                 owner[c as usize] = s as u32;
             }
-            for e in f.row_ptr[s]..f.row_ptr[s + 1] {
-                slots.push(e);
-                slot_owner[e as usize] = s as u32;
-            }
+            po[s] = rows.len() as u32;
+            rows.extend_from_slice(&f.rows[f.row_ptr[s] as usize..f.row_ptr[s + 1] as usize]);
+            slot_owner.resize(rows.len(), s as u32);
         }
         let mut idx: Vec<u32> = Vec::with_capacity(total);
         let o_sn = idx.len() as u32;
         for (s, &v) in vo.iter().enumerate() {
             let (m, q) = f.shape(s);
-            idx.extend_from_slice(&[f.begin[s], m as u32, q as u32, f.row_ptr[s], v]);
+            idx.extend_from_slice(&[f.begin[s], m as u32, q as u32, po[s], v]);
         }
         let o_rows = idx.len() as u32;
-        idx.extend_from_slice(&f.rows);
+        idx.extend_from_slice(&rows);
         let o_perm = idx.len() as u32;
         idx.extend_from_slice(&f.perm);
-        // The slots holding each row: a counting sort of `rows` by row.
+        // The slots holding each row, ascending (in the level order, where
+        // their updates are kept): a counting sort by row.
         let o_tptr = idx.len() as u32;
         let mut tptr = vec![0u32; n + 1];
         for &r in &f.rows {
@@ -252,8 +295,8 @@ impl GpuFactor {
         let o_tpos = idx.len() as u32;
         let mut tpos = vec![0u32; nrows];
         let mut next = tptr;
-        for (e, &r) in f.rows.iter().enumerate() {
-            tpos[next[r as usize] as usize] = e as u32;
+        for (p, &r) in rows.iter().enumerate() {
+            tpos[next[r as usize] as usize] = p as u32;
             next[r as usize] += 1;
         }
         idx.extend_from_slice(&tpos);
@@ -261,8 +304,6 @@ impl GpuFactor {
         idx.extend_from_slice(&cols);
         let o_owner = idx.len() as u32;
         idx.extend_from_slice(&owner);
-        let o_slots = idx.len() as u32;
-        idx.extend_from_slice(&slots);
         let o_slot_owner = idx.len() as u32;
         idx.extend_from_slice(&slot_owner);
         let bytes = b * f.nnz() as u64 + 8 * nrows as u64;
@@ -296,11 +337,11 @@ impl GpuFactor {
                 o_tpos,
                 o_cols,
                 o_owner,
-                o_slots,
                 o_slot_owner,
             ],
             slots: nrows,
             levels,
+            sizes,
             nv: n,
             nnz: f.nnz(),
             precision,
@@ -330,25 +371,116 @@ impl GpuFactor {
 /// One recorded application `z = M^-1 r` for a workspace's `r` and `z`.
 pub(crate) struct SupernodalSteps {
     kernels: Arc<SupernodalKernels>,
-    /// Per level, per segment ([`GpuFactor::levels`]): its bind group and
-    /// its own rows and slots (the dispatch sizes, per column).
-    groups: Vec<Vec<(wgpu::BindGroup, [u32; 2])>>,
+    /// Per level, its pieces: the segments ([`GpuFactor::levels`]) cut
+    /// where the updates change buffer.
+    levels: Vec<Vec<Piece>>,
     bs: usize,
     w: wgpu::Buffer,
     /// Kept alive for the bind groups.
     #[allow(dead_code)]
     y: wgpu::Buffer,
     #[allow(dead_code)]
-    contrib: wgpu::Buffer,
+    contrib: Vec<wgpu::Buffer>,
     #[allow(dead_code)]
     params: Vec<wgpu::Buffer>,
     /// Factor bytes, and bytes of one PCG column.
     bytes: (u64, u64),
 }
 
+/// A segment's supernodes whose updates are in one buffer, with a bind
+/// group for each update buffer its `pull` reads (the first of them
+/// starting from `r`) and for the one its `forward` writes.
+struct Piece {
+    groups: Vec<wgpu::BindGroup>,
+    /// Update buffers its rows' `pull` reads: `groups[..pulls]`.
+    pulls: usize,
+    /// The update buffer its `forward` writes: `groups[own]`.
+    own: usize,
+    /// Its own rows and slots (the dispatch sizes, per column).
+    rows: [u32; 2],
+}
+
+/// Cut the supernodes' slots (`sizes`, level order) into runs of at most
+/// `cap` slots at supernode boundaries: the first slot of each run, and the
+/// slot count last. `None` where one supernode's slots exceed `cap`.
+fn update_cuts(sizes: &[[u32; 2]], cap: usize) -> Option<Vec<usize>> {
+    let mut starts = vec![0];
+    let (mut at, mut len) = (0, 0);
+    for &[_, q] in sizes {
+        let q = q as usize;
+        if q > cap {
+            return None;
+        }
+        if len + q > cap {
+            starts.push(at);
+            len = 0;
+        }
+        len += q;
+        at += q;
+    }
+    starts.push(at);
+    Some(starts)
+}
+
+/// The pieces of one level's segments: each cut where the updates of its
+/// supernodes (from `starts`, [`update_cuts`]) pass to the next buffer;
+/// each as `(segment with its own rows and slots, update buffer)`.
+fn cut_segments(
+    segments: &[Segment],
+    sizes: &[[u32; 2]],
+    starts: &[usize],
+) -> Vec<(Segment, usize)> {
+    let buffer = |p: usize| {
+        starts[1..]
+            .partition_point(|&e| e <= p)
+            .min(starts.len() - 2)
+    };
+    let mut pieces: Vec<(Segment, usize)> = Vec::new();
+    for g in segments {
+        let (mut own, mut below) = (g.own, g.below);
+        let mut piece: Option<(Segment, usize)> = None;
+        for s in g.sn..g.sn + g.n_sn {
+            let [m, q] = sizes[s as usize];
+            let k = match (q, &piece) {
+                (0, Some((_, k))) => *k,
+                _ => buffer(below as usize),
+            };
+            match &mut piece {
+                Some((p, pk)) if *pk == k => {
+                    p.n_own += m;
+                    p.n_below += q;
+                    p.n_sn += 1;
+                }
+                _ => {
+                    pieces.extend(piece.take());
+                    piece = Some((
+                        Segment {
+                            own,
+                            n_own: m,
+                            below,
+                            n_below: q,
+                            chunk: g.chunk,
+                            sn: s,
+                            n_sn: 1,
+                        },
+                        k,
+                    ));
+                }
+            }
+            own += m;
+            below += q;
+        }
+        pieces.extend(piece);
+    }
+    pieces
+}
+
 impl SupernodalSteps {
     /// The steps for `r` and `z` (in the factor's precision, columns of
-    /// `stride = nv * bs`, up to `cmax` of them).
+    /// `stride = nv * bs`, up to `cmax` of them). The updates are cut into
+    /// buffers of at most `limit` bytes (one storage binding) at supernode
+    /// boundaries, as the values are.
+    #[allow(clippy::too_many_arguments)]
     pub fn new(
         ctx: &Context,
         kernels: &Arc<SupernodalKernels>,
@@ -357,6 +489,7 @@ impl SupernodalSteps {
         z: &wgpu::Buffer,
         bs: usize,
         cmax: usize,
+        limit: u64,
     ) -> Result<SupernodalSteps, GpuError> {
         let stride = f.nv * bs;
         let b = f.precision.bytes() as usize;
@@ -372,54 +505,95 @@ impl SupernodalSteps {
             )
         };
         let (w, y) = (vector("work vector w")?, vector("work vector y")?);
-        let contrib = ctx.storage(
-            &format!("Cholesky updates ({} x {})", f.slots, bs * cmax),
-            (f.slots * bs * cmax * b) as u64,
-        )?;
-        // An empty factor still records one (empty) segment.
+        let per_slot = (bs * cmax * b) as u64;
+        let cap = (limit / per_slot).min(u32::MAX as u64) as usize;
+        let starts = update_cuts(&f.sizes, cap).ok_or_else(|| GpuError::LimitExceeded {
+            what: format!("the updates of one Cholesky supernode for {cmax} columns"),
+            limit_name: "max_storage_buffer_binding_size",
+            needed: f.sizes.iter().map(|s| s[1] as u64).max().unwrap_or(0) * per_slot,
+            limit,
+        })?;
+        let contrib = (0..starts.len() - 1)
+            .map(|k| {
+                let slots = starts[k + 1] - starts[k];
+                ctx.storage(
+                    &format!("Cholesky updates {k} ({slots} x {})", bs * cmax),
+                    slots as u64 * per_slot,
+                )
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        // An empty factor still records one (empty) piece.
         let levels = match f.levels.is_empty() {
-            true => vec![vec![[0; 5]]],
+            true => vec![vec![Segment::default()]],
             false => f.levels.clone(),
         };
         let mut params = Vec::new();
-        let mut groups = Vec::with_capacity(levels.len());
+        let mut pieces = Vec::with_capacity(levels.len());
         for segments in &levels {
-            let mut level = Vec::with_capacity(segments.len());
-            for &[own, n_own, below, n_below, chunk] in segments {
-                let p = ctx.uniform_of(
-                    "supernodal params",
-                    &SnParams {
-                        own,
-                        n_own,
-                        below,
-                        n_below,
-                        nv: f.nv as u32,
-                        stride: stride as u32,
-                        bs: bs as u32,
-                        offsets: f.offsets,
-                    },
-                )?;
-                let bg = kernels.shader.bind(
-                    ctx,
-                    &[
-                        (0, &p),
-                        (1, &f.idx),
-                        (2, &f.vals[chunk as usize]),
-                        (3, &w),
-                        (4, &y),
-                        (5, r),
-                        (6, z),
-                        (7, &contrib),
-                    ],
-                )?;
-                level.push((bg, [n_own, n_below]));
-                params.push(p);
+            // The level's rows are updated by the slots of the levels below.
+            let first = segments.first().map_or(0, |g| g.below as usize);
+            let pulls = starts[..starts.len() - 1]
+                .iter()
+                .filter(|&&a| a < first)
+                .count()
+                .max(1);
+            let mut level = Vec::new();
+            for (g, own) in cut_segments(segments, &f.sizes, &starts) {
+                let mut bind = |k: usize| -> Result<wgpu::BindGroup, GpuError> {
+                    let p = ctx.uniform_of(
+                        "supernodal params",
+                        &SnParams {
+                            own: g.own,
+                            n_own: g.n_own,
+                            below: g.below,
+                            n_below: g.n_below,
+                            nv: f.nv as u32,
+                            stride: stride as u32,
+                            bs: bs as u32,
+                            offsets: f.offsets,
+                            update0: starts[k] as u32,
+                            update1: starts[k + 1] as u32,
+                            first: (k == 0) as u32,
+                            pad0: 0,
+                            pad1: 0,
+                        },
+                    )?;
+                    let group = kernels.shader.bind(
+                        ctx,
+                        &[
+                            (0, &p),
+                            (1, &f.idx),
+                            (2, &f.vals[g.chunk as usize]),
+                            (3, &w),
+                            (4, &y),
+                            (5, r),
+                            (6, z),
+                            (7, &contrib[k]),
+                        ],
+                    )?;
+                    params.push(p);
+                    Ok(group)
+                };
+                let mut groups = (0..pulls).map(&mut bind).collect::<Result<Vec<_>, _>>()?;
+                let own = match own < pulls {
+                    true => own,
+                    false => {
+                        groups.push(bind(own)?);
+                        pulls
+                    }
+                };
+                level.push(Piece {
+                    groups,
+                    pulls,
+                    own,
+                    rows: [g.n_own, g.n_below],
+                });
             }
-            groups.push(level);
+            pieces.push(level);
         }
         Ok(SupernodalSteps {
             kernels: kernels.clone(),
-            groups,
+            levels: pieces,
             bs,
             w,
             y,
@@ -427,6 +601,12 @@ impl SupernodalSteps {
             params,
             bytes: (f.bytes, b as u64 * stride as u64),
         })
+    }
+
+    /// Buffers the updates are cut into.
+    #[allow(dead_code)]
+    pub fn update_buffers(&self) -> usize {
+        self.contrib.len()
     }
 
     /// The work vector (tests poison it).
@@ -442,13 +622,16 @@ impl SupernodalSteps {
         let cc = (self.bs * ncols) as u64;
         let dims =
             |items: u64| ctx.dims("supernodal kernel", (items * cc).div_ceil(FLAT_WG as u64));
-        let mut levels = Vec::with_capacity(self.groups.len());
-        for level in &self.groups {
-            let mut segments = Vec::with_capacity(level.len());
-            for (_, [own, below]) in level {
-                segments.push([dims(*own as u64)?, dims(*own as u64 + *below as u64)?]);
+        let mut levels = Vec::with_capacity(self.levels.len());
+        for level in &self.levels {
+            let mut pieces = Vec::with_capacity(level.len());
+            for Piece {
+                rows: [own, below], ..
+            } in level
+            {
+                pieces.push([dims(*own as u64)?, dims(*own as u64 + *below as u64)?]);
             }
-            levels.push(segments);
+            levels.push(pieces);
         }
         Ok(Pipelines {
             p: [
@@ -466,25 +649,29 @@ impl SupernodalSteps {
     pub fn work(&self, ncols: usize) -> KernelWork {
         let col = self.bytes.1 * ncols as u64;
         let sweep = KernelWork::operator(self.bytes.0 + 4 * col, self.bytes.0 + 2 * col);
-        let segments: usize = self.groups.iter().map(Vec::len).sum();
+        let dispatches: usize = self.levels.iter().flatten().map(|p| p.pulls + 2).sum();
         KernelWork {
-            dispatches: 3 * segments as u64,
+            dispatches: dispatches as u64,
             ..sweep.times(2) + KernelWork::other(2 * col).times(2)
         }
     }
 
-    /// Record one application into `pass`. A level's segments are
-    /// independent supernodes (in different chunks of the values).
+    /// Record one application into `pass`. A level's pieces are independent
+    /// supernodes (in different chunks of the values or the updates); a
+    /// piece's rows pull the updates of the levels below from each buffer
+    /// that holds some, in the buffers' order.
     pub fn record(&self, pass: &mut wgpu::ComputePass, p: &Pipelines) {
-        for (level, dims) in self.groups.iter().zip(&p.levels) {
-            for ((bg, _), d) in level.iter().zip(dims) {
-                dispatch(pass, &p.p[0], bg, d[0]);
-                dispatch(pass, &p.p[1], bg, d[1]);
+        for (level, dims) in self.levels.iter().zip(&p.levels) {
+            for (piece, d) in level.iter().zip(dims) {
+                for bg in &piece.groups[..piece.pulls] {
+                    dispatch(pass, &p.p[0], bg, d[0]);
+                }
+                dispatch(pass, &p.p[1], &piece.groups[piece.own], d[1]);
             }
         }
-        for (level, dims) in self.groups.iter().zip(&p.levels).rev() {
-            for ((bg, _), d) in level.iter().zip(dims) {
-                dispatch(pass, &p.p[2], bg, d[0]);
+        for (level, dims) in self.levels.iter().zip(&p.levels).rev() {
+            for (piece, d) in level.iter().zip(dims) {
+                dispatch(pass, &p.p[2], &piece.groups[piece.own], d[0]);
             }
         }
     }
@@ -494,15 +681,167 @@ impl SupernodalSteps {
 /// dispatch sizes.
 pub(crate) struct Pipelines {
     p: [wgpu::ComputePipeline; 3],
-    /// Per level and segment: the sizes of `pull` and `backward` (its own
+    /// Per level and piece: the sizes of `pull` and `backward` (its own
     /// rows), and of `forward` (its own rows and its slots).
     levels: Vec<Vec<[(u32, u32); 2]>>,
 }
 
 #[cfg(test)]
 mod tests {
-    use super::levels;
+    use super::*;
     use solver_cpu::{CholeskySolver, FillOrdering, SpdSolver, SymCsc};
+
+    /// A grid's Laplacian plus a shift, `nx x ny` unknowns.
+    fn grid(nx: usize, ny: usize) -> SymCsc {
+        let id = |i: usize, j: usize| i * ny + j;
+        let mut pairs = Vec::new();
+        for i in 0..nx {
+            for j in 0..ny {
+                pairs.push((id(i, j), id(i, j)));
+                if i + 1 < nx {
+                    pairs.push((id(i + 1, j), id(i, j)));
+                }
+                if j + 1 < ny {
+                    pairs.push((id(i, j + 1), id(i, j)));
+                }
+            }
+        }
+        let mut a = SymCsc::from_pattern(nx * ny, pairs);
+        for j in 0..a.n {
+            for s in a.col_ptr[j]..a.col_ptr[j + 1] {
+                let r = a.row_idx[s];
+                a.values[s] = if r == j {
+                    4.1 + (j % 7) as f64 * 0.1
+                } else {
+                    -1.0
+                };
+            }
+        }
+        a
+    }
+
+    /// One application of `steps` to `r` (`ncols` columns) on the GPU.
+    fn apply(
+        ctx: &Context,
+        steps: &SupernodalSteps,
+        r: &wgpu::Buffer,
+        z: &wgpu::Buffer,
+        rhs: &[f64],
+        ncols: usize,
+        precision: Precision,
+    ) -> Vec<u8> {
+        ctx.write_buffer(r, 0, &precision.encode(rhs));
+        ctx.write_buffer(z, 0, &precision.encode(&vec![f64::NAN; rhs.len()]));
+        ctx.write_buffer(
+            steps.work_vector(),
+            0,
+            &precision.encode(&vec![f64::NAN; rhs.len()]),
+        );
+        let pipelines = steps.pipelines(ctx, ncols).unwrap();
+        let mut enc = ctx.encoder("supernodal test");
+        {
+            let mut pass = enc.begin_compute_pass(&Default::default());
+            steps.record(&mut pass, &pipelines);
+        }
+        ctx.read::<u8>(
+            z,
+            rhs.len() * precision.bytes() as usize,
+            &mut None,
+            Some(enc),
+        )
+        .unwrap()
+    }
+
+    /// Updates cut over several buffers (a binding too small for one
+    /// column's) solve as one buffer does, to the bit: the same sums in the
+    /// same order, with a pull per buffer a level reads; and that solve is
+    /// the factor's, per component of each column.
+    #[test]
+    fn updates_over_several_buffers_solve_as_one() {
+        let Some(s) = crate::test_solver() else {
+            return;
+        };
+        let ctx = &s.ctx;
+        let k = grid(70, 60);
+        let n = k.n;
+        let (bs, ncols) = (3, 2);
+        let mut precisions = vec![Precision::F32];
+        if ctx.shader_f64 {
+            precisions.push(Precision::F64);
+        }
+        for precision in precisions {
+            let mut host = match precision {
+                Precision::F32 => CholeskySolver::single_precision(),
+                Precision::F64 => CholeskySolver::new(),
+            };
+            host.supernodal = true;
+            host.set_fill_ordering(FillOrdering::NestedDissection);
+            host.prepare(&k).unwrap();
+            let rhs: Vec<f64> = (0..n * bs * ncols)
+                .map(|i| ((i * 7919) % 1013) as f64 / 1013.0 - 0.5)
+                .collect();
+            let mut want = vec![0.0; rhs.len()];
+            for c in 0..ncols {
+                for q in 0..bs {
+                    let mut col: Vec<f64> = (0..n).map(|i| rhs[c * n * bs + i * bs + q]).collect();
+                    host.solve_in_place(&mut col, 1).unwrap();
+                    for i in 0..n {
+                        want[c * n * bs + i * bs + q] = col[i];
+                    }
+                }
+            }
+            let mut f = host.take_supernodal_factor().unwrap();
+            f.invert_diagonal_blocks();
+            let g = GpuFactor::upload(ctx, &f, crate::matrix::binding_limit(ctx)).unwrap();
+            let kernels = SupernodalKernels::new(ctx, precision).unwrap();
+            let b = precision.bytes();
+            let r = ctx.storage("r", rhs.len() as u64 * b).unwrap();
+            let z = ctx.storage("z", rhs.len() as u64 * b).unwrap();
+            let per_slot = (bs * ncols) as u64 * b;
+            let all = g.slots as u64 * per_slot;
+            let one = SupernodalSteps::new(ctx, &kernels, &g, &r, &z, bs, ncols, all).unwrap();
+            let limit = all / 5 / 4 * 4;
+            let split = SupernodalSteps::new(ctx, &kernels, &g, &r, &z, bs, ncols, limit).unwrap();
+            assert_eq!(one.update_buffers(), 1);
+            assert!(split.update_buffers() >= 5, "{}", split.update_buffers());
+            assert!(
+                split.work(ncols).dispatches > one.work(ncols).dispatches,
+                "{} {}",
+                split.work(ncols).dispatches,
+                one.work(ncols).dispatches
+            );
+            let z1 = apply(ctx, &one, &r, &z, &rhs, ncols, precision);
+            let z2 = apply(ctx, &split, &r, &z, &rhs, ncols, precision);
+            assert!(z1 == z2, "{precision:?}: split updates differ");
+            let got: Vec<f64> = match precision {
+                Precision::F32 => bytemuck::cast_slice::<u8, f32>(&z2)
+                    .iter()
+                    .map(|&v| v as f64)
+                    .collect(),
+                Precision::F64 => bytemuck::cast_slice::<u8, f64>(&z2).to_vec(),
+            };
+            let err = got
+                .iter()
+                .zip(&want)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0, f64::max);
+            let scale = want.iter().map(|v| v.abs()).fold(0.0, f64::max);
+            let tol = match precision {
+                Precision::F32 => 1e-5,
+                Precision::F64 => 1e-12,
+            };
+            assert!(
+                err <= tol * scale,
+                "{precision:?}: {err:e} against {scale:e}"
+            );
+            // One supernode's updates over the binding are refused.
+            assert!((0..f.len()).any(|s| f.shape(s).1 > 1));
+            assert!(matches!(
+                SupernodalSteps::new(ctx, &kernels, &g, &r, &z, bs, ncols, per_slot),
+                Err(GpuError::LimitExceeded { .. })
+            ));
+        }
+    }
 
     /// A path's factor is a chain: one level per supernode; a grid's
     /// nested-dissection factor is far shallower than its unknowns.
