@@ -16,15 +16,21 @@
 //                       (= NCOLS).
 //   1  row_ptr read     block rows + 1 offsets into the blocks (whole matrix).
 //   2  map     read     u32 per block of both triangles (block-CSR order): its
-//                       lower block, bit 31 set for the transpose; 0xFFFFFFFF
+//                       lower block as its part (bits 29-30) and offset there
+//                       (bits 0-28), bit 31 set for the transpose; 0xFFFFFFFF
 //                       a zero block, 0xFFFFFFFE the identity (held vertices).
-//   3  lower   read     f64, 9 per lower block, row-major.
+//   3  lower0  read     f64, 9 per lower block, row-major: the first part of
+//                       them (`LowerParts`; 8, 9, 10 the others, bound to
+//                       part 0 where there are fewer).
 //   4  x       read     f64, ncols columns of length n, column-major.
 //   5  y       rw       y = A x, same layout; every entry of the chunk's rows
 //                       in the first ncols columns is written.
 //   6  cols    read     u32 block column per block of the chunk.
 //   7  C       uniform  this chunk: block rows row0..row1, its first block
 //                       block0 (group0 unused here).
+//   8  lower1  read     f64, the second part of the lower blocks.
+//   9  lower2  read     f64, the third.
+//   10 lower3  read     f64, the fourth.
 // One invocation per block row of the chunk, WG per workgroup, 2-D dispatch
 // (local workgroup index wid.x + wid.y * nwg.x).
 
@@ -50,16 +56,40 @@ const WG: u32 = 128u;
 const ZERO: u32 = 0xFFFFFFFFu;
 const IDENTITY: u32 = 0xFFFFFFFEu;
 const TRANSPOSE: u32 = 0x80000000u;
+const PART_SHIFT: u32 = 29u;
+const OFFSET: u32 = 0x1FFFFFFFu;
 override NCOLS: u32 = 1u;
 
 @group(0) @binding(0) var<uniform> P: Params;
 @group(0) @binding(1) var<storage, read> row_ptr: array<u32>;
 @group(0) @binding(2) var<storage, read> map: array<u32>;
-@group(0) @binding(3) var<storage, read> lower: array<f64>;
+@group(0) @binding(3) var<storage, read> lower0: array<f64>;
 @group(0) @binding(4) var<storage, read> x: array<f64>;
 @group(0) @binding(5) var<storage, read_write> y: array<f64>;
 @group(0) @binding(6) var<storage, read> cols: array<u32>;
 @group(0) @binding(7) var<uniform> C: Chunk;
+@group(0) @binding(8) var<storage, read> lower1: array<f64>;
+@group(0) @binding(9) var<storage, read> lower2: array<f64>;
+@group(0) @binding(10) var<storage, read> lower3: array<f64>;
+
+// The three values from `o` on of the lower blocks' part `part` (a row of a
+// block).
+fn lower_row(part: u32, o: u32) -> vec3<f64> {
+    switch part {
+        case 0u: {
+            return vec3<f64>(lower0[o], lower0[o + 1u], lower0[o + 2u]);
+        }
+        case 1u: {
+            return vec3<f64>(lower1[o], lower1[o + 1u], lower1[o + 2u]);
+        }
+        case 2u: {
+            return vec3<f64>(lower2[o], lower2[o + 1u], lower2[o + 2u]);
+        }
+        default: {
+            return vec3<f64>(lower3[o], lower3[o + 1u], lower3[o + 2u]);
+        }
+    }
+}
 
 fn xv(c: u32, j: u32) -> vec3<f64> {
     let o = c * P.n + 3u * j;
@@ -90,10 +120,11 @@ fn refine_product(
         var m1 = vec3<f64>(f64(0.0), f64(1.0), f64(0.0));
         var m2 = vec3<f64>(f64(0.0), f64(0.0), f64(1.0));
         if m != IDENTITY {
-            let o = 9u * (m & ~TRANSPOSE);
-            let r0 = vec3<f64>(lower[o], lower[o + 1u], lower[o + 2u]);
-            let r1 = vec3<f64>(lower[o + 3u], lower[o + 4u], lower[o + 5u]);
-            let r2 = vec3<f64>(lower[o + 6u], lower[o + 7u], lower[o + 8u]);
+            let o = 9u * (m & OFFSET);
+            let part = (m >> PART_SHIFT) & 3u;
+            let r0 = lower_row(part, o);
+            let r1 = lower_row(part, o + 3u);
+            let r2 = lower_row(part, o + 6u);
             if (m & TRANSPOSE) != 0u {
                 m0 = vec3<f64>(r0.x, r1.x, r2.x);
                 m1 = vec3<f64>(r0.y, r1.y, r2.y);

@@ -11,26 +11,34 @@
 // out of K: `IsoRingSym3::laplacian_square`), its value per lower entry,
 // uploaded once per model, is added to K's first: K_s + square_s.
 //
+// The lower blocks may be cut into parts of one storage binding each
+// (`LowerParts`): one dispatch per part, its blocks' ring pairs in buffers of
+// their own.
+//
 // Bindings (group 0):
-//   0  C      uniform   slots: the lower blocks of this dispatch (all of them).
+//   0  C      uniform   this part: its lower blocks block0 .. block0 + slots,
+//                       their first ring pair pair0; square: see 7.
 //   1  iso    read      f64, K's value per lower entry (input CSC order).
 //   2  ring_c read      f64, 6 per ring: C_i as (xx, yy, zz, xy, xz, yz).
-//   3  start  read      u32, slots + 1: block s's ring pairs are
-//                       start[s] .. start[s + 1] of the next two arrays.
-//   4  ring   read      u32 per ring pair: the ring i it belongs to.
-//   5  f      read      f64 per ring pair: its weight R_ip R_iq.
-//   6  lower  rw        f64, 9 per lower block (row-major), written whole.
+//   3  start  read      u32, lower blocks + 1: block s's ring pairs are
+//                       start[s] .. start[s + 1] (all parts' numbering).
+//   4  ring   read      u32 per ring pair of the part: the ring i it belongs
+//                       to (pair t at t - pair0).
+//   5  f      read      f64 per ring pair of the part: its weight R_ip R_iq.
+//   6  lower  rw        f64, 9 per lower block of the part (row-major; block s
+//                       at s - block0), written whole.
 //   7  square read      f64, the constant term's value per lower entry
 //                       (read only where C.square is 1).
-// One invocation per lower block, 256 per workgroup, 2-D dispatch (linear
-// index gid.x + gid.y * nwg.x * 256); invocations past the blocks return.
+// One invocation per lower block of the part, 256 per workgroup, 2-D
+// dispatch (linear index gid.x + gid.y * nwg.x * 256); invocations past the
+// blocks return.
 
 struct SumParams {
     slots: u32,
     // 1: add `square` to K's values; 0: no constant term.
     square: u32,
-    pad0: u32,
-    pad1: u32,
+    block0: u32,
+    pair0: u32,
 }
 
 const FWG: u32 = 256u;
@@ -48,10 +56,11 @@ override NCOLS: u32 = 1u;
 
 @compute @workgroup_size(256)
 fn sum_shape_blocks(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    let s = gid.x + gid.y * nwg.x * FWG;
-    if s >= C.slots || NCOLS == 0u {
+    let local = gid.x + gid.y * nwg.x * FWG;
+    if local >= C.slots || NCOLS == 0u {
         return;
     }
+    let s = C.block0 + local;
     var k = iso[s];
     if C.square != 0u {
         k = k + square[s];
@@ -59,8 +68,8 @@ fn sum_shape_blocks(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_
     // Row-major 3x3: xx xy xz / xy yy yz / xz yz zz.
     var m = array<f64, 9>(k, f64(0.0), f64(0.0), f64(0.0), k, f64(0.0), f64(0.0), f64(0.0), k);
     for (var t = start[s]; t < start[s + 1u]; t++) {
-        let i = ring[t];
-        let w = f[t];
+        let i = ring[t - C.pair0];
+        let w = f[t - C.pair0];
         let c = 6u * i;
         m[0] += w * ring_c[c];
         m[1] += w * ring_c[c + 3u];
@@ -73,6 +82,6 @@ fn sum_shape_blocks(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_
         m[8] += w * ring_c[c + 2u];
     }
     for (var q = 0u; q < 9u; q++) {
-        lower[9u * s + q] = m[q];
+        lower[9u * local + q] = m[q];
     }
 }

@@ -6,15 +6,24 @@
 //! low parts (`hi + lo` = `v` to 2^-48).
 //!
 //! Bindings (group 0): 0 `C` uniform ([`ExpandParams`], one per chunk); 1
-//! `lower` (read, f64); 2 `map` (read, u32 per block, [`HostMatrix::map`]); 3 `hi`
-//! (read-write, the chunk's values); 4 `lo` (read-write, its low parts or a
-//! placeholder). Dispatch: `ceil(blocks / 256)` workgroups per chunk, 2-D.
-//! Needs `SHADER_F64`; without it the host writes the f32 values itself.
+//! `lower0` (read, f64); 2 `map` (read, u32 per block,
+//! [`LowerParts::device_map`] of [`HostMatrix::map`]); 3 `hi` (read-write,
+//! the chunk's values); 4 `lo` (read-write, its low parts or a placeholder);
+//! 5-7 `lower1`-`lower3`. Dispatch: `ceil(blocks / 256)` workgroups per
+//! chunk, 2-D. Needs `SHADER_F64`; without it the host writes the f32 values
+//! itself.
+//!
+//! The lower blocks are cut into up to [`LOWER_PARTS`] buffers of one
+//! storage binding each ([`LowerParts`]; homer 1.2M's, 432 MB, take four of
+//! lavapipe's 128 MiB): the block map names a block's part and its offset
+//! there, and the kernels that read them (here and `refine_product.wgsl`)
+//! bind all four. Past four the host sums the blocks.
 //!
 //! A shape matrix `K (x) I3 + sum_i R_i^T C_i R_i` goes up as less still:
 //! `K`'s values and the `C_i` (8 bytes a lower entry and 48 a ring), and
 //! `shaders/sum_shape_blocks.wgsl` sums its lower blocks first ([`ShapeSum`];
-//! bindings in the shader's header). Both kernels go in one submission. A
+//! bindings in the shader's header), one dispatch per part of them. Both
+//! kernels go in one submission. A
 //! constant term the matrices name, E_m's `S Mt^-1 S`
 //! ([`IsoRingSym3::laplacian_square`]), goes up once per model and is added
 //! to every later matrix's `K` there.
@@ -41,13 +50,114 @@ const SUM_BINDINGS: [(u32, Bind); 8] = [
     (7, Bind::Read),
 ];
 
-const BINDINGS: [(u32, Bind); 5] = [
+const BINDINGS: [(u32, Bind); 8] = [
     (0, Bind::Uniform),
     (1, Bind::Read),
     (2, Bind::Read),
     (3, Bind::ReadWrite),
     (4, Bind::ReadWrite),
+    (5, Bind::Read),
+    (6, Bind::Read),
+    (7, Bind::Read),
 ];
+
+/// Most buffers the f64 lower blocks may be cut into (the expansion and the
+/// refinement's exact product bind each); past them the host sums the
+/// blocks and the expansion does not run.
+pub(crate) const LOWER_PARTS: usize = 4;
+
+/// Bits of a device `map` entry ([`LowerParts::device_map`]) holding the
+/// offset of its lower block in its part; the two above hold the part.
+const PART_SHIFT: u32 = 29;
+
+/// The f64 lower blocks of a pattern on the GPU (9 per block, row-major, in
+/// the order of the lower CSC input), in up to [`LOWER_PARTS`] buffers of at
+/// most one storage binding: part `k` holds blocks `k * part_blocks ..`.
+/// The expansion and the refinement's exact product find a block through
+/// the device `map`, whose entries name its part and its offset there.
+#[derive(Clone)]
+pub(crate) struct LowerParts {
+    pub buffers: Vec<wgpu::Buffer>,
+    pub part_blocks: usize,
+    pub blocks: usize,
+}
+
+impl LowerParts {
+    /// Parts and blocks per part for `blocks` lower blocks within `limit`
+    /// bytes a binding: `None` past [`LOWER_PARTS`].
+    pub fn layout(blocks: usize, limit: u64) -> Option<(usize, usize)> {
+        let cap = ((limit / 72) as usize).min((1 << PART_SHIFT) - 2);
+        if cap == 0 {
+            return None;
+        }
+        let parts = blocks.div_ceil(cap).max(1);
+        (parts <= LOWER_PARTS).then(|| (parts, blocks.div_ceil(parts).max(1)))
+    }
+
+    /// The buffers for `blocks` lower blocks, cut for `limit`.
+    pub fn new(ctx: &Context, blocks: usize, limit: u64) -> Result<LowerParts, GpuError> {
+        let (parts, part_blocks) =
+            Self::layout(blocks, limit).ok_or_else(|| GpuError::LimitExceeded {
+                what: format!("the f64 lower blocks ({blocks}) in {LOWER_PARTS} bindings"),
+                limit_name: "max_storage_buffer_binding_size",
+                needed: 72 * blocks as u64,
+                limit: LOWER_PARTS as u64 * limit,
+            })?;
+        let buffers = (0..parts)
+            .map(|k| {
+                let n = Self::range_of(k, part_blocks, blocks).len();
+                ctx.storage(
+                    &format!("lower-triangle f64 values (part {k}, {n} blocks)"),
+                    (72 * n.max(1)) as u64,
+                )
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        Ok(LowerParts {
+            buffers,
+            part_blocks,
+            blocks,
+        })
+    }
+
+    fn range_of(k: usize, part_blocks: usize, blocks: usize) -> std::ops::Range<usize> {
+        (k * part_blocks).min(blocks)..((k + 1) * part_blocks).min(blocks)
+    }
+
+    /// The lower blocks of part `k`.
+    pub fn range(&self, k: usize) -> std::ops::Range<usize> {
+        Self::range_of(k, self.part_blocks, self.blocks)
+    }
+
+    /// The block map as the kernels read it: a lower block's index becomes
+    /// its part (bits 29-30) and its offset in that part; the transpose bit
+    /// and the zero and identity entries are kept.
+    pub fn device_map(&self, map: &[u32]) -> Vec<u32> {
+        map.iter()
+            .map(|&m| match m {
+                ZERO | IDENTITY => m,
+                m => {
+                    let src = (m & !TRANSPOSE) as usize;
+                    let k = src / self.part_blocks;
+                    let at = (src - k * self.part_blocks) as u32;
+                    (m & TRANSPOSE) | ((k as u32) << PART_SHIFT) | at
+                }
+            })
+            .collect()
+    }
+
+    /// Part `k`'s buffer, or the first for the parts it lacks (a binding
+    /// the kernels never read).
+    pub fn part(&self, k: usize) -> &wgpu::Buffer {
+        self.buffers.get(k).unwrap_or(&self.buffers[0])
+    }
+
+    /// Write the host's lower blocks.
+    pub fn write(&self, ctx: &Context, lower: &[[f64; 9]]) {
+        for (k, b) in self.buffers.iter().enumerate() {
+            ctx.write_buffer(b, 0, bytemuck::cast_slice(&lower[self.range(k)]));
+        }
+    }
+}
 
 /// `map` entries of [`HostMatrix::map`] (as in the shader).
 pub(crate) const ZERO: u32 = u32::MAX;
@@ -75,9 +185,10 @@ pub(crate) struct ExpandBlocks {
 pub(crate) struct Expansion {
     /// The lower triangle's f64 values, written by the host (or summed by
     /// [`ShapeSum`]) per matrix.
-    pub lower: wgpu::Buffer,
-    /// Per block of both triangles, its lower block (the shader's `map`);
-    /// the refinement's exact product reads it too ([`crate::refine`]).
+    pub lower: LowerParts,
+    /// Per block of both triangles, its lower block's part and offset (the
+    /// shader's `map`, [`LowerParts::device_map`]); the refinement's exact
+    /// product reads it too ([`crate::refine`]).
     pub map: wgpu::Buffer,
     steps: Vec<(wgpu::BindGroup, (u32, u32))>,
     work: KernelWork,
@@ -98,29 +209,21 @@ impl ExpandBlocks {
         })
     }
 
-    /// The f64 buffer of `lower_blocks` lower blocks that an expansion reads
-    /// (one per pattern, shared by its expansions and its [`ShapeSum`]).
-    pub fn lower_buffer(ctx: &Context, lower_blocks: usize) -> Result<wgpu::Buffer, GpuError> {
-        ctx.storage(
-            &format!("lower-triangle f64 values ({lower_blocks} blocks)"),
-            (72 * lower_blocks.max(1)) as u64,
-        )
-    }
-
-    /// The expansion of the `lower_blocks` lower blocks in `lower` through
-    /// `map` into `chunks` (their values) and, when given, `lo` (one buffer
-    /// per chunk).
+    /// The expansion of the lower blocks in `lower` through `map` into
+    /// `chunks` (their values) and, when given, `lo` (one buffer per chunk).
     pub fn expansion(
         &self,
         ctx: &Context,
-        lower: &wgpu::Buffer,
-        lower_blocks: usize,
+        lower: &LowerParts,
         map: &[u32],
         chunks: &[Chunk],
         lo: Option<&[wgpu::Buffer]>,
     ) -> Result<Expansion, GpuError> {
         let lower = lower.clone();
-        let map_buf = ctx.storage_init("block map (full block to lower block)", map)?;
+        let map_buf = ctx.storage_init(
+            "block map (full block to lower block)",
+            &lower.device_map(map),
+        )?;
         let placeholder = ctx.storage("expansion placeholder", 4)?;
         let mut steps = Vec::with_capacity(chunks.len());
         let mut keep = vec![map_buf.clone(), placeholder.clone()];
@@ -140,10 +243,13 @@ impl ExpandBlocks {
                 ctx,
                 &[
                     (0, &params),
-                    (1, &lower),
+                    (1, lower.part(0)),
                     (2, &map_buf),
                     (3, &c.vals),
                     (4, lo_buf),
+                    (5, lower.part(1)),
+                    (6, lower.part(2)),
+                    (7, lower.part(3)),
                 ],
             )?;
             steps.push((
@@ -155,7 +261,7 @@ impl ExpandBlocks {
         // Each block's map entry and its source once, its parts written.
         let full = map.len() as u64;
         let parts = if lo.is_some() { 2 } else { 1 };
-        let bytes = 4 * full + 72 * lower_blocks as u64 + 36 * parts * full;
+        let bytes = 4 * full + 72 * lower.blocks as u64 + 36 * parts * full;
         Ok(Expansion {
             lower,
             map: map_buf.clone(),
@@ -167,7 +273,7 @@ impl ExpandBlocks {
 
     /// Write `lower` (f64, 9 per lower block) and expand it: one submission.
     pub fn run(&self, ctx: &Context, e: &Expansion, lower: &[[f64; 9]]) -> Result<(), GpuError> {
-        ctx.write_buffer(&e.lower, 0, bytemuck::cast_slice(lower));
+        e.lower.write(ctx, lower);
         self.submit(ctx, e, None)
     }
 
@@ -199,7 +305,9 @@ impl ExpandBlocks {
                 timestamp_writes: None,
             });
             if let (Some(s), Some(p)) = (sum, &sum_pipeline) {
-                dispatch(&mut pass, p, &s.bind, s.dims);
+                for (bind, dims) in &s.parts {
+                    dispatch(&mut pass, p, bind, *dims);
+                }
                 ctx.count_kernels(s.work());
             }
             for (bg, dims) in &e.steps {
@@ -216,7 +324,9 @@ impl ExpandBlocks {
 /// per pattern and rings: per lower block, its ring pairs `(p, q)` in ring
 /// order, as the ring `i` and the weight `R_ip R_iq` of each; the buffers
 /// each matrix's `K` values and `C_i` are written to; and the values of
-/// the constant term the matrices name, if any (once per model).
+/// the constant term the matrices name, if any (once per model). The sum
+/// runs once per part of the lower blocks ([`LowerParts`]), each part's
+/// pairs in buffers of their own.
 pub(crate) struct ShapeSum {
     /// The rings it was made for (kept to recognise them).
     rings: Arc<SparseRows>,
@@ -225,40 +335,47 @@ pub(crate) struct ShapeSum {
     /// The Laplacian square term's value per lower entry, of `square_of`.
     square: wgpu::Buffer,
     square_of: Option<Arc<ShapeOperatorModel>>,
-    params: wgpu::Buffer,
+    /// Per part: its parameters (without the term's flag), their buffer,
+    /// its bind group and dispatch size.
+    params: Vec<(SumParams, wgpu::Buffer)>,
+    pub(crate) parts: Vec<(wgpu::BindGroup, (u32, u32))>,
     nnz: usize,
-    bind: wgpu::BindGroup,
-    dims: (u32, u32),
     /// Bytes of a sum without the constant term.
     bytes: u64,
-    /// Kept alive for the bind group.
+    /// Kept alive for the bind groups.
     #[allow(dead_code)]
     keep: Vec<wgpu::Buffer>,
 }
 
-/// Parameters of `sum_shape_blocks.wgsl`.
+/// Parameters of `sum_shape_blocks.wgsl`, one part of the lower blocks.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
 pub(crate) struct SumParams {
+    /// Lower blocks of the part.
     pub(crate) slots: u32,
     /// 1 where the constant term's values are added, else 0.
     pub(crate) square: u32,
-    pub(crate) pad: [u32; 2],
+    /// Its first lower block, and the first of its blocks' ring pairs.
+    pub(crate) block0: u32,
+    pub(crate) pair0: u32,
 }
 
 impl ShapeSum {
-    /// Bytes of the buffers a sum over `lower_blocks` lower blocks, `rings`
-    /// rings and `pairs` ring pairs binds, the largest first.
-    fn binding_bytes(lower_blocks: usize, rings: usize, pairs: usize) -> [u64; 5] {
-        let (l, r, p) = (lower_blocks as u64, rings as u64, pairs as u64);
-        // The constant term's values are as large as K's (8 l).
-        [72 * l, 8 * p, 4 * p, 8 * l, 48 * r]
-    }
-
-    /// Whether every buffer of the sum for `a` fits one storage binding.
+    /// Whether the sum for `a` fits the storage bindings of `limit` bytes:
+    /// its lower blocks in at most [`LOWER_PARTS`] parts, each part's ring
+    /// pairs in one binding, and `K`'s values (and the term's), the `C_i`
+    /// and the pairs' starts in one each.
     pub fn fits(a: &IsoRingSym3, slots: &RingSlots, limit: u64) -> bool {
-        let b = Self::binding_bytes(a.iso.row_idx.len(), a.rings.len(), slots.pairs());
-        b.iter().all(|&x| x <= limit)
+        let (l, r) = (a.iso.row_idx.len(), a.rings.len());
+        let Some((parts, part_blocks)) = LowerParts::layout(l, limit) else {
+            return false;
+        };
+        let whole = [8 * l as u64, 48 * r as u64, 4 * (l as u64 + 1)];
+        whole.iter().all(|&x| x <= limit)
+            && slots
+                .pairs_per_part(part_blocks, parts)
+                .iter()
+                .all(|&p| 8 * p as u64 <= limit)
     }
 
     /// Whether this was made for `rings`.
@@ -295,18 +412,15 @@ impl ShapeSum {
             })?;
             ctx.write_buffer(&self.square, 0, bytemuck::cast_slice(v));
         }
-        let params = self.params_of(model.is_some());
-        ctx.write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
+        for (p, buf) in &self.params {
+            let p = SumParams {
+                square: model.is_some() as u32,
+                ..*p
+            };
+            ctx.write_buffer(buf, 0, bytemuck::bytes_of(&p));
+        }
         self.square_of = model;
         Ok(())
-    }
-
-    fn params_of(&self, square: bool) -> SumParams {
-        SumParams {
-            slots: self.nnz as u32,
-            square: square as u32,
-            pad: [0; 2],
-        }
     }
 
     /// What one sum reads and writes: K once (and the constant term's
@@ -318,17 +432,20 @@ impl ShapeSum {
         } else {
             0
         };
-        KernelWork::other(self.bytes + square)
+        KernelWork {
+            dispatches: self.parts.len() as u64,
+            ..KernelWork::other(self.bytes + square)
+        }
     }
 
     /// The sum of `a`'s pattern and rings (pairs' slots `slots`) into
-    /// `lower` (the pattern's [`ExpandBlocks::lower_buffer`]).
+    /// `lower` (the pattern's lower blocks), one dispatch per part.
     pub fn new(
         k: &ExpandBlocks,
         ctx: &Context,
         a: &IsoRingSym3,
         slots: &RingSlots,
-        lower: &wgpu::Buffer,
+        lower: &LowerParts,
     ) -> Result<ShapeSum, GpuError> {
         let nnz = a.iso.row_idx.len();
         let (start, ring, f) = slots.by_block(&a.rings, nnz);
@@ -342,30 +459,57 @@ impl ShapeSum {
             8 * nnz.max(1) as u64,
         )?;
         let start_buf = ctx.storage_init("shape sum: ring pairs per lower block", &start)?;
-        let ring_buf = ctx.storage_init("shape sum: ring of each pair", &ring)?;
-        let f_buf = ctx.storage_init("shape sum: weight of each pair (f64)", &f)?;
-        let params = ctx.uniform_of(
-            "sum_shape_blocks params",
-            &SumParams {
-                slots: nnz as u32,
+        let mut keep = vec![start_buf.clone()];
+        let mut params = Vec::new();
+        let mut parts = Vec::new();
+        for (part, out) in lower.buffers.iter().enumerate() {
+            let blocks = lower.range(part);
+            let pairs = start[blocks.start] as usize..start[blocks.end] as usize;
+            // (A part without pairs binds one placeholder entry.)
+            let ring_buf = ctx.storage_init(
+                &format!("shape sum: ring of each pair (part {part})"),
+                if pairs.is_empty() {
+                    &[0]
+                } else {
+                    &ring[pairs.clone()]
+                },
+            )?;
+            let f_buf = ctx.storage_init(
+                &format!("shape sum: weight of each pair (f64, part {part})"),
+                if pairs.is_empty() {
+                    &[0.0]
+                } else {
+                    &f[pairs.clone()]
+                },
+            )?;
+            let p = SumParams {
+                slots: blocks.len() as u32,
                 square: 0,
-                pad: [0; 2],
-            },
-        )?;
-        let bind = k.sum_shader.bind(
-            ctx,
-            &[
-                (0, &params),
-                (1, &iso),
-                (2, &ring_c),
-                (3, &start_buf),
-                (4, &ring_buf),
-                (5, &f_buf),
-                (6, lower),
-                (7, &square),
-            ],
-        )?;
-        let dims = ctx.dims("sum_shape_blocks", (nnz as u64).div_ceil(FLAT_WG as u64))?;
+                block0: blocks.start as u32,
+                pair0: pairs.start as u32,
+            };
+            let p_buf = ctx.uniform_of("sum_shape_blocks params", &p)?;
+            let bind = k.sum_shader.bind(
+                ctx,
+                &[
+                    (0, &p_buf),
+                    (1, &iso),
+                    (2, &ring_c),
+                    (3, &start_buf),
+                    (4, &ring_buf),
+                    (5, &f_buf),
+                    (6, out),
+                    (7, &square),
+                ],
+            )?;
+            let dims = ctx.dims(
+                "sum_shape_blocks",
+                (blocks.len() as u64).div_ceil(FLAT_WG as u64),
+            )?;
+            parts.push((bind, dims));
+            params.push((p, p_buf));
+            keep.extend([ring_buf, f_buf]);
+        }
         let pairs = f.len() as u64;
         let bytes = 8 * nnz as u64 + 4 * (nnz as u64 + 1) + pairs * (4 + 8 + 48) + 72 * nnz as u64;
         Ok(ShapeSum {
@@ -375,17 +519,17 @@ impl ShapeSum {
             square,
             square_of: None,
             params,
+            parts,
             nnz,
-            bind,
-            dims,
             bytes,
-            keep: vec![start_buf, ring_buf, f_buf],
+            keep,
         })
     }
 }
 
 #[cfg(test)]
 mod tests {
+    use super::{LowerParts, IDENTITY, PART_SHIFT, TRANSPOSE, ZERO};
     use crate::matrix::{high_part, low_part, HostMatrix};
     use crate::MixedPrecision;
     use solver_cpu::{BlockSym3, SpdSolver};
@@ -424,6 +568,48 @@ mod tests {
         let mut s = crate::test_solver()?;
         s.set_mixed_precision(MixedPrecision::Always);
         s.ctx.shader_f64.then_some(s)
+    }
+
+    /// The same with storage bindings of `limit` bytes: the lower blocks of
+    /// the tests' matrices then take several parts.
+    fn mixed_solver_with_limit(limit: u64) -> Option<crate::GpuSolver> {
+        crate::test_solver()?;
+        let mut s = crate::open_with(crate::OpenOptions {
+            adjust_limits: Some(Box::new(move |l| l.max_storage_buffer_binding_size = limit)),
+            ..Default::default()
+        })
+        .unwrap();
+        s.set_mixed_precision(MixedPrecision::Always);
+        s.ctx.shader_f64.then_some(s)
+    }
+
+    /// Lower blocks over one binding take several parts, each of the most
+    /// blocks a binding holds but the last; the device map names each
+    /// block's part and offset.
+    #[test]
+    fn lower_parts_cut_at_the_binding() {
+        assert_eq!(LowerParts::layout(600, 72 * 600), Some((1, 600)));
+        assert_eq!(LowerParts::layout(600, 72 * 600 - 1), Some((2, 300)));
+        assert_eq!(LowerParts::layout(600, 15_000), Some((3, 200)));
+        assert_eq!(LowerParts::layout(600, 72 * 150), Some((4, 150)));
+        assert_eq!(LowerParts::layout(600, 72 * 149), None);
+        assert_eq!(LowerParts::layout(600, 71), None);
+        let Some(s) = crate::test_solver() else {
+            return;
+        };
+        let parts = LowerParts::new(&s.ctx, 600, 15_000).unwrap();
+        assert_eq!(parts.buffers.len(), 3);
+        assert_eq!(parts.range(2), 400..600);
+        let map = [0, 199, 200 | TRANSPOSE, 599, ZERO, IDENTITY];
+        let want = [
+            0,
+            199,
+            TRANSPOSE | (1 << PART_SHIFT),
+            (2 << PART_SHIFT) | 199,
+            ZERO,
+            IDENTITY,
+        ];
+        assert_eq!(parts.device_map(&map), want);
     }
 
     #[test]
@@ -515,10 +701,16 @@ mod tests {
     /// on the host.
     #[test]
     fn block_residuals_are_formed_on_the_gpu_with_the_exact_values() {
-        let Some(mut s) = mixed_solver() else {
+        let Some(s) = mixed_solver() else {
             return;
         };
-        let n = 300;
+        block_residuals_case(s, 300, 1);
+        // Lower blocks in three parts (20,833 blocks of 72 bytes a binding).
+        let s = mixed_solver_with_limit(1_500_000).unwrap();
+        block_residuals_case(s, 15_000, 3);
+    }
+
+    fn block_residuals_case(mut s: crate::GpuSolver, n: usize, parts: usize) {
         let fixed = vec![false; n];
         s.prepare_blocks(&screened_ring(n, 0.0), &fixed).unwrap();
         let tol = 5e-12;
@@ -538,6 +730,8 @@ mod tests {
             s.solve_with_guess(&b, &mut x, 2).unwrap();
             assert_eq!(s.host_residuals, host, "residuals on the GPU");
             assert!(s.last_solve_mixed());
+            let e = &s.expansion.as_ref().unwrap().0;
+            assert_eq!(e.lower.buffers.len(), parts);
             // The round's last product A x (left in the PCG's `Ap`) is the
             // exact matrix's: within f64 rounding of the host's, where the
             // 48-bit parts are off by up to 2^-48 an entry.
@@ -635,10 +829,17 @@ mod tests {
     /// solver until the next one.
     #[test]
     fn shape_blocks_summed_on_the_gpu_are_the_hosts() {
-        let Some(mut s) = mixed_solver() else {
+        let Some(s) = mixed_solver() else {
             return;
         };
-        let n = 40;
+        shape_sum_case(s, 40, 1);
+        // Lower blocks in three parts (the sum one dispatch each, with its
+        // own pairs), read back through them by the expansion.
+        let s = mixed_solver_with_limit(15_000).unwrap();
+        shape_sum_case(s, 200, 3);
+    }
+
+    fn shape_sum_case(mut s: crate::GpuSolver, n: usize, parts: usize) {
         let mut fixed = vec![false; n];
         fixed[7] = true;
         let rings = crate::matrix::shape_strip(n, 0.0).rings;
@@ -673,11 +874,11 @@ mod tests {
             // mixed-precision matrix's expansion was made at its build);
             // the term's values (and the sum's parameters) once.
             let each = 8 * nnz + 48 * n + 60 * n;
-            let square_once = if seed == 0.5 { 8 * nnz + 16 } else { 0 };
+            let square_once = if seed == 0.5 { 8 * nnz + 16 * parts } else { 0 };
             if seed > 0.0 {
                 assert_eq!(up, (each + square_once) as u64, "seed {seed}");
             }
-            assert!(s.shape_sum.is_some());
+            assert_eq!(s.shape_sum.as_ref().unwrap().1.parts.len(), parts);
             // (The first solve builds the mixed-precision matrix.)
             check_solve(&mut s, &want);
             assert!(s.last_solve_mixed());

@@ -57,7 +57,9 @@
 //! shape matrix in isotropic-plus-ring form ([`solver_cpu::IsoRingSym3`],
 //! `K (x) I3 + sum_i R_i^T C_i R_i`) goes up as less still, `K`'s values and
 //! the `C_i`: `shaders/sum_shape_blocks.wgsl` sums its lower blocks on the GPU
-//! (each block's ring pairs and weights found once per pattern and rings),
+//! (each block's ring pairs and weights found once per pattern and rings;
+//! the f64 lower blocks in up to four storage bindings,
+//! `expand_blocks::LowerParts`),
 //! and the host keeps the matrix in that form, as the CPU backend does, for
 //! its residuals (matrix-free) and diagonal blocks: no blocks on the host.
 //! Once a kind's factor is made, the later matrices leave E_m's constant

@@ -746,6 +746,9 @@ pub(crate) struct RingSlots {
     slot: Vec<u32>,
     /// Per row `i`, `sum_q |R_iq|` (for [`shape_norm_bound`]'s rings' part).
     abs_sum: Vec<f64>,
+    /// The pairs per part of the lower blocks, for the parts' size it was
+    /// counted for ([`Self::pairs_per_part`]).
+    part_pairs: std::sync::OnceLock<(usize, Vec<usize>)>,
 }
 
 impl RingSlots {
@@ -785,6 +788,7 @@ impl RingSlots {
             start,
             slot,
             abs_sum,
+            part_pairs: Default::default(),
         })
     }
 
@@ -794,8 +798,31 @@ impl RingSlots {
     }
 
     /// Ring pairs in all.
+    #[cfg(test)]
     pub fn pairs(&self) -> usize {
         self.slot.len()
+    }
+
+    /// The pairs whose lower block is in each part of `part_blocks` lower
+    /// blocks (`parts` of them, the last part all the blocks past the
+    /// others): counted once for a part size.
+    pub fn pairs_per_part(&self, part_blocks: usize, parts: usize) -> Vec<usize> {
+        let count = || {
+            let mut n = vec![0; parts];
+            for &s in &self.slot {
+                n[(s as usize / part_blocks.max(1)).min(parts - 1)] += 1;
+            }
+            n
+        };
+        match self.part_pairs.get() {
+            Some((b, n)) if *b == part_blocks && n.len() == parts => n.clone(),
+            Some(_) => count(),
+            None => self
+                .part_pairs
+                .get_or_init(|| (part_blocks, count()))
+                .1
+                .clone(),
+        }
     }
 
     /// The pairs gathered by lower block (`slots` of them), for

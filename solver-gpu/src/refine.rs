@@ -56,7 +56,7 @@ const BINDINGS: [(u32, Bind); 12] = [
 ];
 
 /// Layout of `refine_product.wgsl` (group 0).
-const PRODUCT_BINDINGS: [(u32, Bind); 8] = [
+const PRODUCT_BINDINGS: [(u32, Bind); 11] = [
     (0, Bind::Uniform),
     (1, Bind::Read),
     (2, Bind::Read),
@@ -65,6 +65,9 @@ const PRODUCT_BINDINGS: [(u32, Bind); 8] = [
     (5, Bind::ReadWrite),
     (6, Bind::Read),
     (7, Bind::Uniform),
+    (8, Bind::Read),
+    (9, Bind::Read),
+    (10, Bind::Read),
 ];
 
 /// Block rows per workgroup of `refine_product.wgsl` (its `WG`).
@@ -224,14 +227,13 @@ impl Refinement {
 
     /// Bind the exact product of the block matrix `m` (its chunks' columns
     /// and row pointers) with the f64 lower blocks and the block map of the
-    /// expansion `e` (`lower_blocks` lower blocks), made for the values `key`.
+    /// expansion `e`, made for the values `key`.
     pub fn bind_exact(
         &mut self,
         ctx: &Context,
         k: &RefineKernels,
         m: &GpuMatrix,
         e: &crate::expand_blocks::Expansion,
-        lower_blocks: usize,
         key: usize,
     ) -> Result<(), GpuError> {
         let (map, lower) = (&e.map, &e.lower);
@@ -249,11 +251,14 @@ impl Refinement {
                     (0, &self.ws_params),
                     (1, &m.row_ptr),
                     (2, map),
-                    (3, lower),
+                    (3, lower.part(0)),
                     (4, &self.xnew),
                     (5, &self.ax),
                     (6, &c.cols),
                     (7, u),
+                    (8, lower.part(1)),
+                    (9, lower.part(2)),
+                    (10, lower.part(3)),
                 ],
             )?;
             let groups = (c.rows.len() as u64).div_ceil(PRODUCT_WG);
@@ -261,7 +266,7 @@ impl Refinement {
             blocks += c.blocks.len() as u64;
         }
         let rows = (self.n / 3) as u64;
-        self.exact_bytes = 4 * (rows + 1) + 8 * blocks + 72 * lower_blocks as u64;
+        self.exact_bytes = 4 * (rows + 1) + 8 * blocks + 72 * lower.blocks as u64;
         self.exact = Some((key, steps));
         Ok(())
     }

@@ -165,7 +165,14 @@ fn every_shader_struct_has_its_host_twins_layout() {
         (
             "sum_shape_blocks.wgsl",
             crate::expand_blocks::SUM_SOURCE.into(),
-            vec![host!("SumParams", crate::expand_blocks::SumParams, slots)],
+            vec![host!(
+                "SumParams",
+                crate::expand_blocks::SumParams,
+                slots,
+                square,
+                block0,
+                pair0
+            )],
         ),
         (
             "scale_rows.wgsl",
@@ -184,7 +191,10 @@ fn every_shader_struct_has_its_host_twins_layout() {
                 n_below,
                 nv,
                 stride,
-                bs
+                bs,
+                update0,
+                update1,
+                first
             )],
         ),
     ];

@@ -276,7 +276,7 @@ pub struct GpuSolver {
     ring_slots: Option<Arc<RingSlots>>,
     /// The f64 lower blocks of the uploaded block pattern (its stamp), which
     /// the expansions read and the shape sum writes.
-    expand_lower: Option<(usize, wgpu::Buffer)>,
+    expand_lower: Option<(usize, expand_blocks::LowerParts)>,
     /// The shape sum of the uploaded pattern (its stamp) and rings.
     pub(crate) shape_sum: Option<(usize, expand_blocks::ShapeSum)>,
     /// The host's parts of the Laplacian square term the shape matrices
@@ -849,14 +849,9 @@ impl GpuSolver {
         let mixed = self.mixed.as_mut().unwrap();
         if !mixed.refine.exact_for(self.expansions) {
             let k = self.mixed_kernels.as_ref().unwrap();
-            mixed.refine.bind_exact(
-                &self.ctx,
-                &k.refine,
-                &mixed.matrix,
-                e,
-                h.lower_len(),
-                self.expansions,
-            )?;
+            mixed
+                .refine
+                .bind_exact(&self.ctx, &k.refine, &mixed.matrix, e, self.expansions)?;
         }
         Ok(mixed.refine.exact_for(self.expansions))
     }
@@ -1314,9 +1309,10 @@ impl GpuSolver {
     /// without the inverse diagonals; `false` where it can not run.
     fn expand_on_gpu(&mut self, h: &HostMatrix) -> Result<bool, GpuError> {
         let lower_len = h.lower_len();
+        let limit = matrix::binding_limit(&self.ctx);
         if !self.ctx.shader_f64
             || h.bs != 3
-            || 72 * lower_len as u64 > matrix::binding_limit(&self.ctx)
+            || expand_blocks::LowerParts::layout(lower_len, limit).is_none()
         {
             return Ok(false);
         }
@@ -1339,13 +1335,12 @@ impl GpuSolver {
             let lo = mixed.and_then(|m| m.matrix.block_parts()).and_then(|p| p.1);
             if self.expand_lower.as_ref().is_none_or(|(p, _)| *p != stamp) {
                 self.expand_lower = None;
-                let buf = expand_blocks::ExpandBlocks::lower_buffer(&self.ctx, lower_len)?;
-                self.expand_lower = Some((stamp, buf));
+                let parts = expand_blocks::LowerParts::new(&self.ctx, lower_len, limit)?;
+                self.expand_lower = Some((stamp, parts));
             }
             let e = self.expand.as_ref().unwrap().expansion(
                 &self.ctx,
                 &self.expand_lower.as_ref().unwrap().1,
-                lower_len,
                 h.map(),
                 chunks,
                 lo,
