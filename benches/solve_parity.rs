@@ -11,7 +11,12 @@
 //!   within a factor 2 of the largest (a few: the error sits on a few
 //!   vertices; many: it is spread).
 //!
-//! `cargo bench --bench solve_parity -- ROW [--shape]` with ROW
+//! - with `--fine-tune`: the fine-tune (Eq. 8) from the CPU backend's
+//!   scale-driven result on the CPU's block PCG (at its tolerance and the
+//!   GPU's), on the GPU, and on the CPU's PCG from that start moved a little,
+//!   each against the direct solver's fine-tune.
+//!
+//! `cargo bench --bench solve_parity -- ROW [--shape] [--fine-tune]` with ROW
 //! `girths-homer-100k` (default) or `girths-homer-1m` (homer, every edge cut
 //! in 3 or 10); `--shape` adds the shape solve. Any adapter: on lavapipe the
 //! seconds are not GPU seconds, but the differences are the GPU solver's own.
@@ -108,6 +113,9 @@ fn main() {
         gpu_info.max_residual,
         cpu_info.max_residual,
     );
+    if args.iter().any(|a| a == "--fine-tune") {
+        fine_tune_parity(&row, &p, &job);
+    }
     if !args.iter().any(|a| a == "--shape") {
         return;
     }
@@ -147,5 +155,77 @@ fn main() {
         "{row}: {n} vertices; first shape solve (Eq. 7), GPU vs Cholesky, % of the bbox diagonal: \
          largest {max:.2e}, p99 {p99:.2e}, RMS {rms:.2e}; {near_max} vertices within a factor 2 of the largest; \
          the step itself moves vertices up to {moved:.2e}; {gpu_s:.1} s and {cpu_s:.1} s"
+    );
+}
+
+/// Where the backends' final results part: the fine-tune (Eq. 8) from one
+/// scale-driven result (the CPU backend's), on the CPU's block PCG, the
+/// direct Cholesky solver and the GPU; and on the CPU's PCG from that start
+/// moved by a smooth field of `1e-8` of the bbox diagonal. Distances in % of
+/// the bbox diagonal against the direct solver's fine-tune.
+fn fine_tune_parity(row: &str, p: &Problem, job: &Job) {
+    use metricdeform::fine_tune::{fine_tune, FineTuneParams};
+    use metricdeform::pipeline::{deform, SolverBackend, CPU_TOLERANCE};
+    use solver_cpu::BlockPcgSolver;
+    let mesh = &p.mesh;
+    let mut o = Options::from_spec(&job.spec.solver);
+    let params = FineTuneParams {
+        weights: o.fine_tune,
+        tolerance: o.tolerance,
+        max_iterations: o.fine_tune_iterations,
+        multipliers: o.multipliers,
+    };
+    o.fine_tune_iterations = 0;
+    o.backend = SolverBackend::Cpu;
+    let start = deform(p, &o, &mut |_| {}).unwrap().positions;
+    let groups: Vec<usize> = (0..p.constraints.len()).collect();
+    let diag = mesh.bbox_diagonal(&mesh.positions);
+    let run = |solver: Box<dyn SpdSolver>, tol: f64, x: &[DVec3]| {
+        let t0 = Instant::now();
+        let mut model = ShapeModel::with_solver(mesh, &p.topo, p.handles.clone(), solver).unwrap();
+        model.solver().set_tolerance(tol);
+        let (y, steps) = fine_tune(p, &params, &mut model, &groups, x, &mut |_, _| Ok(())).unwrap();
+        (y, steps, t0.elapsed().as_secs_f64())
+    };
+    let dist = |a: &[DVec3], b: &[DVec3]| {
+        a.iter()
+            .zip(b)
+            .map(|(u, v)| 100.0 * (*u - *v).length() / diag)
+            .fold(0.0, f64::max)
+    };
+    if std::env::var("PROBE_GPU_ONLY").is_ok() {
+        let _ = run(
+            gpu(SystemKind::FineTune, GPU_TOLERANCE),
+            GPU_TOLERANCE,
+            &start,
+        );
+        return;
+    }
+    let (direct, steps_d, sd) = run(Box::new(CholeskySolver::new()), CPU_TOLERANCE, &start);
+    let (pcg, steps_c, sc) = run(Box::new(BlockPcgSolver::new()), CPU_TOLERANCE, &start);
+    let (pcg8, _, _) = run(Box::new(BlockPcgSolver::new()), GPU_TOLERANCE, &start);
+    let moved: Vec<DVec3> = start
+        .iter()
+        .map(|v| {
+            *v + 1e-8 * diag * DVec3::new((v.y * 7.0).sin(), (v.z * 5.0).cos(), (v.x * 3.0).sin())
+        })
+        .collect();
+    let (from_moved, _, _) = run(Box::new(BlockPcgSolver::new()), CPU_TOLERANCE, &moved);
+    let (gpu_y, steps_g, sg) = run(
+        gpu(SystemKind::FineTune, GPU_TOLERANCE),
+        GPU_TOLERANCE,
+        &start,
+    );
+    println!(
+        "{row}: fine-tune from the CPU's scale-driven result, largest distance from the direct solver's, \
+         % of the bbox diagonal: CPU PCG at {CPU_TOLERANCE:e} {:.2e}, at {GPU_TOLERANCE:e} {:.2e}; GPU {:.2e}; \
+         CPU PCG from the start moved by up to {:.1e} %: {:.2e}; steps {steps_d} (direct), {steps_c} (CPU PCG), \
+         {steps_g} (GPU); {sd:.1} s, {sc:.1} s, {sg:.1} s; the fine-tune moves vertices up to {:.2e}",
+        dist(&pcg, &direct),
+        dist(&pcg8, &direct),
+        dist(&gpu_y, &direct),
+        dist(&moved, &start),
+        dist(&from_moved, &direct),
+        dist(&direct, &start),
     );
 }

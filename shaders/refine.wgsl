@@ -26,7 +26,8 @@
 //   7  rtrue   rw       f64, r' = b - A x' (`residual`), read by `scale_r`.
 //   8  partials rw      f64, (s ncols + c) groups + g: s = 0 r'.r', 1 x'.x'.
 //   9  norms   rw       f64, 3 per column: r'.r', x'.x' (`finish`), and the
-//                       round's scale ||r|| (0: column done) (`start`).
+//                       round's scale ||r|| (0 or -1: column done; see
+//                       `start`).
 //  10  rp      rw       f64, the PCG's right-hand side r / ||r|| (`scale_r`).
 //  11  cols    rw       the PCG's column states (ColState of pcg.wgsl, f64):
 //                       `start` writes each column's threshold.
@@ -98,7 +99,7 @@ fn add(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) n
         return;
     }
     let s = norms[3u * (i / P.n) + 2u];
-    if s != f64(0.0) {
+    if s > f64(0.0) {
         xnew[i] = x[i] + s * d[i];
     } else {
         xnew[i] = x[i];
@@ -152,24 +153,35 @@ fn finish(@builtin(local_invocation_index) lid: u32) {
     }
 }
 
-// Per column, as the host's `residuals` and round set-up did: the target is
-// the tolerance or the rounding floor eps ||A|| ||x|| / ||b||, whichever is
-// larger; a column above it runs with the right-hand side r / ||r|| to the
-// squared threshold eta^2, eta = 0.5 target / rel clamped to [1e-13, 0.1].
+// Per column, as the host's `residuals` and round set-up do: the target is
+// the tolerance, or, once the column has run a round, the rounding floor
+// eps ||A|| ||x|| / ||b|| where that is larger; a column above it runs with
+// the right-hand side r / ||r|| to the squared threshold eta^2, eta = 0.5
+// tol / rel clamped to [1e-13, 0.1]: the PCG's own recurrence reduces the
+// error below what the floor lets the true residual show
+// (GpuSolver::round_eta). The column's scale (norms[3 c + 2]) is the
+// round's ||r|| while it runs, 0 before it has run one (and while done
+// without one), -1 once done after one.
 @compute @workgroup_size(1)
 fn start() {
     for (var c = 0u; c < NCOLS; c++) {
         let bn = aim[c];
+        let ran = norms[3u * c + 2u] != f64(0.0);
         var scale = f64(0.0);
         var thr = f64(0.0);
         if bn > f64(0.0) {
             let rn = sqrt(norms[3u * c]);
             let rel = rn / bn;
-            let aimed = max(aim[CMAX], aim[CMAX + 1u] * sqrt(norms[3u * c + 1u]) / bn);
+            var aimed = aim[CMAX];
+            if ran {
+                aimed = max(aimed, aim[CMAX + 1u] * sqrt(norms[3u * c + 1u]) / bn);
+            }
             if rel > aimed {
                 scale = rn;
-                let eta = clamp(f64(0.5) * aimed / rel, f64(1e-13), f64(0.1));
+                let eta = clamp(f64(0.5) * aim[CMAX] / rel, f64(1e-13), f64(0.1));
                 thr = eta * eta;
+            } else if ran {
+                scale = f64(-1.0);
             }
         }
         norms[3u * c + 2u] = scale;
@@ -184,7 +196,7 @@ fn scale_r(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroup
         return;
     }
     let s = norms[3u * (i / P.n) + 2u];
-    if s != f64(0.0) {
+    if s > f64(0.0) {
         rp[i] = rtrue[i] / s;
     } else {
         rp[i] = f64(0.0);

@@ -771,6 +771,69 @@ mod tests {
         }
     }
 
+    /// A warm start above the tolerance is solved, not taken as it is, where
+    /// the rounding floor `eps ||A|| ||x|| / ||b||` is above the start's
+    /// residual (one stiff vertex, as in homer 1.2M's fine-tune matrix, whose
+    /// row sums reach 1.6e14): the floor ends the rounds only once a column
+    /// has run one. Both ways of forming the residuals: on the host (the
+    /// pattern's first matrix) and on the GPU (a later one).
+    #[test]
+    fn a_warm_start_under_the_rounding_floor_is_still_solved() {
+        let Some(mut s) = mixed_solver() else {
+            return;
+        };
+        let n = 300;
+        let fixed = vec![false; n];
+        let mut a = screened_ring(n, 0.0);
+        for k in a.col_ptr[5]..a.col_ptr[6] {
+            if a.row_idx[k] == 5 {
+                for q in [0, 4, 8] {
+                    a.blocks[k][q] *= 1e6;
+                }
+            }
+        }
+        let b: Vec<f64> = (0..3 * n)
+            .map(|i| 1.0 + 0.1 * (0.01 * i as f64).sin())
+            .collect();
+        let mut exact = b.clone();
+        let mut direct = solver_cpu::CholeskySolver::new();
+        direct.prepare_blocks(&a, &fixed).unwrap();
+        direct.solve_in_place(&mut exact, 1).unwrap();
+        let norm = |v: &[f64]| v.iter().map(|x| x * x).sum::<f64>().sqrt();
+        let err = |x: &[f64]| {
+            let d: Vec<f64> = x.iter().zip(&exact).map(|(u, v)| u - v).collect();
+            norm(&d) / norm(&exact)
+        };
+        let start: Vec<f64> = exact
+            .iter()
+            .enumerate()
+            .map(|(i, v)| v * (1.0 + 1e-8 * (0.005 * i as f64).sin()))
+            .collect();
+        let tol = 1e-12;
+        s.set_tolerance(tol);
+        for round in 0..2 {
+            // The second time the same values go up again: the GPU forms
+            // the residuals.
+            s.prepare_blocks(&a, &fixed).unwrap();
+            let h = s.host.as_ref().unwrap();
+            let mut r = vec![0.0; 3 * n];
+            h.residual(&b, &start, &mut r, 1);
+            let rel = norm(&r) / norm(&b);
+            let floor = f64::EPSILON * h.norm_inf() * norm(&start) / norm(&b);
+            assert!(tol < rel && rel < floor, "{tol:e} < {rel:e} < {floor:e}");
+            let mut x = start.clone();
+            let info = s.solve_with_guess(&b, &mut x, 1).unwrap();
+            assert!(s.last_solve_mixed());
+            assert!(info.iterations > 0, "round {round}: taken as it was");
+            assert!(
+                err(&x) < 1e-2 * err(&start),
+                "round {round}: {:e} from {:e}",
+                err(&x),
+                err(&start)
+            );
+        }
+    }
+
     /// The GPU's block values (high and low parts) are `want`'s.
     fn check_parts(s: &crate::GpuSolver, want: &HostMatrix) {
         let want_vals = want.full_values();
