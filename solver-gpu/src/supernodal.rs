@@ -209,26 +209,27 @@ impl GpuFactor {
         // Chunks of at most `cap` values, in that order.
         let cap = (limit / b).min(u32::MAX as u64) as usize;
         let size = |s: usize| (f.val_ptr[s + 1] - f.val_ptr[s]) as usize;
+        let runs = pack(order.iter().map(|&s| size(s)), cap).map_err(|i| {
+            let s = order[i];
+            GpuError::LimitExceeded {
+                what: format!(
+                    "one supernode of a Cholesky factor ({} x {} values)",
+                    f.shape(s).0 + f.shape(s).1,
+                    f.shape(s).0
+                ),
+                limit_name: "max_storage_buffer_binding_size",
+                needed: size(s) as u64 * b,
+                limit,
+            }
+        })?;
         let mut chunk = vec![0u32; ns];
         let mut vo = vec![0u32; ns];
         let mut chunk_len = vec![0usize];
-        for &s in &order {
-            if size(s) > cap {
-                return Err(GpuError::LimitExceeded {
-                    what: format!(
-                        "one supernode of a Cholesky factor ({} x {} values)",
-                        f.shape(s).0 + f.shape(s).1,
-                        f.shape(s).0
-                    ),
-                    limit_name: "max_storage_buffer_binding_size",
-                    needed: size(s) as u64 * b,
-                    limit,
-                });
-            }
-            if chunk_len[chunk_len.len() - 1] + size(s) > cap {
+        for (&s, &k) in order.iter().zip(&runs) {
+            let k = k as usize;
+            if k == chunk_len.len() {
                 chunk_len.push(0);
             }
-            let k = chunk_len.len() - 1;
             chunk[s] = k as u32;
             vo[s] = chunk_len[k] as u32;
             chunk_len[k] += size(s);
@@ -400,51 +401,39 @@ struct Piece {
     rows: [u32; 2],
 }
 
-/// Cut the supernodes' slots (`sizes`, level order) into runs of at most
-/// `cap` slots at supernode boundaries: the first slot of each run, and the
-/// slot count last. `None` where one supernode's slots exceed `cap`.
-fn update_cuts(sizes: &[[u32; 2]], cap: usize) -> Option<Vec<usize>> {
-    let mut starts = vec![0];
-    let (mut at, mut len) = (0, 0);
-    for &[_, q] in sizes {
-        let q = q as usize;
+/// Cut consecutive items of `sizes` into runs of at most `cap` (greedy: an
+/// item starts a new run where it would not fit the current one): each
+/// item's run. `Err(i)` where item `i` alone exceeds `cap`. The values of
+/// a factor are cut so by supernode ([`GpuFactor::upload`]), and the updates
+/// of its solves too ([`SupernodalSteps::new`]).
+fn pack(sizes: impl IntoIterator<Item = usize>, cap: usize) -> Result<Vec<u32>, usize> {
+    let (mut run, mut len) = (0u32, 0usize);
+    let mut out = Vec::new();
+    for (i, q) in sizes.into_iter().enumerate() {
         if q > cap {
-            return None;
+            return Err(i);
         }
         if len + q > cap {
-            starts.push(at);
+            run += 1;
             len = 0;
         }
         len += q;
-        at += q;
+        out.push(run);
     }
-    starts.push(at);
-    Some(starts)
+    Ok(out)
 }
 
-/// The pieces of one level's segments: each cut where the updates of its
-/// supernodes (from `starts`, [`update_cuts`]) pass to the next buffer;
-/// each as `(segment with its own rows and slots, update buffer)`.
-fn cut_segments(
-    segments: &[Segment],
-    sizes: &[[u32; 2]],
-    starts: &[usize],
-) -> Vec<(Segment, usize)> {
-    let buffer = |p: usize| {
-        starts[1..]
-            .partition_point(|&e| e <= p)
-            .min(starts.len() - 2)
-    };
+/// The pieces of one level's segments: each cut where its supernodes'
+/// update buffer (`buffer`, per supernode in level order, from [`pack`])
+/// changes; each as `(segment with its own rows and slots, update buffer)`.
+fn cut_segments(segments: &[Segment], sizes: &[[u32; 2]], buffer: &[u32]) -> Vec<(Segment, usize)> {
     let mut pieces: Vec<(Segment, usize)> = Vec::new();
     for g in segments {
         let (mut own, mut below) = (g.own, g.below);
         let mut piece: Option<(Segment, usize)> = None;
         for s in g.sn..g.sn + g.n_sn {
             let [m, q] = sizes[s as usize];
-            let k = match (q, &piece) {
-                (0, Some((_, k))) => *k,
-                _ => buffer(below as usize),
-            };
+            let k = buffer[s as usize] as usize;
             match &mut piece {
                 Some((p, pk)) if *pk == k => {
                     p.n_own += m;
@@ -507,12 +496,23 @@ impl SupernodalSteps {
         let (w, y) = (vector("work vector w")?, vector("work vector y")?);
         let per_slot = (bs * cmax * b) as u64;
         let cap = (limit / per_slot).min(u32::MAX as u64) as usize;
-        let starts = update_cuts(&f.sizes, cap).ok_or_else(|| GpuError::LimitExceeded {
-            what: format!("the updates of one Cholesky supernode for {cmax} columns"),
-            limit_name: "max_storage_buffer_binding_size",
-            needed: f.sizes.iter().map(|s| s[1] as u64).max().unwrap_or(0) * per_slot,
-            limit,
+        let buffer = pack(f.sizes.iter().map(|s| s[1] as usize), cap).map_err(|i| {
+            GpuError::LimitExceeded {
+                what: format!("the updates of one Cholesky supernode for {cmax} columns"),
+                limit_name: "max_storage_buffer_binding_size",
+                needed: f.sizes[i][1] as u64 * per_slot,
+                limit,
+            }
         })?;
+        // The first slot of each buffer, and the slot count last.
+        let buffers = buffer.last().map_or(1, |&k| k as usize + 1);
+        let mut starts = vec![0usize; buffers + 1];
+        for (&[_, q], &k) in f.sizes.iter().zip(&buffer) {
+            starts[k as usize + 1] += q as usize;
+        }
+        for k in 0..buffers {
+            starts[k + 1] += starts[k];
+        }
         let contrib = (0..starts.len() - 1)
             .map(|k| {
                 let slots = starts[k + 1] - starts[k];
@@ -538,7 +538,7 @@ impl SupernodalSteps {
                 .count()
                 .max(1);
             let mut level = Vec::new();
-            for (g, own) in cut_segments(segments, &f.sizes, &starts) {
+            for (g, own) in cut_segments(segments, &f.sizes, &buffer) {
                 let mut bind = |k: usize| -> Result<wgpu::BindGroup, GpuError> {
                     let p = ctx.uniform_of(
                         "supernodal params",
