@@ -12,7 +12,7 @@
 //! its Jacobian row changed: a degree-1 constraint's row is the same at every
 //! Newton step of one estimation.
 
-use crate::constrained_step::{step_from_solutions, Linearized, Multipliers};
+use crate::constrained_step::{step_from_solutions, Multipliers};
 use crate::Result;
 use solver_cpu::{SpdSolver, SymCsc};
 
@@ -67,6 +67,33 @@ fn power(s: f64, p: i32) -> f64 {
     }
 }
 
+/// The per-kind grouping of `constraints` at `s` (`Linearized::grouped`,
+/// value for value and in the same order of sums): returns the groups'
+/// values and leaves their rows in `rows`, group g at `g n..(g + 1) n`.
+fn grouped_rows(
+    constraints: &[ScaleConstraint],
+    s: &[f64],
+    values: Vec<f64>,
+    groups: &[usize],
+    rows: &mut Vec<f64>,
+) -> Vec<f64> {
+    let n = s.len();
+    let ng = groups.iter().copied().max().map_or(0, |g| g + 1);
+    let mut grouped = vec![0.0; ng];
+    rows.clear();
+    rows.resize(n * ng, 0.0);
+    let mut row = vec![0.0; n];
+    for ((c, &g), &v) in constraints.iter().zip(groups).zip(&values) {
+        grouped[g] += v * v;
+        row.iter_mut().for_each(|r| *r = 0.0);
+        c.gradient(s, &mut row);
+        for (o, &r) in rows[g * n..(g + 1) * n].iter_mut().zip(&row) {
+            *o += 2.0 * v * r;
+        }
+    }
+    grouped
+}
+
 /// Outcome of one estimation.
 #[derive(Debug, Clone, Default)]
 pub struct ScaleInfo {
@@ -78,8 +105,9 @@ pub struct ScaleInfo {
 pub struct ScaleFactorSystem {
     n: usize,
     solver: Box<dyn SpdSolver>,
-    /// The Jacobian rows `Y`'s columns were last solved for.
-    rows: Vec<Vec<f64>>,
+    /// The Jacobian rows `Y`'s columns were last solved for, row j at
+    /// `j n..(j + 1) n`.
+    rows: Vec<f64>,
     /// `Y = H^-1 L^T` of those rows, column j at `j n..(j + 1) n` (also the
     /// initial guess of an iterative solver when a row changes).
     ycols: Vec<f64>,
@@ -133,45 +161,62 @@ impl ScaleFactorSystem {
         })
     }
 
-    /// Make `ycols` the solutions `H^-1 r` of the Jacobian rows `rows`: the
-    /// columns whose row changed since they were solved are solved together
-    /// (their previous solutions the initial guess), the others kept.
-    fn jacobian_solutions(&mut self, rows: Vec<Vec<f64>>) -> Result<()> {
-        let (n, k) = (self.n, rows.len());
-        if self.rows.len() != k || self.ycols.len() != n * k {
-            self.rows = vec![Vec::new(); k];
+    /// Make `ycols` the solutions `H^-1 r` of the Jacobian rows `next` (row j
+    /// at `j n..(j + 1) n`): the columns whose row changed since they were
+    /// solved are solved together (their previous solutions the initial
+    /// guess), the others kept. `next` receives the previous rows, so that the
+    /// caller can build the following step's rows in memory already touched:
+    /// a fresh buffer of `k n` values per Newton step cost more in page faults
+    /// than its solve on the GPU path (108k faces, 2026-11-25).
+    fn jacobian_solutions(&mut self, next: &mut Vec<f64>, k: usize) -> Result<()> {
+        let n = self.n;
+        if self.rows.len() != n * k || self.ycols.len() != n * k {
+            // Every column counts as changed.
+            self.rows.clear();
             self.ycols = vec![0.0; n * k];
         }
-        let changed: Vec<usize> = (0..k).filter(|&j| self.rows[j] != rows[j]).collect();
-        // The old rows are no longer needed: free them before the solve.
-        self.rows = Vec::new();
-        if let [j] = changed[..] {
+        let changed: Vec<usize> = (0..k)
+            .filter(|&j| self.rows.get(j * n..(j + 1) * n) != Some(&next[j * n..(j + 1) * n]))
+            .collect();
+        let solved = match changed[..] {
+            [] => Ok(()),
             // One column (a volume's or an area's row, at every Newton step
             // after the first): solved in place, its row the right-hand side.
-            let solved =
-                self.solver
-                    .solve_with_guess(&rows[j], &mut self.ycols[j * n..(j + 1) * n], 1);
-            if let Err(e) = solved {
-                self.ycols.clear();
-                return Err(e.into());
+            [j] => self
+                .solver
+                .solve_with_guess(
+                    &next[j * n..(j + 1) * n],
+                    &mut self.ycols[j * n..(j + 1) * n],
+                    1,
+                )
+                .map(|_| ()),
+            // All of them (every estimation's first step): in place too.
+            _ if changed.len() == k => self
+                .solver
+                .solve_with_guess(next, &mut self.ycols, k)
+                .map(|_| ()),
+            _ => {
+                let mut rhs = Vec::with_capacity(n * changed.len());
+                let mut x = Vec::with_capacity(n * changed.len());
+                for &j in &changed {
+                    rhs.extend_from_slice(&next[j * n..(j + 1) * n]);
+                    x.extend_from_slice(&self.ycols[j * n..(j + 1) * n]);
+                }
+                let solved = self.solver.solve_with_guess(&rhs, &mut x, changed.len());
+                if solved.is_ok() {
+                    for (c, &j) in changed.iter().enumerate() {
+                        self.ycols[j * n..(j + 1) * n].copy_from_slice(&x[c * n..(c + 1) * n]);
+                    }
+                }
+                solved.map(|_| ())
             }
-        } else if !changed.is_empty() {
-            let mut rhs = Vec::with_capacity(n * changed.len());
-            let mut x = Vec::with_capacity(n * changed.len());
-            for &j in &changed {
-                rhs.extend_from_slice(&rows[j]);
-                x.extend_from_slice(&self.ycols[j * n..(j + 1) * n]);
-            }
-            let solved = self.solver.solve_with_guess(&rhs, &mut x, changed.len());
-            if let Err(e) = solved {
-                self.ycols.clear();
-                return Err(e.into());
-            }
-            for (c, &j) in changed.iter().enumerate() {
-                self.ycols[j * n..(j + 1) * n].copy_from_slice(&x[c * n..(c + 1) * n]);
-            }
+        };
+        if let Err(e) = solved {
+            self.rows.clear();
+            self.ycols.clear();
+            return Err(e.into());
         }
-        self.rows = rows;
+        std::mem::swap(&mut self.rows, next);
         Ok(())
     }
 
@@ -189,6 +234,8 @@ impl ScaleFactorSystem {
             Multipliers::PerConstraint => 30,
             Multipliers::PerKind => 60,
         };
+        // The rows of the step being built (the previous step's buffer).
+        let mut next = Vec::new();
         for it in 0..max_iter {
             let values: Vec<f64> = constraints.iter().map(|c| c.value(&s)).collect();
             let max_res = values.iter().fold(0.0f64, |m, v| m.max(v.abs()));
@@ -197,24 +244,24 @@ impl ScaleFactorSystem {
             if max_res < 1e-12 {
                 break;
             }
-            let rows: Vec<Vec<f64>> = constraints
-                .iter()
-                .map(|c| {
-                    let mut r = vec![0.0; n];
-                    c.gradient(&s, &mut r);
-                    r
-                })
-                .collect();
-            let mut lin = Linearized { values, rows };
-            if mode == Multipliers::PerKind {
-                lin = lin.grouped(&groups);
-            }
-            self.jacobian_solutions(lin.rows)?;
+            let values = match mode {
+                Multipliers::PerConstraint => {
+                    next.clear();
+                    next.resize(n * values.len(), 0.0);
+                    for (c, row) in constraints.iter().zip(next.chunks_mut(n.max(1))) {
+                        c.gradient(&s, row);
+                    }
+                    values
+                }
+                Multipliers::PerKind => grouped_rows(constraints, &s, values, &groups, &mut next),
+            };
+            let k = values.len();
+            self.jacobian_solutions(&mut next, k)?;
             // y = H^-1 (-grad E) = 1 - s: the smoothness term vanishes on
             // constants, so grad E = H (s - 1).
             let y: Vec<f64> = s.iter().map(|v| 1.0 - v).collect();
-            let rows: Vec<&[f64]> = self.rows.iter().map(|r| &r[..]).collect();
-            let step = step_from_solutions(y, &lin.values, &rows, &self.ycols)?;
+            let rows: Vec<&[f64]> = self.rows.chunks(n.max(1)).take(k).collect();
+            let step = step_from_solutions(y, &values, &rows, &self.ycols)?;
             // Keep every scale factor positive (a face cannot be scaled through zero).
             let mut alpha: f64 = 1.0;
             for i in 0..n {
@@ -244,6 +291,7 @@ impl ScaleFactorSystem {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::constrained_step::Linearized;
     use solver_cpu::{CholeskySolver, SolveInfo, SolverError, WorkCounters};
     use std::sync::{Arc, Mutex};
 
@@ -378,6 +426,69 @@ mod tests {
             .unwrap();
         assert_eq!(s, s2);
         assert!(solved.lock().unwrap().iter().all(|&c| c == 1));
+    }
+
+    #[test]
+    fn grouped_rows_are_the_linearized_grouping_to_the_bit() {
+        let n = 30;
+        let s: Vec<f64> = (0..n).map(|f| 0.8 + 0.013 * f as f64).collect();
+        // Two lengths in group 0 (one with a face listed twice), a volume in
+        // group 1, an area in group 0 again: groups out of order.
+        let constraints = [
+            ScaleConstraint {
+                coeffs: (0..12).map(|f| (f, 1.0 + 0.1 * f as f64)).collect(),
+                degree: 1,
+                target: 9.0,
+                group: 0,
+            },
+            ScaleConstraint {
+                coeffs: vec![(3, 0.5), (4, 0.25), (3, 0.75)],
+                degree: 1,
+                target: 1.7,
+                group: 0,
+            },
+            ScaleConstraint {
+                coeffs: (5..30).map(|f| (f, 0.3)).collect(),
+                degree: 3,
+                target: 4.0,
+                group: 1,
+            },
+            ScaleConstraint {
+                coeffs: (10..20).map(|f| (f, 2.0)).collect(),
+                degree: 2,
+                target: 21.0,
+                group: 0,
+            },
+        ];
+        let groups: Vec<usize> = constraints.iter().map(|c| c.group).collect();
+        let values: Vec<f64> = constraints.iter().map(|c| c.value(&s)).collect();
+        let lin = Linearized {
+            values: values.clone(),
+            rows: constraints
+                .iter()
+                .map(|c| {
+                    let mut r = vec![0.0; n];
+                    c.gradient(&s, &mut r);
+                    r
+                })
+                .collect(),
+        }
+        .grouped(&groups);
+        // A buffer holding an earlier step's rows, longer than needed.
+        let mut rows = vec![7.0; 5 * n];
+        let got = grouped_rows(&constraints, &s, values, &groups, &mut rows);
+        assert_eq!(got.len(), 2);
+        assert_eq!(rows.len(), 2 * n);
+        let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&got), bits(&lin.values));
+        for g in 0..2 {
+            assert_eq!(
+                bits(&rows[g * n..(g + 1) * n]),
+                bits(&lin.rows[g]),
+                "group {g}"
+            );
+        }
+        assert!(rows[..n].iter().any(|&r| r != 0.0) && rows[n..].iter().any(|&r| r != 0.0));
     }
 
     #[test]
