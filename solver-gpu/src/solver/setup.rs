@@ -1,0 +1,318 @@
+//! The preconditioner's set-up, at most once per system kind per run: the
+//! supernodal Cholesky factor of `K` (made on the host, uploaded once), or
+//! the squared-Laplacian or matrix AMG hierarchies.
+
+use super::*;
+
+impl GpuSolver {
+    /// Build (or refresh) the AMG hierarchy of the prepared host matrix.
+    pub(super) fn setup_amg(&mut self) -> Result<(), GpuError> {
+        self.setups += 1;
+        self.amg_kept = false;
+        self.amg_kind = Some(self.kind);
+        self.squared = None;
+        if self.preconditioner == Preconditioner::BlockJacobi {
+            self.amg_host = None;
+            self.amg_gpu = None;
+            return Ok(());
+        }
+        let t = std::time::Instant::now();
+        if let Some(model) = self.squared_model() {
+            return self.setup_squared(model, t);
+        }
+        let h = self.host.as_ref().unwrap();
+        let fine_of = |h: &HostMatrix| amg::Bsr {
+            bs: h.bs,
+            rows: h.rows,
+            cols: h.rows,
+            row_ptr: h.row_ptr.clone(),
+            col_idx: h.col_idx.clone(),
+            vals: h.full_values(),
+        };
+        let prev = self.amg_host.take();
+        let positions = match (&self.positions, self.preconditioner) {
+            (
+                Some(x),
+                Preconditioner::AffineAmg
+                | Preconditioner::SquaredLaplacian
+                | Preconditioner::Cholesky,
+            ) if h.bs == 3 && x.len() == h.rows => Some(x),
+            _ => None,
+        };
+        let built = match positions {
+            Some(x) => amg::Hierarchy::build_affine(fine_of(h), &self.amg_opts, x, prev.as_ref())
+                .or_else(|e| {
+                    log::warn!("affine AMG setup failed ({e}); translations only");
+                    amg::Hierarchy::build(fine_of(h), &self.amg_opts, prev.as_ref())
+                }),
+            None => amg::Hierarchy::build(fine_of(h), &self.amg_opts, prev.as_ref()),
+        };
+        let hier = match built {
+            Ok(hier) => hier,
+            Err(e) => {
+                log::warn!("AMG setup failed ({e}); block Jacobi instead");
+                self.amg_gpu = None;
+                self.drop_workspaces();
+                return Ok(());
+            }
+        };
+        // The finest A on the GPU is the PCG's matrix itself (its buffers):
+        // a new upload of that matrix means a new hierarchy upload too.
+        let fine_current = self.amg_fine_upload == self.pattern_uploads;
+        match (&self.amg_gpu, &prev) {
+            (Some(g), Some(p)) if fine_current && amg_gpu::same_patterns(p, &hier) => {
+                g.write_values(&self.ctx, &hier);
+            }
+            _ => {
+                self.drop_workspaces();
+                self.amg_gpu = None;
+                self.amg_gpu = Some(amg_gpu::GpuHierarchy::upload(
+                    &self.ctx,
+                    &hier,
+                    self.gpu.as_ref(),
+                )?);
+                self.amg_fine_upload = self.pattern_uploads;
+            }
+        }
+        self.finish_setup("AMG", hier, t);
+        Ok(())
+    }
+
+    /// Keep the host hierarchy `hier` of a finished set-up begun at `t`, and
+    /// log it.
+    pub(super) fn finish_setup(&mut self, what: &str, hier: amg::Hierarchy, t: std::time::Instant) {
+        log::debug!(
+            "{what} ({:?} system): levels {:?}, operator complexity {:.2}, setup {:.3} s",
+            self.kind,
+            hier.sizes(),
+            hier.operator_complexity(),
+            t.elapsed().as_secs_f64()
+        );
+        self.amg_host = Some(hier);
+        self.amg_setup_seconds = t.elapsed().as_secs_f64();
+    }
+
+    /// The Cholesky preconditioner's steps for the vectors `r` and `z` of a
+    /// workspace of `precision`, where its factor is of that precision.
+    pub(super) fn cholesky_steps(
+        &self,
+        precision: precision::Precision,
+        r: &wgpu::Buffer,
+        z: &wgpu::Buffer,
+        bs: usize,
+        cmax: usize,
+    ) -> Result<Option<supernodal::SupernodalSteps>, GpuError> {
+        match (&self.chol, &self.chol_kernels) {
+            (Some(f), Some(k)) if f.precision == precision => {
+                Ok(Some(supernodal::SupernodalSteps::new(
+                    &self.ctx,
+                    k,
+                    f,
+                    r,
+                    z,
+                    bs,
+                    cmax,
+                    matrix::binding_limit(&self.ctx),
+                )?))
+            }
+            _ => Ok(None),
+        }
+    }
+
+    /// Most columns one PCG batch carries: [`CMAX`], fewer where the Cholesky
+    /// preconditioner's updates for that many would not fit a storage binding.
+    pub(super) fn batch_columns(&self) -> usize {
+        match (&self.chol, self.host.as_ref()) {
+            (Some(f), Some(h)) => f.max_columns(matrix::binding_limit(&self.ctx), h.bs),
+            _ => CMAX,
+        }
+    }
+
+    /// Whether the next matrix is preconditioned by a Cholesky factor: that
+    /// of K for the shape systems (`prepare_shape_owned`), the matrix's own
+    /// for the scale factors' constant Hessian (`prepare`, scalar).
+    pub(super) fn cholesky_wanted(&self) -> bool {
+        self.preconditioner == Preconditioner::Cholesky && !self.chol_unavailable[self.chol_group()]
+    }
+
+    /// Which of [`Self::chol_unavailable`] the current kind reads: the shape
+    /// systems share one (their factors are of the same size), the scale
+    /// factors have their own.
+    pub(super) fn chol_group(&self) -> usize {
+        usize::from(self.kind == SystemKind::ScaleFactors)
+    }
+
+    /// Keep the Cholesky preconditioner of this kind (`current`: it was made
+    /// for this pattern and kind), or set it up by factoring `k()`; where that
+    /// fails (over the storage bindings, or not positive definite in the
+    /// factor's precision) the kind's other preconditioner is used for the
+    /// rest of the run.
+    pub(super) fn cholesky_for_kind(&mut self, current: bool, k: impl FnOnce() -> SymCsc) {
+        if !self.cholesky_wanted() {
+            self.drop_cholesky();
+            return;
+        }
+        if current && self.chol.is_some() && self.chol_kind == Some(self.kind) {
+            return;
+        }
+        if let Err(e) = self.setup_cholesky(k()) {
+            log::warn!(
+                "Cholesky preconditioner ({:?} system) unavailable ({e}); {} instead",
+                self.kind,
+                match self.kind {
+                    SystemKind::ScaleFactors => "AMG",
+                    _ => "the squared Laplacian",
+                }
+            );
+            self.drop_cholesky();
+            self.chol_unavailable[self.chol_group()] = true;
+        }
+    }
+
+    pub(super) fn drop_cholesky(&mut self) {
+        if self.chol.is_some() {
+            self.chol = None;
+            self.chol_kind = None;
+            self.drop_workspaces();
+        }
+    }
+
+    /// Factor `k` on the host and upload the factor: the preconditioner of
+    /// this system kind for the rest of the run. For the shape systems `k` is
+    /// the isotropic part K of the matrix (held rows identity); for the scale
+    /// factors the Hessian of Eq. 3 itself, which is constant, so that the
+    /// PCG converges in an iteration or two a round. Any other preconditioner
+    /// is released.
+    pub(super) fn setup_cholesky(&mut self, k: SymCsc) -> Result<(), GpuError> {
+        let t = std::time::Instant::now();
+        self.setups += 1;
+        self.drop_cholesky();
+        // In f64 where the PCG runs in f64 (mixed precision) from the start:
+        // K is too ill-conditioned for an f32 factorization on large meshes
+        // (homer 1.2M: not positive definite in f32), and the f64 solves read
+        // the PCG's vectors in place. Else f32, for the f32 PCG.
+        let precision = match self.ctx.shader_f64 && self.mixed_precision.starts_mixed(self.kind) {
+            true => precision::Precision::F64,
+            false => precision::Precision::F32,
+        };
+        if self.chol_host.is_single_precision() != (precision == precision::Precision::F32) {
+            let ordering = std::mem::take(&mut self.chol_host.ordering);
+            self.chol_host = match precision {
+                precision::Precision::F32 => solver_cpu::CholeskySolver::single_precision(),
+                precision::Precision::F64 => solver_cpu::CholeskySolver::new(),
+            };
+            self.chol_host.supernodal = true;
+            self.chol_host.ordering = ordering;
+        }
+        let backend = |e: SolverError| GpuError::Backend(format!("Cholesky factor: {e}"));
+        // The factor's sizes are known from the symbolic analysis: one that
+        // would not fit the device's storage bindings is refused before the
+        // numeric factorization. Its values, and the updates of its
+        // triangular solves, are split over as many bindings as they need,
+        // at supernode boundaries ([`supernodal::GpuFactor`],
+        // [`supernodal::SupernodalSteps`]): the largest supernode must fit
+        // one.
+        self.chol_host.analyse(&k).map_err(backend)?;
+        let b = precision.bytes();
+        let limit = matrix::binding_limit(&self.ctx);
+        let supernode = self.chol_host.largest_supernode_nnz() as u64 * b;
+        if supernode > limit {
+            return Err(GpuError::LimitExceeded {
+                what: format!("the Cholesky factor's largest supernode ({supernode} bytes)"),
+                limit_name: "max_storage_buffer_binding_size",
+                needed: supernode,
+                limit,
+            });
+        }
+        self.chol_host.prepare(&k).map_err(backend)?;
+        drop(k);
+        let mut f = self
+            .chol_host
+            .take_supernodal_factor()
+            .ok_or_else(|| GpuError::Backend("no supernodal factor".into()))?;
+        let t_inverse = std::time::Instant::now();
+        f.invert_diagonal_blocks();
+        let inverse_seconds = t_inverse.elapsed().as_secs_f64();
+        let factor_seconds = t.elapsed().as_secs_f64();
+        if self
+            .chol_kernels
+            .as_ref()
+            .is_none_or(|k| k.precision != precision)
+        {
+            self.chol_kernels = Some(supernodal::SupernodalKernels::new(&self.ctx, precision)?);
+        }
+        self.drop_workspaces();
+        self.amg_host = None;
+        self.amg_gpu = None;
+        self.squared = None;
+        self.amg_kind = None;
+        let g = supernodal::GpuFactor::upload(&self.ctx, &f, limit)?;
+        self.ctx.check()?;
+        log::debug!(
+            "Cholesky preconditioner ({:?} system, {:?}): {} unknowns, {} supernodes, {} levels, \
+             nnz(L) {} in {} buffers, factor {factor_seconds:.3} s (of it the inverted form \
+             {inverse_seconds:.3} s), setup {:.3} s",
+            self.kind,
+            precision,
+            g.nv,
+            f.len(),
+            g.depth(),
+            g.nnz,
+            g.chunks(),
+            t.elapsed().as_secs_f64()
+        );
+        self.chol = Some(g);
+        self.chol_kind = Some(self.kind);
+        self.amg_setup_seconds = t.elapsed().as_secs_f64();
+        Ok(())
+    }
+
+    /// The shape model the squared-Laplacian preconditioner builds on, where
+    /// it is asked for and fits the prepared block matrix.
+    pub(super) fn squared_model(&self) -> Option<std::sync::Arc<ShapeOperatorModel>> {
+        let h = self.host.as_ref()?;
+        let m = self.shape_model.as_ref()?;
+        (matches!(
+            self.preconditioner,
+            Preconditioner::SquaredLaplacian | Preconditioner::Cholesky
+        ) && matches!(self.kind, SystemKind::ScaleDriven | SystemKind::FineTune)
+            && h.bs == 3
+            && m.laplacian.len() == h.rows
+            && m.mt.len() == h.rows
+            && self.fixed.len() == h.rows)
+            .then(|| m.clone())
+    }
+
+    /// Build and upload the squared-Laplacian preconditioner of `model`.
+    pub(super) fn setup_squared(
+        &mut self,
+        model: std::sync::Arc<ShapeOperatorModel>,
+        t: std::time::Instant,
+    ) -> Result<(), GpuError> {
+        let (b, mt) = amg::squared_laplacian(&model, &self.fixed, amg::SQUARED_LAPLACIAN_TAU);
+        let opts = amg::AmgOptions {
+            sweeps: self.amg_opts.sweeps.max(SQUARED_LAPLACIAN_SWEEPS),
+            ..self.amg_opts
+        };
+        let hier = match amg::Hierarchy::build(b, &opts, None) {
+            Ok(h) => h,
+            Err(e) => {
+                log::warn!("squared-Laplacian AMG setup failed ({e}); block Jacobi instead");
+                self.amg_host = None;
+                self.amg_gpu = None;
+                self.drop_workspaces();
+                return Ok(());
+            }
+        };
+        self.drop_workspaces();
+        self.amg_gpu = None;
+        self.amg_gpu = Some(amg_gpu::GpuHierarchy::upload_on_3_vectors(
+            &self.ctx, &hier,
+        )?);
+        let mt32: Vec<f32> = mt.iter().map(|&v| v as f32).collect();
+        let buf = self.ctx.storage_init("squared-Laplacian Mt", &mt32)?;
+        self.squared = Some((model, buf));
+        self.finish_setup("squared-Laplacian AMG", hier, t);
+        Ok(())
+    }
+}

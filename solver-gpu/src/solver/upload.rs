@@ -1,0 +1,244 @@
+//! A prepared matrix's way to the GPU: its pattern once, then per matrix
+//! its values, a shape matrix's blocks summed on the GPU from `K`, the rings'
+//! `C_i` and the Laplacian square term (`expand_blocks`), else expanded from
+//! the lower triangle the host sends.
+
+use super::*;
+
+impl GpuSolver {
+    pub(crate) fn spmv(&self) -> Spmv<'_> {
+        match self.host.as_ref().map(|h| h.bs) {
+            Some(1) => Spmv::Scalar(&self.k.csr),
+            _ => Spmv::Block(&self.k.bsr),
+        }
+    }
+
+    /// Upload a prepared host matrix (pattern if new, else values only: a
+    /// block matrix's as its lower triangle, see [`Self::expand_values`]).
+    pub(super) fn upload(&mut self, h: HostMatrix, same: bool) -> Result<(), GpuError> {
+        self.matrices += 1;
+        let minv = block_jacobi::inverse_diagonal(&h).map_err(|e| match e {
+            SolverError::NotPositiveDefinite => GpuError::NotPositiveDefinite,
+            other => GpuError::Backend(other.to_string()),
+        })?;
+        let mut same_values_only = false;
+        let expanded = same && self.gpu.is_some() && h.bs == 3 && self.expand_values(&h, &minv)?;
+        match (same, self.gpu.as_ref()) {
+            (true, Some(_)) if expanded => same_values_only = true,
+            (true, Some(gpu)) => {
+                gpu.write_values(&self.ctx, &h, &minv);
+                self.value_uploads += 1;
+                same_values_only = true;
+            }
+            _ => {
+                self.gpu = None;
+                self.drop_workspaces();
+                // A shape matrix kept in its form is summed on the GPU from
+                // the start: its pattern goes up with no values.
+                let shape = h.shape_form().is_some();
+                self.gpu = Some(GpuMatrix::upload(&self.ctx, &h, &minv, !shape)?);
+                self.pattern_uploads += 1;
+                if shape && !self.expand_on_gpu(&h)? {
+                    self.gpu
+                        .as_ref()
+                        .unwrap()
+                        .write_values(&self.ctx, &h, &minv);
+                }
+                self.mixed_sticky = false;
+                self.hints.clear();
+            }
+        }
+        self.host = Some(h);
+        // One preconditioner set-up per system kind: a new matrix of the kind
+        // the hierarchy was built for, same pattern, keeps it. Its finest
+        // level is the PCG's matrix itself (just rewritten); the finest
+        // smoother's diagonal is refreshed, the coarse levels are kept. The
+        // scale-driven matrices differ by the scale factors only, which
+        // leaves the iteration counts as they were (BENCHMARKS.md).
+        let keep = same_values_only
+            && self.amg_kind == Some(self.kind)
+            && (self.amg_gpu.is_some() || self.preconditioner == Preconditioner::BlockJacobi);
+        // The squared-Laplacian preconditioner does not depend on the
+        // matrix values at all: kept while its model is.
+        let squared_kept = self.squared.as_ref().is_some_and(|(m, _)| {
+            self.squared_model()
+                .is_some_and(|now| std::sync::Arc::ptr_eq(m, &now))
+        });
+        match (&self.amg_gpu, &self.amg_host) {
+            // Made for this kind in `prepare_shape_owned`, kept for its run.
+            _ if self.chol.is_some() => self.amg_kept = false,
+            _ if self.squared.is_some() => {
+                if keep && squared_kept {
+                    self.amg_kept = true;
+                } else {
+                    self.setup_amg()?;
+                }
+            }
+            (Some(g), Some(hier)) if keep => {
+                let omega = hier.levels.first().map_or(1.0, |l| l.omega);
+                g.write_fine_diagonal(&self.ctx, &minv, omega);
+                self.amg_kept = true;
+            }
+            _ if keep => {}
+            _ => self.setup_amg()?,
+        }
+        self.ctx.check()
+    }
+
+    /// New values of the uploaded block pattern from their lower triangle:
+    /// the f64 lower blocks go up (72 bytes a lower block), or a shape
+    /// matrix's `K` values and `C_i` for `sum_shape_blocks.wgsl` to sum them,
+    /// and `expand_blocks.wgsl` writes both triangles, held rows, f32 high
+    /// parts and, once the mixed-precision matrix exists, its low parts; the
+    /// host writes only the inverse diagonals. `false` (nothing done) where the
+    /// adapter lacks `SHADER_F64`, or the lower values would not fit one
+    /// storage binding: then the host writes the values.
+    pub(super) fn expand_values(&mut self, h: &HostMatrix, minv: &[f32]) -> Result<bool, GpuError> {
+        if !self.expand_on_gpu(h)? {
+            return Ok(false);
+        }
+        let stamp = self.pattern_uploads;
+        self.gpu
+            .as_ref()
+            .unwrap()
+            .write_diagonal(&self.ctx, h, minv);
+        self.value_uploads += 1;
+        if let Some(m) = self.mixed.as_mut().filter(|m| m.stamp.0 == stamp) {
+            m.matrix.write_diagonal(&self.ctx, h, &[]);
+            m.stamp = (stamp, self.value_uploads);
+        }
+        Ok(true)
+    }
+
+    /// The blocks of both triangles of [`Self::expand_values`] (high parts,
+    /// and low parts where the mixed-precision matrix of the pattern exists),
+    /// without the inverse diagonals; `false` where it can not run.
+    pub(super) fn expand_on_gpu(&mut self, h: &HostMatrix) -> Result<bool, GpuError> {
+        let lower_len = h.lower_len();
+        let limit = matrix::binding_limit(&self.ctx);
+        if !self.ctx.shader_f64
+            || h.bs != 3
+            || expand_blocks::LowerParts::layout(lower_len, limit).is_none()
+        {
+            return Ok(false);
+        }
+        let stamp = self.pattern_uploads;
+        let mixed = self.mixed.as_ref().filter(|m| m.stamp.0 == stamp);
+        // Which mixed matrix's low parts it writes (each build has its own).
+        let split = mixed.map(|_| self.mixed_builds);
+        let current = self.expansion.as_ref().is_some_and(|(_, p, s, f)| {
+            *p == stamp && *s == split && f.as_slice() == self.fixed.as_slice()
+        });
+        if !current {
+            self.expansion = None;
+            if self.expand.is_none() {
+                self.expand = Some(expand_blocks::ExpandBlocks::new(&self.ctx)?);
+            }
+            let gpu = self.gpu.as_ref().unwrap();
+            let Some((chunks, None)) = gpu.block_parts() else {
+                return Ok(false);
+            };
+            let lo = mixed.and_then(|m| m.matrix.block_parts()).and_then(|p| p.1);
+            if self.expand_lower.as_ref().is_none_or(|(p, _)| *p != stamp) {
+                self.expand_lower = None;
+                let parts = expand_blocks::LowerParts::new(&self.ctx, lower_len, limit)?;
+                self.expand_lower = Some((stamp, parts));
+            }
+            let e = self.expand.as_ref().unwrap().expansion(
+                &self.ctx,
+                &self.expand_lower.as_ref().unwrap().1,
+                h.map(),
+                chunks,
+                lo,
+            )?;
+            self.expansion = Some((e, stamp, split, self.fixed.clone()));
+            self.expansions += 1;
+        }
+        let k = self.expand.as_ref().unwrap();
+        match (h.shape_form(), self.ring_slots.as_ref()) {
+            (Some(a), Some(slots)) => {
+                let current = self
+                    .shape_sum
+                    .as_ref()
+                    .is_some_and(|(p, sum)| *p == stamp && sum.of(&a.rings));
+                if !current {
+                    self.shape_sum = None;
+                    let lower = &self.expand_lower.as_ref().unwrap().1;
+                    let sum = expand_blocks::ShapeSum::new(k, &self.ctx, a, slots, lower)?;
+                    self.shape_sum = Some((stamp, sum));
+                }
+                let sum = &mut self.shape_sum.as_mut().unwrap().1;
+                if !sum.adds(a.laplacian_square.as_ref()) {
+                    // A new model's term (or none): its values go up once.
+                    let values = match self.square_values.take() {
+                        Some(v) => Some(v),
+                        None => matrix::laplacian_square_values(a, slots)
+                            .map_err(|e| GpuError::Backend(e.to_string()))?,
+                    };
+                    sum.set_square(&self.ctx, a.laplacian_square.clone(), values.as_deref())?;
+                }
+                let (e, ..) = self.expansion.as_ref().unwrap();
+                k.run_shape(&self.ctx, e, sum, a)?;
+            }
+            _ => {
+                let (e, ..) = self.expansion.as_ref().unwrap();
+                k.run(&self.ctx, e, h.lower_blocks())?;
+            }
+        }
+        self.lower_of = Some(self.matrices);
+        Ok(true)
+    }
+
+    /// The host's parts of the Laplacian square term `a` names (`None`
+    /// without one): made once per model, when its values are found and
+    /// kept in `square_values` for the shape sum to take up.
+    pub(super) fn square_parts(
+        &mut self,
+        a: &IsoRingSym3,
+        slots: &RingSlots,
+    ) -> Result<Option<Arc<matrix::SquareParts>>, SolverError> {
+        let Some(model) = &a.laplacian_square else {
+            return Ok(None);
+        };
+        if let Some(q) = self.square.as_ref().filter(|q| q.of(model)) {
+            return Ok(Some(q.clone()));
+        }
+        self.square = None;
+        let values = matrix::laplacian_square_values(a, slots)?.unwrap_or_default();
+        let q = Arc::new(matrix::SquareParts::new(model.clone(), a, &values));
+        self.square = Some(q.clone());
+        self.square_values = Some(values);
+        Ok(Some(q))
+    }
+
+    /// Whether a shape matrix `a` can have its blocks summed on the GPU
+    /// ([`expand_blocks::ShapeSum`]): `SHADER_F64`, and every buffer within
+    /// one storage binding.
+    pub(super) fn shape_sum_possible(&self, a: &IsoRingSym3, slots: &RingSlots) -> bool {
+        let limit = matrix::binding_limit(&self.ctx);
+        self.ctx.shader_f64 && expand_blocks::ShapeSum::fits(a, slots, limit)
+    }
+
+    /// Whether the prepared matrix has this lower pattern and block size.
+    pub(super) fn same_pattern(&self, bs: usize, col_ptr: &[usize], row_idx: &[usize]) -> bool {
+        self.host
+            .as_ref()
+            .is_some_and(|h| h.same_pattern(bs, col_ptr, row_idx))
+    }
+
+    /// The host matrix to fill: the prepared one when `same`, else a new
+    /// pattern.
+    pub(super) fn take_host(
+        &mut self,
+        same: bool,
+        n: usize,
+        bs: usize,
+        col_ptr: &[usize],
+        row_idx: &[usize],
+    ) -> Result<HostMatrix, SolverError> {
+        match (same, self.host.take()) {
+            (true, Some(h)) => Ok(h),
+            _ => HostMatrix::pattern(n, bs, col_ptr, row_idx),
+        }
+    }
+}
