@@ -349,6 +349,39 @@ mod tests {
         (sys, h)
     }
 
+    /// `steps` Newton steps from `s = 1` with every column solved, `H^-1
+    /// (-grad E)` included (Eq. 16 as printed), by the direct solver.
+    fn every_column_solved(h: &SymCsc, constraints: &[ScaleConstraint], steps: usize) -> Vec<f64> {
+        let n = h.n;
+        let mut reference = CholeskySolver::new();
+        reference.prepare(h).unwrap();
+        let mut r = vec![1.0; n];
+        let mut warm = Vec::new();
+        for _ in 0..steps {
+            let rm1: Vec<f64> = r.iter().map(|v| v - 1.0).collect();
+            let mut grad = vec![0.0; n];
+            h.mul_vec(&rm1, &mut grad);
+            let lin = Linearized {
+                values: constraints.iter().map(|c| c.value(&r)).collect(),
+                rows: constraints
+                    .iter()
+                    .map(|c| {
+                        let mut row = vec![0.0; n];
+                        c.gradient(&r, &mut row);
+                        row
+                    })
+                    .collect(),
+            };
+            let neg = grad.iter().map(|g| -g).collect();
+            let step =
+                crate::constrained_step::constrained_step_warm(&mut reference, neg, lin, &mut warm)
+                    .unwrap();
+            assert!(step.dx.iter().all(|d| *d > -0.5), "no step is clipped here");
+            r.iter_mut().zip(&step.dx).for_each(|(v, d)| *v += d);
+        }
+        r
+    }
+
     #[test]
     fn newton_steps_solve_only_the_jacobian_columns_that_changed() {
         let n = 40;
@@ -383,32 +416,7 @@ mod tests {
         assert!(calls[1..].iter().all(|&c| c == 1), "{calls:?}");
         // The same Newton steps with every column solved, H^-1 (-grad E)
         // included (Eq. 16 as printed), give the same scale factors.
-        let mut reference = CholeskySolver::new();
-        reference.prepare(&h).unwrap();
-        let mut r = vec![1.0; n];
-        let mut warm = Vec::new();
-        for _ in 0..info.newton_iterations {
-            let rm1: Vec<f64> = r.iter().map(|v| v - 1.0).collect();
-            let mut grad = vec![0.0; n];
-            h.mul_vec(&rm1, &mut grad);
-            let lin = Linearized {
-                values: constraints.iter().map(|c| c.value(&r)).collect(),
-                rows: constraints
-                    .iter()
-                    .map(|c| {
-                        let mut row = vec![0.0; n];
-                        c.gradient(&r, &mut row);
-                        row
-                    })
-                    .collect(),
-            };
-            let neg = grad.iter().map(|g| -g).collect();
-            let step =
-                crate::constrained_step::constrained_step_warm(&mut reference, neg, lin, &mut warm)
-                    .unwrap();
-            assert!(step.dx.iter().all(|d| *d > -0.5), "no step is clipped here");
-            r.iter_mut().zip(&step.dx).for_each(|(v, d)| *v += d);
-        }
+        let r = every_column_solved(&h, &constraints, info.newton_iterations);
         let apart = s
             .iter()
             .zip(&r)
@@ -426,6 +434,57 @@ mod tests {
             .unwrap();
         assert_eq!(s, s2);
         assert!(solved.lock().unwrap().iter().all(|&c| c == 1));
+    }
+
+    #[test]
+    fn newton_steps_gather_the_columns_that_changed_among_kept_ones() {
+        let n = 40;
+        let solved = Arc::new(Mutex::new(Vec::new()));
+        let (mut sys, h) = strip(n, Box::new(Columns(CholeskySolver::new(), solved.clone())));
+        let constraints = [
+            // An area (degree 2), 20 % larger.
+            ScaleConstraint {
+                coeffs: (0..25).map(|f| (f, 1.0 + 0.02 * f as f64)).collect(),
+                degree: 2,
+                target: 1.2 * (0..25).map(|f| 1.0 + 0.02 * f as f64).sum::<f64>(),
+                group: 0,
+            },
+            // A length (degree 1: its column is kept after the first step),
+            // 10 % shorter.
+            ScaleConstraint {
+                coeffs: (15..40).map(|f| (f, 1.0)).collect(),
+                degree: 1,
+                target: 0.9 * 25.0,
+                group: 1,
+            },
+            // A volume (degree 3), kept.
+            ScaleConstraint {
+                coeffs: (5..35).map(|f| (f, 0.5)).collect(),
+                degree: 3,
+                target: 15.0,
+                group: 2,
+            },
+        ];
+        let (s, info) = sys
+            .estimate(&constraints, Multipliers::PerConstraint)
+            .unwrap();
+        assert!(info.max_residual < 1e-12, "{info:?}");
+        assert!(info.newton_iterations >= 3, "{info:?}");
+        // All three columns, then the area's and the volume's together (the
+        // length's between them kept) at every later step.
+        let calls = solved.lock().unwrap().clone();
+        assert_eq!(calls.len(), info.newton_iterations, "{calls:?}");
+        assert_eq!(calls[0], 3, "{calls:?}");
+        assert!(calls[1..].iter().all(|&c| c == 2), "{calls:?}");
+        let r = every_column_solved(&h, &constraints, info.newton_iterations);
+        let apart = s
+            .iter()
+            .zip(&r)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f64::max);
+        let moved = s.iter().map(|v| (v - 1.0).abs()).fold(0.0, f64::max);
+        assert!(moved > 0.05, "the constraints move s: {moved}");
+        assert!(apart < 1e-12, "{apart:e} from the reference");
     }
 
     #[test]
