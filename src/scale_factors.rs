@@ -349,6 +349,40 @@ mod tests {
         (sys, h)
     }
 
+    /// `sys`'s estimation of `constraints`, which must solve `first` columns
+    /// at its first Newton step and `later` at each later one (counted by
+    /// `solved`), in at least three steps, and land where the same Newton
+    /// steps with every column solved, `H^-1 (-grad E)` included (Eq. 16 as
+    /// printed), land (to 1e-12), having moved `s` by more than 0.05.
+    fn estimate_as_every_column_solved(
+        sys: &mut ScaleFactorSystem,
+        solved: &Mutex<Vec<usize>>,
+        h: &SymCsc,
+        constraints: &[ScaleConstraint],
+        first: usize,
+        later: usize,
+    ) -> Vec<f64> {
+        let (s, info) = sys
+            .estimate(constraints, Multipliers::PerConstraint)
+            .unwrap();
+        assert!(info.max_residual < 1e-12, "{info:?}");
+        assert!(info.newton_iterations >= 3, "{info:?}");
+        let calls = solved.lock().unwrap().clone();
+        assert_eq!(calls.len(), info.newton_iterations, "{calls:?}");
+        assert_eq!(calls[0], first, "{calls:?}");
+        assert!(calls[1..].iter().all(|&c| c == later), "{calls:?}");
+        let r = every_column_solved(h, constraints, info.newton_iterations);
+        let apart = s
+            .iter()
+            .zip(&r)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f64::max);
+        let moved = s.iter().map(|v| (v - 1.0).abs()).fold(0.0, f64::max);
+        assert!(moved > 0.05, "the constraints move s: {moved}");
+        assert!(apart < 1e-12, "{apart:e} from the reference");
+        s
+    }
+
     /// `steps` Newton steps from `s = 1` with every column solved, `H^-1
     /// (-grad E)` included (Eq. 16 as printed), by the direct solver.
     fn every_column_solved(h: &SymCsc, constraints: &[ScaleConstraint], steps: usize) -> Vec<f64> {
@@ -403,28 +437,9 @@ mod tests {
                 group: 1,
             },
         ];
-        let (s, info) = sys
-            .estimate(&constraints, Multipliers::PerConstraint)
-            .unwrap();
-        assert!(info.max_residual < 1e-12, "{info:?}");
-        assert!(info.newton_iterations >= 3, "{info:?}");
         // Both columns once, then the area's alone at every later step; no
         // solve for H^-1 grad E.
-        let calls = solved.lock().unwrap().clone();
-        assert_eq!(calls.len(), info.newton_iterations, "{calls:?}");
-        assert_eq!(calls[0], 2, "{calls:?}");
-        assert!(calls[1..].iter().all(|&c| c == 1), "{calls:?}");
-        // The same Newton steps with every column solved, H^-1 (-grad E)
-        // included (Eq. 16 as printed), give the same scale factors.
-        let r = every_column_solved(&h, &constraints, info.newton_iterations);
-        let apart = s
-            .iter()
-            .zip(&r)
-            .map(|(a, b)| (a - b).abs())
-            .fold(0.0, f64::max);
-        let moved = s.iter().map(|v| (v - 1.0).abs()).fold(0.0, f64::max);
-        assert!(moved > 0.05, "the constraints move s: {moved}");
-        assert!(apart < 1e-12, "{apart:e} from the reference");
+        let s = estimate_as_every_column_solved(&mut sys, &solved, &h, &constraints, 2, 1);
         // A second estimation with the same constraints starts from s = 1:
         // its first step's rows differ from the last ones (the area's), except
         // the length's, which is kept.
@@ -465,26 +480,9 @@ mod tests {
                 group: 2,
             },
         ];
-        let (s, info) = sys
-            .estimate(&constraints, Multipliers::PerConstraint)
-            .unwrap();
-        assert!(info.max_residual < 1e-12, "{info:?}");
-        assert!(info.newton_iterations >= 3, "{info:?}");
         // All three columns, then the area's and the volume's together (the
         // length's between them kept) at every later step.
-        let calls = solved.lock().unwrap().clone();
-        assert_eq!(calls.len(), info.newton_iterations, "{calls:?}");
-        assert_eq!(calls[0], 3, "{calls:?}");
-        assert!(calls[1..].iter().all(|&c| c == 2), "{calls:?}");
-        let r = every_column_solved(&h, &constraints, info.newton_iterations);
-        let apart = s
-            .iter()
-            .zip(&r)
-            .map(|(a, b)| (a - b).abs())
-            .fold(0.0, f64::max);
-        let moved = s.iter().map(|v| (v - 1.0).abs()).fold(0.0, f64::max);
-        assert!(moved > 0.05, "the constraints move s: {moved}");
-        assert!(apart < 1e-12, "{apart:e} from the reference");
+        estimate_as_every_column_solved(&mut sys, &solved, &h, &constraints, 3, 2);
     }
 
     #[test]

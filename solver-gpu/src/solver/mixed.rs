@@ -209,51 +209,44 @@ impl GpuSolver {
         let refine = refine::Refinement::new(&self.ctx, &k.refine, &spmv, &matrix, &ws)?;
         // An f64 factor's solves read and write the f64 vectors in place.
         ws.chol = self.cholesky_steps(precision::Precision::F64, &ws.r, &ws.z, h.bs, ws.cmax)?;
-        if ws.chol.is_some() {
-            self.mixed = Some(MixedData {
-                stamp,
-                matrix,
-                ws,
-                refine,
-            });
-            self.mixed_builds += 1;
-            return Ok(());
-        }
-        let narrow = pcg::Narrow::new(&self.ctx, &k.convert, &ws)?;
-        let f32_chol = self.cholesky_steps(
-            precision::Precision::F32,
-            &narrow.r32,
-            &narrow.z32,
-            h.bs,
-            ws.cmax,
-        )?;
-        match (f32_chol, &self.squared) {
-            (Some(steps), _) => ws.chol = Some(steps),
-            (None, Some((_, mt))) => {
-                let g = self.amg_gpu.as_ref().unwrap();
-                ws.squared = Some(amg_gpu::SquaredSteps::new(
-                    &self.ctx,
-                    &self.k.amg,
-                    g,
-                    mt,
-                    &narrow.r32,
-                    &narrow.z32,
-                    ws.cmax,
-                )?)
+        // Else the f32 factor, squared Laplacian or V-cycle on f32 copies.
+        if ws.chol.is_none() {
+            let narrow = pcg::Narrow::new(&self.ctx, &k.convert, &ws)?;
+            let f32_chol = self.cholesky_steps(
+                precision::Precision::F32,
+                &narrow.r32,
+                &narrow.z32,
+                h.bs,
+                ws.cmax,
+            )?;
+            match (f32_chol, &self.squared) {
+                (Some(steps), _) => ws.chol = Some(steps),
+                (None, Some((_, mt))) => {
+                    let g = self.amg_gpu.as_ref().unwrap();
+                    ws.squared = Some(amg_gpu::SquaredSteps::new(
+                        &self.ctx,
+                        &self.k.amg,
+                        g,
+                        mt,
+                        &narrow.r32,
+                        &narrow.z32,
+                        ws.cmax,
+                    )?)
+                }
+                (None, None) => {
+                    let g = self.amg_gpu.as_ref().unwrap();
+                    ws.amg = Some(amg_gpu::VcycleWorkspace::new(
+                        &self.ctx,
+                        &self.k.amg,
+                        g,
+                        &narrow.r32,
+                        &narrow.z32,
+                        ws.cmax,
+                    )?)
+                }
             }
-            (None, None) => {
-                let g = self.amg_gpu.as_ref().unwrap();
-                ws.amg = Some(amg_gpu::VcycleWorkspace::new(
-                    &self.ctx,
-                    &self.k.amg,
-                    g,
-                    &narrow.r32,
-                    &narrow.z32,
-                    ws.cmax,
-                )?)
-            }
+            ws.narrow = Some(narrow);
         }
-        ws.narrow = Some(narrow);
         self.mixed = Some(MixedData {
             stamp,
             matrix,
