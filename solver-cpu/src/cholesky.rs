@@ -207,6 +207,26 @@ impl CholeskySolver {
         self.single
     }
 
+    /// A solver that has analysed nothing, with this one's fill ordering and
+    /// supernodal choice, its factor in f32 when `single`; `None` once this
+    /// one has analysed a pattern (its given ordering has served then). For
+    /// a symbolic analysis made ahead on another thread
+    /// ([`SpdSolver::isotropic_analyser`]).
+    pub fn unanalysed_like(&self, single: bool) -> Option<CholeskySolver> {
+        self.symbolic.is_none().then(|| CholeskySolver {
+            ordering: self.ordering.clone(),
+            single,
+            supernodal: self.supernodal,
+            ..Self::default()
+        })
+    }
+
+    /// Whether `analysed` may take this solver's place: it has analysed a
+    /// pattern and this one has not.
+    pub fn may_adopt(&self, analysed: &CholeskySolver) -> bool {
+        self.symbolic.is_none() && analysed.symbolic.is_some()
+    }
+
     /// Stored entries of the factor L.
     pub fn factor_nnz(&self) -> usize {
         self.symbolic.as_ref().map_or(0, |s| s.len_val())

@@ -658,6 +658,60 @@ mod tests {
     }
 
     #[test]
+    fn an_isotropic_analysis_made_ahead_on_another_thread_is_adopted() {
+        use crate::{BlockPcgSolver, FillOrdering, SpdSolver};
+        let n = 300;
+        let mut a = sample(n);
+        for j in 0..n {
+            let s = a.diagonal_slot(j);
+            a.iso.values[s] += 4.0;
+        }
+        let mut fixed = vec![false; n];
+        fixed[11] = true;
+        let ordering: Vec<usize> = (0..n).rev().collect();
+        let b: Vec<f64> = (0..3 * n).map(|i| (i as f64 * 0.41).cos() + 0.3).collect();
+        let solve = |ahead: bool| {
+            let mut pcg = BlockPcgSolver::new();
+            pcg.set_fill_ordering(FillOrdering::Given(ordering.clone().into()));
+            if ahead {
+                let analyser = pcg.isotropic_analyser().expect("a factor of K to analyse");
+                let k = a.iso.clone();
+                let analysed = std::thread::spawn(move || {
+                    let mut c = analyser;
+                    c.analyse(&k).unwrap();
+                    c
+                })
+                .join()
+                .unwrap();
+                assert_eq!(analysed.symbolic_count, 1);
+                pcg.adopt_isotropic_analysis(analysed);
+                assert!(pcg.isotropic_analyser().is_none(), "analysed already");
+            }
+            pcg.prepare_shape_owned(a.clone(), &fixed).unwrap();
+            let mut x = b.clone();
+            pcg.solve_in_place(&mut x, 1).unwrap();
+            (x, pcg.analyses(), pcg.factorizations())
+        };
+        let (plain, analyses, factorizations) = solve(false);
+        let (ahead, analyses_ahead, factorizations_ahead) = solve(true);
+        // One analysis either way (made ahead, not again), one factorization,
+        // and the same solve to the bit: the given ordering served the
+        // analysis made ahead.
+        assert_eq!((analyses, factorizations), (1, 1));
+        assert_eq!((analyses_ahead, factorizations_ahead), (1, 1));
+        let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&plain), bits(&ahead));
+        // A solver that has analysed already offers nothing and keeps its own.
+        let mut pcg = BlockPcgSolver::new();
+        pcg.prepare_shape_owned(a.clone(), &fixed).unwrap();
+        assert!(pcg.isotropic_analyser().is_none());
+        let mut other = crate::CholeskySolver::new();
+        other.analyse(&a.iso).unwrap();
+        pcg.adopt_isotropic_analysis(other);
+        assert_eq!((pcg.analyses(), pcg.factorizations()), (1, 1));
+    }
+
+    #[test]
     fn pcg_on_the_iso_ring_form_matches_the_direct_solve_of_its_blocks() {
         use crate::{BlockPcgSolver, CholeskySolver, SpdSolver};
         let n = 60;

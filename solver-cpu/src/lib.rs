@@ -309,6 +309,20 @@ pub trait SpdSolver {
     /// factor (of the scalar unknowns, or of the block rows of a block matrix);
     /// ignored by the others.
     fn set_fill_ordering(&mut self, _ordering: FillOrdering) {}
+    /// A Cholesky solver set up as this one's factor of the shape matrices'
+    /// isotropic part `K` will be (fill ordering, precision), for that
+    /// factor's symbolic analysis to run ahead, on another thread, while the
+    /// scale factors are set up; `None` (the default) where this solver makes
+    /// no such factor or has analysed one already. The solver comes back,
+    /// analysed, through [`SpdSolver::adopt_isotropic_analysis`].
+    fn isotropic_analyser(&self) -> Option<CholeskySolver> {
+        None
+    }
+    /// Take over `analysed`, made by [`SpdSolver::isotropic_analyser`], that
+    /// has analysed the pattern of `K`: the first shape matrix's
+    /// factorization then skips its symbolic analysis. Ignored (the
+    /// default) where it does not fit.
+    fn adopt_isotropic_analysis(&mut self, _analysed: CholeskySolver) {}
     /// The model of the next shape matrices (`None`: no model), for backends
     /// whose preconditioner builds on it; ignored by the others.
     fn set_shape_model(&mut self, _model: Option<std::sync::Arc<ShapeOperatorModel>>) {}

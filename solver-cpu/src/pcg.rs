@@ -135,6 +135,12 @@ impl BlockPcgSolver {
         }
     }
 
+    /// Symbolic analyses of the preconditioner's factor so far (made by this
+    /// solver, or ahead and adopted).
+    pub fn analyses(&self) -> usize {
+        self.precond.symbolic_count
+    }
+
     /// Numeric factorizations of the preconditioner so far.
     pub fn factorizations(&self) -> usize {
         self.precond.numeric_count
@@ -398,6 +404,19 @@ fn dot(a: &[f64], b: &[f64]) -> f64 {
 impl SpdSolver for BlockPcgSolver {
     fn set_fill_ordering(&mut self, ordering: FillOrdering) {
         self.precond.set_fill_ordering(ordering);
+    }
+
+    fn isotropic_analyser(&self) -> Option<CholeskySolver> {
+        self.precond
+            .unanalysed_like(self.precond.is_single_precision())
+    }
+
+    fn adopt_isotropic_analysis(&mut self, analysed: CholeskySolver) {
+        if self.precond.may_adopt(&analysed)
+            && analysed.is_single_precision() == self.precond.is_single_precision()
+        {
+            self.precond = analysed;
+        }
     }
 
     fn prepare(&mut self, a: &SymCsc) -> Result<(), SolverError> {

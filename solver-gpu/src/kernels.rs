@@ -303,6 +303,13 @@ pub fn cholesky_is_f64(s: &GpuSolver) -> Option<bool> {
         .map(|f| f.precision == crate::precision::Precision::F64)
 }
 
+/// Symbolic analyses the host's Cholesky factor of the shape systems has
+/// made, its own or made ahead and adopted
+/// ([`solver_cpu::SpdSolver::adopt_isotropic_analysis`]).
+pub fn cholesky_analyses(s: &GpuSolver) -> usize {
+    s.chol_host.symbolic_count
+}
+
 /// Storage buffers the active Cholesky preconditioner's values are split
 /// into (one where they fit a binding); `None` when it is not active.
 pub fn cholesky_chunks(s: &GpuSolver) -> Option<usize> {

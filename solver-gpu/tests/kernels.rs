@@ -1449,6 +1449,52 @@ fn cholesky_preconditioner_is_the_factor_solve_per_component() {
     }
 }
 
+/// The shape factor's symbolic analysis, made ahead on another thread by the
+/// solver the GPU solver configures (`isotropic_analyser`), is adopted: the
+/// first shape matrix's set-up makes no analysis of its own, and its solve
+/// is that of a solver that analysed itself, to the bit.
+#[test]
+fn an_isotropic_analysis_made_ahead_is_adopted() {
+    let (nx, ny) = (60, 40);
+    let n = nx * ny;
+    let mut rng = Rng(41);
+    let a = iso_grid(nx, ny, &mut rng);
+    let fixed = fixed_every(n, 61);
+    let ordering: Vec<usize> = (0..n).rev().collect();
+    let b = rng.vec(3 * n);
+    let solve = |ahead: bool| -> Option<(Vec<f64>, usize)> {
+        let mut s = gpu()?;
+        s.set_system_kind(SystemKind::ScaleDriven);
+        s.set_fill_ordering(solver_cpu::FillOrdering::Given(ordering.clone().into()));
+        if ahead {
+            let analyser = s.isotropic_analyser().expect("the Cholesky factor of K");
+            let k = a.iso.clone();
+            let analysed = std::thread::spawn(move || {
+                let mut c = analyser;
+                c.analyse(&k).unwrap();
+                c
+            })
+            .join()
+            .unwrap();
+            s.adopt_isotropic_analysis(analysed);
+            assert!(s.isotropic_analyser().is_none(), "analysed already");
+        }
+        prepare_shape(&mut s, a.clone(), &fixed);
+        assert_eq!(s.active_preconditioner(), Preconditioner::Cholesky);
+        let mut x = vec![0.0; b.len()];
+        s.set_tolerance(1e-10);
+        s.solve_with_guess(&b, &mut x, 1).unwrap();
+        Some((x, kernels::cholesky_analyses(&s)))
+    };
+    let Some((plain, analyses)) = solve(false) else {
+        return;
+    };
+    let (ahead, analyses_ahead) = solve(true).unwrap();
+    assert_eq!((analyses, analyses_ahead), (1, 1));
+    let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+    assert_eq!(bits(&plain), bits(&ahead));
+}
+
 /// A Cholesky factor larger than one storage binding has its values split
 /// over several, at supernode boundaries: it stays the preconditioner, its
 /// solve is still the factor's, and the PCG lands on the CPU backend's

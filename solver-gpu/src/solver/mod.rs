@@ -233,7 +233,7 @@ pub struct GpuSolver {
     pub(crate) chol: Option<supernodal::GpuFactor>,
     chol_kind: Option<SystemKind>,
     chol_kernels: Option<std::sync::Arc<supernodal::SupernodalKernels>>,
-    chol_host: solver_cpu::CholeskySolver,
+    pub(crate) chol_host: solver_cpu::CholeskySolver,
     /// The factor could not be made or kept on this device, for the shape
     /// systems (index 0) or the scale factors (index 1): the squared Laplacian or AMG
     /// serves instead for the rest of the run.
@@ -784,6 +784,25 @@ impl SpdSolver for GpuSolver {
 
     fn set_shape_model(&mut self, model: Option<std::sync::Arc<ShapeOperatorModel>>) {
         self.shape_model = model;
+    }
+
+    /// The first shape kind's factor of `K`: the Cholesky preconditioner in
+    /// its precision (f64 where the shape PCG starts in f64), with the
+    /// ordering given.
+    fn isotropic_analyser(&self) -> Option<solver_cpu::CholeskySolver> {
+        (self.preconditioner == Preconditioner::Cholesky && !self.chol_unavailable[0])
+            .then(|| {
+                let single =
+                    self.factor_precision(SystemKind::ScaleDriven) == precision::Precision::F32;
+                self.chol_host.unanalysed_like(single)
+            })
+            .flatten()
+    }
+
+    fn adopt_isotropic_analysis(&mut self, analysed: solver_cpu::CholeskySolver) {
+        if self.chol_host.may_adopt(&analysed) {
+            self.chol_host = analysed;
+        }
     }
 
     /// For the Cholesky preconditioner's next symbolic analysis (the

@@ -183,18 +183,23 @@ impl GpuSolver {
     /// factors the Hessian of Eq. 3 itself, which is constant, so that the
     /// PCG converges in an iteration or two a round. Any other preconditioner
     /// is released.
+    /// The precision of the Cholesky factor of `kind`: f64 where its PCG
+    /// runs in f64 (mixed precision) from the start, since `K` is too
+    /// ill-conditioned for an f32 factorization on large meshes (homer 1.2M:
+    /// not positive definite in f32) and the f64 solves read the PCG's
+    /// vectors in place; else f32, for the f32 PCG.
+    pub(super) fn factor_precision(&self, kind: SystemKind) -> precision::Precision {
+        match self.ctx.shader_f64 && self.mixed_precision.starts_mixed(kind) {
+            true => precision::Precision::F64,
+            false => precision::Precision::F32,
+        }
+    }
+
     pub(super) fn setup_cholesky(&mut self, k: SymCsc) -> Result<(), GpuError> {
         let t = std::time::Instant::now();
         self.setups += 1;
         self.drop_cholesky();
-        // In f64 where the PCG runs in f64 (mixed precision) from the start:
-        // K is too ill-conditioned for an f32 factorization on large meshes
-        // (homer 1.2M: not positive definite in f32), and the f64 solves read
-        // the PCG's vectors in place. Else f32, for the f32 PCG.
-        let precision = match self.ctx.shader_f64 && self.mixed_precision.starts_mixed(self.kind) {
-            true => precision::Precision::F64,
-            false => precision::Precision::F32,
-        };
+        let precision = self.factor_precision(self.kind);
         if self.chol_host.is_single_precision() != (precision == precision::Precision::F32) {
             let ordering = std::mem::take(&mut self.chol_host.ordering);
             self.chol_host = match precision {
