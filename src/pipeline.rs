@@ -717,31 +717,20 @@ fn scale_system_beside_analysis(
     model: &mut ShapeModel,
     make_scale_system: impl FnOnce() -> Result<Option<ScaleFactorSystem>>,
 ) -> Result<Option<ScaleFactorSystem>> {
-    let Some(mut analyser) = model.solver().isotropic_analyser() else {
+    let Some(analyser) = model.solver().isotropic_analyser() else {
         return make_scale_system();
     };
-    let k = &model.matrix().iso;
-    let (made, analysed) = std::thread::scope(|scope| {
-        let ahead = scope.spawn(move || {
-            let t = Instant::now();
-            let done = analyser.analyse(k);
-            (done.map(|()| analyser), t.elapsed().as_secs_f64())
-        });
-        let made = make_scale_system();
-        (made, ahead.join())
-    });
+    let (made, analysed, seconds) =
+        solver_cpu::analyse_beside(analyser, &model.matrix().iso, make_scale_system);
     match analysed {
-        Ok((Ok(analyser), seconds)) => {
+        Ok(analysed) => {
             log::debug!(
                 "symbolic analysis of the shape systems' K, beside the scale factors' set-up: \
                  {seconds:.3} s"
             );
-            model.solver().adopt_isotropic_analysis(analyser);
+            model.solver().adopt_isotropic_analysis(analysed);
         }
-        Ok((Err(e), _)) => {
-            log::debug!("symbolic analysis of K ahead: {e}; left to the factorization")
-        }
-        Err(_) => log::debug!("symbolic analysis of K ahead panicked; left to the factorization"),
+        Err(e) => log::debug!("symbolic analysis of K ahead: {e}; left to the factorization"),
     }
     made
 }

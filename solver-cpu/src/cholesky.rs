@@ -41,6 +41,35 @@ pub enum FillOrdering {
 /// graphs its factors grow as `n log n` where minimum degree's grow faster.
 pub const NESTED_DISSECTION_FROM: usize = 50_000;
 
+/// Runs `beside()` on this thread while `analyser` (an unanalysed solver,
+/// e.g. [`SpdSolver::isotropic_analyser`]'s) makes the symbolic analysis of
+/// `k`'s pattern on another; returns what `beside` returned, the analysed
+/// solver (for [`SpdSolver::adopt_isotropic_analysis`]; `Err` where the
+/// analysis failed or panicked) and the analysis's seconds.
+pub fn analyse_beside<R>(
+    mut analyser: CholeskySolver,
+    k: &SymCsc,
+    beside: impl FnOnce() -> R,
+) -> (R, Result<CholeskySolver, SolverError>, f64) {
+    std::thread::scope(|scope| {
+        let ahead = scope.spawn(move || {
+            let t = std::time::Instant::now();
+            let done = analyser.analyse(k).map(|()| analyser);
+            (done, t.elapsed().as_secs_f64())
+        });
+        let made = beside();
+        let (analysed, seconds) = ahead.join().unwrap_or_else(|_| {
+            (
+                Err(SolverError::Backend(
+                    "the symbolic analysis panicked".into(),
+                )),
+                0.0,
+            )
+        });
+        (made, analysed, seconds)
+    })
+}
+
 /// METIS nested-dissection permutation of the graph of `a` (diagonal ignored):
 /// `(forward, inverse)` with `forward[new] = old`; `None` if METIS fails.
 pub fn nested_dissection(a: &SymCsc) -> Option<(Vec<usize>, Vec<usize>)> {

@@ -675,14 +675,8 @@ mod tests {
             pcg.set_fill_ordering(FillOrdering::Given(ordering.clone().into()));
             if ahead {
                 let analyser = pcg.isotropic_analyser().expect("a factor of K to analyse");
-                let k = a.iso.clone();
-                let analysed = std::thread::spawn(move || {
-                    let mut c = analyser;
-                    c.analyse(&k).unwrap();
-                    c
-                })
-                .join()
-                .unwrap();
+                let ((), analysed, _) = crate::analyse_beside(analyser, &a.iso, || ());
+                let analysed = analysed.unwrap();
                 assert_eq!(analysed.symbolic_count, 1);
                 pcg.adopt_isotropic_analysis(analysed);
                 assert!(pcg.isotropic_analyser().is_none(), "analysed already");

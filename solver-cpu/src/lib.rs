@@ -12,7 +12,9 @@ pub mod iso_ring;
 pub mod pcg;
 
 pub use block::{BlockRows, BlockSym3};
-pub use cholesky::{nested_dissection_of_pattern, CholeskySolver, FillOrdering, SupernodalFactor};
+pub use cholesky::{
+    analyse_beside, nested_dissection_of_pattern, CholeskySolver, FillOrdering, SupernodalFactor,
+};
 pub use iso_ring::{sym3_block, IsoRingSym3, SparseRows};
 pub use pcg::{BlockPcgParams, BlockPcgSolver};
 

@@ -1468,15 +1468,8 @@ fn an_isotropic_analysis_made_ahead_is_adopted() {
         s.set_fill_ordering(solver_cpu::FillOrdering::Given(ordering.clone().into()));
         if ahead {
             let analyser = s.isotropic_analyser().expect("the Cholesky factor of K");
-            let k = a.iso.clone();
-            let analysed = std::thread::spawn(move || {
-                let mut c = analyser;
-                c.analyse(&k).unwrap();
-                c
-            })
-            .join()
-            .unwrap();
-            s.adopt_isotropic_analysis(analysed);
+            let ((), analysed, _) = solver_cpu::analyse_beside(analyser, &a.iso, || ());
+            s.adopt_isotropic_analysis(analysed.unwrap());
             assert!(s.isotropic_analyser().is_none(), "analysed already");
         }
         prepare_shape(&mut s, a.clone(), &fixed);
