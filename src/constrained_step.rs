@@ -37,13 +37,18 @@ impl Linearized {
         let mut values = vec![0.0; ng];
         let mut rows = vec![vec![0.0; n]; ng];
         for (j, &g) in groups.iter().enumerate() {
-            let c = self.values[j];
-            values[g] += c * c;
-            for (o, &v) in rows[g].iter_mut().zip(&self.rows[j]) {
-                *o += 2.0 * c * v;
-            }
+            add_to_group(self.values[j], &self.rows[j], &mut values[g], &mut rows[g]);
         }
         Linearized { values, rows }
+    }
+}
+
+/// Adds constraint `C_j` (value `c`, gradient `grad`) to its group's
+/// `F_g = sum C_j^2` (`value`) and `grad F_g = sum 2 C_j grad C_j` (`row`).
+pub fn add_to_group(c: f64, grad: &[f64], value: &mut f64, row: &mut [f64]) {
+    *value += c * c;
+    for (o, &v) in row.iter_mut().zip(grad) {
+        *o += 2.0 * c * v;
     }
 }
 

@@ -12,7 +12,7 @@
 //! its Jacobian row changed: a degree-1 constraint's row is the same at every
 //! Newton step of one estimation.
 
-use crate::constrained_step::{step_from_solutions, Multipliers};
+use crate::constrained_step::{add_to_group, step_from_solutions, Multipliers};
 use crate::Result;
 use solver_cpu::{SpdSolver, SymCsc};
 
@@ -67,9 +67,9 @@ fn power(s: f64, p: i32) -> f64 {
     }
 }
 
-/// The per-kind grouping of `constraints` at `s` (`Linearized::grouped`,
-/// value for value and in the same order of sums): returns the groups'
-/// values and leaves their rows in `rows`, group g at `g n..(g + 1) n`.
+/// The per-kind grouping of `constraints` at `s` ([`add_to_group`], as
+/// `Linearized::grouped` sums it): returns the groups' values and leaves
+/// their rows in `rows`, group g at `g n..(g + 1) n`.
 fn grouped_rows(
     constraints: &[ScaleConstraint],
     s: &[f64],
@@ -84,12 +84,9 @@ fn grouped_rows(
     rows.resize(n * ng, 0.0);
     let mut row = vec![0.0; n];
     for ((c, &g), &v) in constraints.iter().zip(groups).zip(&values) {
-        grouped[g] += v * v;
         row.iter_mut().for_each(|r| *r = 0.0);
         c.gradient(s, &mut row);
-        for (o, &r) in rows[g * n..(g + 1) * n].iter_mut().zip(&row) {
-            *o += 2.0 * v * r;
-        }
+        add_to_group(v, &row, &mut grouped[g], &mut rows[g * n..(g + 1) * n]);
     }
     grouped
 }
@@ -165,9 +162,10 @@ impl ScaleFactorSystem {
     /// at `j n..(j + 1) n`): the columns whose row changed since they were
     /// solved are solved together (their previous solutions the initial
     /// guess), the others kept. `next` receives the previous rows, so that the
-    /// caller can build the following step's rows in memory already touched:
-    /// a fresh buffer of `k n` values per Newton step cost more in page faults
-    /// than its solve on the GPU path (108k faces, 2026-11-25).
+    /// caller builds the following step's rows in memory already touched, and
+    /// an all-changed or one-changed solve reads them and writes `ycols` in
+    /// place (no copies; the time saved was within the development machine's
+    /// drift, 2026-11-25).
     fn jacobian_solutions(&mut self, next: &mut Vec<f64>, k: usize) -> Result<()> {
         let n = self.n;
         if self.rows.len() != n * k || self.ycols.len() != n * k {
