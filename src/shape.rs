@@ -30,7 +30,7 @@ use crate::mesh::topology::{vertex_components, Topology};
 use crate::mesh::{triangle_area_gradient, Mesh, COT_CAP};
 use crate::{Error, Result};
 use glam::DVec3;
-use solver_cpu::{BlockPcgSolver, IsoRingSym3, ShapeOperatorModel, SparseRows, SpdSolver};
+use solver_cpu::{BlockPcgSolver, IsoRingSym3, ShapeOperatorModel, SparseRows, SpdSolver, SymCsc};
 use std::sync::Arc;
 
 /// Weights of Eq. 7 / Eq. 19.
@@ -193,6 +193,21 @@ pub struct ShapeModel {
     grad: Vec<f64>,
 }
 
+/// Where [`ShapeModel::hessian_terms`] puts the terms.
+struct Terms<'a> {
+    /// `K`, on the 2-ring pattern: its values are overwritten.
+    k: &'a mut SymCsc,
+    /// E_l's whole term in the `C_i` (else its isotropic part in `K`).
+    whole_ring: bool,
+    /// E_m's constant Hessian is named to the solver, not summed into `K`.
+    square_named: bool,
+    /// E_l's `C_i`, one per vertex (overwritten); `None`: not made.
+    ring_c: Option<&'a mut [[f64; 6]]>,
+    /// The scale factors `s` (per face), the curvature targets `c` (per
+    /// vertex) and the gradient to write (overwritten); `None`: not made.
+    gradient: Option<(&'a [f64], &'a [f64], &'a mut [f64])>,
+}
+
 impl ShapeModel {
     pub fn new(mesh: &Mesh, topo: &Topology, handles: Vec<HandleTarget>) -> Result<Self> {
         Self::with_solver(mesh, topo, handles, Box::new(BlockPcgSolver::new()))
@@ -351,7 +366,6 @@ impl ShapeModel {
         c: &[f64],
         w: &ShapeWeights,
     ) -> Result<()> {
-        let n = self.n;
         let t0 = std::time::Instant::now();
         let mut h_owned = match self.h.take() {
             Some(h) => h,
@@ -374,10 +388,52 @@ impl ShapeModel {
         } else {
             None
         };
+        let mut grad = std::mem::take(&mut self.grad);
+        let square_named = h.laplacian_square.is_some();
+        self.hessian_terms(
+            mesh,
+            xc,
+            w,
+            Terms {
+                k: &mut h.iso,
+                whole_ring,
+                square_named,
+                ring_c: Some(&mut h.ring_c),
+                gradient: Some((s, c, &mut grad)),
+            },
+        );
+        self.grad = grad;
+        let t1 = std::time::Instant::now();
+        let model = self.operator_model(w);
+        self.solver.set_shape_model(model);
+        self.h = self.solver.prepare_shape_owned(h_owned, &self.fixed)?;
+        log::debug!(
+            "shape system: assembly {:.3} s, {} {:.3} s",
+            (t1 - t0).as_secs_f64(),
+            self.solver.name(),
+            t1.elapsed().as_secs_f64()
+        );
+        Ok(())
+    }
+
+    /// The Hessian's terms for the weights `w` at the reference positions
+    /// `xc` (Eqs. 4-6, 19, and the springs of faces without shape weight),
+    /// into `t` (see [`Terms`]): `K`'s values (overwritten), E_l's `C_i`
+    /// and the gradient where asked for. One home for every term's sums, in
+    /// one order, whether for a solve or for a factor made ahead.
+    fn hessian_terms(&self, mesh: &Mesh, xc: &[DVec3], w: &ShapeWeights, t: Terms<'_>) {
+        let n = self.n;
+        let Terms {
+            k,
+            whole_ring,
+            square_named,
+            mut ring_c,
+            mut gradient,
+        } = t;
         if self.hm.is_empty() {
-            h.iso.values.iter_mut().for_each(|v| *v = 0.0);
+            k.values.iter_mut().for_each(|v| *v = 0.0);
             // E_m's Hessian sum_i 2 m_i delta_i^T delta_i, on mv's pair slots.
-            if w.k_m > 0.0 && h.laplacian_square.is_none() {
+            if w.k_m > 0.0 && !square_named {
                 for i in 0..n {
                     if self.vertex_area[i] <= 0.0 {
                         continue;
@@ -387,20 +443,23 @@ impl ShapeModel {
                     for (a, ca) in self.cot.row(i) {
                         for (b, cb) in self.cot.row(i) {
                             if a >= b {
-                                h.iso.values[*slots.next().unwrap() as usize] += m * ca * cb;
+                                k.values[*slots.next().unwrap() as usize] += m * ca * cb;
                             }
                         }
                     }
                 }
             }
         } else {
-            for (o, &m) in h.iso.values.iter_mut().zip(&self.hm) {
+            for (o, &m) in k.values.iter_mut().zip(&self.hm) {
                 *o = w.k_m * m;
             }
         }
-        h.ring_c.iter_mut().for_each(|c| *c = [0.0; 6]);
-        let grad = &mut self.grad;
-        grad.iter_mut().for_each(|g| *g = 0.0);
+        if let Some(ring_c) = ring_c.as_deref_mut() {
+            ring_c.iter_mut().for_each(|c| *c = [0.0; 6]);
+        }
+        if let Some((_, _, grad)) = gradient.as_mut() {
+            grad.iter_mut().for_each(|g| *g = 0.0);
+        }
 
         // Faces without shape weight: springs on their sides, zero gradient at xc.
         let spring = NO_WEIGHT_SPRING * 2.0 * (w.k_f + w.k_m + w.k_l).max(1e-300)
@@ -410,13 +469,13 @@ impl ShapeModel {
                 continue;
             }
             let slots = &self.face_slots[f];
-            for (k, l) in [(1usize, 0usize), (2, 0), (2, 1)] {
-                if t[k] == t[l] {
+            for (a, b) in [(1usize, 0usize), (2, 0), (2, 1)] {
+                if t[a] == t[b] {
                     continue;
                 }
-                h.iso.values[slots[k * (k + 1) / 2 + k] as usize] += spring;
-                h.iso.values[slots[l * (l + 1) / 2 + l] as usize] += spring;
-                h.iso.values[slots[k * (k + 1) / 2 + l] as usize] -= spring;
+                k.values[slots[a * (a + 1) / 2 + a] as usize] += spring;
+                k.values[slots[b * (b + 1) / 2 + b] as usize] += spring;
+                k.values[slots[a * (a + 1) / 2 + b] as usize] -= spring;
             }
         }
 
@@ -432,26 +491,28 @@ impl ShapeModel {
             let g: [DVec3; 3] = da.map(|d| d * 2.0 / a2);
             let wf = 2.0 * w.k_f * self.face_weight[f];
             let slots = &self.face_slots[f];
-            for k in 0..3 {
-                for l in 0..=k {
-                    let (a, b) = (t[k], t[l]);
-                    let mut v = wf * g[k].dot(g[l]);
-                    if a == b && k != l {
+            for kk in 0..3 {
+                for l in 0..=kk {
+                    let (a, b) = (t[kk], t[l]);
+                    let mut v = wf * g[kk].dot(g[l]);
+                    if a == b && kk != l {
                         v *= 2.0;
                     }
-                    h.iso.values[slots[k * (k + 1) / 2 + l] as usize] += v;
+                    k.values[slots[kk * (kk + 1) / 2 + l] as usize] += v;
                 }
-                let gk = wf * (1.0 - s[f]) * g[k];
-                let i = 3 * t[k] as usize;
-                grad[i] += gk.x;
-                grad[i + 1] += gk.y;
-                grad[i + 2] += gk.z;
+                if let Some((s, _, grad)) = gradient.as_mut() {
+                    let gk = wf * (1.0 - s[f]) * g[kk];
+                    let i = 3 * t[kk] as usize;
+                    grad[i] += gk.x;
+                    grad[i + 1] += gk.y;
+                    grad[i + 2] += gk.z;
+                }
             }
         }
 
         // E_m (Eqs. 5, 21): gradient at xc; the Hessian is the constant part
         // above (or the solver's).
-        if w.k_m > 0.0 {
+        if let (true, Some((_, c, grad))) = (w.k_m > 0.0, gradient.as_mut()) {
             for i in 0..n {
                 if self.vertex_area[i] <= 0.0 {
                     continue;
@@ -475,7 +536,7 @@ impl ShapeModel {
         // the isotropic part goes to K, the traceless rest is the ring's C_i.
         // With `whole_ring`, all of it is the ring's C_i: the same matrix,
         // without the scatter of every ring pair into K's slots.
-        if w.k_l > 0.0 {
+        if w.k_l > 0.0 && (ring_c.is_some() || !whole_ring) {
             let d = self.mv.apply_all(xc);
             let ms: f64 = (0..n)
                 .filter(|&i| self.vertex_area[i] > 0.0)
@@ -493,15 +554,17 @@ impl ShapeModel {
                     let dd = di.length_squared();
                     // C_i's diagonal: all of |d|^2 in the ring, or its third.
                     let third = dd / 3.0;
-                    let on_diag = if whole_ring { dd } else { third };
-                    h.ring_c[i] = [
-                        a * (on_diag - di.x * di.x),
-                        a * (on_diag - di.y * di.y),
-                        a * (on_diag - di.z * di.z),
-                        -a * di.x * di.y,
-                        -a * di.x * di.z,
-                        -a * di.y * di.z,
-                    ];
+                    if let Some(ring_c) = ring_c.as_deref_mut() {
+                        let on_diag = if whole_ring { dd } else { third };
+                        ring_c[i] = [
+                            a * (on_diag - di.x * di.x),
+                            a * (on_diag - di.y * di.y),
+                            a * (on_diag - di.z * di.z),
+                            -a * di.x * di.y,
+                            -a * di.x * di.z,
+                            -a * di.y * di.z,
+                        ];
+                    }
                     if whole_ring {
                         continue;
                     }
@@ -510,7 +573,7 @@ impl ShapeModel {
                     for (p, cp) in self.mv.row(i) {
                         for (q, cq) in self.mv.row(i) {
                             if p >= q {
-                                h.iso.values[*slots.next().unwrap() as usize] += iso * cp * cq;
+                                k.values[*slots.next().unwrap() as usize] += iso * cp * cq;
                             }
                         }
                     }
@@ -523,31 +586,49 @@ impl ShapeModel {
             let beta = 2.0 * w.k_p / (self.mean_edge * self.mean_edge * self.handles.len() as f64);
             for hd in &self.handles {
                 let v = hd.vertex as usize;
-                let sv = h.diagonal_slot(v);
-                h.iso.values[sv] += beta;
-                let g = beta * (xc[v] - hd.target);
-                grad[3 * v] += g.x;
-                grad[3 * v + 1] += g.y;
-                grad[3 * v + 2] += g.z;
+                // The diagonal entry comes first in its column.
+                k.values[k.col_ptr[v]] += beta;
+                if let Some((_, _, grad)) = gradient.as_mut() {
+                    let g = beta * (xc[v] - hd.target);
+                    grad[3 * v] += g.x;
+                    grad[3 * v + 1] += g.y;
+                    grad[3 * v + 2] += g.z;
+                }
             }
         }
 
-        for v in 0..n {
-            if self.fixed[v] {
-                grad[3 * v..3 * v + 3].iter_mut().for_each(|g| *g = 0.0);
+        if let Some((_, _, grad)) = gradient.as_mut() {
+            for v in 0..n {
+                if self.fixed[v] {
+                    grad[3 * v..3 * v + 3].iter_mut().for_each(|g| *g = 0.0);
+                }
             }
         }
-        let t1 = std::time::Instant::now();
-        let model = self.operator_model(w);
-        self.solver.set_shape_model(model);
-        self.h = self.solver.prepare_shape_owned(h_owned, &self.fixed)?;
-        log::debug!(
-            "shape system: assembly {:.3} s, {} {:.3} s",
-            (t1 - t0).as_secs_f64(),
-            self.solver.name(),
-            t1.elapsed().as_secs_f64()
-        );
-        Ok(())
+    }
+
+    /// `K`, the isotropic part of the Hessian for the weights `w` at `xc`
+    /// with every isotropic term in it and the held vertices' rows and
+    /// columns made identity: the matrix a shape kind's Cholesky
+    /// preconditioner factors, as that kind's first assembly at `xc` gives
+    /// it to the solver ([`SpdSolver::isotropic_factorer`]).
+    pub fn isotropic_part(&self, mesh: &Mesh, xc: &[DVec3], w: &ShapeWeights) -> SymCsc {
+        let pattern = &self.matrix().iso;
+        let mut k = SymCsc {
+            n: pattern.n,
+            col_ptr: pattern.col_ptr.clone(),
+            row_idx: pattern.row_idx.clone(),
+            values: vec![0.0; pattern.row_idx.len()],
+        };
+        let terms = Terms {
+            k: &mut k,
+            whole_ring: false,
+            square_named: false,
+            ring_c: None,
+            gradient: None,
+        };
+        self.hessian_terms(mesh, xc, w, terms);
+        k.set_held_identity(&self.fixed);
+        k
     }
 
     /// The model `K ~ S Mt^-1 S + c S` of the Hessian's isotropic part for

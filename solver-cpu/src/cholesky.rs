@@ -18,6 +18,7 @@ use faer::sparse::linalg::cholesky::{
 };
 use faer::sparse::{SparseColMatRef, SymbolicSparseColMatRef};
 use faer::{get_global_parallelism, Conj, MatMut, Side};
+use std::sync::Arc;
 
 /// Fill-reducing ordering of the symbolic analysis.
 #[derive(Debug, Clone, PartialEq, Eq, Default)]
@@ -68,6 +69,40 @@ pub fn analyse_beside<R>(
         });
         (made, analysed, seconds)
     })
+}
+
+/// A numeric factorization made on another thread while the caller goes on:
+/// a numeric twin ([`CholeskySolver::numeric_twin`]) factors a matrix of its
+/// analysed pattern. The caller takes the factored solver with
+/// [`FactorAhead::join`]; dropped unjoined, the thread finishes on its own.
+pub struct FactorAhead(std::thread::JoinHandle<(Result<CholeskySolver, SolverError>, f64)>);
+
+impl FactorAhead {
+    /// Starts factoring `k` with `twin`.
+    pub fn spawn(mut twin: CholeskySolver, k: SymCsc) -> Result<FactorAhead, SolverError> {
+        std::thread::Builder::new()
+            .name("factor-ahead".into())
+            .spawn(move || {
+                let t = std::time::Instant::now();
+                let done = twin.prepare(&k).map(|()| twin);
+                (done, t.elapsed().as_secs_f64())
+            })
+            .map(FactorAhead)
+            .map_err(|e| SolverError::Backend(format!("no thread for the factorization: {e}")))
+    }
+
+    /// Waits for the factorization: the factored solver (`Err` where it
+    /// failed or panicked) and its seconds.
+    pub fn join(self) -> (Result<CholeskySolver, SolverError>, f64) {
+        self.0.join().unwrap_or_else(|_| {
+            (
+                Err(SolverError::Backend(
+                    "the factorization made ahead panicked".into(),
+                )),
+                0.0,
+            )
+        })
+    }
 }
 
 /// METIS nested-dissection permutation of the graph of `a` (diagonal ignored):
@@ -192,7 +227,8 @@ pub struct CholeskySolver {
     pub ordering: FillOrdering,
     /// Fingerprint of the analysed pattern (see [`PatternKey`]).
     pattern: Option<PatternKey>,
-    symbolic: Option<SymbolicCholesky<u32>>,
+    /// Shared with the solver's numeric twins ([`CholeskySolver::numeric_twin`]).
+    symbolic: Option<Arc<SymbolicCholesky<u32>>>,
     numeric: Vec<f64>,
     /// The factor in f32 when `single` (then `numeric` stays empty).
     numeric32: Vec<f32>,
@@ -254,6 +290,30 @@ impl CholeskySolver {
     /// pattern and this one has not.
     pub fn may_adopt(&self, analysed: &CholeskySolver) -> bool {
         self.symbolic.is_none() && analysed.symbolic.is_some()
+    }
+
+    /// A solver that shares this one's symbolic analysis (its pattern,
+    /// ordering and supernodes; nothing is copied) and has factored nothing,
+    /// its factor in f32 when `single`; `None` before an analysis. For a
+    /// numeric factorization made ahead on another thread
+    /// ([`SpdSolver::isotropic_factorer`], [`FactorAhead`]).
+    pub fn numeric_twin(&self, single: bool) -> Option<CholeskySolver> {
+        self.symbolic.as_ref().map(|s| CholeskySolver {
+            pattern: self.pattern,
+            symbolic: Some(s.clone()),
+            single,
+            supernodal: self.supernodal,
+            ..Self::default()
+        })
+    }
+
+    /// Whether this solver holds a numeric factor of `a`'s pattern made on
+    /// `other`'s symbolic analysis (the same one, shared: see
+    /// [`CholeskySolver::numeric_twin`]).
+    pub fn is_factor_of(&self, a: &SymCsc, other: &CholeskySolver) -> bool {
+        self.factored
+            && self.pattern == Some(PatternKey::of(&a.col_ptr, &a.row_idx))
+            && matches!((&self.symbolic, &other.symbolic), (Some(s), Some(o)) if Arc::ptr_eq(s, o))
     }
 
     /// Stored entries of the factor L.
@@ -796,7 +856,7 @@ impl CholeskySolver {
                     .map_err(|_| SolverError::OutOfMemory)?;
                 self.numeric.resize(sym.len_val(), 0.0);
             }
-            self.symbolic = Some(sym);
+            self.symbolic = Some(Arc::new(sym));
             self.pattern = Some(key);
             self.symbolic_count += 1;
             log::debug!(

@@ -234,16 +234,7 @@ impl IsoRingSym3 {
     /// (`K` alone: without [`Self::laplacian_square`]).
     pub fn iso_held_identity(&self, fixed: &[bool]) -> SymCsc {
         let mut k = self.iso.clone();
-        if fixed.iter().any(|&f| f) {
-            for j in 0..k.n {
-                for s in k.col_ptr[j]..k.col_ptr[j + 1] {
-                    let i = k.row_idx[s];
-                    if fixed[i] || fixed[j] {
-                        k.values[s] = if i == j { 1.0 } else { 0.0 };
-                    }
-                }
-            }
-        }
+        k.set_held_identity(fixed);
         k
     }
 

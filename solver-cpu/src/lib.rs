@@ -13,7 +13,8 @@ pub mod pcg;
 
 pub use block::{BlockRows, BlockSym3};
 pub use cholesky::{
-    analyse_beside, nested_dissection_of_pattern, CholeskySolver, FillOrdering, SupernodalFactor,
+    analyse_beside, nested_dissection_of_pattern, CholeskySolver, FactorAhead, FillOrdering,
+    SupernodalFactor,
 };
 pub use iso_ring::{sym3_block, IsoRingSym3, SparseRows};
 pub use pcg::{BlockPcgParams, BlockPcgSolver};
@@ -158,6 +159,21 @@ impl SymCsc {
             col_ptr,
             row_idx,
             values: vec![0.0; nnz],
+        }
+    }
+
+    /// The rows and columns of the held unknowns (`fixed`) made identity.
+    pub fn set_held_identity(&mut self, fixed: &[bool]) {
+        if !fixed.iter().any(|&f| f) {
+            return;
+        }
+        for j in 0..self.n {
+            for s in self.col_ptr[j]..self.col_ptr[j + 1] {
+                let i = self.row_idx[s];
+                if fixed[i] || fixed[j] {
+                    self.values[s] = if i == j { 1.0 } else { 0.0 };
+                }
+            }
         }
     }
 
@@ -325,6 +341,23 @@ pub trait SpdSolver {
     /// factorization then skips its symbolic analysis. Ignored (the
     /// default) where it does not fit.
     fn adopt_isotropic_analysis(&mut self, _analysed: CholeskySolver) {}
+    /// A Cholesky solver that shares this one's symbolic analysis of `K`
+    /// and factors in the precision of `kind`'s factor: for that kind's
+    /// numeric factorization to run ahead, on another thread
+    /// ([`FactorAhead`]), from a `K` the caller assembles (held rows and
+    /// columns identity, as [`IsoRingSym3::iso_held_identity`]); `None` (the
+    /// default) where this solver makes no such factor for `kind` or has not
+    /// analysed `K` yet. The factor comes back through
+    /// [`SpdSolver::adopt_isotropic_factor`].
+    fn isotropic_factorer(&self, _kind: SystemKind) -> Option<CholeskySolver> {
+        None
+    }
+    /// Take `factored`, made from [`SpdSolver::isotropic_factorer`]'s solver,
+    /// as `kind`'s preconditioner: that kind's set-up then uploads or uses it
+    /// instead of factoring its first matrix's `K` (a preconditioner: made
+    /// from another matrix of the kind, it changes the iterations, not the
+    /// solution's tolerance). Ignored (the default) where it does not fit.
+    fn adopt_isotropic_factor(&mut self, _kind: SystemKind, _factored: CholeskySolver) {}
     /// The model of the next shape matrices (`None`: no model), for backends
     /// whose preconditioner builds on it; ignored by the others.
     fn set_shape_model(&mut self, _model: Option<std::sync::Arc<ShapeOperatorModel>>) {}

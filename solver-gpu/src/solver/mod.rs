@@ -106,6 +106,7 @@ pub fn open_with(opts: OpenOptions) -> Result<GpuSolver, GpuError> {
             c
         },
         chol_unavailable: [false; 2],
+        chol_ahead: None,
     })
 }
 
@@ -238,6 +239,9 @@ pub struct GpuSolver {
     /// systems (index 0) or the scale factors (index 1): the squared Laplacian or AMG
     /// serves instead for the rest of the run.
     chol_unavailable: [bool; 2],
+    /// A shape kind's factor of `K` made ahead on another thread
+    /// ([`SpdSolver::adopt_isotropic_factor`]), for that kind's set-up.
+    pub(crate) chol_ahead: Option<(SystemKind, solver_cpu::CholeskySolver)>,
 }
 
 impl GpuSolver {
@@ -802,6 +806,28 @@ impl SpdSolver for GpuSolver {
     fn adopt_isotropic_analysis(&mut self, analysed: solver_cpu::CholeskySolver) {
         if self.chol_host.may_adopt(&analysed) {
             self.chol_host = analysed;
+        }
+    }
+
+    /// A shape kind's factor of `K` in that kind's precision, on the
+    /// symbolic analysis made for the shape systems already.
+    fn isotropic_factorer(&self, kind: SystemKind) -> Option<solver_cpu::CholeskySolver> {
+        (kind != SystemKind::ScaleFactors
+            && self.preconditioner == Preconditioner::Cholesky
+            && !self.chol_unavailable[0])
+            .then(|| {
+                let single = self.factor_precision(kind) == precision::Precision::F32;
+                self.chol_host.numeric_twin(single)
+            })
+            .flatten()
+    }
+
+    /// Kept for `kind`'s Cholesky set-up, which takes it where it is a
+    /// factor of that `K`'s pattern on this solver's analysis, in the kind's
+    /// precision (`GpuSolver::setup_cholesky`).
+    fn adopt_isotropic_factor(&mut self, kind: SystemKind, factored: solver_cpu::CholeskySolver) {
+        if kind != SystemKind::ScaleFactors {
+            self.chol_ahead = Some((kind, factored));
         }
     }
 

@@ -200,6 +200,100 @@ impl GpuSolver {
         self.setups += 1;
         self.drop_cholesky();
         let precision = self.factor_precision(self.kind);
+        let single = precision == precision::Precision::F32;
+        // A factor of this kind made ahead, on another thread, from another
+        // `K` of the kind (`SpdSolver::adopt_isotropic_factor`): taken in
+        // place of this one's factorization where it fits.
+        let ahead = match self.chol_ahead.take() {
+            Some((kind, f)) if kind == self.kind => {
+                let fits = f.is_single_precision() == single && f.is_factor_of(&k, &self.chol_host);
+                if !fits {
+                    log::debug!(
+                        "Cholesky factor made ahead ({kind:?} system) does not fit; factored here"
+                    );
+                }
+                fits.then_some(f)
+            }
+            other => {
+                self.chol_ahead = other;
+                None
+            }
+        };
+        let made_ahead = ahead.is_some();
+        let mut f = match ahead {
+            Some(mut f) => {
+                self.check_supernodes(&f, precision)?;
+                f.take_supernodal_factor()
+            }
+            .ok_or_else(|| GpuError::Backend("no supernodal factor".into()))?,
+            None => self.factor_here(k, precision)?,
+        };
+        let t_inverse = std::time::Instant::now();
+        f.invert_diagonal_blocks();
+        let inverse_seconds = t_inverse.elapsed().as_secs_f64();
+        let factor_seconds = t.elapsed().as_secs_f64();
+        let limit = matrix::binding_limit(&self.ctx);
+        if self
+            .chol_kernels
+            .as_ref()
+            .is_none_or(|k| k.precision != precision)
+        {
+            self.chol_kernels = Some(supernodal::SupernodalKernels::new(&self.ctx, precision)?);
+        }
+        self.drop_workspaces();
+        self.amg_host = None;
+        self.amg_gpu = None;
+        self.squared = None;
+        self.amg_kind = None;
+        let g = supernodal::GpuFactor::upload(&self.ctx, &f, limit)?;
+        self.ctx.check()?;
+        log::debug!(
+            "Cholesky preconditioner ({:?} system, {:?}): {} unknowns, {} supernodes, {} levels, \
+             nnz(L) {} in {} buffers, factor {factor_seconds:.3} s{} (of it the inverted form \
+             {inverse_seconds:.3} s), setup {:.3} s",
+            self.kind,
+            precision,
+            g.nv,
+            f.len(),
+            g.depth(),
+            g.nnz,
+            g.chunks(),
+            if made_ahead { " (made ahead)" } else { "" },
+            t.elapsed().as_secs_f64()
+        );
+        self.chol = Some(g);
+        self.chol_kind = Some(self.kind);
+        self.amg_setup_seconds = t.elapsed().as_secs_f64();
+        Ok(())
+    }
+
+    /// Refuses a factor (analysed by `solver`) whose largest supernode in
+    /// `precision` would not fit one storage binding of the device.
+    fn check_supernodes(
+        &self,
+        solver: &solver_cpu::CholeskySolver,
+        precision: precision::Precision,
+    ) -> Result<(), GpuError> {
+        let limit = matrix::binding_limit(&self.ctx);
+        let supernode = solver.largest_supernode_nnz() as u64 * precision.bytes();
+        if supernode > limit {
+            return Err(GpuError::LimitExceeded {
+                what: format!("the Cholesky factor's largest supernode ({supernode} bytes)"),
+                limit_name: "max_storage_buffer_binding_size",
+                needed: supernode,
+                limit,
+            });
+        }
+        Ok(())
+    }
+
+    /// The supernodal factor of `k` in `precision`, made here by the host's
+    /// solver (its symbolic analysis kept for later kinds).
+    fn factor_here(
+        &mut self,
+        k: SymCsc,
+        precision: precision::Precision,
+    ) -> Result<solver_cpu::SupernodalFactor, GpuError> {
         if self.chol_host.is_single_precision() != (precision == precision::Precision::F32) {
             let ordering = std::mem::take(&mut self.chol_host.ordering);
             self.chol_host = match precision {
@@ -218,58 +312,12 @@ impl GpuSolver {
         // [`supernodal::SupernodalSteps`]): the largest supernode must fit
         // one.
         self.chol_host.analyse(&k).map_err(backend)?;
-        let b = precision.bytes();
-        let limit = matrix::binding_limit(&self.ctx);
-        let supernode = self.chol_host.largest_supernode_nnz() as u64 * b;
-        if supernode > limit {
-            return Err(GpuError::LimitExceeded {
-                what: format!("the Cholesky factor's largest supernode ({supernode} bytes)"),
-                limit_name: "max_storage_buffer_binding_size",
-                needed: supernode,
-                limit,
-            });
-        }
+        self.check_supernodes(&self.chol_host, precision)?;
         self.chol_host.prepare(&k).map_err(backend)?;
         drop(k);
-        let mut f = self
-            .chol_host
+        self.chol_host
             .take_supernodal_factor()
-            .ok_or_else(|| GpuError::Backend("no supernodal factor".into()))?;
-        let t_inverse = std::time::Instant::now();
-        f.invert_diagonal_blocks();
-        let inverse_seconds = t_inverse.elapsed().as_secs_f64();
-        let factor_seconds = t.elapsed().as_secs_f64();
-        if self
-            .chol_kernels
-            .as_ref()
-            .is_none_or(|k| k.precision != precision)
-        {
-            self.chol_kernels = Some(supernodal::SupernodalKernels::new(&self.ctx, precision)?);
-        }
-        self.drop_workspaces();
-        self.amg_host = None;
-        self.amg_gpu = None;
-        self.squared = None;
-        self.amg_kind = None;
-        let g = supernodal::GpuFactor::upload(&self.ctx, &f, limit)?;
-        self.ctx.check()?;
-        log::debug!(
-            "Cholesky preconditioner ({:?} system, {:?}): {} unknowns, {} supernodes, {} levels, \
-             nnz(L) {} in {} buffers, factor {factor_seconds:.3} s (of it the inverted form \
-             {inverse_seconds:.3} s), setup {:.3} s",
-            self.kind,
-            precision,
-            g.nv,
-            f.len(),
-            g.depth(),
-            g.nnz,
-            g.chunks(),
-            t.elapsed().as_secs_f64()
-        );
-        self.chol = Some(g);
-        self.chol_kind = Some(self.kind);
-        self.amg_setup_seconds = t.elapsed().as_secs_f64();
-        Ok(())
+            .ok_or_else(|| GpuError::Backend("no supernodal factor".into()))
     }
 
     /// The shape model the squared-Laplacian preconditioner builds on, where
