@@ -909,6 +909,50 @@ mod tests {
         (s, vec![1.1; n], w)
     }
 
+    /// `isotropic_part` is the `K` that an assembly at the same positions
+    /// and weights gives a solver that reads `K` apart (the matrix its
+    /// factor is made from), to the bit: every isotropic term, handles
+    /// included, held rows identity.
+    #[test]
+    fn isotropic_part_is_the_assemblys_k_to_the_bit() {
+        let (mesh, _) = spot_model();
+        let topo = Topology::build(&mesh);
+        let n = mesh.num_vertices();
+        let (s, c, mut w) = varied_job(mesh.num_faces(), n);
+        w.k_p = 10.0;
+        let xc: Vec<DVec3> = mesh
+            .positions
+            .iter()
+            .enumerate()
+            .map(|(i, p)| *p * (1.0 + 0.02 * (i as f64 * 0.1).sin()))
+            .collect();
+        let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        // With handles (E_p), and without (a held vertex).
+        for with_handles in [true, false] {
+            let handles: Vec<HandleTarget> = [5u32, 700, 1400]
+                .iter()
+                .filter(|_| with_handles)
+                .map(|&v| HandleTarget {
+                    vertex: v,
+                    target: mesh.positions[v as usize] + DVec3::new(0.01, 0.0, -0.02),
+                })
+                .collect();
+            let solver = Box::new(solver_cpu::CholeskySolver::new());
+            let mut model = ShapeModel::with_solver(&mesh, &topo, handles, solver).unwrap();
+            assert_eq!(model.fixed.iter().any(|&f| f), !with_handles);
+            model.assemble_and_factor(&mesh, &xc, &s, &c, &w).unwrap();
+            let assembled = model.matrix().iso_held_identity(&model.fixed);
+            let k = model.isotropic_part(&mesh, &xc, &w);
+            assert_eq!(
+                (&k.col_ptr, &k.row_idx),
+                (&assembled.col_ptr, &assembled.row_idx)
+            );
+            assert_eq!(bits(&k.values), bits(&assembled.values));
+            let elsewhere = model.isotropic_part(&mesh, &mesh.positions, &w);
+            assert_ne!(bits(&elsewhere.values), bits(&assembled.values));
+        }
+    }
+
     /// The energy is quadratic in the increment with gradient `H dx + g0`
     /// (held entries zero): the Newton direction `H^-1 (-grad E)` at `dx` is
     /// the one at zero minus `dx`, which the fine-tune uses instead of a

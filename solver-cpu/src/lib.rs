@@ -567,6 +567,41 @@ mod tests {
         assert_eq!(solver.numeric_count, 2);
     }
 
+    /// A numeric twin factors on its solver's analysis (no analysis of its
+    /// own, on another thread) what that solver would: the same solve to
+    /// the bit. It is a factor of its pattern on that analysis only.
+    #[test]
+    fn a_numeric_twin_factors_on_the_shared_analysis() {
+        let n = 50;
+        let a = spd(n);
+        let mut s = a.scalar_pattern();
+        a.fill_scalar(&mut s, &vec![false; n]);
+        let mut solver = CholeskySolver::new();
+        assert!(solver.numeric_twin(false).is_none(), "nothing analysed");
+        solver.analyse(&s).unwrap();
+        let mut s2 = s.clone();
+        s2.values.iter_mut().for_each(|v| *v *= 2.0);
+        let twin = solver.numeric_twin(false).unwrap();
+        let (twin, _) = FactorAhead::spawn(twin, s2.clone()).unwrap().join();
+        let mut twin = twin.unwrap();
+        assert_eq!((twin.symbolic_count, twin.numeric_count), (0, 1));
+        assert!(twin.is_factor_of(&s2, &solver));
+        assert!(!twin.is_factor_of(&s2, &CholeskySolver::new()));
+        let mut other = s.clone();
+        other.row_idx.pop();
+        other.values.pop();
+        *other.col_ptr.last_mut().unwrap() -= 1;
+        assert!(!twin.is_factor_of(&other, &solver), "another pattern");
+        solver.prepare(&s2).unwrap();
+        let b: Vec<f64> = (0..3 * n).map(|i| (i as f64 * 0.3).sin()).collect();
+        let (mut x, mut y) = (b.clone(), b.clone());
+        solver.solve_in_place(&mut x, 1).unwrap();
+        twin.solve_in_place(&mut y, 1).unwrap();
+        let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&x), bits(&y));
+        assert_eq!(solver.symbolic_count, 1);
+    }
+
     #[test]
     fn cholesky_rejects_indefinite() {
         let mut s = SymCsc::from_pattern(2, [(1, 0)]);

@@ -310,6 +310,13 @@ pub fn cholesky_analyses(s: &GpuSolver) -> usize {
     s.chol_host.symbolic_count
 }
 
+/// Numeric factorizations the host's Cholesky factor of the shape systems
+/// has made itself (not those made ahead and adopted,
+/// [`solver_cpu::SpdSolver::adopt_isotropic_factor`]).
+pub fn cholesky_factorizations(s: &GpuSolver) -> usize {
+    s.chol_host.numeric_count
+}
+
 /// Storage buffers the active Cholesky preconditioner's values are split
 /// into (one where they fit a binding); `None` when it is not active.
 pub fn cholesky_chunks(s: &GpuSolver) -> Option<usize> {

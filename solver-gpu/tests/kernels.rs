@@ -1488,6 +1488,63 @@ fn an_isotropic_analysis_made_ahead_is_adopted() {
     assert_eq!(bits(&plain), bits(&ahead));
 }
 
+/// The fine-tune kind's factor of `K`, made ahead on another thread by a
+/// solver sharing the scale-driven kind's analysis (`isotropic_factorer`),
+/// is that kind's preconditioner: its set-up factors nothing on the host,
+/// and its solve is that of the solver that factored the same `K` itself,
+/// to the bit. One set-up per kind either way.
+#[test]
+fn a_factor_made_ahead_is_the_kinds_preconditioner() {
+    let (nx, ny) = (60, 40);
+    let n = nx * ny;
+    let mut rng = Rng(43);
+    let a = iso_grid(nx, ny, &mut rng);
+    // Another positive definite K on the same pattern: scaled, with a
+    // varied diagonal shift.
+    let mut a_ft = a.clone();
+    a_ft.iso.values.iter_mut().for_each(|v| *v *= 1.7);
+    for j in 0..n {
+        a_ft.iso.values[a_ft.iso.col_ptr[j]] += 0.05 * rng.sym().abs();
+    }
+    let fixed = fixed_every(n, 61);
+    let b = rng.vec(3 * n);
+    let solve = |ahead: bool| -> Option<(Vec<f64>, usize, usize)> {
+        let mut s = gpu()?;
+        s.set_system_kind(SystemKind::ScaleDriven);
+        assert!(
+            s.isotropic_factorer(SystemKind::FineTune).is_none(),
+            "nothing analysed yet"
+        );
+        prepare_shape(&mut s, a.clone(), &fixed);
+        assert_eq!(s.active_preconditioner(), Preconditioner::Cholesky);
+        assert!(s.isotropic_factorer(SystemKind::ScaleFactors).is_none());
+        if ahead {
+            let twin = s
+                .isotropic_factorer(SystemKind::FineTune)
+                .expect("the factor of K");
+            let k = a_ft.iso_held_identity(&fixed);
+            let (factored, _) = solver_cpu::FactorAhead::spawn(twin, k).unwrap().join();
+            s.adopt_isotropic_factor(SystemKind::FineTune, factored.unwrap());
+        }
+        s.set_system_kind(SystemKind::FineTune);
+        prepare_shape(&mut s, a_ft.clone(), &fixed);
+        assert_eq!(s.active_preconditioner(), Preconditioner::Cholesky);
+        let mut x = vec![0.0; b.len()];
+        s.set_tolerance(1e-10);
+        s.solve_with_guess(&b, &mut x, 1).unwrap();
+        let setups = s.counters().preconditioner_setups;
+        Some((x, kernels::cholesky_factorizations(&s), setups))
+    };
+    let Some((plain, factored, setups)) = solve(false) else {
+        return;
+    };
+    let (ahead, factored_ahead, setups_ahead) = solve(true).unwrap();
+    assert_eq!((factored, factored_ahead), (2, 1));
+    assert_eq!((setups, setups_ahead), (2, 2));
+    let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+    assert_eq!(bits(&plain), bits(&ahead));
+}
+
 /// A Cholesky factor larger than one storage binding has its values split
 /// over several, at supernode boundaries: it stays the preconditioner, its
 /// solve is still the factor's, and the PCG lands on the CPU backend's
