@@ -523,6 +523,15 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
         });
         loop {
             let t_iter = Instant::now();
+            // The fine-tune's factor, once made, goes to the solver at once
+            // (the GPU takes it up): the host need not hold it meanwhile.
+            if fine_tune_ahead
+                .as_ref()
+                .is_some_and(FactorAhead::is_finished)
+            {
+                let ahead = fine_tune_ahead.take().unwrap();
+                adopt_factor_ahead(&mut model, ahead, SystemKind::FineTune);
+            }
             let before = work_sum(
                 model.solver().counters(),
                 scale_system.as_ref().map(|s| s.counters()),
@@ -764,8 +773,10 @@ fn scale_system_beside_analysis(
 /// scale-driven step's positions instead of the fine-tune's start, while
 /// the scale-driven iteration runs: another preconditioner of the same
 /// systems (the fine-tune's `K` is mostly E_m's constant Hessian, k_m =
-/// 100 k_f). Dropped unjoined (the iteration stopped before its first
-/// step), the thread finishes on its own.
+/// 100 k_f), handed to the solver as soon as it is made (the GPU uploads
+/// it beside the scale-driven factor, so that the host does not hold it).
+/// Dropped unjoined (the iteration stopped before its first step), the
+/// thread finishes on its own.
 fn factor_ahead(
     model: &mut ShapeModel,
     mesh: &Mesh,
@@ -774,7 +785,12 @@ fn factor_ahead(
     kind: SystemKind,
 ) -> Option<FactorAhead> {
     let twin = model.solver().isotropic_factorer(kind)?;
+    let t = Instant::now();
     let k = model.isotropic_part(mesh, x, w);
+    log::debug!(
+        "{kind:?} system's K for its factor ahead assembled in {:.3} s",
+        t.elapsed().as_secs_f64()
+    );
     FactorAhead::spawn(twin, k)
         .inspect_err(|e| log::debug!("{kind:?} system's factor of K ahead: {e}"))
         .ok()

@@ -91,6 +91,11 @@ impl FactorAhead {
             .map_err(|e| SolverError::Backend(format!("no thread for the factorization: {e}")))
     }
 
+    /// Whether the factorization has ended (joining does not wait then).
+    pub fn is_finished(&self) -> bool {
+        self.0.is_finished()
+    }
+
     /// Waits for the factorization: the factored solver (`Err` where it
     /// failed or panicked) and its seconds.
     pub fn join(self) -> (Result<CholeskySolver, SolverError>, f64) {
@@ -307,13 +312,16 @@ impl CholeskySolver {
         })
     }
 
-    /// Whether this solver holds a numeric factor of `a`'s pattern made on
-    /// `other`'s symbolic analysis (the same one, shared: see
-    /// [`CholeskySolver::numeric_twin`]).
-    pub fn is_factor_of(&self, a: &SymCsc, other: &CholeskySolver) -> bool {
+    /// Whether this solver holds a numeric factor made on `other`'s symbolic
+    /// analysis (the same one, shared: see [`CholeskySolver::numeric_twin`]).
+    pub fn is_factored_on(&self, other: &CholeskySolver) -> bool {
         self.factored
-            && self.pattern == Some(PatternKey::of(&a.col_ptr, &a.row_idx))
             && matches!((&self.symbolic, &other.symbolic), (Some(s), Some(o)) if Arc::ptr_eq(s, o))
+    }
+
+    /// Whether this solver's symbolic analysis is of `a`'s pattern.
+    pub fn has_analysed(&self, a: &SymCsc) -> bool {
+        self.symbolic.is_some() && self.pattern == Some(PatternKey::of(&a.col_ptr, &a.row_idx))
     }
 
     /// Stored entries of the factor L.
@@ -843,19 +851,12 @@ impl CholeskySolver {
                         a.n
                     ))
                 })?;
+            // The values' storage is made by the numeric factorization
+            // (`prepare`), where one is made: a numeric twin may make it
+            // instead ([`CholeskySolver::numeric_twin`]).
             self.numeric = Vec::new();
             self.numeric32 = Vec::new();
-            if self.single {
-                self.numeric32
-                    .try_reserve_exact(sym.len_val())
-                    .map_err(|_| SolverError::OutOfMemory)?;
-                self.numeric32.resize(sym.len_val(), 0.0);
-            } else {
-                self.numeric
-                    .try_reserve_exact(sym.len_val())
-                    .map_err(|_| SolverError::OutOfMemory)?;
-                self.numeric.resize(sym.len_val(), 0.0);
-            }
+            let nnz_l = sym.len_val();
             self.symbolic = Some(Arc::new(sym));
             self.pattern = Some(key);
             self.symbolic_count += 1;
@@ -863,7 +864,7 @@ impl CholeskySolver {
                 "Cholesky symbolic analysis: n {}, nnz(A) {}, nnz(L) {} ({}, {}), {:.3} s (ordering {:.3} s)",
                 a.n,
                 a.row_idx.len(),
-                self.numeric.len() + self.numeric32.len(),
+                nnz_l,
                 if self.single { "f32" } else { "f64" },
                 match (&self.ordering, &perm32) {
                     (_, None) => "AMD",

@@ -585,13 +585,15 @@ mod tests {
         let (twin, _) = FactorAhead::spawn(twin, s2.clone()).unwrap().join();
         let mut twin = twin.unwrap();
         assert_eq!((twin.symbolic_count, twin.numeric_count), (0, 1));
-        assert!(twin.is_factor_of(&s2, &solver));
-        assert!(!twin.is_factor_of(&s2, &CholeskySolver::new()));
+        assert!(twin.is_factored_on(&solver));
+        assert!(!twin.is_factored_on(&CholeskySolver::new()));
+        assert!(!solver.is_factored_on(&solver), "analysed, not factored");
         let mut other = s.clone();
         other.row_idx.pop();
         other.values.pop();
         *other.col_ptr.last_mut().unwrap() -= 1;
-        assert!(!twin.is_factor_of(&other, &solver), "another pattern");
+        assert!(solver.has_analysed(&s2) && twin.has_analysed(&s2));
+        assert!(!solver.has_analysed(&other), "another pattern");
         solver.prepare(&s2).unwrap();
         let b: Vec<f64> = (0..3 * n).map(|i| (i as f64 * 0.3).sin()).collect();
         let (mut x, mut y) = (b.clone(), b.clone());

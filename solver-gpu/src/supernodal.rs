@@ -173,6 +173,11 @@ fn levels(f: &SupernodalFactor) -> Option<Vec<u32>> {
 }
 
 impl GpuFactor {
+    /// Supernodes of the factor.
+    pub fn supernodes(&self) -> usize {
+        self.sizes.len()
+    }
+
     /// Upload `f` (its diagonal blocks inverted; indices in u32). The values
     /// are stored level by level, leaves first, and cut into chunks of at
     /// most `limit` bytes (one storage binding) at supernode boundaries, so

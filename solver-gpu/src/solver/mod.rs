@@ -239,9 +239,10 @@ pub struct GpuSolver {
     /// systems (index 0) or the scale factors (index 1): the squared Laplacian or AMG
     /// serves instead for the rest of the run.
     chol_unavailable: [bool; 2],
-    /// A shape kind's factor of `K` made ahead on another thread
-    /// ([`SpdSolver::adopt_isotropic_factor`]), for that kind's set-up.
-    pub(crate) chol_ahead: Option<(SystemKind, solver_cpu::CholeskySolver)>,
+    /// A shape kind's factor of `K` made ahead on another thread and
+    /// uploaded ([`SpdSolver::adopt_isotropic_factor`]), for that kind's
+    /// set-up.
+    chol_ahead: Option<(SystemKind, supernodal::GpuFactor)>,
 }
 
 impl GpuSolver {
@@ -822,12 +823,18 @@ impl SpdSolver for GpuSolver {
             .flatten()
     }
 
-    /// Kept for `kind`'s Cholesky set-up, which takes it where it is a
-    /// factor of that `K`'s pattern on this solver's analysis, in the kind's
-    /// precision (`GpuSolver::setup_cholesky`).
+    /// Uploaded now (its diagonal blocks inverted), beside the active
+    /// factor, and kept for `kind`'s Cholesky set-up, which takes it where it
+    /// is of that `K`'s pattern and the kind's precision
+    /// (`GpuSolver::setup_cholesky`). One that is not a factor on this
+    /// solver's analysis, or does not fit the device, is dropped: the
+    /// kind's set-up factors again.
     fn adopt_isotropic_factor(&mut self, kind: SystemKind, factored: solver_cpu::CholeskySolver) {
-        if kind != SystemKind::ScaleFactors {
-            self.chol_ahead = Some((kind, factored));
+        if kind == SystemKind::ScaleFactors {
+            return;
+        }
+        if let Err(e) = self.upload_factor_ahead(kind, factored) {
+            log::debug!("Cholesky factor made ahead ({kind:?} system) not taken: {e}");
         }
     }
 

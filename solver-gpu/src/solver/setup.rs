@@ -200,70 +200,110 @@ impl GpuSolver {
         self.setups += 1;
         self.drop_cholesky();
         let precision = self.factor_precision(self.kind);
-        let single = precision == precision::Precision::F32;
-        // A factor of this kind made ahead, on another thread, from another
-        // `K` of the kind (`SpdSolver::adopt_isotropic_factor`): taken in
-        // place of this one's factorization where it fits.
+        // This kind's factor, made ahead on another thread from another `K`
+        // of the kind and uploaded already (`adopt_isotropic_factor`):
+        // taken in place of this one's factorization where it fits.
         let ahead = match self.chol_ahead.take() {
-            Some((kind, f)) if kind == self.kind => {
-                let fits = f.is_single_precision() == single && f.is_factor_of(&k, &self.chol_host);
+            Some((kind, g)) if kind == self.kind => {
+                let fits = g.precision == precision && self.chol_host.has_analysed(&k);
                 if !fits {
                     log::debug!(
                         "Cholesky factor made ahead ({kind:?} system) does not fit; factored here"
                     );
                 }
-                fits.then_some(f)
+                fits.then_some(g)
             }
             other => {
                 self.chol_ahead = other;
                 None
             }
         };
-        let made_ahead = ahead.is_some();
-        let mut f = match ahead {
-            Some(mut f) => {
-                self.check_supernodes(&f, precision)?;
-                f.take_supernodal_factor()
-            }
-            .ok_or_else(|| GpuError::Backend("no supernodal factor".into()))?,
-            None => self.factor_here(k, precision)?,
-        };
-        let t_inverse = std::time::Instant::now();
-        f.invert_diagonal_blocks();
-        let inverse_seconds = t_inverse.elapsed().as_secs_f64();
-        let factor_seconds = t.elapsed().as_secs_f64();
-        let limit = matrix::binding_limit(&self.ctx);
-        if self
-            .chol_kernels
-            .as_ref()
-            .is_none_or(|k| k.precision != precision)
-        {
-            self.chol_kernels = Some(supernodal::SupernodalKernels::new(&self.ctx, precision)?);
-        }
         self.drop_workspaces();
         self.amg_host = None;
         self.amg_gpu = None;
         self.squared = None;
         self.amg_kind = None;
-        let g = supernodal::GpuFactor::upload(&self.ctx, &f, limit)?;
-        self.ctx.check()?;
+        let (g, made) = match ahead {
+            Some(g) => (g, "made ahead".to_string()),
+            None => {
+                let f = self.factor_here(k, precision)?;
+                let factor_seconds = t.elapsed().as_secs_f64();
+                let (g, inverse_seconds) = self.upload_factor(f)?;
+                let made = format!(
+                    "factor {factor_seconds:.3} s, its inverted form {inverse_seconds:.3} s"
+                );
+                (g, made)
+            }
+        };
         log::debug!(
             "Cholesky preconditioner ({:?} system, {:?}): {} unknowns, {} supernodes, {} levels, \
-             nnz(L) {} in {} buffers, factor {factor_seconds:.3} s{} (of it the inverted form \
-             {inverse_seconds:.3} s), setup {:.3} s",
+             nnz(L) {} in {} buffers, {made}, setup {:.3} s",
             self.kind,
             precision,
             g.nv,
-            f.len(),
+            g.supernodes(),
             g.depth(),
             g.nnz,
             g.chunks(),
-            if made_ahead { " (made ahead)" } else { "" },
             t.elapsed().as_secs_f64()
         );
         self.chol = Some(g);
         self.chol_kind = Some(self.kind);
         self.amg_setup_seconds = t.elapsed().as_secs_f64();
+        Ok(())
+    }
+
+    /// `f` with its diagonal blocks inverted, uploaded, and the kernels of
+    /// its precision made: the GPU's factor, and the inversion's seconds.
+    fn upload_factor(
+        &mut self,
+        mut f: solver_cpu::SupernodalFactor,
+    ) -> Result<(supernodal::GpuFactor, f64), GpuError> {
+        let t = std::time::Instant::now();
+        f.invert_diagonal_blocks();
+        let inverse_seconds = t.elapsed().as_secs_f64();
+        let g = supernodal::GpuFactor::upload(&self.ctx, &f, matrix::binding_limit(&self.ctx))?;
+        self.ctx.check()?;
+        if self
+            .chol_kernels
+            .as_ref()
+            .is_none_or(|k| k.precision != g.precision)
+        {
+            self.chol_kernels = Some(supernodal::SupernodalKernels::new(&self.ctx, g.precision)?);
+        }
+        Ok((g, inverse_seconds))
+    }
+
+    /// `factored`, a shape kind's factor made ahead on a twin of the host's
+    /// analysis, uploaded now, beside the active factor, for that kind's
+    /// set-up: the host keeps no copy while the kind before it runs.
+    pub(super) fn upload_factor_ahead(
+        &mut self,
+        kind: SystemKind,
+        mut factored: solver_cpu::CholeskySolver,
+    ) -> Result<(), GpuError> {
+        if !factored.is_factored_on(&self.chol_host) {
+            return Err(GpuError::Backend(
+                "not a factor on the shape systems' analysis".into(),
+            ));
+        }
+        let precision = match factored.is_single_precision() {
+            true => precision::Precision::F32,
+            false => precision::Precision::F64,
+        };
+        self.check_supernodes(&factored, precision)?;
+        let f = factored
+            .take_supernodal_factor()
+            .ok_or_else(|| GpuError::Backend("no supernodal factor".into()))?;
+        drop(factored);
+        let t = std::time::Instant::now();
+        let (g, inverse_seconds) = self.upload_factor(f)?;
+        log::debug!(
+            "Cholesky factor made ahead ({kind:?} system, {precision:?}): inverted form \
+             {inverse_seconds:.3} s, uploaded in {:.3} s",
+            t.elapsed().as_secs_f64() - inverse_seconds
+        );
+        self.chol_ahead = Some((kind, g));
         Ok(())
     }
 
