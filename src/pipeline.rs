@@ -522,9 +522,11 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
             0
         });
         loop {
-            let t_iter = Instant::now();
             // The fine-tune's factor, once made, goes to the solver at once
-            // (the GPU takes it up): the host need not hold it meanwhile.
+            // (the GPU uploads it): the host need not hold it meanwhile. It
+            // is the fine-tune kind's set-up, made early: its upload and
+            // time count in the scale-driven phase's totals, not in an
+            // outer iteration's (the set-up itself in the fine-tune's).
             if fine_tune_ahead
                 .as_ref()
                 .is_some_and(FactorAhead::is_finished)
@@ -532,6 +534,7 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
                 let ahead = fine_tune_ahead.take().unwrap();
                 adopt_factor_ahead(&mut model, ahead, SystemKind::FineTune);
             }
+            let t_iter = Instant::now();
             let before = work_sum(
                 model.solver().counters(),
                 scale_system.as_ref().map(|s| s.counters()),
