@@ -811,16 +811,20 @@ impl SpdSolver for GpuSolver {
     }
 
     /// A shape kind's factor of `K` in that kind's precision, on the
-    /// symbolic analysis made for the shape systems already.
+    /// symbolic analysis made for the shape systems already; none where that
+    /// factor's largest supernode would not fit a storage binding (the
+    /// kind's set-up then falls back without a factorization).
     fn isotropic_factorer(&self, kind: SystemKind) -> Option<solver_cpu::CholeskySolver> {
+        let precision = self.factor_precision(kind);
         (kind != SystemKind::ScaleFactors
             && self.preconditioner == Preconditioner::Cholesky
-            && !self.chol_unavailable[0])
-            .then(|| {
-                let single = self.factor_precision(kind) == precision::Precision::F32;
-                self.chol_host.numeric_twin(single)
-            })
-            .flatten()
+            && !self.chol_unavailable[0]
+            && self.check_supernodes(&self.chol_host, precision).is_ok())
+        .then(|| {
+            self.chol_host
+                .numeric_twin(precision == precision::Precision::F32)
+        })
+        .flatten()
     }
 
     /// Uploaded now (its diagonal blocks inverted), beside the active

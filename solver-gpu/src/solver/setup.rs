@@ -309,7 +309,7 @@ impl GpuSolver {
 
     /// Refuses a factor (analysed by `solver`) whose largest supernode in
     /// `precision` would not fit one storage binding of the device.
-    fn check_supernodes(
+    pub(super) fn check_supernodes(
         &self,
         solver: &solver_cpu::CholeskySolver,
         precision: precision::Precision,
