@@ -775,9 +775,10 @@ fn scale_system_beside_analysis(
 /// estimated: the same factor. The fine-tune's is made from the first
 /// scale-driven step's positions instead of the fine-tune's start, while
 /// the scale-driven iteration runs: another preconditioner of the same
-/// systems (the fine-tune's `K` is mostly E_m's constant Hessian, k_m =
-/// 100 k_f), handed to the solver as soon as it is made (the GPU uploads
-/// it beside the scale-driven factor, so that the host does not hold it).
+/// systems (the same fine-tune PCG iterations at 108k and 1.2M faces,
+/// BENCHMARKS.md), handed to the solver as soon as it is made (the GPU
+/// uploads it beside the scale-driven factor, so that the host does not
+/// hold it).
 /// Dropped unjoined (the iteration stopped before its first step), the
 /// thread finishes on its own.
 fn factor_ahead(
