@@ -319,9 +319,10 @@ impl CholeskySolver {
             && matches!((&self.symbolic, &other.symbolic), (Some(s), Some(o)) if Arc::ptr_eq(s, o))
     }
 
-    /// Whether this solver's symbolic analysis is of `a`'s pattern.
-    pub fn has_analysed(&self, a: &SymCsc) -> bool {
-        self.symbolic.is_some() && self.pattern == Some(PatternKey::of(&a.col_ptr, &a.row_idx))
+    /// Whether this solver's symbolic analysis is of the pattern
+    /// `(col_ptr, row_idx)` (lower CSC, as [`SymCsc`]'s).
+    pub fn has_analysed(&self, col_ptr: &[usize], row_idx: &[usize]) -> bool {
+        self.symbolic.is_some() && self.pattern == Some(PatternKey::of(col_ptr, row_idx))
     }
 
     /// Stored entries of the factor L.

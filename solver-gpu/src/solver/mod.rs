@@ -636,7 +636,9 @@ impl SpdSolver for GpuSolver {
         }
         let same = self.same_pattern(1, &a.col_ptr, &a.row_idx);
         match self.kind {
-            SystemKind::ScaleFactors => self.cholesky_for_kind(same, || a.clone()),
+            SystemKind::ScaleFactors => {
+                self.cholesky_for_kind(same, (&a.col_ptr, &a.row_idx), || a.clone())
+            }
             _ => self.drop_cholesky(),
         }
         let mut h = self.take_host(same, a.n, 1, &a.col_ptr, &a.row_idx)?;
@@ -697,7 +699,7 @@ impl SpdSolver for GpuSolver {
         }
         match self.kind {
             SystemKind::ScaleDriven | SystemKind::FineTune => {
-                self.cholesky_for_kind(same, || a.iso_held_identity(fixed))
+                self.cholesky_for_kind(same, (col_ptr, row_idx), || a.iso_held_identity(fixed))
             }
             SystemKind::ScaleFactors => self.drop_cholesky(),
         }

@@ -143,11 +143,18 @@ impl GpuSolver {
     }
 
     /// Keep the Cholesky preconditioner of this kind (`current`: it was made
-    /// for this pattern and kind), or set it up by factoring `k()`; where that
+    /// for this pattern and kind), or set it up by factoring `k()` (of the
+    /// lower CSC pattern `(col_ptr, row_idx)`; not made where a factor made
+    /// ahead serves); where that
     /// fails (over the storage bindings, or not positive definite in the
     /// factor's precision) the kind's other preconditioner is used for the
     /// rest of the run.
-    pub(super) fn cholesky_for_kind(&mut self, current: bool, k: impl FnOnce() -> SymCsc) {
+    pub(super) fn cholesky_for_kind(
+        &mut self,
+        current: bool,
+        pattern: (&[usize], &[usize]),
+        k: impl FnOnce() -> SymCsc,
+    ) {
         if !self.cholesky_wanted() {
             self.drop_cholesky();
             return;
@@ -155,7 +162,7 @@ impl GpuSolver {
         if current && self.chol.is_some() && self.chol_kind == Some(self.kind) {
             return;
         }
-        if let Err(e) = self.setup_cholesky(k()) {
+        if let Err(e) = self.setup_cholesky(pattern, k) {
             log::warn!(
                 "Cholesky preconditioner ({:?} system) unavailable ({e}); {} instead",
                 self.kind,
@@ -177,12 +184,6 @@ impl GpuSolver {
         }
     }
 
-    /// Factor `k` on the host and upload the factor: the preconditioner of
-    /// this system kind for the rest of the run. For the shape systems `k` is
-    /// the isotropic part K of the matrix (held rows identity); for the scale
-    /// factors the Hessian of Eq. 3 itself, which is constant, so that the
-    /// PCG converges in an iteration or two a round. Any other preconditioner
-    /// is released.
     /// The precision of the Cholesky factor of `kind`: f64 where its PCG
     /// runs in f64 (mixed precision) from the start, since `K` is too
     /// ill-conditioned for an f32 factorization on large meshes (homer 1.2M:
@@ -195,7 +196,18 @@ impl GpuSolver {
         }
     }
 
-    pub(super) fn setup_cholesky(&mut self, k: SymCsc) -> Result<(), GpuError> {
+    /// Factor `k()` (of the pattern `(col_ptr, row_idx)`) on the host and
+    /// upload the factor, or take this kind's factor made ahead and uploaded
+    /// already: the preconditioner of this system kind for the rest of the
+    /// run. For the shape systems `k` is the isotropic part K of the matrix
+    /// (held rows identity); for the scale factors the Hessian of Eq. 3
+    /// itself, which is constant, so that the PCG converges in an iteration
+    /// or two a round. Any other preconditioner is released.
+    pub(super) fn setup_cholesky(
+        &mut self,
+        (col_ptr, row_idx): (&[usize], &[usize]),
+        k: impl FnOnce() -> SymCsc,
+    ) -> Result<(), GpuError> {
         let t = std::time::Instant::now();
         self.setups += 1;
         self.drop_cholesky();
@@ -205,7 +217,8 @@ impl GpuSolver {
         // taken in place of this one's factorization where it fits.
         let ahead = match self.chol_ahead.take() {
             Some((kind, g)) if kind == self.kind => {
-                let fits = g.precision == precision && self.chol_host.has_analysed(&k);
+                let fits =
+                    g.precision == precision && self.chol_host.has_analysed(col_ptr, row_idx);
                 if !fits {
                     log::debug!(
                         "Cholesky factor made ahead ({kind:?} system) does not fit; factored here"
@@ -226,7 +239,7 @@ impl GpuSolver {
         let (g, made) = match ahead {
             Some(g) => (g, "made ahead".to_string()),
             None => {
-                let f = self.factor_here(k, precision)?;
+                let f = self.factor_here(k(), precision)?;
                 let factor_seconds = t.elapsed().as_secs_f64();
                 let (g, inverse_seconds) = self.upload_factor(f)?;
                 let made = format!(
