@@ -166,36 +166,46 @@ impl Constraint {
         areas: &[f64],
         share: VolumeShare,
     ) -> Vec<(u32, f64)> {
+        let mut out = Vec::new();
+        self.face_coefficients_into(mesh, x, areas, share, &mut out);
+        out
+    }
+
+    /// [`Self::face_coefficients`] into `out`, replacing its contents: the
+    /// scale-driven iteration refills one vector per constraint (a whole
+    /// mesh's are 16 bytes a face, which a fresh vector would fault in page
+    /// by page at every iteration).
+    pub fn face_coefficients_into(
+        &self,
+        mesh: &Mesh,
+        x: &[DVec3],
+        areas: &[f64],
+        share: VolumeShare,
+        out: &mut Vec<(u32, f64)>,
+    ) {
+        out.clear();
         match &self.selection {
             Selection::Curve(c) => {
-                let mut out: Vec<(u32, f64)> = Vec::with_capacity(c.segments.len());
-                for seg in &c.segments {
-                    out.push((seg.face, seg.length(mesh, x)));
-                }
-                merge(out)
+                out.extend(c.segments.iter().map(|seg| (seg.face, seg.length(mesh, x))));
+                merge(out);
             }
-            Selection::Region(r) => r.faces.iter().map(|&f| (f, areas[f as usize])).collect(),
+            Selection::Region(r) => out.extend(r.faces.iter().map(|&f| (f, areas[f as usize]))),
             Selection::Whole => match self.kind {
                 MetricKind::Volume => match share {
                     VolumeShare::Area => {
                         let vol = self.measure(mesh, x);
                         let total: f64 = self.whole_faces(mesh).map(|f| areas[f]).sum();
-                        self.whole_faces(mesh)
-                            .map(|f| (f as u32, vol * areas[f] / total))
-                            .collect()
+                        out.extend(
+                            self.whole_faces(mesh)
+                                .map(|f| (f as u32, vol * areas[f] / total)),
+                        );
                     }
-                    VolumeShare::Tetrahedra => self
-                        .whole_faces(mesh)
-                        .map(|f| {
-                            let [a, b, c] = mesh.corners(x, f);
-                            (f as u32, self.orientation * a.dot(b.cross(c)) / 6.0)
-                        })
-                        .collect(),
+                    VolumeShare::Tetrahedra => out.extend(self.whole_faces(mesh).map(|f| {
+                        let [a, b, c] = mesh.corners(x, f);
+                        (f as u32, self.orientation * a.dot(b.cross(c)) / 6.0)
+                    })),
                 },
-                _ => self
-                    .whole_faces(mesh)
-                    .map(|f| (f as u32, areas[f]))
-                    .collect(),
+                _ => out.extend(self.whole_faces(mesh).map(|f| (f as u32, areas[f]))),
             },
         }
     }
@@ -213,14 +223,13 @@ fn area_gradient(mesh: &Mesh, x: &[DVec3], f: usize, add: &mut impl FnMut(u32, D
 }
 
 /// Sum coefficients of repeated faces.
-fn merge(mut v: Vec<(u32, f64)>) -> Vec<(u32, f64)> {
+fn merge(v: &mut Vec<(u32, f64)>) {
     v.sort_by_key(|e| e.0);
-    let mut out: Vec<(u32, f64)> = Vec::with_capacity(v.len());
-    for (f, c) in v {
-        match out.last_mut() {
-            Some(last) if last.0 == f => last.1 += c,
-            _ => out.push((f, c)),
+    v.dedup_by(|later, kept| {
+        let same = later.0 == kept.0;
+        if same {
+            kept.1 += later.1;
         }
-    }
-    out
+        same
+    });
 }

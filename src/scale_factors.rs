@@ -108,6 +108,11 @@ pub struct ScaleFactorSystem {
     /// `Y = H^-1 L^T` of those rows, column j at `j n..(j + 1) n` (also the
     /// initial guess of an iterative solver when a row changes).
     ycols: Vec<f64>,
+    /// The buffers a Newton step builds its rows and its `y` in, kept from
+    /// one estimation to the next: at a million faces they are tens of MB,
+    /// which a fresh allocation would fault in page by page every time.
+    spare_rows: Vec<f64>,
+    spare_y: Vec<f64>,
 }
 
 impl ScaleFactorSystem {
@@ -155,6 +160,8 @@ impl ScaleFactorSystem {
             solver,
             rows: Vec::new(),
             ycols: Vec::new(),
+            spare_rows: Vec::new(),
+            spare_y: Vec::new(),
         })
     }
 
@@ -233,7 +240,7 @@ impl ScaleFactorSystem {
             Multipliers::PerKind => 60,
         };
         // The rows of the step being built (the previous step's buffer).
-        let mut next = Vec::new();
+        let mut next = std::mem::take(&mut self.spare_rows);
         for it in 0..max_iter {
             let values: Vec<f64> = constraints.iter().map(|c| c.value(&s)).collect();
             let max_res = values.iter().fold(0.0f64, |m, v| m.max(v.abs()));
@@ -257,7 +264,9 @@ impl ScaleFactorSystem {
             self.jacobian_solutions(&mut next, k)?;
             // y = H^-1 (-grad E) = 1 - s: the smoothness term vanishes on
             // constants, so grad E = H (s - 1).
-            let y: Vec<f64> = s.iter().map(|v| 1.0 - v).collect();
+            let mut y = std::mem::take(&mut self.spare_y);
+            y.clear();
+            y.extend(s.iter().map(|v| 1.0 - v));
             let rows: Vec<&[f64]> = self.rows.chunks(n.max(1)).take(k).collect();
             let step = step_from_solutions(y, &values, &rows, &self.ycols)?;
             // Keep every scale factor positive (a face cannot be scaled through zero).
@@ -274,10 +283,13 @@ impl ScaleFactorSystem {
                 moved = moved.max((alpha * step.dx[i]).abs());
             }
             info.newton_iterations = it + 1;
+            // The step's buffer is the next step's `y`.
+            self.spare_y = step.dx;
             if moved < 1e-13 {
                 break;
             }
         }
+        self.spare_rows = next;
         info.max_residual = constraints
             .iter()
             .map(|c| c.value(&s).abs())

@@ -172,8 +172,20 @@ kind = "volume"
         metricdeform::metrics::VolumeShare::Area,
         metricdeform::metrics::VolumeShare::Tetrahedra,
     ] {
+        // Refilled in place over the previous constraint's coefficients, as
+        // the scale-driven iteration does: the same as a fresh vector.
+        let mut reused = vec![(7u32, 1.0); 3];
         for c in &p.constraints {
             let coeffs = c.face_coefficients(&p.mesh, x, &areas, share);
+            c.face_coefficients_into(&p.mesh, x, &areas, share, &mut reused);
+            assert_eq!(reused, coeffs, "{:?}", c.kind);
+            if let metricdeform::metrics::Selection::Curve(_) = c.selection {
+                // A face a curve crosses more than once has one coefficient.
+                assert!(
+                    coeffs.windows(2).all(|w| w[0].0 < w[1].0),
+                    "each face once, in order"
+                );
+            }
             let s = 1.3f64;
             let poly: f64 = coeffs.iter().map(|&(_, k)| k * s.powi(c.degree())).sum();
             let scaled: Vec<DVec3> = x.iter().map(|v| s * *v).collect();

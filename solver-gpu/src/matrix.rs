@@ -1611,7 +1611,7 @@ impl GpuMatrix {
             MatrixStorage::SplitBlocks { .. } => ctx.write_buffer(
                 &self.minv,
                 0,
-                &Precision::F64.encode(&split_inverse_diagonal(h)),
+                bytemuck::cast_slice(&split_inverse_diagonal(h)),
             ),
             _ => ctx.write_buffer(&self.minv, 0, bytemuck::cast_slice(minv)),
         }
@@ -1641,7 +1641,7 @@ impl GpuMatrix {
                 ctx.write_buffer(
                     &self.minv,
                     0,
-                    &Precision::F64.encode(&split_inverse_diagonal(h)),
+                    bytemuck::cast_slice(&split_inverse_diagonal(h)),
                 );
                 return;
             }
