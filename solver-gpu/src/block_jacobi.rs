@@ -53,23 +53,31 @@ impl BlockJacobi {
     }
 }
 
-/// Inverses of the diagonal blocks (f64, checked positive definite), as f32.
-pub(crate) fn inverse_diagonal(h: &HostMatrix) -> Result<Vec<f32>, SolverError> {
+/// Inverses of the diagonal blocks (f64, checked positive definite), as f32,
+/// into `out` (its contents replaced; the solver keeps it from one matrix
+/// to the next: 36 bytes a block row, which a fresh vector would fault in
+/// page by page, 21 MB at 1.2M faces).
+pub(crate) fn inverse_diagonal(h: &HostMatrix, out: &mut Vec<f32>) -> Result<(), SolverError> {
     let bs = h.bs;
     let bb = bs * bs;
-    let mut out = vec![0f32; h.rows * bb];
+    out.clear();
+    out.resize(h.rows * bb, 0.0);
     let ok = out.par_chunks_mut(bb).enumerate().all(|(row, dst)| {
         let block = h.diag_block(row);
         let d = &block[..bb];
         let inv = if bs == 1 {
-            (d[0] > 0.0 && d[0].is_finite()).then(|| [1.0 / d[0]; 1].to_vec())
+            (d[0] > 0.0 && d[0].is_finite()).then(|| {
+                let mut one = [0.0; 9];
+                one[0] = 1.0 / d[0];
+                one
+            })
         } else {
-            invert_spd3(d).map(|m| m.to_vec())
+            invert_spd3(d)
         };
         match inv {
-            Some(inv) if inv.iter().all(|v| (*v as f32).is_finite()) => {
-                for (o, v) in dst.iter_mut().zip(inv) {
-                    *o = v as f32;
+            Some(inv) if inv[..bb].iter().all(|v| (*v as f32).is_finite()) => {
+                for (o, v) in dst.iter_mut().zip(&inv[..bb]) {
+                    *o = *v as f32;
                 }
                 true
             }
@@ -77,7 +85,7 @@ pub(crate) fn inverse_diagonal(h: &HostMatrix) -> Result<Vec<f32>, SolverError> 
         }
     });
     if ok {
-        Ok(out)
+        Ok(())
     } else {
         Err(SolverError::NotPositiveDefinite)
     }

@@ -416,6 +416,26 @@ impl Context {
         self.queue.write_buffer(buffer, offset, data);
     }
 
+    /// `queue.write_buffer_with`, counted as [`Self::write_buffer`]: `fill`
+    /// writes the `len` bytes (from `buffer`'s start) straight into the
+    /// queue's staging memory, with no vector of them on the host. Nothing
+    /// for no bytes, or where the write is invalid (the device's error
+    /// scope reports it, as for `write_buffer`).
+    pub fn write_buffer_with(
+        &self,
+        buffer: &wgpu::Buffer,
+        len: u64,
+        fill: impl FnOnce(wgpu::WriteOnly<'_, [u8]>),
+    ) {
+        let Some(size) = wgpu::BufferSize::new(len) else {
+            return;
+        };
+        self.traffic.to_device.fetch_add(len, Ordering::Relaxed);
+        if let Some(mut view) = self.queue.write_buffer_with(buffer, 0, size) {
+            fill(view.slice(..));
+        }
+    }
+
     /// The first device error (uncaptured) or loss since the last call.
     pub fn check(&self) -> Result<(), GpuError> {
         if let Some(why) = self.lost.lock().unwrap().clone() {
@@ -1053,5 +1073,27 @@ mod tests {
         let big = ctx.read::<u8>(&twice, 8192, &mut staging, None).unwrap();
         assert_eq!(big[..4096], data[..]);
         assert_eq!(big[4096..], data[..]);
+    }
+
+    /// What `fill` writes into the staging memory lands in the buffer, in
+    /// order, and counts as bytes moved; no bytes write nothing.
+    #[test]
+    fn write_buffer_with_fills_the_buffer_in_order() {
+        let Some(s) = crate::test_solver() else {
+            return;
+        };
+        let ctx = &s.ctx;
+        let values: Vec<f64> = (0..1000).map(|i| 1.0 / (i as f64 + 0.5)).collect();
+        let b = ctx.storage("test", 8000).unwrap();
+        let moved = ctx.traffic().to_device;
+        ctx.write_buffer_with(&b, 8000, |view| {
+            view.into_chunks::<8>()
+                .0
+                .write_iter(values.iter().map(|v| v.to_ne_bytes()));
+        });
+        ctx.write_buffer_with(&b, 0, |_| panic!("no bytes, no fill"));
+        assert_eq!(ctx.traffic().to_device - moved, 8000);
+        let back = ctx.read::<f64>(&b, 1000, &mut None, None).unwrap();
+        assert_eq!(back, values);
     }
 }

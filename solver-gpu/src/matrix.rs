@@ -50,6 +50,11 @@ pub(crate) struct HostMatrix {
     pub key: (Vec<usize>, Vec<usize>),
     /// [`Self::norm_inf`] of the current values (reset by every fill).
     norm: OnceLock<f64>,
+    /// The diagonal blocks and the rings' norm part of the shape form last
+    /// taken back ([`Self::take_shape`]), refilled by the next
+    /// [`Self::set_shape`]: 80 bytes a block row (48 MB at 1.2M faces),
+    /// which fresh vectors would fault in page by page for every matrix.
+    spare: (Vec<[f64; 9]>, Vec<f64>),
 }
 
 /// A shape matrix `K (x) I3 + sum_i R_i^T C_i R_i` kept in that form.
@@ -257,6 +262,7 @@ impl HostMatrix {
             diag,
             key: (col_ptr.to_vec(), row_idx.to_vec()),
             norm: OnceLock::new(),
+            spare: (Vec::new(), Vec::new()),
         })
     }
 
@@ -319,7 +325,8 @@ impl HostMatrix {
         );
         self.norm = OnceLock::new();
         self.lower = Vec::new();
-        let mut diag: Vec<[f64; 9]> = (0..a.n())
+        let (mut diag, mut ring_abs) = std::mem::take(&mut self.spare);
+        (0..a.n())
             .into_par_iter()
             .map(|v| {
                 // K's value, plus the constant term's as the GPU adds it.
@@ -329,11 +336,12 @@ impl HostMatrix {
                 }
                 [k, 0.0, 0.0, 0.0, k, 0.0, 0.0, 0.0, k]
             })
-            .collect();
+            .collect_into_vec(&mut diag);
         // The diagonal pairs (p, p) of each ring, in ring order: the sums of
         // `sum_lower` for the diagonal slots, to the bit. In the same pass,
         // the rings' part of the norm bound (`shape_norm_bound`).
-        let mut ring_abs = vec![0f64; a.n()];
+        ring_abs.clear();
+        ring_abs.resize(a.n(), 0.0);
         for (i, c) in a.ring_c.iter().enumerate() {
             if *c == [0.0; 6] {
                 continue;
@@ -367,7 +375,10 @@ impl HostMatrix {
     /// Takes back the shape matrix kept by [`Self::set_shape`]: the matrix
     /// has no values until the next fill ([`Self::is_filled`]).
     pub fn take_shape(&mut self) -> Option<IsoRingSym3> {
-        self.shape.take().map(|f| f.a)
+        self.shape.take().map(|f| {
+            self.spare = (f.diag, f.ring_abs);
+            f.a
+        })
     }
 
     /// Whether the matrix has values (a shape matrix taken back has none).
@@ -1029,6 +1040,43 @@ mod shape_fill_tests {
         }
     }
 
+    /// The mixed-precision matrix's scalar inverse diagonal, written
+    /// straight into the queue's staging memory for each new set of values,
+    /// is `1 / a_ii` of those values, in row order, to the bit.
+    #[test]
+    fn split_inverse_diagonal_follows_each_set_of_values() {
+        let Some(s) = crate::test_solver() else {
+            return;
+        };
+        let ctx = &s.ctx;
+        let a = strip(11);
+        let (col_ptr, row_idx) = (&a.iso.col_ptr, &a.iso.row_idx);
+        let mut h = HostMatrix::pattern(11, 3, col_ptr, row_idx).unwrap();
+        let fixed = vec![false; 11];
+        let mut blocks = a.to_blocks();
+        // Diagonally dominant blocks: each diagonal entry its own value.
+        for j in 0..11 {
+            let d = &mut blocks.blocks[col_ptr[j]];
+            for (q, e) in [0, 4, 8].into_iter().enumerate() {
+                d[e] = 50.0 + (j * 3 + q) as f64;
+            }
+        }
+        h.fill_blocks(&blocks, &fixed);
+        let mut minv = Vec::new();
+        crate::block_jacobi::inverse_diagonal(&h, &mut minv).unwrap();
+        let f32_matrix = GpuMatrix::upload(ctx, &h, &minv, true).unwrap();
+        let split = GpuMatrix::upload_split_f64(ctx, &h, &f32_matrix, true).unwrap();
+        let read = |m: &GpuMatrix| ctx.read::<f64>(&m.minv, 33, &mut None, None).unwrap();
+        let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&read(&split)), bits(&split_inverse_diagonal(&h)));
+        blocks.blocks.iter_mut().flatten().for_each(|v| *v *= 3.0);
+        h.fill_blocks(&blocks, &fixed);
+        split.write_diagonal(ctx, &h, &[]);
+        let now = read(&split);
+        assert_eq!(bits(&now), bits(&split_inverse_diagonal(&h)));
+        assert_eq!(now[4], 1.0 / (3.0 * 54.0));
+    }
+
     /// `norm_inf` is kept between solves of one set of values and follows
     /// every new fill (scaled values, then other held vertices).
     #[test]
@@ -1070,6 +1118,10 @@ mod shape_fill_tests {
         let cases = [vec![], vec![4usize, 11]]
             .into_iter()
             .flat_map(|held| [(held.clone(), &plain), (held, &named)]);
+        // One matrix through every case, its form taken back between them
+        // (the solver's way: the next set-up refills the last one's
+        // vectors), against a fresh one each time.
+        let mut reused = HostMatrix::pattern(n, 3, col_ptr, row_idx).unwrap();
         for (held, a) in cases {
             let mut fixed = vec![false; n];
             held.iter().for_each(|&v| fixed[v] = true);
@@ -1080,8 +1132,14 @@ mod shape_fill_tests {
                 let model = a.laplacian_square.clone().unwrap();
                 Arc::new(SquareParts::new(model, a, &v))
             });
+            reused.take_shape();
+            reused.set_shape(a.clone(), slots.clone(), &fixed, square.clone());
             form.set_shape(a.clone(), slots.clone(), &fixed, square);
             assert!(form.is_filled() && form.shape_form().is_some());
+            assert_eq!(reused.norm_inf().to_bits(), form.norm_inf().to_bits());
+            for v in 0..n {
+                assert_eq!(reused.diag_block(v), form.diag_block(v));
+            }
             // The form holds diagonal blocks, not the lower ones.
             let lower = blocks.lower_len();
             assert!(
@@ -1423,9 +1481,24 @@ fn chunk_uniforms(ctx: &Context, chunks: &[Chunk]) -> Result<Vec<wgpu::Buffer>, 
 
 /// The scalar inverse diagonal `1 / a_ii` of a 3x3 block matrix.
 fn split_inverse_diagonal(h: &HostMatrix) -> Vec<f64> {
-    (0..3 * h.rows)
-        .map(|r| 1.0 / h.diag_block(r / 3)[4 * (r % 3)])
-        .collect()
+    split_inverse_values(h).collect()
+}
+
+/// The values of [`split_inverse_diagonal`], in order.
+fn split_inverse_values(h: &HostMatrix) -> impl Iterator<Item = f64> + '_ {
+    (0..3 * h.rows).map(|r| 1.0 / h.diag_block(r / 3)[4 * (r % 3)])
+}
+
+/// [`split_inverse_diagonal`] into `buffer` (from 0), written straight into
+/// the queue's staging memory: the matrix's every new set of values writes
+/// it (24 bytes a block row, 14 MB at 1.2M faces), and a vector of it would
+/// be faulted in page by page each time.
+fn write_split_inverse_diagonal(ctx: &Context, buffer: &wgpu::Buffer, h: &HostMatrix) {
+    ctx.write_buffer_with(buffer, 24 * h.rows as u64, |view| {
+        view.into_chunks::<8>()
+            .0
+            .write_iter(split_inverse_values(h).map(f64::to_ne_bytes));
+    });
 }
 
 impl GpuMatrix {
@@ -1608,11 +1681,7 @@ impl GpuMatrix {
     /// leaves to the host.
     pub fn write_diagonal(&self, ctx: &Context, h: &HostMatrix, minv: &[f32]) {
         match &self.storage {
-            MatrixStorage::SplitBlocks { .. } => ctx.write_buffer(
-                &self.minv,
-                0,
-                bytemuck::cast_slice(&split_inverse_diagonal(h)),
-            ),
+            MatrixStorage::SplitBlocks { .. } => write_split_inverse_diagonal(ctx, &self.minv, h),
             _ => ctx.write_buffer(&self.minv, 0, bytemuck::cast_slice(minv)),
         }
     }
@@ -1638,11 +1707,7 @@ impl GpuMatrix {
                     Values::Host(h),
                     low_part,
                 );
-                ctx.write_buffer(
-                    &self.minv,
-                    0,
-                    bytemuck::cast_slice(&split_inverse_diagonal(h)),
-                );
+                write_split_inverse_diagonal(ctx, &self.minv, h);
                 return;
             }
         }

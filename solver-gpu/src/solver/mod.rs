@@ -89,6 +89,7 @@ pub fn open_with(opts: OpenOptions) -> Result<GpuSolver, GpuError> {
         shape_sum: None,
         square: None,
         square_values: None,
+        minv_scratch: Vec::new(),
         expand: None,
         expansion: None,
         mixed_builds: 0,
@@ -206,6 +207,9 @@ pub struct GpuSolver {
     /// its values until the shape sum takes them up.
     square: Option<Arc<matrix::SquareParts>>,
     square_values: Option<Vec<f64>>,
+    /// The f32 inverse diagonal blocks of the last matrix uploaded, kept
+    /// for the next one's (`block_jacobi::inverse_diagonal`).
+    minv_scratch: Vec<f32>,
     /// New values of a prepared block pattern go up as their lower triangle
     /// in f64 and are expanded on the GPU (needs `SHADER_F64`): the kernel,
     /// and the recorded expansion with what it was recorded for

@@ -17,7 +17,8 @@ impl GpuSolver {
     /// block matrix's as its lower triangle, see [`Self::expand_values`]).
     pub(super) fn upload(&mut self, h: HostMatrix, same: bool) -> Result<(), GpuError> {
         self.matrices += 1;
-        let minv = block_jacobi::inverse_diagonal(&h).map_err(|e| match e {
+        let mut minv = std::mem::take(&mut self.minv_scratch);
+        block_jacobi::inverse_diagonal(&h, &mut minv).map_err(|e| match e {
             SolverError::NotPositiveDefinite => GpuError::NotPositiveDefinite,
             other => GpuError::Backend(other.to_string()),
         })?;
@@ -82,6 +83,7 @@ impl GpuSolver {
             _ if keep => {}
             _ => self.setup_amg()?,
         }
+        self.minv_scratch = minv;
         self.ctx.check()
     }
 
