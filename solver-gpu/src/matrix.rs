@@ -1055,8 +1055,9 @@ mod shape_fill_tests {
         let fixed = vec![false; 11];
         let mut blocks = a.to_blocks();
         // Diagonally dominant blocks: each diagonal entry its own value.
-        for j in 0..11 {
-            let d = &mut blocks.blocks[col_ptr[j]];
+        for (j, &first) in col_ptr[..11].iter().enumerate() {
+            // The diagonal block comes first in its column.
+            let d = &mut blocks.blocks[first];
             for (q, e) in [0, 4, 8].into_iter().enumerate() {
                 d[e] = 50.0 + (j * 3 + q) as f64;
             }
