@@ -516,8 +516,19 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
         let mut scale_driven_ahead =
             factor_ahead(&mut model, mesh, &x, &o.shape, SystemKind::ScaleDriven);
         stop_reason = "iteration cap".into();
-        // Each constraint's coefficients, refilled at every iteration.
-        let mut cons: Vec<ScaleConstraint> = Vec::new();
+        // The constraints in scale-factor form; their coefficients are
+        // refilled at every iteration.
+        let mut cons: Vec<ScaleConstraint> = p
+            .constraints
+            .iter()
+            .zip(&groups)
+            .map(|(c, &g)| ScaleConstraint {
+                coeffs: Vec::new(),
+                degree: c.degree(),
+                target: c.target,
+                group: g,
+            })
+            .collect();
         let mut anderson = Anderson::new(if nf >= o.anderson_from_faces {
             o.anderson_depth
         } else {
@@ -545,19 +556,6 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
             // Eq. 3: scale factors on the current mesh.
             let (s, max_ds) = match scale_system.as_mut() {
                 Some(sys) => {
-                    if cons.is_empty() {
-                        cons = p
-                            .constraints
-                            .iter()
-                            .zip(&groups)
-                            .map(|(c, &g)| ScaleConstraint {
-                                coeffs: Vec::new(),
-                                degree: c.degree(),
-                                target: c.target,
-                                group: g,
-                            })
-                            .collect();
-                    }
                     for (sc, c) in cons.iter_mut().zip(&p.constraints) {
                         c.face_coefficients_into(mesh, &x, &areas, o.volume_share, &mut sc.coeffs);
                     }
