@@ -14,7 +14,15 @@
 
 use crate::constrained_step::{add_to_group, step_from_solutions, Multipliers};
 use crate::Result;
-use solver_cpu::{SpdSolver, SymCsc};
+use solver_cpu::{NewtonRules, PowerSum, SpdSolver, SymCsc};
+
+/// The estimation is done when every constraint's `|C_j(s)|` is below this,
+const RESIDUAL: f64 = 1e-12;
+/// or once a step moves no scale factor by this much.
+const MOVED: f64 = 1e-13;
+/// No scale factor is stepped below this (less a tenth of the way there):
+/// a face cannot be scaled through zero.
+const FLOOR: f64 = 0.05;
 
 /// Weighting of the regulariser `k_r (s_i - 1)^2`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -239,6 +247,30 @@ impl ScaleFactorSystem {
             Multipliers::PerConstraint => 30,
             Multipliers::PerKind => 60,
         };
+        // The same steps on the solver's device, where it takes them (the
+        // GPU: no host round trip between the steps).
+        if mode == Multipliers::PerConstraint {
+            let sums: Vec<PowerSum> = constraints
+                .iter()
+                .map(|c| PowerSum {
+                    coeffs: &c.coeffs,
+                    degree: c.degree,
+                    target: c.target,
+                })
+                .collect();
+            let rules = NewtonRules {
+                max_steps: max_iter,
+                residual: RESIDUAL,
+                moved: MOVED,
+                floor: FLOOR,
+            };
+            if let Some(done) = self.solver.power_sum_newton(&sums, &rules, &mut s) {
+                let done = done?;
+                info.newton_iterations = done.steps;
+                info.max_residual = done.max_residual;
+                return Ok((s, info));
+            }
+        }
         // The rows of the step being built (the previous step's buffer).
         let mut next = std::mem::take(&mut self.spare_rows);
         for it in 0..max_iter {
@@ -246,7 +278,7 @@ impl ScaleFactorSystem {
             let max_res = values.iter().fold(0.0f64, |m, v| m.max(v.abs()));
             info.max_residual = max_res;
             info.newton_iterations = it;
-            if max_res < 1e-12 {
+            if max_res < RESIDUAL {
                 break;
             }
             let values = match mode {
@@ -273,7 +305,7 @@ impl ScaleFactorSystem {
             let mut alpha: f64 = 1.0;
             for i in 0..n {
                 if step.dx[i] < 0.0 {
-                    let lim = (s[i] - 0.05) / -step.dx[i];
+                    let lim = (s[i] - FLOOR) / -step.dx[i];
                     alpha = alpha.min(0.9 * lim.max(0.0));
                 }
             }
@@ -285,7 +317,7 @@ impl ScaleFactorSystem {
             info.newton_iterations = it + 1;
             // The step's buffer is the next step's `y`.
             self.spare_y = step.dx;
-            if moved < 1e-13 {
+            if moved < MOVED {
                 break;
             }
         }

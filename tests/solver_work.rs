@@ -291,3 +291,147 @@ fn squared_laplacian_on(kind: solver_cpu::SystemKind, w: metricdeform::shape::Sh
         );
     }
 }
+
+/// The scale factors' estimation (Eq. 3) from `solver`, with `problem`'s
+/// constraints in scale-factor form at positions `x` (`extra` more copies of
+/// the volume's, appended).
+fn scale_estimate(
+    problem: &Problem,
+    sys: &mut metricdeform::scale_factors::ScaleFactorSystem,
+    x: &[glam::DVec3],
+    extra: usize,
+) -> (Vec<f64>, metricdeform::scale_factors::ScaleInfo) {
+    use metricdeform::scale_factors::ScaleConstraint;
+    let o = Options::default();
+    let areas = problem.mesh.face_areas(x);
+    let mut cons: Vec<ScaleConstraint> = problem
+        .constraints
+        .iter()
+        .enumerate()
+        .map(|(g, c)| ScaleConstraint {
+            coeffs: c.face_coefficients(&problem.mesh, x, &areas, o.volume_share),
+            degree: c.degree(),
+            target: c.target,
+            group: g,
+        })
+        .collect();
+    // Each copy's coefficients and target scaled by 3, 7, ...: the same
+    // demand, whose rows round differently from the original's.
+    let volume = cons.iter().position(|c| c.degree == 3).unwrap();
+    for j in 0..extra {
+        let c = &cons[volume];
+        let f = (4 * j + 3) as f64;
+        cons.push(ScaleConstraint {
+            coeffs: c.coeffs.iter().map(|&(face, v)| (face, f * v)).collect(),
+            degree: 3,
+            target: f * c.target,
+            group: c.group,
+        });
+    }
+    sys.estimate(
+        &cons,
+        metricdeform::constrained_step::Multipliers::PerConstraint,
+    )
+    .unwrap()
+}
+
+fn scale_system(
+    problem: &Problem,
+    solver: Box<dyn solver_cpu::SpdSolver>,
+) -> metricdeform::scale_factors::ScaleFactorSystem {
+    let o = Options::default();
+    let areas = problem.mesh.face_areas(&problem.mesh.positions);
+    metricdeform::scale_factors::ScaleFactorSystem::with_solver(
+        &problem.topo.face_pairs,
+        &areas,
+        o.k_d,
+        o.k_r,
+        o.regulariser,
+        solver,
+    )
+    .unwrap()
+}
+
+/// GPU: the scale factors' Newton steps run on the device, a batch of them
+/// per host wait (`SpdSolver::power_sum_newton`): an estimation like the
+/// last waits once, and lands where the CPU's steps land, in as many steps.
+/// The demo's girth (degree 1, its row solved at the first step only), area
+/// (2) and volume (3), at the rest positions and at moved ones; then the
+/// volume three times over (a singular multiplier system, which both
+/// pseudo-invert); then more constraints than the device's steps take (the
+/// host's steps through the same solver, as before).
+#[test]
+fn gpu_takes_the_scale_factors_newton_steps_waiting_once_an_estimation() {
+    if !gpu_available() {
+        return;
+    }
+    let problem = Problem::load(&job(SPOT_DEMO)).unwrap();
+    let mut cpu = scale_system(&problem, Box::new(solver_cpu::CholeskySolver::new()));
+    let mut gpu = scale_system(&problem, {
+        let mut g = solver_gpu::open().unwrap();
+        solver_cpu::SpdSolver::set_system_kind(&mut g, solver_cpu::SystemKind::ScaleFactors);
+        Box::new(g)
+    });
+    let x0 = problem.mesh.positions.clone();
+    // Moved: stretched along y and bulged, so the coefficients change.
+    let x1: Vec<glam::DVec3> = x0
+        .iter()
+        .map(|p| glam::DVec3::new(p.x * (1.0 + 0.2 * p.y), 1.1 * p.y, p.z))
+        .collect();
+    for (what, x, extra, waits) in [
+        ("rest", &x0, 0, None),
+        ("rest again", &x0, 0, Some(1)),
+        ("moved", &x1, 0, None),
+        ("moved again", &x1, 0, Some(1)),
+        ("volume three times", &x0, 2, None),
+        ("volume three times again", &x0, 2, Some(1)),
+        ("nine constraints (host steps)", &x0, 6, None),
+    ] {
+        let (s_cpu, i_cpu) = scale_estimate(&problem, &mut cpu, x, extra);
+        let before = gpu.counters();
+        let (s_gpu, i_gpu) = scale_estimate(&problem, &mut gpu, x, extra);
+        let work = gpu.counters().since(&before);
+        let apart = s_cpu
+            .iter()
+            .zip(&s_gpu)
+            .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+        let moved = s_cpu.iter().fold(0.0f64, |m, v| m.max((v - 1.0).abs()));
+        eprintln!(
+            "{what}: {} steps (cpu {}), max |C| {:.1e}, |s_gpu - s_cpu| {apart:.1e}, \
+             |s - 1| {moved:.3}, {} waits, {} solves, {} PCG iterations",
+            i_gpu.newton_iterations,
+            i_cpu.newton_iterations,
+            i_gpu.max_residual,
+            work.device_waits,
+            work.solves,
+            work.iterations
+        );
+        assert!(moved > 0.01, "{what}: the constraints move s ({moved})");
+        assert_eq!(i_gpu.newton_iterations, i_cpu.newton_iterations, "{what}");
+        assert!(i_gpu.max_residual < 1e-12, "{what}: {i_gpu:?}");
+        assert!(apart < 1e-10, "{what}: {apart:e} from the CPU's s");
+        match (extra > 2, waits) {
+            // The host's steps: a solve (at least one wait) per step.
+            (true, _) => {
+                assert!(
+                    work.device_waits >= i_gpu.newton_iterations,
+                    "{what}: {work:?}"
+                );
+                assert!(work.iterations > 0, "{what}: PCG solves ({work:?})");
+            }
+            // The device's: no PCG, one wait where the last estimation
+            // took as many steps.
+            (false, Some(w)) => {
+                assert_eq!(work.device_waits, w, "{what}: {work:?}");
+                assert_eq!(work.iterations, 0, "{what}: {work:?}");
+                assert_eq!(work.solves, i_gpu.newton_iterations, "{what}: {work:?}");
+            }
+            // With no estimation like it before: batches of a few steps,
+            // fewer waits than steps.
+            (false, None) => assert!(
+                work.device_waits < i_gpu.newton_iterations.max(2),
+                "{what}: {work:?}"
+            ),
+        }
+    }
+}

@@ -235,6 +235,38 @@ impl ShapeOperatorModel {
     }
 }
 
+/// One constraint on the unknowns `s` of a power-sum Newton problem
+/// ([`SpdSolver::power_sum_newton`]): `C(s) = sum_e c_e s_{f_e}^p / T - 1`,
+/// `coeffs` the pairs `(f_e, c_e)` (each unknown at most once), `degree` p,
+/// `target` T. The scale factors' constraints (paper Eqs. 9, 11, 13) have
+/// this form, with p = 1, 2, 3 for lengths, areas and volumes.
+#[derive(Debug, Clone, Copy)]
+pub struct PowerSum<'a> {
+    pub coeffs: &'a [(u32, f64)],
+    pub degree: i32,
+    pub target: f64,
+}
+
+/// The stopping rules of [`SpdSolver::power_sum_newton`]: at most
+/// `max_steps` steps; done when every `|C_j(s)| < residual`, or once a step
+/// moves no unknown by `moved` or more; each step's length is cut so that
+/// every unknown stays at or above `floor` (less a tenth of the way there).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct NewtonRules {
+    pub max_steps: usize,
+    pub residual: f64,
+    pub moved: f64,
+    pub floor: f64,
+}
+
+/// What [`SpdSolver::power_sum_newton`] did: the steps taken and the largest
+/// `|C_j(s)|` at the `s` it returns.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct NewtonInfo {
+    pub steps: usize,
+    pub max_residual: f64,
+}
+
 /// A solver for symmetric positive definite systems: `prepare` once per matrix,
 /// then solve many right-hand sides. Implemented by the CPU Cholesky reference
 /// backend and by the GPU preconditioned-conjugate-gradient backend.
@@ -364,6 +396,21 @@ pub trait SpdSolver {
     /// The kind of system the next `prepare*` calls bring (default
     /// [`SystemKind::ScaleDriven`]); see [`SystemKind`].
     fn set_system_kind(&mut self, _kind: SystemKind) {}
+    /// Minimise `(s - 1)^T A (s - 1)`, `A` the prepared scalar matrix,
+    /// subject to `C_j(s) = 0` for the `constraints`, by sequential linearly
+    /// constrained Newton steps from `s = 1` (paper Sec. 4, Eqs. 15-18,
+    /// with one multiplier per constraint), all on the solver's device:
+    /// `s` receives the result. `None` (the default) where the solver does
+    /// not run them itself (the caller then takes the steps through
+    /// [`Self::solve_with_guess`]).
+    fn power_sum_newton(
+        &mut self,
+        _constraints: &[PowerSum],
+        _rules: &NewtonRules,
+        _s: &mut [f64],
+    ) -> Option<Result<NewtonInfo, SolverError>> {
+        None
+    }
     /// Running totals of the work done so far.
     fn counters(&self) -> WorkCounters;
     /// Short name for reports ("cpu", "gpu").

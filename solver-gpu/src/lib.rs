@@ -83,8 +83,15 @@
 //! solves pass up the tree, split over several storage bindings at supernode
 //! boundaries where they exceed one). The
 //! **scale-factor system** (Eq. 3, scalar, its Hessian constant for the run)
-//! is preconditioned the same way by its own factor, in f32: an exact
-//! preconditioner, so its f64 PCG ends in one round of 1-2 iterations. A
+//! has its own factor, in f64 where the adapter has `SHADER_F64`: the scale
+//! factors' **Newton steps run on the GPU** with it as a direct solve
+//! ([`SpdSolver::power_sum_newton`](solver_cpu::SpdSolver::power_sum_newton),
+//! `power_sum_newton`, `shaders/power_sum_newton.wgsl`: values, Jacobian
+//! rows, `Y = A^-1 L^T`, the multipliers, the step and its length, a batch
+//! of steps per submission and one host wait for it), and a solve through it
+//! otherwise (more than [`CMAX`] constraints, per-kind multipliers) is an f64
+//! PCG with an exact preconditioner, ending in one round of 1-2 iterations
+//! (in f32, without `SHADER_F64`). A
 //! factor whose largest supernode does not fit one storage binding, or an f32
 //! one that breaks down, falls back: the scale factors to the AMG V-cycle
 //! below, the shape systems to the
@@ -157,6 +164,7 @@ mod expand_blocks;
 pub mod kernels;
 mod matrix;
 pub mod pcg;
+mod power_sum_newton;
 pub mod precision;
 mod refine;
 mod scale_rows;

@@ -180,6 +180,34 @@ fn every_shader_struct_has_its_host_twins_layout() {
             vec![host!("ScaleParams", crate::scale_rows::ScaleParams, n, bs)],
         ),
         (
+            "power_sum_newton.wgsl",
+            crate::power_sum_newton::SOURCE.into(),
+            vec![
+                host!(
+                    "NewtonParams",
+                    crate::power_sum_newton::NewtonParams,
+                    n,
+                    ge,
+                    gn
+                ),
+                host!(
+                    "State",
+                    crate::power_sum_newton::NewtonState,
+                    done,
+                    steps,
+                    max_steps,
+                    tol_res,
+                    tol_moved,
+                    floor,
+                    max_res,
+                    alpha,
+                    moved,
+                    values,
+                    lambda
+                ),
+            ],
+        ),
+        (
             "supernodal.wgsl",
             crate::supernodal::SOURCE.into(),
             vec![host!(

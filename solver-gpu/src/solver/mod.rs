@@ -16,11 +16,13 @@ use std::sync::Arc;
 use crate::precision::{MixedPrecision, RoundWatch};
 use crate::{
     amg, amg_gpu, block_jacobi, bsr_spmv, convert, csr_spmv, default_adapter, device, dot,
-    expand_blocks, matrix, pcg, precision, refine, supernodal, AdapterSummary, OpenOptions,
+    expand_blocks, matrix, pcg, power_sum_newton, precision, refine, supernodal, AdapterSummary,
+    OpenOptions,
 };
 use crate::{GpuError, Preconditioner, CMAX, SQUARED_LAPLACIAN_SWEEPS};
 
 mod mixed;
+mod newton;
 mod setup;
 mod upload;
 
@@ -108,6 +110,8 @@ pub fn open_with(opts: OpenOptions) -> Result<GpuSolver, GpuError> {
         },
         chol_unavailable: [false; 2],
         chol_ahead: None,
+        newton_kernels: None,
+        newton: None,
     })
 }
 
@@ -247,6 +251,11 @@ pub struct GpuSolver {
     /// uploaded ([`SpdSolver::adopt_isotropic_factor`]), for that kind's
     /// set-up.
     chol_ahead: Option<(SystemKind, supernodal::GpuFactor)>,
+    /// The scale factors' Newton steps on the device
+    /// ([`SpdSolver::power_sum_newton`]): the kernels (compiled on first
+    /// use) and the buffers of the last problem size.
+    newton_kernels: Option<power_sum_newton::NewtonKernels>,
+    newton: Option<power_sum_newton::NewtonData>,
 }
 
 impl GpuSolver {
@@ -852,6 +861,18 @@ impl SpdSolver for GpuSolver {
     /// pipeline computes the vertices' nested dissection beside other work).
     fn set_fill_ordering(&mut self, ordering: solver_cpu::FillOrdering) {
         self.chol_host.set_fill_ordering(ordering);
+    }
+
+    /// On the device where its f64 kernels and the scale factors' own f64
+    /// factor are there ([`Self::newton_on_device`]).
+    fn power_sum_newton(
+        &mut self,
+        constraints: &[solver_cpu::PowerSum],
+        rules: &solver_cpu::NewtonRules,
+        s: &mut [f64],
+    ) -> Option<Result<solver_cpu::NewtonInfo, SolverError>> {
+        self.newton_on_device(constraints, rules, s)
+            .map(|r| r.map_err(Into::into))
     }
 
     fn counters(&self) -> WorkCounters {

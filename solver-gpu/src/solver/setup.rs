@@ -188,9 +188,13 @@ impl GpuSolver {
     /// runs in f64 (mixed precision) from the start, since `K` is too
     /// ill-conditioned for an f32 factorization on large meshes (homer 1.2M:
     /// not positive definite in f32) and the f64 solves read the PCG's
-    /// vectors in place; else f32, for the f32 PCG.
+    /// vectors in place; else f32, for the f32 PCG. The scale factors'
+    /// factor (of their matrix itself, which starts them in mixed
+    /// precision) is f64 too: their Newton steps run on the device with it
+    /// as a direct solve ([`SpdSolver::power_sum_newton`]).
     pub(super) fn factor_precision(&self, kind: SystemKind) -> precision::Precision {
-        match self.ctx.shader_f64 && self.mixed_precision.starts_mixed(kind) {
+        let own_factor = kind == SystemKind::ScaleFactors;
+        match self.ctx.shader_f64 && self.mixed_precision.starts_mixed_with(kind, own_factor) {
             true => precision::Precision::F64,
             false => precision::Precision::F32,
         }
