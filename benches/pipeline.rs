@@ -154,7 +154,7 @@ fn later_outer_cpu_seconds(marks: &[f64]) -> Option<f64> {
 /// the first without the waits on the GPU, and the CPU seconds the host's
 /// threads ran in that time (both against the CPU backend's outer iteration
 /// when `cpu` is given), PCG iterations per shape solve, host waits
-/// per PCG iteration, preconditioner set-ups per system kind, bytes moved;
+/// per PCG iteration and per outer iteration (by phase), preconditioner set-ups per system kind, bytes moved;
 /// kernel dispatches and modelled device bytes per PCG iteration, against the
 /// least bytes of the operator applications (`solver_gpu::KernelWork`).
 fn proxies(
@@ -172,8 +172,9 @@ fn proxies(
     let mut line = format!(
         "{name} ({backend}) proxies: outer iteration after the first {wall:.3} s, {host:.3} s of it \
          on the host ({} CPU seconds of the host's threads); shape solves: {} scale-driven with {:.1} iterations on average (most {}), \
-         {} fine-tune with at most {}; host waits per PCG iteration {:.3} ({waits} / {all_iterations}); \
-         preconditioner set-ups {} + {} + {} (scale factors, scale-driven, fine-tune); {:.1} MB moved",
+         {} fine-tune with at most {}; host waits per PCG iteration {:.3} ({waits} / {all_iterations}), \
+         per outer iteration {:.1} ({} + {} + {} in {} outer iterations: scale factors, scale-driven, \
+         fine-tune); preconditioner set-ups {} + {} + {} (scale factors, scale-driven, fine-tune); {:.1} MB moved",
         host_cpu.map_or("no".into(), |c| format!("{c:.3}")),
         shape.solves,
         shape.iterations as f64 / shape.solves.max(1) as f64,
@@ -181,6 +182,11 @@ fn proxies(
         s.fine_tune.solves,
         s.fine_tune.iterations_max,
         waits as f64 / all_iterations.max(1) as f64,
+        waits as f64 / s.outer.len().max(1) as f64,
+        s.scale_factors.device_waits,
+        shape.device_waits,
+        s.fine_tune.device_waits,
+        s.outer.len(),
         s.scale_factors.preconditioner_setups,
         shape.preconditioner_setups,
         s.fine_tune.preconditioner_setups,

@@ -114,10 +114,12 @@ mod tests {
 /// conjugacy, and each refinement round restarts it), so those start in mixed
 /// precision; the scale-factor systems converged in f32 in one or two rounds
 /// of 8-18 iterations with the AMG V-cycle and keep the f32 kernels there,
-/// which move fewer bytes. Preconditioned by their own (f32) Cholesky factor,
-/// the default, they too start in mixed precision: each f64 iteration then
-/// gains about seven digits, and one round of 1-2 iterations (one host wait)
-/// ends the solve where f32 refinement needs two rounds.
+/// which move fewer bytes. Preconditioned by their own Cholesky factor, the
+/// default, they too start in mixed precision, and that factor is made in
+/// f64: an iteration or two (one host wait) ends a solve where f32
+/// refinement needs two rounds, and the scale factors' Newton steps run on
+/// the device with it as a direct solve
+/// ([`solver_cpu::SpdSolver::power_sum_newton`]).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum MixedPrecision {
     /// After f32 refinement stagnates (the system is too ill-conditioned for
