@@ -98,17 +98,18 @@ fn row(
 }
 
 /// Mean of the outer iterations after the first: (wall seconds, seconds not
-/// spent waiting for the GPU).
-fn later_outer_seconds(s: &SolverSummary) -> (f64, f64) {
+/// spent waiting for the GPU, the part of those spent handing work to the
+/// GPU's queue).
+fn later_outer_seconds(s: &SolverSummary) -> (f64, f64, f64) {
     let later = &s.outer[1.min(s.outer.len())..];
     let n = later.len().max(1) as f64;
+    let mean = |f: &dyn Fn(&metricdeform::pipeline::OuterIteration) -> f64| {
+        later.iter().map(f).sum::<f64>() / n
+    };
     (
-        later.iter().map(|o| o.seconds).sum::<f64>() / n,
-        later
-            .iter()
-            .map(|o| o.seconds - o.work.device_seconds)
-            .sum::<f64>()
-            / n,
+        mean(&|o| o.seconds),
+        mean(&|o| o.seconds - o.work.device_seconds),
+        mean(&|o| o.work.submit_seconds),
     )
 }
 
@@ -164,14 +165,14 @@ fn proxies(
     marks: &[f64],
     cpu: Option<&SolverSummary>,
 ) {
-    let (wall, host) = later_outer_seconds(s);
+    let (wall, host, submits) = later_outer_seconds(s);
     let host_cpu = later_outer_cpu_seconds(marks);
     let shape = &s.scale_driven;
     let all_iterations = s.scale_factors.iterations + shape.iterations + s.fine_tune.iterations;
     let waits = s.scale_factors.device_waits + shape.device_waits + s.fine_tune.device_waits;
     let mut line = format!(
         "{name} ({backend}) proxies: outer iteration after the first {wall:.3} s, {host:.3} s of it \
-         on the host ({} CPU seconds of the host's threads); shape solves: {} scale-driven with {:.1} iterations on average (most {}), \
+         on the host ({} CPU seconds of the host's threads; {submits:.3} s in queue submissions); shape solves: {} scale-driven with {:.1} iterations on average (most {}), \
          {} fine-tune with at most {}; host waits per PCG iteration {:.3} ({waits} / {all_iterations}), \
          per outer iteration {:.1} ({} + {} + {} in {} outer iterations: scale factors, scale-driven, \
          fine-tune); preconditioner set-ups {} + {} + {} (scale factors, scale-driven, fine-tune); {:.1} MB moved",
@@ -211,10 +212,12 @@ fn proxies(
         ));
     }
     if let Some(c) = cpu {
-        let (cpu_wall, _) = later_outer_seconds(c);
+        let (cpu_wall, _, _) = later_outer_seconds(c);
         line.push_str(&format!(
-            "; host seconds per outer iteration / the CPU backend's outer iteration: {:.1} %",
-            100.0 * host / cpu_wall
+            "; host seconds per outer iteration / the CPU backend's outer iteration: {:.1} % \
+             ({:.1} % outside queue submissions)",
+            100.0 * host / cpu_wall,
+            100.0 * (host - submits) / cpu_wall
         ));
         if let Some(c) = host_cpu {
             line.push_str(&format!(

@@ -394,6 +394,7 @@ fn work_sum(a: WorkCounters, b: Option<WorkCounters>) -> WorkCounters {
         iterations_max: a.iterations_max.max(b.iterations_max),
         device_seconds: a.device_seconds + b.device_seconds,
         device_waits: a.device_waits + b.device_waits,
+        submit_seconds: a.submit_seconds + b.submit_seconds,
         bytes_to_device: a.bytes_to_device + b.bytes_to_device,
         bytes_from_device: a.bytes_from_device + b.bytes_from_device,
         device_dispatches: a.device_dispatches + b.device_dispatches,
@@ -416,8 +417,8 @@ fn log_work(phase: &str, w: &WorkCounters, seconds: Option<f64>) {
     log::info!(
         "{phase}: {time}{:.3} s waiting for the GPU in {} waits), \
          {} preconditioner set-ups, {} solves, {} iterations (most in one solve {}), \
-         {} bytes to and {} from the device; kernels: {} dispatches, {} bytes modelled \
-         ({} for the operator applications in their least storage); \
+         {} bytes to and {} from the device, {:.3} s in queue submissions; kernels: {} dispatches, \
+         {} bytes modelled ({} for the operator applications in their least storage); \
          {:.3} s of device time in {} timed passes",
         w.device_seconds,
         w.device_waits,
@@ -427,6 +428,7 @@ fn log_work(phase: &str, w: &WorkCounters, seconds: Option<f64>) {
         w.iterations_max,
         w.bytes_to_device,
         w.bytes_from_device,
+        w.submit_seconds,
         w.device_dispatches,
         w.device_bytes,
         w.device_bytes_minimal,
@@ -616,7 +618,7 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
             // vertices' affine motions as near-null space here too (see
             // AFFINE_SCALE_DRIVEN_MIN_VERTICES).
             let t_shape = Instant::now();
-            let shape_waits = model.solver().counters().device_seconds;
+            let shape_before = model.solver().counters();
             let affine = n >= AFFINE_SCALE_DRIVEN_MIN_VERTICES;
             if let Some(ahead) = scale_driven_ahead.take() {
                 adopt_factor_ahead(&mut model, ahead, SystemKind::ScaleDriven);
@@ -654,11 +656,13 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
             });
             log::debug!(
                 "outer iteration {iterations}: max |s-1| {max_ds:.4}, assemble+factor {:.3} s, solve {:.3} s \
-                 (shape step {:.3} s on the host, GPU waits excluded), total {:.3} s, resident {:.0} MiB (peak {:.0})",
+                 (shape step {:.3} s on the host, GPU waits excluded, {:.3} s of it in queue submissions), \
+                 total {:.3} s, resident {:.0} MiB (peak {:.0})",
                 (t_solve - t_shape).as_secs_f64(),
                 t_solve.elapsed().as_secs_f64(),
                 t_shape.elapsed().as_secs_f64()
-                    - (model.solver().counters().device_seconds - shape_waits),
+                    - (model.solver().counters().device_seconds - shape_before.device_seconds),
+                model.solver().counters().submit_seconds - shape_before.submit_seconds,
                 t_iter.elapsed().as_secs_f64(),
                 crate::memory::resident_memory_mb(),
                 crate::memory::peak_memory_mb()

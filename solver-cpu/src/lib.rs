@@ -78,6 +78,10 @@ pub struct WorkCounters {
     pub device_seconds: f64,
     /// Times the host waited for the device.
     pub device_waits: usize,
+    /// Host seconds spent handing work to the device's queue (0 without
+    /// one); on a CPU emulation of a GPU they include its running of the
+    /// work.
+    pub submit_seconds: f64,
     /// Bytes written from the host to the device.
     pub bytes_to_device: u64,
     /// Bytes read back from the device.
@@ -114,6 +118,7 @@ impl WorkCounters {
             iterations_max: self.iterations_max,
             device_seconds: self.device_seconds - earlier.device_seconds,
             device_waits: self.device_waits - earlier.device_waits,
+            submit_seconds: self.submit_seconds - earlier.submit_seconds,
             bytes_to_device: self.bytes_to_device - earlier.bytes_to_device,
             bytes_from_device: self.bytes_from_device - earlier.bytes_from_device,
             device_dispatches: self.device_dispatches - earlier.device_dispatches,

@@ -104,6 +104,8 @@ struct Traffic {
     from_device: AtomicU64,
     waits: AtomicU64,
     wait_nanos: AtomicU64,
+    submits: AtomicU64,
+    submit_nanos: AtomicU64,
     dispatches: AtomicU64,
     bytes_accessed: AtomicU64,
     bytes_minimal: AtomicU64,
@@ -185,6 +187,12 @@ pub struct TrafficCounts {
     pub waits: u64,
     /// Seconds spent in those waits.
     pub wait_seconds: f64,
+    /// Command buffers handed to the queue ([`Context::submit`]), and the
+    /// host seconds the submissions took. On a discrete GPU a submission
+    /// hands work over and returns; a CPU emulation (lavapipe) may run the
+    /// work inside it, so there these seconds are the emulated GPU's.
+    pub submits: u64,
+    pub submit_seconds: f64,
     /// Kernels submitted, with their modelled bytes ([`KernelWork`]).
     pub kernels: KernelWork,
     /// Compute passes timed with timestamp queries (0 where the adapter has
@@ -349,6 +357,8 @@ impl Context {
             from_device: t.from_device.load(Ordering::Relaxed),
             waits: t.waits.load(Ordering::Relaxed),
             wait_seconds: t.wait_nanos.load(Ordering::Relaxed) as f64 * 1e-9,
+            submits: t.submits.load(Ordering::Relaxed),
+            submit_seconds: t.submit_nanos.load(Ordering::Relaxed) as f64 * 1e-9,
             kernels: KernelWork {
                 dispatches: t.dispatches.load(Ordering::Relaxed),
                 bytes: t.bytes_accessed.load(Ordering::Relaxed),
@@ -546,7 +556,7 @@ impl Context {
                 p = &p[take..];
                 if at == end {
                     drop(window.take());
-                    self.queue.submit(std::iter::empty());
+                    self.submit(None);
                     self.traffic
                         .to_device
                         .fetch_add(end - start, Ordering::Relaxed);
@@ -670,9 +680,23 @@ impl Context {
         Ok((x as u32, y as u32))
     }
 
+    /// Hand `enc`'s commands (none: only the queue's pending writes) to the
+    /// queue, counting the submission and its host seconds.
+    pub fn submit(&self, enc: Option<wgpu::CommandEncoder>) {
+        let t = std::time::Instant::now();
+        match enc {
+            Some(enc) => self.queue.submit([enc.finish()]),
+            None => self.queue.submit(std::iter::empty()),
+        };
+        self.traffic.submits.fetch_add(1, Ordering::Relaxed);
+        self.traffic
+            .submit_nanos
+            .fetch_add(t.elapsed().as_nanos() as u64, Ordering::Relaxed);
+    }
+
     /// Submit and wait for the queue to drain.
     pub fn submit_wait(&self, enc: wgpu::CommandEncoder) -> Result<(), GpuError> {
-        self.queue.submit([enc.finish()]);
+        self.submit(Some(enc));
         self.wait()
     }
 
@@ -789,7 +813,7 @@ impl Context {
             }
             moved += padded;
         }
-        self.queue.submit([enc.finish()]);
+        self.submit(Some(enc));
         let (tx, rx) = std::sync::mpsc::channel();
         st.map_async(wgpu::MapMode::Read, 0..total, move |r| {
             let _ = tx.send(r);
@@ -1043,6 +1067,28 @@ mod tests {
         assert!(short.is_err());
         let long = ctx.storage_from_pieces_in("test", 8, pieces.iter().copied(), 64);
         assert!(long.is_err());
+    }
+
+    /// Every submission to the queue is counted with its host seconds: the
+    /// windows of an upload (one each) and a read-back's copy.
+    #[test]
+    fn submissions_are_counted_with_their_seconds() {
+        let Some(s) = crate::test_solver() else {
+            return;
+        };
+        let ctx = &s.ctx;
+        let data: Vec<u8> = (0..1000u32).map(|i| (i * 11 % 251) as u8).collect();
+        let before = ctx.traffic();
+        let b = ctx
+            .storage_from_pieces_in("test", 1000, [&data[..]], 128)
+            .unwrap();
+        let uploaded = ctx.traffic();
+        assert_eq!(uploaded.submits - before.submits, 1000u64.div_ceil(128));
+        let back: Vec<u8> = ctx.read(&b, 1000, &mut None, None).unwrap();
+        assert_eq!(back, data);
+        let after = ctx.traffic();
+        assert_eq!(after.submits - uploaded.submits, 1);
+        assert!(after.submit_seconds > before.submit_seconds);
     }
 
     /// A read-back's bytes handed back are filled again by a later read of

@@ -315,7 +315,7 @@ impl ExpandBlocks {
             }
         }
         ctx.count_kernels(e.work);
-        ctx.queue.submit([enc.finish()]);
+        ctx.submit(Some(enc));
         Ok(())
     }
 }

@@ -307,7 +307,7 @@ impl Refinement {
         } else {
             let mut enc = ctx.encoder("refinement: zero guess");
             enc.clear_buffer(&self.x, 0, Some((n * ncols * 8) as u64));
-            ctx.queue.submit([enc.finish()]);
+            ctx.submit(Some(enc));
         }
     }
 

@@ -881,6 +881,7 @@ impl SpdSolver for GpuSolver {
             preconditioner_setups: self.setups,
             device_seconds: t.wait_seconds,
             device_waits: t.waits as usize,
+            submit_seconds: t.submit_seconds,
             bytes_to_device: t.to_device,
             bytes_from_device: t.from_device,
             device_dispatches: t.kernels.dispatches,
