@@ -883,7 +883,7 @@ mod tests {
 
     /// A shape matrix is summed on the GPU, the first of its pattern too:
     /// then the host sends `K`'s values and the `C_i` (8 bytes a lower entry,
-    /// 48 a ring) and the inverse diagonals, keeps the matrix in its own
+    /// 48 a ring), keeps the matrix in its own
     /// form, and the blocks the GPU holds are the host's sum (high and low
     /// parts); the solve's residual is the host-summed matrix's. Once the
     /// kind's factor is made, the solver adds a Laplacian square term the
@@ -932,11 +932,12 @@ mod tests {
             assert!(kept.is_none(), "kept in its form by the solver");
             let up = s.ctx.traffic().to_device - up0;
             // After the first (the pattern, the pairs, their starts and
-            // weights), the values go up as K's values, the C_i and the
-            // inverse diagonals (f32 3x3 and f64 scalar), nothing else (the
-            // mixed-precision matrix's expansion was made at its build);
-            // the term's values (and the sum's parameters) once.
-            let each = 8 * nnz + 48 * n + 60 * n;
+            // weights), the values go up as K's values and the C_i, nothing
+            // else: not the inverse diagonals, which the kind's Cholesky
+            // preconditioner does not read, and not the mixed-precision
+            // matrix's expansion (made at its build); the term's values (and
+            // the sum's parameters) once.
+            let each = 8 * nnz + 48 * n;
             let square_once = if seed == 0.5 { 8 * nnz + 16 * parts } else { 0 };
             if seed > 0.0 {
                 assert_eq!(up, (each + square_once) as u64, "seed {seed}");

@@ -1687,8 +1687,9 @@ impl GpuMatrix {
         }
     }
 
-    /// New values, same pattern.
-    pub fn write_values(&self, ctx: &Context, h: &HostMatrix, minv: &[f32]) {
+    /// New values, same pattern, with the inverse diagonal `minv` (none:
+    /// left as it is).
+    pub fn write_values(&self, ctx: &Context, h: &HostMatrix, minv: Option<&[f32]>) {
         match &self.storage {
             MatrixStorage::Csr { vals, .. } => {
                 let vals32: Vec<f32> = h.vals.iter().map(|&v| v as f32).collect();
@@ -1708,11 +1709,15 @@ impl GpuMatrix {
                     Values::Host(h),
                     low_part,
                 );
-                write_split_inverse_diagonal(ctx, &self.minv, h);
+                if minv.is_some() {
+                    write_split_inverse_diagonal(ctx, &self.minv, h);
+                }
                 return;
             }
         }
-        ctx.write_buffer(&self.minv, 0, bytemuck::cast_slice(minv));
+        if let Some(minv) = minv {
+            ctx.write_buffer(&self.minv, 0, bytemuck::cast_slice(minv));
+        }
     }
 }
 

@@ -1757,3 +1757,51 @@ fn prepare_shape(s: &mut GpuSolver, a: IsoRingSym3, fixed: &[bool]) -> IsoRingSy
         None => s.shape_matrix().expect("the kept matrix").clone(),
     }
 }
+
+/// New values of a shape pattern that the kind's Cholesky factor
+/// preconditions go up without the inverse diagonal blocks, which only the
+/// block-Jacobi and AMG preconditioners read: its 36 bytes a vertex are the
+/// whole difference from a block-Jacobi solver's upload of the same
+/// matrix. A switch to block Jacobi afterwards writes the current matrix's
+/// blocks first: the solve equals, to the bit, that of a solver that was
+/// block Jacobi from the start.
+#[test]
+fn a_cholesky_kind_leaves_the_inverse_diagonal_until_asked() {
+    let (nx, ny) = (40, 30);
+    let n = nx * ny;
+    let mut rng = Rng(71);
+    let a1 = iso_grid(nx, ny, &mut rng);
+    let mut a2 = a1.clone();
+    for (k, v) in a2.iso.values.iter_mut().enumerate() {
+        *v *= 1.0 + 0.3 * ((k % 7) as f64 / 7.0);
+    }
+    let fixed = fixed_every(n, 37);
+    let b = rng.vec(3 * n);
+    // The bytes the second matrix moved to the device, and the solve of
+    // it with block Jacobi (set after the matrix, where `switch`).
+    let run = |p: Preconditioner, switch: bool| -> Option<(u64, Vec<f64>, usize)> {
+        let mut s = gpu()?;
+        s.set_system_kind(SystemKind::ScaleDriven);
+        s.set_preconditioner(p).unwrap();
+        prepare_shape(&mut s, a1.clone(), &fixed);
+        assert_eq!(s.active_preconditioner(), p);
+        let before = s.counters().bytes_to_device;
+        prepare_shape(&mut s, a2.clone(), &fixed);
+        let moved = s.counters().bytes_to_device - before;
+        if switch {
+            s.set_preconditioner(Preconditioner::BlockJacobi).unwrap();
+        }
+        s.set_tolerance(1e-8);
+        let mut x = vec![0.0; b.len()];
+        s.solve_with_guess(&b, &mut x, 1).unwrap();
+        Some((moved, x, s.counters().iterations))
+    };
+    let Some((moved_chol, switched, it_switched)) = run(Preconditioner::Cholesky, true) else {
+        return;
+    };
+    let (moved_jacobi, jacobi, it_jacobi) = run(Preconditioner::BlockJacobi, false).unwrap();
+    assert_eq!(moved_jacobi - moved_chol, 36 * n as u64);
+    assert_eq!(it_switched, it_jacobi);
+    let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+    assert_eq!(bits(&switched), bits(&jacobi));
+}

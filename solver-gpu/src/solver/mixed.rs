@@ -154,7 +154,7 @@ impl GpuSolver {
                     // Same pattern, new values: rewrite them in place (the
                     // high parts are the f32 matrix's, already written).
                     let h = self.host.as_ref().unwrap();
-                    m.matrix.write_values(&self.ctx, h, &[]);
+                    m.matrix.write_values(&self.ctx, h, Some(&[]));
                     m.stamp = stamp;
                 }
                 return Ok(());
@@ -173,7 +173,7 @@ impl GpuSolver {
                     .as_ref()
                     .unwrap()
                     .matrix
-                    .write_values(&self.ctx, &h, &[]);
+                    .write_values(&self.ctx, &h, Some(&[]));
             }
             self.host = Some(h);
             done?;

@@ -92,6 +92,7 @@ pub fn open_with(opts: OpenOptions) -> Result<GpuSolver, GpuError> {
         square: None,
         square_values: None,
         minv_scratch: Vec::new(),
+        diagonal_current: false,
         expand: None,
         expansion: None,
         mixed_builds: 0,
@@ -214,6 +215,10 @@ pub struct GpuSolver {
     /// The f32 inverse diagonal blocks of the last matrix uploaded, kept
     /// for the next one's (`block_jacobi::inverse_diagonal`).
     minv_scratch: Vec<f32>,
+    /// Whether the GPU's inverse diagonal blocks (and the host's in
+    /// `minv_scratch`) are the uploaded matrix's: not where the kind's
+    /// Cholesky factor preconditions it ([`Self::upload`]).
+    diagonal_current: bool,
     /// New values of a prepared block pattern go up as their lower triangle
     /// in f64 and are expanded on the GPU (needs `SHADER_F64`): the kernel,
     /// and the recorded expansion with what it was recorded for
@@ -313,6 +318,7 @@ impl GpuSolver {
         self.chol = None;
         self.chol_kind = None;
         if self.host.is_some() {
+            self.refresh_inverse_diagonal()?;
             self.setup_amg()?;
         }
         Ok(())

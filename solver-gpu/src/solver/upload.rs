@@ -18,16 +18,28 @@ impl GpuSolver {
     pub(super) fn upload(&mut self, h: HostMatrix, same: bool) -> Result<(), GpuError> {
         self.matrices += 1;
         let mut minv = std::mem::take(&mut self.minv_scratch);
-        block_jacobi::inverse_diagonal(&h, &mut minv).map_err(|e| match e {
-            SolverError::NotPositiveDefinite => GpuError::NotPositiveDefinite,
-            other => GpuError::Backend(other.to_string()),
-        })?;
+        // The inverse diagonal blocks are read by the block-Jacobi and AMG
+        // preconditioners only: new values of an uploaded pattern that the
+        // kind's Cholesky factor preconditions leave them, on the host and
+        // the GPU, until another preconditioner asks for them
+        // ([`Self::refresh_inverse_diagonal`]).
+        let diagonal = !(same && self.gpu.is_some() && self.chol.is_some());
+        if diagonal {
+            block_jacobi::inverse_diagonal(&h, &mut minv).map_err(|e| match e {
+                SolverError::NotPositiveDefinite => GpuError::NotPositiveDefinite,
+                other => GpuError::Backend(other.to_string()),
+            })?;
+        }
+        self.diagonal_current = diagonal;
         let mut same_values_only = false;
-        let expanded = same && self.gpu.is_some() && h.bs == 3 && self.expand_values(&h, &minv)?;
+        let expanded = same
+            && self.gpu.is_some()
+            && h.bs == 3
+            && self.expand_values(&h, diagonal.then_some(&minv[..]))?;
         match (same, self.gpu.as_ref()) {
             (true, Some(_)) if expanded => same_values_only = true,
             (true, Some(gpu)) => {
-                gpu.write_values(&self.ctx, &h, &minv);
+                gpu.write_values(&self.ctx, &h, diagonal.then_some(&minv[..]));
                 self.value_uploads += 1;
                 same_values_only = true;
             }
@@ -43,7 +55,7 @@ impl GpuSolver {
                     self.gpu
                         .as_ref()
                         .unwrap()
-                        .write_values(&self.ctx, &h, &minv);
+                        .write_values(&self.ctx, &h, Some(&minv));
                 }
                 self.mixed_sticky = false;
                 self.hints.clear();
@@ -92,24 +104,59 @@ impl GpuSolver {
     /// matrix's `K` values and `C_i` for `sum_shape_blocks.wgsl` to sum them,
     /// and `expand_blocks.wgsl` writes both triangles, held rows, f32 high
     /// parts and, once the mixed-precision matrix exists, its low parts; the
-    /// host writes only the inverse diagonals. `false` (nothing done) where the
-    /// adapter lacks `SHADER_F64`, or the lower values would not fit one
-    /// storage binding: then the host writes the values.
-    pub(super) fn expand_values(&mut self, h: &HostMatrix, minv: &[f32]) -> Result<bool, GpuError> {
+    /// host writes only the inverse diagonals (`minv`; none: left as they
+    /// are). `false` (nothing done) where the adapter lacks `SHADER_F64`, or
+    /// the lower values would not fit one storage binding: then the host
+    /// writes the values.
+    pub(super) fn expand_values(
+        &mut self,
+        h: &HostMatrix,
+        minv: Option<&[f32]>,
+    ) -> Result<bool, GpuError> {
         if !self.expand_on_gpu(h)? {
             return Ok(false);
         }
         let stamp = self.pattern_uploads;
-        self.gpu
-            .as_ref()
-            .unwrap()
-            .write_diagonal(&self.ctx, h, minv);
+        if let Some(minv) = minv {
+            self.gpu
+                .as_ref()
+                .unwrap()
+                .write_diagonal(&self.ctx, h, minv);
+        }
         self.value_uploads += 1;
         if let Some(m) = self.mixed.as_mut().filter(|m| m.stamp.0 == stamp) {
-            m.matrix.write_diagonal(&self.ctx, h, &[]);
+            if minv.is_some() {
+                m.matrix.write_diagonal(&self.ctx, h, &[]);
+            }
             m.stamp = (stamp, self.value_uploads);
         }
         Ok(true)
+    }
+
+    /// The uploaded matrix's inverse diagonal blocks, made and written
+    /// where [`Self::upload`] left them (a kind preconditioned by its
+    /// Cholesky factor), before a preconditioner that reads them is set
+    /// up.
+    pub(super) fn refresh_inverse_diagonal(&mut self) -> Result<(), GpuError> {
+        let (Some(h), Some(gpu)) = (self.host.as_ref(), self.gpu.as_ref()) else {
+            return Ok(());
+        };
+        if self.diagonal_current {
+            return Ok(());
+        }
+        let mut minv = std::mem::take(&mut self.minv_scratch);
+        block_jacobi::inverse_diagonal(h, &mut minv).map_err(|e| match e {
+            SolverError::NotPositiveDefinite => GpuError::NotPositiveDefinite,
+            other => GpuError::Backend(other.to_string()),
+        })?;
+        gpu.write_diagonal(&self.ctx, h, &minv);
+        let stamp = (self.pattern_uploads, self.value_uploads);
+        if let Some(m) = self.mixed.as_ref().filter(|m| m.stamp == stamp) {
+            m.matrix.write_diagonal(&self.ctx, h, &[]);
+        }
+        self.minv_scratch = minv;
+        self.diagonal_current = true;
+        self.ctx.check()
     }
 
     /// The blocks of both triangles of [`Self::expand_values`] (high parts,
