@@ -654,9 +654,10 @@ impl ShapeModel {
     }
 
     /// [`ShapeModel::assemble_and_factor`] at `x`; with `affine`, the solver
-    /// is given the vertex positions for the factorization (an iterative
-    /// backend's AMG then takes the vertices' affine motions as near-null
-    /// space) and they are cleared after it.
+    /// is given the vertex positions for the factorization where it may read
+    /// them ([`SpdSolver::wants_vertex_positions`]: an iterative backend's
+    /// AMG then takes the vertices' affine motions as near-null space), and
+    /// they are cleared after it.
     pub fn assemble_with_positions(
         &mut self,
         mesh: &Mesh,
@@ -666,7 +667,7 @@ impl ShapeModel {
         w: &ShapeWeights,
         affine: bool,
     ) -> Result<()> {
-        if affine {
+        if affine && self.solver.wants_vertex_positions() {
             let positions: Vec<[f64; 3]> = x.iter().map(|p| p.to_array()).collect();
             self.solver().set_vertex_positions(&positions);
         }

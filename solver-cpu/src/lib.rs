@@ -360,6 +360,12 @@ pub trait SpdSolver {
     /// builds on them (the GPU's AMG: the affine motions as near-null space);
     /// ignored by the others.
     fn set_vertex_positions(&mut self, _positions: &[[f64; 3]]) {}
+    /// Whether the next block matrix's preparation may read the positions
+    /// of [`SpdSolver::set_vertex_positions`] (default: never), so that a
+    /// caller makes them only then.
+    fn wants_vertex_positions(&self) -> bool {
+        false
+    }
     /// Fill-reducing ordering of the next symbolic analysis, for backends that
     /// factor (of the scalar unknowns, or of the block rows of a block matrix);
     /// ignored by the others.

@@ -1805,3 +1805,28 @@ fn a_cholesky_kind_leaves_the_inverse_diagonal_until_asked() {
     let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
     assert_eq!(bits(&switched), bits(&jacobi));
 }
+
+/// The vertex positions are asked for while a kind's preparation may set
+/// up an AMG (the first matrix of a kind, any matrix with an AMG), not
+/// once the kind's Cholesky factor is made.
+#[test]
+fn vertex_positions_are_wanted_until_the_kinds_factor_is_made() {
+    let mut rng = Rng(5);
+    let a = iso_grid(12, 10, &mut rng);
+    let fixed = fixed_every(a.n(), 41);
+    let Some(mut s) = gpu() else {
+        return;
+    };
+    s.set_system_kind(SystemKind::ScaleDriven);
+    assert!(s.wants_vertex_positions(), "no matrix yet");
+    prepare_shape(&mut s, a.clone(), &fixed);
+    assert_eq!(s.active_preconditioner(), Preconditioner::Cholesky);
+    assert!(!s.wants_vertex_positions(), "the kind's factor is made");
+    s.set_system_kind(SystemKind::FineTune);
+    assert!(s.wants_vertex_positions(), "a new kind's first matrix");
+    prepare_shape(&mut s, a.clone(), &fixed);
+    assert!(!s.wants_vertex_positions());
+    s.set_preconditioner(Preconditioner::AffineAmg).unwrap();
+    prepare_shape(&mut s, a, &fixed);
+    assert!(s.wants_vertex_positions(), "an AMG reads them");
+}

@@ -804,6 +804,12 @@ impl SpdSolver for GpuSolver {
         self.positions = (!positions.is_empty()).then(|| positions.to_vec());
     }
 
+    /// Only an AMG set-up reads them: not once the kind's Cholesky
+    /// preconditioner is made, which a new matrix of the kind keeps.
+    fn wants_vertex_positions(&self) -> bool {
+        !(self.chol.is_some() && self.chol_kind == Some(self.kind))
+    }
+
     fn set_system_kind(&mut self, kind: SystemKind) {
         self.kind = kind;
     }
