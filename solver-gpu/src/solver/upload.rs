@@ -5,6 +5,16 @@
 
 use super::*;
 
+/// `h`'s f32 inverse diagonal blocks into `minv`
+/// ([`block_jacobi::inverse_diagonal`]), a block that is not positive
+/// definite as [`GpuError::NotPositiveDefinite`].
+fn inverse_diagonal(h: &HostMatrix, minv: &mut Vec<f32>) -> Result<(), GpuError> {
+    block_jacobi::inverse_diagonal(h, minv).map_err(|e| match e {
+        SolverError::NotPositiveDefinite => GpuError::NotPositiveDefinite,
+        other => GpuError::Backend(other.to_string()),
+    })
+}
+
 impl GpuSolver {
     pub(crate) fn spmv(&self) -> Spmv<'_> {
         match self.host.as_ref().map(|h| h.bs) {
@@ -25,10 +35,7 @@ impl GpuSolver {
         // ([`Self::refresh_inverse_diagonal`]).
         let diagonal = !(same && self.gpu.is_some() && self.chol.is_some());
         if diagonal {
-            block_jacobi::inverse_diagonal(&h, &mut minv).map_err(|e| match e {
-                SolverError::NotPositiveDefinite => GpuError::NotPositiveDefinite,
-                other => GpuError::Backend(other.to_string()),
-            })?;
+            inverse_diagonal(&h, &mut minv)?;
         }
         self.diagonal_current = diagonal;
         let mut same_values_only = false;
@@ -145,10 +152,7 @@ impl GpuSolver {
             return Ok(());
         }
         let mut minv = std::mem::take(&mut self.minv_scratch);
-        block_jacobi::inverse_diagonal(h, &mut minv).map_err(|e| match e {
-            SolverError::NotPositiveDefinite => GpuError::NotPositiveDefinite,
-            other => GpuError::Backend(other.to_string()),
-        })?;
+        inverse_diagonal(h, &mut minv)?;
         gpu.write_diagonal(&self.ctx, h, &minv);
         let stamp = (self.pattern_uploads, self.value_uploads);
         if let Some(m) = self.mixed.as_ref().filter(|m| m.stamp == stamp) {
