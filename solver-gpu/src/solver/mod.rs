@@ -876,7 +876,7 @@ impl SpdSolver for GpuSolver {
     }
 
     /// On the device where its f64 kernels and the scale factors' own f64
-    /// factor are there ([`Self::newton_on_device`]).
+    /// factor are there (`GpuSolver::newton_on_device`).
     fn power_sum_newton(
         &mut self,
         constraints: &[solver_cpu::PowerSum],
