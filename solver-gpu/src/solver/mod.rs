@@ -758,11 +758,7 @@ impl SpdSolver for GpuSolver {
     /// products, the diagonal blocks and the norm bound take any split of the
     /// matrix between `K` and the `C_i`).
     fn wants_isotropic_part(&self) -> bool {
-        let made = self.kind != SystemKind::ScaleFactors
-            && self.cholesky_wanted()
-            && self.chol.is_some()
-            && self.chol_kind == Some(self.kind);
-        !made
+        !self.shape_factor_made()
     }
 
     /// Yes where `K` is not read apart and the GPU sums the shape blocks
@@ -807,7 +803,7 @@ impl SpdSolver for GpuSolver {
     /// Only an AMG set-up reads them: not once the kind's Cholesky
     /// preconditioner is made, which a new matrix of the kind keeps.
     fn wants_vertex_positions(&self) -> bool {
-        !(self.chol.is_some() && self.chol_kind == Some(self.kind))
+        !self.shape_factor_made()
     }
 
     fn set_system_kind(&mut self, kind: SystemKind) {

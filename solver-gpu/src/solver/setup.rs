@@ -135,6 +135,15 @@ impl GpuSolver {
         self.preconditioner == Preconditioner::Cholesky && !self.chol_unavailable[self.chol_group()]
     }
 
+    /// Whether the current shape kind's Cholesky preconditioner is made:
+    /// a new matrix of the kind keeps it, and no AMG is set up for it.
+    pub(super) fn shape_factor_made(&self) -> bool {
+        self.kind != SystemKind::ScaleFactors
+            && self.cholesky_wanted()
+            && self.chol.is_some()
+            && self.chol_kind == Some(self.kind)
+    }
+
     /// Which of [`Self::chol_unavailable`] the current kind reads: the shape
     /// systems share one (their factors are of the same size), the scale
     /// factors have their own.
