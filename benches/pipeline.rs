@@ -157,7 +157,8 @@ fn later_outer_cpu_seconds(marks: &[f64]) -> Option<f64> {
 /// when `cpu` is given), PCG iterations per shape solve, host waits
 /// per PCG iteration and per outer iteration (by phase), preconditioner set-ups per system kind, bytes moved;
 /// kernel dispatches and modelled device bytes per PCG iteration, against the
-/// least bytes of the operator applications (`solver_gpu::KernelWork`).
+/// least bytes of the operator applications, and the chain of dependent
+/// steps through the kernels (`solver_gpu::KernelWork`).
 fn proxies(
     name: &str,
     backend: &str,
@@ -202,13 +203,19 @@ fn proxies(
         line.push_str(&format!(
             "; kernel dispatches per PCG iteration {:.0} (scale-driven shape solves {:.0}); \
              modelled device bytes per PCG iteration {:.2} MB (scale-driven {:.2} MB), \
-             {:.2}x the least bytes of its operator applications (scale-driven {:.2}x)",
+             {:.2}x the least bytes of its operator applications (scale-driven {:.2}x); \
+             serial steps per PCG iteration {:.0} (scale-driven shape solves {:.0})",
             per(dispatches, all_iterations),
             per(shape.device_dispatches, shape.iterations),
             per(bytes, all_iterations) / 1e6,
             per(shape.device_bytes, shape.iterations) / 1e6,
             bytes as f64 / minimal.max(1) as f64,
             shape.device_bytes as f64 / shape.device_bytes_minimal.max(1) as f64,
+            per(
+                phases.iter().map(|w| w.device_serial_steps).sum(),
+                all_iterations
+            ),
+            per(shape.device_serial_steps, shape.iterations),
         ));
     }
     if let Some(c) = cpu {

@@ -20,8 +20,20 @@
 // L_rs (SupernodalFactor::invert_diagonal_blocks), so the diagonal and below
 // products of a sweep read the same vector and share a dispatch, and the
 // permutations are folded into the first and last step of each row.
-// Every kernel is one invocation per (row, scalar column) of its list, each
-// a dot product: no atomics, no barriers, no two invocations write one entry.
+// Every kernel is one dot product per (row, scalar column) of its list: no
+// atomics, no two dot products write one entry. `pull`'s are one invocation
+// each (a row pulls at most about a hundred updates, and over several update
+// buffers its sum is taken buffer by buffer: with a team it would depend on
+// where the adapter's binding size cuts them). `forward`'s and `backward`'s are each summed by a team of `team_f`
+// or `team_b` lanes (a power of two up to 64, per segment; 1: one
+// invocation, no barrier): lane j takes the terms j, j + team, ... of the
+// row, and the team's lanes add theirs up in workgroup memory in a fixed
+// tree (the same result on every run). The dense separators at the top of
+// the tree have few rows of up to a few thousand terms: one invocation each
+// would walk them one after the other, thousands of dependent steps that a
+// discrete GPU's bandwidth does not shorten; a team walks them in `len /
+// team + log2 team` steps. Where a level has rows enough to fill the GPU,
+// its team is 1 (SupernodalSteps::new picks them).
 //
 // Supernode s (5 u32 at idx[o_sn + 5 s]): c0 its first column, m columns, q
 // rows below its diagonal block (idx[o_rows + ro ..][..q], permuted
@@ -37,7 +49,9 @@
 //                        the offsets of the sections of `idx`; update0,
 //                        update1: the slots (level order) whose updates the
 //                        bound `contrib` holds; first: pull starts from r
-//                        (else from w, after an earlier buffer's pull).
+//                        (else from w, after an earlier buffer's pull);
+//                        team_f, team_b: lanes per dot product of forward
+//                        and backward.
 //   1  idx      read     u32 sections: per supernode c0, m, q, ro, vo (o_sn);
 //                        the rows below the diagonal blocks, one per slot, the
 //                        slots in level order: the supernodes by level, leaves
@@ -61,7 +75,9 @@
 //                        are cut into buffers of at most one binding at
 //                        supernode boundaries, one bound per dispatch.
 // 256 invocations per workgroup, 2-D dispatch (linear index gid.x + gid.y *
-// nwg.x * 256); invocations past the list do nothing.
+// nwg.x * 256; dot product linear / team, lane linear % team, so a team is
+// inside one workgroup); invocations past the list add nothing and write
+// nothing, but reach the team's barriers.
 
 struct Params {
     own: u32,
@@ -82,8 +98,8 @@ struct Params {
     update0: u32,
     update1: u32,
     first: u32,
-    pad0: u32,
-    pad1: u32,
+    team_f: u32,
+    team_b: u32,
 }
 
 const FWG: u32 = 256u;
@@ -134,6 +150,28 @@ fn linear(gid: vec3<u32>, nwg: vec3<u32>) -> u32 {
     return gid.x + gid.y * nwg.x * FWG;
 }
 
+// A team's partial sums (one per invocation of the workgroup).
+var<workgroup> part: array<f32, FWG>;
+
+// The sum of `acc` over the `team` lanes holding invocation `lid` (team a
+// power of two dividing FWG, the same for the whole dispatch), at the team's
+// first lane: halves added pairwise in workgroup memory, in a fixed order.
+// Reached by every invocation of the workgroup (its barriers).
+fn team_sum(lid: u32, acc: f32, team: u32) -> f32 {
+    if team == 1u {
+        return acc;
+    }
+    part[lid] = acc;
+    workgroupBarrier();
+    for (var h = team / 2u; h > 0u; h = h / 2u) {
+        if lid % team < h {
+            part[lid] += part[lid + h];
+        }
+        workgroupBarrier();
+    }
+    return part[lid];
+}
+
 // The PCG entry of w's entry t: column pc of r / z, vertex perm[i], unknown k.
 fn pcg_index(t: u32) -> u32 {
     let cc = P.bs * NCOLS;
@@ -177,56 +215,86 @@ fn pull(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
 // Forward step of a level segment, after its pull: own row i of supernode s,
 // y_i = sum_{k <= i} L_ss^-1[i, k] w_k; then, past the own rows, slot p = ro + r
 // (level order) of supernode s, contrib[p] = sum_k B[r, k] w_k
-// (B = L_rs L_ss^-1, stored in place of L_rs). Both read w_s only, so they share one dispatch.
+// (B = L_rs L_ss^-1, stored in place of L_rs). Both read w_s only, so they
+// share one dispatch. A team of team_f lanes per dot product.
 @compute @workgroup_size(256)
-fn forward(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+fn forward(
+    @builtin(global_invocation_id) gid: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+) {
     let cc = P.bs * NCOLS;
-    let t = linear(gid, nwg);
+    let team = P.team_f;
+    let lane = lid % team;
+    let t = linear(gid, nwg) / team;
+    var acc: f32 = 0.0;
+    // Where the sum goes: 1 y, 2 contrib, 0 nowhere (past the list).
+    var to = 0u;
+    var at_out = 0u;
     if t < P.n_own * cc {
         let o = own_row(t);
         let nr = o.s.m + o.s.q;
-        var acc: f32 = 0.0;
-        for (var k = 0u; k <= o.k; k++) {
+        for (var k = lane; k <= o.k; k += team) {
             acc += vals[o.s.vo + k * nr + o.k] * w[(o.s.c0 + k) * cc + o.c];
         }
-        y[o.row * cc + o.c] = acc;
+        to = 1u;
+        at_out = o.row * cc + o.c;
+    } else if t - P.n_own * cc < P.n_below * cc {
+        let u = t - P.n_own * cc;
+        let p = P.below + u / cc;
+        let c = u % cc;
+        let s = supernode(idx[P.o_slot_owner + p]);
+        let at = s.vo + s.m + (p - s.ro);
+        let nr = s.m + s.q;
+        for (var k = lane; k < s.m; k += team) {
+            acc += vals[at + k * nr] * w[(s.c0 + k) * cc + c];
+        }
+        to = 2u;
+        at_out = (p - P.update0) * cc + c;
+    }
+    let sum = team_sum(lid, acc, team);
+    if lane != 0u {
         return;
     }
-    let u = t - P.n_own * cc;
-    if u >= P.n_below * cc {
-        return;
+    if to == 1u {
+        y[at_out] = sum;
+    } else if to == 2u {
+        contrib[at_out] = sum;
     }
-    let p = P.below + u / cc;
-    let c = u % cc;
-    let s = supernode(idx[P.o_slot_owner + p]);
-    let at = s.vo + s.m + (p - s.ro);
-    let nr = s.m + s.q;
-    var acc: f32 = 0.0;
-    for (var k = 0u; k < s.m; k++) {
-        acc += vals[at + k * nr] * w[(s.c0 + k) * cc + c];
-    }
-    contrib[(p - P.update0) * cc + c] = acc;
 }
 
 // Backward step: x_k = sum_{i >= k} L_ss^-1[i, k] y_i - sum_r B[r, k] x_{rows[r]}
 // for row k of supernode s, into w (the ancestors' x, final, are in w; this
-// level's forward y in y) and, scattered, into z (z = P^T x).
+// level's forward y in y) and, scattered, into z (z = P^T x). A team of
+// team_b lanes per dot product.
 @compute @workgroup_size(256)
-fn backward(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+fn backward(
+    @builtin(global_invocation_id) gid: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+) {
     let cc = P.bs * NCOLS;
-    let t = linear(gid, nwg);
-    if t >= P.n_own * cc {
+    let team = P.team_b;
+    let lane = lid % team;
+    let t = linear(gid, nwg) / team;
+    let inside = t < P.n_own * cc;
+    var acc: f32 = 0.0;
+    var at_out = 0u;
+    if inside {
+        let o = own_row(t);
+        let at = o.s.vo + o.k * (o.s.m + o.s.q);
+        for (var i = o.k + lane; i < o.s.m; i += team) {
+            acc += vals[at + i] * y[(o.s.c0 + i) * cc + o.c];
+        }
+        for (var rr = lane; rr < o.s.q; rr += team) {
+            acc -= vals[at + o.s.m + rr] * w[idx[P.o_rows + o.s.ro + rr] * cc + o.c];
+        }
+        at_out = o.row * cc + o.c;
+    }
+    let sum = team_sum(lid, acc, team);
+    if lane != 0u || !inside {
         return;
     }
-    let o = own_row(t);
-    let at = o.s.vo + o.k * (o.s.m + o.s.q);
-    var acc: f32 = 0.0;
-    for (var i = o.k; i < o.s.m; i++) {
-        acc += vals[at + i] * y[(o.s.c0 + i) * cc + o.c];
-    }
-    for (var rr = 0u; rr < o.s.q; rr++) {
-        acc -= vals[at + o.s.m + rr] * w[idx[P.o_rows + o.s.ro + rr] * cc + o.c];
-    }
-    w[o.row * cc + o.c] = acc;
-    z[pcg_index(o.row * cc + o.c)] = acc;
+    w[at_out] = sum;
+    z[pcg_index(at_out)] = sum;
 }

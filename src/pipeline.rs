@@ -400,6 +400,7 @@ fn work_sum(a: WorkCounters, b: Option<WorkCounters>) -> WorkCounters {
         device_dispatches: a.device_dispatches + b.device_dispatches,
         device_bytes: a.device_bytes + b.device_bytes,
         device_bytes_minimal: a.device_bytes_minimal + b.device_bytes_minimal,
+        device_serial_steps: a.device_serial_steps + b.device_serial_steps,
         device_timed_passes: a.device_timed_passes + b.device_timed_passes,
         device_timed_seconds: a.device_timed_seconds + b.device_timed_seconds,
     }
@@ -418,8 +419,8 @@ fn log_work(phase: &str, w: &WorkCounters, seconds: Option<f64>) {
         "{phase}: {time}{:.3} s waiting for the GPU in {} waits), \
          {} preconditioner set-ups, {} solves, {} iterations (most in one solve {}), \
          {} bytes to and {} from the device, {:.3} s in queue submissions; kernels: {} dispatches, \
-         {} bytes modelled ({} for the operator applications in their least storage); \
-         {:.3} s of device time in {} timed passes",
+         {} bytes modelled ({} for the operator applications in their least storage), \
+         {} serial steps; {:.3} s of device time in {} timed passes",
         w.device_seconds,
         w.device_waits,
         w.preconditioner_setups,
@@ -432,6 +433,7 @@ fn log_work(phase: &str, w: &WorkCounters, seconds: Option<f64>) {
         w.device_dispatches,
         w.device_bytes,
         w.device_bytes_minimal,
+        w.device_serial_steps,
         w.device_timed_seconds,
         w.device_timed_passes
     );

@@ -94,6 +94,10 @@ pub struct WorkCounters {
     /// The least bytes of the operator applications among those kernels
     /// (each matrix in its least storage, its vectors once).
     pub device_bytes_minimal: u64,
+    /// The chain of dependent steps through those kernels: each dispatch's
+    /// longest loop of one invocation, summed (`solver_gpu::KernelWork`;
+    /// counted for the Cholesky solves).
+    pub device_serial_steps: u64,
     /// Compute passes timed on the device with timestamp queries (0 where
     /// the adapter has none) and the device seconds they took.
     pub device_timed_passes: u64,
@@ -124,6 +128,7 @@ impl WorkCounters {
             device_dispatches: self.device_dispatches - earlier.device_dispatches,
             device_bytes: self.device_bytes - earlier.device_bytes,
             device_bytes_minimal: self.device_bytes_minimal - earlier.device_bytes_minimal,
+            device_serial_steps: self.device_serial_steps - earlier.device_serial_steps,
             device_timed_passes: self.device_timed_passes - earlier.device_timed_passes,
             device_timed_seconds: self.device_timed_seconds - earlier.device_timed_seconds,
         }

@@ -109,6 +109,7 @@ struct Traffic {
     dispatches: AtomicU64,
     bytes_accessed: AtomicU64,
     bytes_minimal: AtomicU64,
+    serial_steps: AtomicU64,
     timed_passes: AtomicU64,
     timed_nanos: AtomicU64,
 }
@@ -122,11 +123,18 @@ struct Traffic {
 /// solves, scalings) with each matrix in its least storage at its precision
 /// (one value per entry and one u32 column per stored block) and their
 /// vectors once, and nothing for the PCG's vector updates and dot products.
+/// `serial_steps` counts the latency that no width of GPU hides: the chain of
+/// dependent steps through the dispatches, which run one after another, each
+/// dispatch's longest loop of one invocation. It is counted for the Cholesky
+/// solves ([`crate::supernodal`]), whose dot products run to thousands of
+/// terms at the top of the elimination tree; the other kernels' loops (a
+/// block row's tens of blocks, a reduction's tree) are left at 0.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct KernelWork {
     pub dispatches: u64,
     pub bytes: u64,
     pub minimal: u64,
+    pub serial_steps: u64,
 }
 
 impl KernelWork {
@@ -137,6 +145,7 @@ impl KernelWork {
             dispatches: 1,
             bytes,
             minimal,
+            serial_steps: 0,
         }
     }
 
@@ -146,6 +155,7 @@ impl KernelWork {
             dispatches: 1,
             bytes,
             minimal: 0,
+            serial_steps: 0,
         }
     }
 
@@ -155,6 +165,7 @@ impl KernelWork {
             dispatches: self.dispatches * k,
             bytes: self.bytes * k,
             minimal: self.minimal * k,
+            serial_steps: self.serial_steps * k,
         }
     }
 }
@@ -166,6 +177,7 @@ impl std::ops::Add for KernelWork {
             dispatches: self.dispatches + o.dispatches,
             bytes: self.bytes + o.bytes,
             minimal: self.minimal + o.minimal,
+            serial_steps: self.serial_steps + o.serial_steps,
         }
     }
 }
@@ -363,6 +375,7 @@ impl Context {
                 dispatches: t.dispatches.load(Ordering::Relaxed),
                 bytes: t.bytes_accessed.load(Ordering::Relaxed),
                 minimal: t.bytes_minimal.load(Ordering::Relaxed),
+                serial_steps: t.serial_steps.load(Ordering::Relaxed),
             },
             timed_passes: t.timed_passes.load(Ordering::Relaxed),
             timed_seconds: t.timed_nanos.load(Ordering::Relaxed) as f64 * 1e-9,
@@ -416,6 +429,7 @@ impl Context {
         t.dispatches.fetch_add(w.dispatches, Ordering::Relaxed);
         t.bytes_accessed.fetch_add(w.bytes, Ordering::Relaxed);
         t.bytes_minimal.fetch_add(w.minimal, Ordering::Relaxed);
+        t.serial_steps.fetch_add(w.serial_steps, Ordering::Relaxed);
     }
 
     /// `queue.write_buffer`, counted.

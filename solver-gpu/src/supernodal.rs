@@ -10,15 +10,19 @@
 //! dissection: a shallow elimination tree), put there in the inverted form
 //! ([`SupernodalFactor::invert_diagonal_blocks`]: `L_ss^-1`, and `B_s = L_rs
 //! L_ss^-1` in place of the rows below), and goes up once. An application is
-//! `3 levels` dispatches, no host work, no atomics and no barriers (the
-//! same result on every run): per level of the supernodal elimination tree,
+//! `3 levels` dispatches, no host work and no atomics (the same result on
+//! every run): per level of the supernodal elimination tree,
 //! leaves first, pull `w_s = (P r)_s` less the descendants' updates, then one
 //! step for `y_s = L_ss^-1 w_s` and the updates `B_s w_s` of the rows below
 //! (both read `w_s` only); per level, root first, `x_s = L_ss^-T y_s - B_s^T
-//! x_r` in one step, written to `z = P^T x` as well. Each kernel runs one invocation per
-//! row (or slot) and scalar column of the level, a dot product each: the dense
+//! x_r` in one step, written to `z = P^T x` as well. Each kernel computes one
+//! dot product per row (or slot) and scalar column of the level: the dense
 //! separators at the top of the tree spread over the whole GPU instead of one
-//! workgroup.
+//! workgroup. Where a level has too few rows to fill a discrete GPU and long
+//! rows (the separators: up to 2,000 terms at homer 1.2M), a team of lanes
+//! shares each dot product ([`team`]), so that an application's chain of
+//! dependent steps ([`KernelWork::serial_steps`]) is not the sum of the
+//! separators' widths.
 //!
 //! The values are stored level by level and cut into buffers of at most one
 //! storage binding at supernode boundaries ([`GpuFactor::upload`]); a level
@@ -72,8 +76,9 @@ pub(crate) struct SnParams {
     pub(crate) update1: u32,
     /// Whether `pull` starts from `r` (the first update buffer) or from `w`.
     pub(crate) first: u32,
-    pub(crate) pad0: u32,
-    pub(crate) pad1: u32,
+    /// Lanes per dot product of `forward` and of `backward` ([`team`]).
+    pub(crate) team_f: u32,
+    pub(crate) team_b: u32,
 }
 
 /// The entry points, in one precision.
@@ -119,6 +124,9 @@ pub(crate) struct GpuFactor {
     /// supernodes in level order ([`Segment::sn`]): where the updates may be
     /// cut.
     sizes: Vec<[u32; 2]>,
+    /// Per supernode in level order, the most updates any of its rows pulls
+    /// (the longest loop of its `pull`).
+    pulls: Vec<u32>,
     /// Rows of `K`.
     pub nv: usize,
     /// Stored values of the factor.
@@ -298,6 +306,15 @@ impl GpuFactor {
             tptr[i + 1] += tptr[i];
         }
         idx.extend_from_slice(&tptr);
+        let pulls = order
+            .iter()
+            .map(|&s| {
+                (f.begin[s]..f.begin[s + 1])
+                    .map(|c| tptr[c as usize + 1] - tptr[c as usize])
+                    .max()
+                    .unwrap_or(0)
+            })
+            .collect();
         let o_tpos = idx.len() as u32;
         let mut tpos = vec![0u32; nrows];
         let mut next = tptr;
@@ -348,6 +365,7 @@ impl GpuFactor {
             slots: nrows,
             levels,
             sizes,
+            pulls,
             nv: n,
             nnz: f.nnz(),
             precision,
@@ -404,6 +422,41 @@ struct Piece {
     own: usize,
     /// Its own rows and slots (the dispatch sizes, per column).
     rows: [u32; 2],
+    /// Lanes per dot product of `forward` and `backward` ([`team`]).
+    teams: [u32; 2],
+    /// Serial steps of its `pull` (each), `forward` and `backward`: the
+    /// longest loop of one lane, with a team's additions.
+    steps: [u32; 3],
+}
+
+/// Invocations that fill a discrete GPU's cores with work to hide memory
+/// latency (an H100 holds 270k resident: 132 units of 2,048).
+const FILL: u64 = 1 << 18;
+
+/// Least terms a team's lane takes of a dot product.
+const LANE_TERMS: u32 = 8;
+
+/// Most lanes of a team (a power of two dividing the shader's workgroup).
+const MAX_TEAM: u32 = 64;
+
+/// Lanes that share each of a level's `items` dot products of up to `len`
+/// terms (a power of two, 1 to `most`): as many as fit one wave of a large
+/// GPU ([`FILL`]) beside the `items` (a level with rows enough to fill it
+/// keeps one lane per dot product, which streams the factor best; more lanes
+/// would wait for room, not shorten the chain), and no more than give each
+/// lane [`LANE_TERMS`] terms. A function of the factor's shape alone, so a
+/// factor's sums are the same on every adapter.
+fn team(items: u64, len: u32, most: u32) -> u32 {
+    let floor2 = |v: u64| 1u64 << (63 - v.max(1).leading_zeros());
+    let by_room = floor2(FILL / items.max(1));
+    let by_len = floor2((len / LANE_TERMS) as u64);
+    by_room.min(by_len).min(most as u64) as u32
+}
+
+/// Serial steps of one lane of a team of `team` over `len` terms: its share
+/// of the terms and the team's pairwise additions.
+fn team_steps(len: u32, team: u32) -> u32 {
+    len.div_ceil(team) + team.trailing_zeros()
 }
 
 /// Cut consecutive items of `sizes` into runs of at most `cap` (greedy: an
@@ -485,6 +538,21 @@ impl SupernodalSteps {
         cmax: usize,
         limit: u64,
     ) -> Result<SupernodalSteps, GpuError> {
+        Self::with_teams(ctx, kernels, f, (r, z), bs, cmax, limit, MAX_TEAM)
+    }
+
+    /// [`SupernodalSteps::new`] with teams of at most `most` lanes ([`team`]).
+    #[allow(clippy::too_many_arguments)]
+    fn with_teams(
+        ctx: &Context,
+        kernels: &Arc<SupernodalKernels>,
+        f: &GpuFactor,
+        (r, z): (&wgpu::Buffer, &wgpu::Buffer),
+        bs: usize,
+        cmax: usize,
+        limit: u64,
+        most: u32,
+    ) -> Result<SupernodalSteps, GpuError> {
         let stride = f.nv * bs;
         let b = f.precision.bytes() as usize;
         if kernels.precision != f.precision {
@@ -542,8 +610,34 @@ impl SupernodalSteps {
                 .filter(|&&a| a < first)
                 .count()
                 .max(1);
+            // The level's teams, from the whole level (not its segments and
+            // pieces, which the adapter's binding size cuts): every dot
+            // product's sum is the same wherever the cuts fall. Forward:
+            // own row k of supernode s sums k + 1 terms, a slot m;
+            // backward: own row k, m - k + q.
+            let sns = || {
+                segments
+                    .iter()
+                    .flat_map(|g| g.sn as usize..(g.sn + g.n_sn) as usize)
+            };
+            let len_f = sns().map(|s| f.sizes[s][0]).max().unwrap_or(0);
+            let len_b = sns()
+                .map(|s| f.sizes[s][0] + f.sizes[s][1])
+                .max()
+                .unwrap_or(0);
+            let (own_rows, slots) = segments.iter().fold((0u64, 0u64), |(a, b), g| {
+                (a + g.n_own as u64, b + g.n_below as u64)
+            });
+            let teams = [
+                team((own_rows + slots) * bs as u64, len_f, most),
+                team(own_rows * bs as u64, len_b, most),
+            ];
             let mut level = Vec::new();
             for (g, own) in cut_segments(segments, &f.sizes, &buffer) {
+                let sns = g.sn as usize..(g.sn + g.n_sn) as usize;
+                let len_p = f.pulls[sns.clone()].iter().copied().max().unwrap_or(0);
+                let len_f = f.sizes[sns.clone()].iter().map(|s| s[0]).max().unwrap_or(0);
+                let len_b = f.sizes[sns].iter().map(|s| s[0] + s[1]).max().unwrap_or(0);
                 let mut bind = |k: usize| -> Result<wgpu::BindGroup, GpuError> {
                     let p = ctx.uniform_of(
                         "supernodal params",
@@ -559,8 +653,8 @@ impl SupernodalSteps {
                             update0: starts[k] as u32,
                             update1: starts[k + 1] as u32,
                             first: (k == 0) as u32,
-                            pad0: 0,
-                            pad1: 0,
+                            team_f: teams[0],
+                            team_b: teams[1],
                         },
                     )?;
                     let group = kernels.shader.bind(
@@ -592,6 +686,12 @@ impl SupernodalSteps {
                     pulls,
                     own,
                     rows: [g.n_own, g.n_below],
+                    teams,
+                    steps: [
+                        len_p,
+                        team_steps(len_f, teams[0]),
+                        team_steps(len_b, teams[1]),
+                    ],
                 });
             }
             pieces.push(level);
@@ -631,10 +731,17 @@ impl SupernodalSteps {
         for level in &self.levels {
             let mut pieces = Vec::with_capacity(level.len());
             for Piece {
-                rows: [own, below], ..
+                rows: [own, below],
+                teams: [team_f, team_b],
+                ..
             } in level
             {
-                pieces.push([dims(*own as u64)?, dims(*own as u64 + *below as u64)?]);
+                let (own, below) = (*own as u64, *below as u64);
+                pieces.push([
+                    dims(own)?,
+                    dims((own + below) * *team_f as u64)?,
+                    dims(own * *team_b as u64)?,
+                ]);
             }
             levels.push(pieces);
         }
@@ -657,8 +764,18 @@ impl SupernodalSteps {
         let dispatches: usize = self.levels.iter().flatten().map(|p| p.pulls + 2).sum();
         KernelWork {
             dispatches: dispatches as u64,
+            serial_steps: self.serial_steps(),
             ..sweep.times(2) + KernelWork::other(2 * col).times(2)
         }
+    }
+
+    /// The chain of dependent steps through one application: each
+    /// dispatch's longest lane (a dot product's terms, or a team's share of
+    /// them and its additions), the dispatches one after another.
+    pub fn serial_steps(&self) -> u64 {
+        let piece =
+            |p: &Piece| p.pulls as u64 * p.steps[0] as u64 + (p.steps[1] + p.steps[2]) as u64;
+        self.levels.iter().flatten().map(piece).sum()
     }
 
     /// Record one application into `pass`. A level's pieces are independent
@@ -676,7 +793,7 @@ impl SupernodalSteps {
         }
         for (level, dims) in self.levels.iter().zip(&p.levels).rev() {
             for (piece, d) in level.iter().zip(dims) {
-                dispatch(pass, &p.p[2], &piece.groups[piece.own], d[0]);
+                dispatch(pass, &p.p[2], &piece.groups[piece.own], d[2]);
             }
         }
     }
@@ -686,9 +803,10 @@ impl SupernodalSteps {
 /// dispatch sizes.
 pub(crate) struct Pipelines {
     p: [wgpu::ComputePipeline; 3],
-    /// Per level and piece: the sizes of `pull` and `backward` (its own
-    /// rows), and of `forward` (its own rows and its slots).
-    levels: Vec<Vec<[(u32, u32); 2]>>,
+    /// Per level and piece: the sizes of `pull` (its own rows), `forward`
+    /// (its own rows and its slots, times its team) and `backward` (its
+    /// own rows, times its team).
+    levels: Vec<Vec<[(u32, u32); 3]>>,
 }
 
 #[cfg(test)]
@@ -845,6 +963,108 @@ mod tests {
                 SupernodalSteps::new(ctx, &kernels, &g, &r, &z, bs, ncols, per_slot),
                 Err(GpuError::LimitExceeded { .. })
             ));
+        }
+    }
+
+    /// Teams: one lane per dot product where a level's rows fill a wave of
+    /// the GPU or are short, up to 64 where a few long rows would leave it
+    /// idle.
+    #[test]
+    fn teams_are_sized_by_the_room_and_the_row() {
+        assert_eq!(team(FILL, 2000, MAX_TEAM), 1);
+        assert_eq!(team(4 * FILL, 2000, MAX_TEAM), 1);
+        assert_eq!(team(1000, 2000, MAX_TEAM), 64);
+        assert_eq!(team(1000, 2000, 8), 8);
+        assert_eq!(team(1000, 40, MAX_TEAM), 4);
+        assert_eq!(team(1000, 7, MAX_TEAM), 1);
+        assert_eq!(team(FILL / 4, 2000, MAX_TEAM), 4);
+        assert_eq!(team(0, 0, MAX_TEAM), 1);
+        assert_eq!(team_steps(2000, 64), 32 + 6);
+        assert_eq!(team_steps(2000, 1), 2000);
+    }
+
+    /// Dot products summed by teams of lanes give one lane's result up to
+    /// rounding, and the chain of dependent steps through an application
+    /// is several times shorter; a grid's top separators are what the teams
+    /// take.
+    #[test]
+    fn teams_shorten_the_chain_and_keep_the_solve() {
+        let Some(s) = crate::test_solver() else {
+            return;
+        };
+        let ctx = &s.ctx;
+        let k = grid(90, 80);
+        let (bs, ncols) = (3, 1);
+        let mut precisions = vec![Precision::F32];
+        if ctx.shader_f64 {
+            precisions.push(Precision::F64);
+        }
+        for precision in precisions {
+            let mut host = match precision {
+                Precision::F32 => CholeskySolver::single_precision(),
+                Precision::F64 => CholeskySolver::new(),
+            };
+            host.supernodal = true;
+            host.set_fill_ordering(FillOrdering::NestedDissection);
+            host.prepare(&k).unwrap();
+            let mut f = host.take_supernodal_factor().unwrap();
+            f.invert_diagonal_blocks();
+            let limit = crate::matrix::binding_limit(ctx);
+            let g = GpuFactor::upload(ctx, &f, limit).unwrap();
+            let kernels = SupernodalKernels::new(ctx, precision).unwrap();
+            let b = precision.bytes();
+            let len = k.n * bs * ncols;
+            let r = ctx.storage("r", len as u64 * b).unwrap();
+            let z = ctx.storage("z", len as u64 * b).unwrap();
+            let build = |most| {
+                SupernodalSteps::with_teams(ctx, &kernels, &g, (&r, &z), bs, ncols, limit, most)
+                    .unwrap()
+            };
+            let (one, teams) = (build(1), build(MAX_TEAM));
+            let most = teams
+                .levels
+                .iter()
+                .flatten()
+                .map(|p| p.teams[1])
+                .max()
+                .unwrap();
+            assert!(most >= 8, "largest backward team {most}");
+            assert!(one.levels.iter().flatten().all(|p| p.teams == [1, 1]));
+            let (chain1, chain) = (one.serial_steps(), teams.serial_steps());
+            assert!(2 * chain < chain1, "{chain} steps against {chain1}");
+            let rhs: Vec<f64> = (0..len)
+                .map(|i| ((i * 7919) % 1013) as f64 / 1013.0 - 0.5)
+                .collect();
+            let decode = |z: Vec<u8>| -> Vec<f64> {
+                match precision {
+                    Precision::F32 => bytemuck::cast_slice::<u8, f32>(&z)
+                        .iter()
+                        .map(|&v| v as f64)
+                        .collect(),
+                    Precision::F64 => bytemuck::cast_slice::<u8, f64>(&z).to_vec(),
+                }
+            };
+            let z1 = decode(apply(ctx, &one, &r, &z, &rhs, ncols, precision));
+            let z2 = decode(apply(ctx, &teams, &r, &z, &rhs, ncols, precision));
+            assert!(z2.iter().all(|v| v.is_finite()));
+            let err = z1
+                .iter()
+                .zip(&z2)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0, f64::max);
+            let scale = z1.iter().map(|v| v.abs()).fold(0.0, f64::max);
+            let tol = match precision {
+                Precision::F32 => 1e-5,
+                Precision::F64 => 1e-13,
+            };
+            assert!(
+                err <= tol * scale,
+                "{precision:?}: {err:e} against {scale:e}"
+            );
+            assert!(
+                z1 != z2,
+                "{precision:?}: the teams' sums are a lane's, to the bit"
+            );
         }
     }
 

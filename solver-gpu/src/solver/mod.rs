@@ -895,6 +895,7 @@ impl SpdSolver for GpuSolver {
             device_dispatches: t.kernels.dispatches,
             device_bytes: t.kernels.bytes,
             device_bytes_minimal: t.kernels.minimal,
+            device_serial_steps: t.kernels.serial_steps,
             device_timed_passes: t.timed_passes,
             device_timed_seconds: t.timed_seconds,
             ..self.work
