@@ -11,6 +11,10 @@
 #   cargo build --release && cargo bench --bench pipeline --no-run
 #   cp "$(ls -t target/release/deps/pipeline-* | grep -v '\.d$' | head -1)" target/release/pipeline-bench
 #   git rev-parse --short HEAD > target/release/COMMIT
+# and, optionally, the Cholesky solves' bench (one lane per dot product
+# against teams, per application; rows 100k and 1m) as `cholesky-bench`:
+#   cargo bench --features bench-kernels --bench cholesky_teams --no-run
+#   cp "$(ls -t target/release/deps/cholesky_teams-* | grep -v '\.d$' | head -1)" target/release/cholesky-bench
 # ($BIN/COMMIT names the binaries' commit in the header line: binaries carried
 # to another machine are not that machine's checkout.)
 # The bench reads its meshes from data/meshes under the repository root it was
@@ -57,3 +61,13 @@ done
 echo
 echo "Cost proxies (host seconds per outer iteration without GPU waits, PCG iterations per shape solve, waits per PCG iteration, set-ups, bytes moved):"
 for r in "${rows[@]}"; do grep -h "proxies" "$log/$r.cpu" "$log/$r.gpu" || echo "girths-homer-$r: no proxies (the run failed; see $log)"; done
+if [ -x "$BIN/cholesky-bench" ]; then
+  chol_rows=()
+  for r in "${rows[@]}"; do case "$r" in 100k|1m) chol_rows+=("$r") ;; esac; done
+  if [ ${#chol_rows[@]} -gt 0 ]; then
+    echo
+    echo "Cholesky preconditioner, one application (one lane per dot product against teams):"
+    "$BIN/cholesky-bench" "${chol_rows[@]}" 2>"$log/cholesky.err" | grep -v '^adapter:' \
+      || echo "cholesky-bench failed (see $log/cholesky.err)"
+  fi
+fi

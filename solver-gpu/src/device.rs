@@ -126,7 +126,7 @@ struct Traffic {
 /// `serial_steps` counts the latency that no width of GPU hides: the chain of
 /// dependent steps through the dispatches, which run one after another, each
 /// dispatch's longest loop of one invocation. It is counted for the Cholesky
-/// solves ([`crate::supernodal`]), whose dot products run to thousands of
+/// solves (`supernodal.wgsl`), whose dot products run to thousands of
 /// terms at the top of the elimination tree; the other kernels' loops (a
 /// block row's tens of blocks, a reduction's tree) are left at 0.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]

@@ -479,6 +479,111 @@ pub fn profile_iteration(
 }
 
 #[cfg(feature = "bench-kernels")]
+/// What one application of the Cholesky preconditioner costs ([`time_cholesky`]).
+#[derive(Debug, Clone)]
+pub struct CholeskyTiming {
+    /// The chain of dependent steps through one application
+    /// ([`crate::KernelWork::serial_steps`]).
+    pub serial_steps: u64,
+    /// Dispatches of one application.
+    pub dispatches: u64,
+    /// Device seconds per application, from timestamp queries around the
+    /// pass (`None` without `TIMESTAMP_QUERY`).
+    pub device_seconds: Option<f64>,
+    /// Wall seconds per application, from the submission to the read-back.
+    pub wall_seconds: f64,
+    /// `z` of the last application, column-major.
+    pub z: Vec<f64>,
+}
+
+#[cfg(feature = "bench-kernels")]
+/// Times `reps` applications `z = (P^T L L^T P)^-1 r` of the active
+/// Cholesky preconditioner (as [`cholesky`]: a shape matrix prepared by
+/// `prepare_shape_owned`), recorded in one timed pass after one untimed
+/// application, with teams of at most `most` lanes per dot product (1: one
+/// lane each, the layout before teams): the latency a discrete GPU pays for
+/// the chain of dependent steps against its bandwidth.
+pub fn time_cholesky(
+    s: &mut GpuSolver,
+    r: &[f64],
+    ncols: usize,
+    reps: usize,
+    most: u32,
+) -> Result<CholeskyTiming, GpuError> {
+    check_cols(s, r.len(), ncols)?;
+    let Some(precision) = s.chol.as_ref().map(|f| f.precision) else {
+        return Err(GpuError::Backend(
+            "the Cholesky preconditioner is not active".into(),
+        ));
+    };
+    let f64 = precision == Precision::F64;
+    if f64 {
+        s.mixed_workspace(ncols)?;
+    } else {
+        s.workspace(ncols)?;
+    }
+    let ws = match f64 {
+        true => &s.mixed.as_ref().unwrap().ws,
+        false => s.ws.as_ref().unwrap(),
+    };
+    let steps = s
+        .cholesky_steps_with(precision, (&ws.r, &ws.z), 3, ncols, most)?
+        .ok_or_else(|| GpuError::Backend("no Cholesky steps".into()))?;
+    let ctx = &s.ctx;
+    ctx.write_buffer(&ws.r, 0, &precision.encode(r));
+    let pipelines = steps.pipelines(ctx, ncols)?;
+    let bytes = r.len() as u64 * precision.bytes();
+    let run = |reps: usize, timed: bool| -> Result<Vec<Vec<u8>>, GpuError> {
+        let mut enc = ctx.encoder("Cholesky timing");
+        {
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("Cholesky applications"),
+                timestamp_writes: if timed { ctx.pass_timestamps() } else { None },
+            });
+            for _ in 0..reps {
+                steps.record(&mut pass, &pipelines);
+            }
+        }
+        let mut parts = vec![(&ws.z, bytes)];
+        if timed {
+            ctx.resolve_pass_time(&mut enc);
+            parts.extend(ctx.pass_time_buffer());
+        }
+        ctx.read_parts(&parts, &mut None, Some(enc))
+    };
+    run(1, false)?;
+    let reps = reps.max(1);
+    let before = ctx.traffic().timed_seconds;
+    let t0 = std::time::Instant::now();
+    let mut read = run(reps, true)?;
+    let wall_seconds = t0.elapsed().as_secs_f64() / reps as f64;
+    let device_seconds = match ctx.pass_time_buffer() {
+        Some(_) => {
+            let times = read.pop().unwrap_or_default();
+            ctx.count_pass_time(&times);
+            Some((ctx.traffic().timed_seconds - before) / reps as f64)
+        }
+        None => None,
+    };
+    let z = read.into_iter().next().unwrap_or_default();
+    let z = match f64 {
+        true => bytemuck::pod_collect_to_vec::<u8, f64>(&z),
+        false => bytemuck::pod_collect_to_vec::<u8, f32>(&z)
+            .into_iter()
+            .map(f64::from)
+            .collect(),
+    };
+    let work = steps.work(ncols);
+    Ok(CholeskyTiming {
+        serial_steps: work.serial_steps,
+        dispatches: work.dispatches,
+        device_seconds,
+        wall_seconds,
+        z,
+    })
+}
+
+#[cfg(feature = "bench-kernels")]
 /// The adapter's read-bandwidth ceiling over `bytes` bytes (rounded up to
 /// 16-byte elements, at most one storage binding) read from a storage
 /// buffer, `reps` timed passes (see [`crate::stream`]).

@@ -437,7 +437,7 @@ const FILL: u64 = 1 << 18;
 const LANE_TERMS: u32 = 8;
 
 /// Most lanes of a team (a power of two dividing the shader's workgroup).
-const MAX_TEAM: u32 = 64;
+pub(crate) const MAX_TEAM: u32 = 64;
 
 /// Lanes that share each of a level's `items` dot products of up to `len`
 /// terms (a power of two, 1 to `most`): as many as fit one wave of a large
@@ -543,7 +543,7 @@ impl SupernodalSteps {
 
     /// [`SupernodalSteps::new`] with teams of at most `most` lanes ([`team`]).
     #[allow(clippy::too_many_arguments)]
-    fn with_teams(
+    pub(crate) fn with_teams(
         ctx: &Context,
         kernels: &Arc<SupernodalKernels>,
         f: &GpuFactor,

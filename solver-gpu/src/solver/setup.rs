@@ -102,17 +102,30 @@ impl GpuSolver {
         bs: usize,
         cmax: usize,
     ) -> Result<Option<supernodal::SupernodalSteps>, GpuError> {
+        self.cholesky_steps_with(precision, (r, z), bs, cmax, supernodal::MAX_TEAM)
+    }
+
+    /// [`GpuSolver::cholesky_steps`] with teams of at most `most` lanes
+    /// per dot product (1: one lane each; a benchmark compares them).
+    pub(crate) fn cholesky_steps_with(
+        &self,
+        precision: precision::Precision,
+        (r, z): (&wgpu::Buffer, &wgpu::Buffer),
+        bs: usize,
+        cmax: usize,
+        most: u32,
+    ) -> Result<Option<supernodal::SupernodalSteps>, GpuError> {
         match (&self.chol, &self.chol_kernels) {
             (Some(f), Some(k)) if f.precision == precision => {
-                Ok(Some(supernodal::SupernodalSteps::new(
+                Ok(Some(supernodal::SupernodalSteps::with_teams(
                     &self.ctx,
                     k,
                     f,
-                    r,
-                    z,
+                    (r, z),
                     bs,
                     cmax,
                     matrix::binding_limit(&self.ctx),
+                    most,
                 )?))
             }
             _ => Ok(None),
