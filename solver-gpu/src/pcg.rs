@@ -609,7 +609,10 @@ impl Pcg {
         // no hint, often ends the round.
         let mut with_x = !fixed_batches && (first_batch.is_some() || refine.is_some());
         let x_bytes = used;
-        let mut last: Option<(usize, Vec<ColState>)> = None;
+        // A refined round's right-hand side is its residual over its norm
+        // (refine.wgsl's `scale_r`), so its squared residual starts at 1: the
+        // first batch's reduction from there predicts the second batch.
+        let mut last: Option<(usize, Vec<ColState>)> = refine.map(|_| (0, unit_start(ncols)));
         let result = loop {
             let k = next.min(max_iters.saturating_sub(dispatched)).max(1);
             {
@@ -832,11 +835,31 @@ fn add_columns(precision: Precision, d: &[u8], scale: &[f64], x: &mut [f64]) {
     }
 }
 
+/// Column states at the start of a run whose right-hand sides have norm 1
+/// (a refined round's): the point [`predict`] measures the first batch's
+/// reduction from.
+fn unit_start(ncols: usize) -> Vec<ColState> {
+    vec![
+        ColState {
+            rr: 1.0,
+            ..ColState::default()
+        };
+        ncols
+    ]
+}
+
 /// Iterations until every running column is predicted to be done, from the
-/// residual reduction between the last two read-backs (2..=cap).
+/// residual reduction between the last two read-backs, or from the start
+/// (`at` 0: [`unit_start`]) to the first (2..=cap). Without a previous point,
+/// or where the first batch's reduction says nothing (a residual that grew),
+/// [`FIRST_BATCH`].
 fn predict(last: Option<&(usize, Vec<ColState>)>, run: &PcgRun, cap: usize) -> usize {
     let Some((at, prev)) = last else {
         return cap.min(FIRST_BATCH);
+    };
+    let unknown = match at {
+        0 => cap.min(FIRST_BATCH),
+        _ => cap,
     };
     let k = (run.dispatched - at) as f64;
     let mut need = 2.0f64;
@@ -848,7 +871,7 @@ fn predict(last: Option<&(usize, Vec<ColState>)>, run: &PcgRun, cap: usize) -> u
         let rate = (r1 / r0).powf(1.0 / k);
         let useful = rate > 0.0 && rate < 0.999 && c.thr > 0.0;
         if !useful {
-            return cap;
+            return unknown;
         }
         let left = (c.thr as f64 / r1).ln() / rate.ln();
         need = need.max(left.ceil() + 2.0);
@@ -858,7 +881,49 @@ fn predict(last: Option<&(usize, Vec<ColState>)>, run: &PcgRun, cap: usize) -> u
 
 #[cfg(test)]
 mod tests {
-    use super::{add_columns, Precision};
+    use super::{add_columns, predict, unit_start, ColState, PcgRun, Precision, FIRST_BATCH};
+
+    /// The second batch of a refined round is predicted from the first
+    /// batch's reduction of the unit start (homer 108k's second scale-driven
+    /// solve: 3 iterations to 4.4e-9 against a threshold of 2.5e-17 leave 3,
+    /// predicted as 3 + 2), not [`FIRST_BATCH`]; a first batch whose residual
+    /// grew, or a run without a start point, gets `FIRST_BATCH`; later
+    /// batches measure from the last read-back.
+    #[test]
+    fn the_second_batch_of_a_refined_round_is_predicted_from_its_start() {
+        let state = |rr: f32, thr: f32, done: u32| ColState {
+            rr,
+            thr,
+            done,
+            ..ColState::default()
+        };
+        let run = |dispatched: usize, cols: Vec<ColState>| PcgRun {
+            dispatched,
+            cols,
+            x: None,
+            norms: None,
+        };
+        let start = (0, unit_start(1));
+        let after3 = run(3, vec![state(4.4e-9, 2.5e-17, 0)]);
+        assert_eq!(predict(Some(&start), &after3, 32), 5);
+        assert_eq!(predict(None, &after3, 32), FIRST_BATCH);
+        let grew = run(2, vec![state(1.5, 2.5e-17, 0)]);
+        assert_eq!(predict(Some(&start), &grew, 32), FIRST_BATCH);
+        // Later batches: from the last read-back (3 iterations, 1e-6 to 1e-9:
+        // 1e-3 each, 8 more to 2.5e-17 and 2 to spare); a grown residual
+        // there gets the cap.
+        let at3 = (3, vec![state(1e-6, 2.5e-17, 0)]);
+        let after6 = run(6, vec![state(1e-9, 2.5e-17, 0)]);
+        assert_eq!(predict(Some(&at3), &after6, 32), 10);
+        let grew6 = run(6, vec![state(2e-6, 2.5e-17, 0)]);
+        assert_eq!(predict(Some(&at3), &grew6, 32), 32);
+        // A column that is done (here broken down, its residual barely
+        // reduced) is not waited for: the running one needs 1 more, and 2
+        // to spare.
+        let done = run(3, vec![state(0.5, 2.5e-17, 2), state(1e-16, 2.5e-17, 0)]);
+        let start2 = (0, unit_start(2));
+        assert_eq!(predict(Some(&start2), &done, 32), 3);
+    }
 
     /// `x_c += s_c d_c` for the columns with a nonzero scale, from f64 bytes
     /// aligned or not (a read-back's `Vec<u8>` promises no alignment) and
