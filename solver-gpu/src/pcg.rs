@@ -21,8 +21,10 @@
 //! or broken down) or the iteration budget is spent. Batch sizes adapt: the first
 //! batch has as many iterations as the caller's last run of the same system
 //! kind took (8 with no such run), later ones the predicted remaining count (from the
-//! observed residual reduction rate, plus 2), between 2 and `check_every` (the
-//! cap, 32 by default), so few iterations are wasted past convergence.
+//! observed residual reduction rate since the last read-back, or since the start
+//! for a refined round, whose right-hand side has norm 1; plus 2), between 2 and
+//! `check_every` (the cap, 32 by default), so few iterations are wasted past
+//! convergence: each is a full product and preconditioner application.
 //!
 //! Bindings of `pcg.wgsl` (group 0): 0 `P` uniform `Params`; 1 `cols`
 //! (`ColState` per column); 2 `partials` (slot s, column c, workgroup g at
