@@ -17,7 +17,7 @@ use glam::DVec3;
 use solver_cpu::cholesky::NESTED_DISSECTION_FROM;
 use solver_cpu::{
     nested_dissection_of_pattern, BlockPcgSolver, CholeskySolver, FactorAhead, FillOrdering,
-    SpdSolver, SymCsc, SystemKind, WorkCounters,
+    SpdSolver, SystemKind, WorkCounters,
 };
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -506,7 +506,7 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
                     let mut solver = o.backend.scale_solver()?;
                     solver.set_system_kind(SystemKind::ScaleFactors);
                     if let Some(order) = face_ordering {
-                        solver.set_fill_ordering(FillOrdering::Given(order.into()));
+                        solver.set_fill_ordering(order);
                     }
                     solver
                 },
@@ -831,14 +831,18 @@ fn adopt_factor_ahead(model: &mut ShapeModel, ahead: FactorAhead, kind: SystemKi
 
 /// Every backend's two large factorizations (scale factors on faces, Eq. 3;
 /// the shape preconditioner on vertices, Eq. 7; made on the host, and
-/// uploaded as the GPU backend's Cholesky preconditioners) each begin with a
-/// METIS nested dissection, several seconds apiece at a million faces. Their
-/// patterns are known once the shape model is set up, so both orderings are
-/// computed here at the same time on two threads; the shape model's solver
-/// gets its ordering, the face ordering is returned for the scale-factor
-/// solver. Sizes below [`NESTED_DISSECTION_FROM`] keep the solvers' own (AMD)
-/// choice.
-fn fill_orderings(p: &Problem, model: &mut ShapeModel) -> Option<Vec<usize>> {
+/// uploaded as the GPU backend's Cholesky preconditioners) need fill-reducing
+/// orderings. The shape pattern (the 2-ring) gets METIS nested dissection,
+/// computed here once the shape model is set up and given to its solver; the
+/// face pattern gets faer's minimum degree, returned for the scale-factor
+/// solver: METIS runs one call at a time ([`nested_dissection_of_pattern`]:
+/// its random numbers are global state, and two calls at once gave orderings
+/// that differed from run to run), and minimum degree on the faces takes
+/// 0.8 s at homer 1.2M against METIS's 4.3 s for a factor of 53M values
+/// against 35M, made in the same 1.0 s (2-core development machine,
+/// 2026-11-26). Sizes below [`NESTED_DISSECTION_FROM`] keep the solvers' own
+/// (AMD) choice.
+fn fill_orderings(p: &Problem, model: &mut ShapeModel) -> Option<FillOrdering> {
     let (nf, nv) = (p.mesh.num_faces(), p.mesh.num_vertices());
     let faces_big = !p.constraints.is_empty() && nf >= NESTED_DISSECTION_FROM;
     let vertices_big = nv >= NESTED_DISSECTION_FROM;
@@ -847,22 +851,9 @@ fn fill_orderings(p: &Problem, model: &mut ShapeModel) -> Option<Vec<usize>> {
     }
     let t = Instant::now();
     let h = model.matrix();
-    let (faces, vertices) = std::thread::scope(|scope| {
-        let faces = scope.spawn(|| {
-            let graph = SymCsc::from_pattern(
-                nf,
-                p.topo
-                    .face_pairs
-                    .iter()
-                    .map(|q| (q[0] as usize, q[1] as usize)),
-            );
-            nested_dissection_of_pattern(nf, &graph.col_ptr, &graph.row_idx)
-        });
-        let vertices = nested_dissection_of_pattern(h.n(), &h.iso.col_ptr, &h.iso.row_idx);
-        (faces.join().ok().flatten(), vertices)
-    });
+    let vertices = nested_dissection_of_pattern(h.n(), &h.iso.col_ptr, &h.iso.row_idx);
     log::debug!(
-        "fill orderings (faces and vertices, two threads): {:.3} s",
+        "fill ordering of the shape pattern (METIS): {:.3} s",
         t.elapsed().as_secs_f64()
     );
     if let Some((forward, _)) = vertices {
@@ -870,7 +861,7 @@ fn fill_orderings(p: &Problem, model: &mut ShapeModel) -> Option<Vec<usize>> {
             .solver()
             .set_fill_ordering(FillOrdering::Given(forward.into()));
     }
-    faces.map(|(forward, _)| forward)
+    Some(FillOrdering::Amd)
 }
 
 fn compact(groups: &[usize]) -> Vec<usize> {

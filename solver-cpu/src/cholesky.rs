@@ -116,8 +116,17 @@ pub fn nested_dissection(a: &SymCsc) -> Option<(Vec<usize>, Vec<usize>)> {
     nested_dissection_of_pattern(a.n, &a.col_ptr, &a.row_idx)
 }
 
+/// Held while METIS runs. METIS draws random numbers from GKlib's generator,
+/// whose state is one global: two calls at once race on it (a data race in
+/// C), and their orderings then differ from run to run (homer 108k's shape
+/// pattern, 2026-11-26: two calls on two threads gave orderings unlike the
+/// one every sequential call gives, in 4 of 4 trials). One call at a time
+/// gives the same ordering on every run.
+static METIS: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
 /// As [`nested_dissection`], for the lower-triangular pattern `(col_ptr, row_idx)`
-/// of an `n x n` symmetric matrix (scalar or block).
+/// of an `n x n` symmetric matrix (scalar or block). One call runs at a time
+/// in the process (METIS's random numbers are global state).
 pub fn nested_dissection_of_pattern(
     n: usize,
     col_ptr: &[usize],
@@ -157,6 +166,7 @@ pub fn nested_dissection_of_pattern(
     // SAFETY: every array has the length METIS_NodeND documents (xadj n + 1,
     // adjncy xadj[n], options METIS_NOPTIONS, perm and iperm n), all live for
     // the call; a null vwgt means unit weights.
+    let _one_at_a_time = METIS.lock().unwrap_or_else(|e| e.into_inner());
     let status = unsafe {
         metis_sys::METIS_SetDefaultOptions(options.as_mut_ptr());
         metis_sys::METIS_NodeND(

@@ -820,6 +820,24 @@ mod tests {
         s
     }
 
+    /// METIS's random numbers are global state: orderings computed on
+    /// several threads at once equal the one a call alone computes, because
+    /// one call runs at a time (without that, they differed).
+    #[test]
+    fn nested_dissection_is_the_same_on_several_threads_at_once() {
+        let a = grid_laplacian(160, 1e-3);
+        let alone = crate::cholesky::nested_dissection(&a).expect("METIS ordering").0;
+        let together: Vec<Vec<usize>> = std::thread::scope(|scope| {
+            let runs: Vec<_> = (0..4)
+                .map(|_| scope.spawn(|| crate::cholesky::nested_dissection(&a).unwrap().0))
+                .collect();
+            runs.into_iter().map(|r| r.join().unwrap()).collect()
+        });
+        for (i, order) in together.iter().enumerate() {
+            assert!(*order == alone, "thread {i}: another ordering");
+        }
+    }
+
     #[test]
     fn nested_dissection_solves_like_amd_with_less_fill_on_a_grid() {
         let a = grid_laplacian(120, 1e-3);
