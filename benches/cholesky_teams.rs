@@ -12,7 +12,10 @@
 //! whose storage bindings hold the factor's updates in one buffer.
 //! `scripts/gpu-bench.sh` runs it where its binary is given.
 
-use metricdeform::shape::{ShapeModel, ShapeWeights};
+#[path = "../tests/common/mod.rs"]
+mod common;
+
+use metricdeform::shape::ShapeModel;
 use solver_cpu::{SpdSolver, SystemKind};
 use solver_gpu::kernels;
 use std::path::Path;
@@ -36,17 +39,7 @@ fn row(name: &str) {
         .subdivide_uniform(cut);
     let topo = metricdeform::mesh::topology::Topology::build(&mesh);
     let mut model = ShapeModel::new(&mesh, &topo, Vec::new()).unwrap();
-    let s = vec![1.1; mesh.num_faces()];
-    let c = vec![1.1; mesh.num_vertices()];
-    let w = ShapeWeights {
-        k_f: 1000.0,
-        k_m: 1.0,
-        k_l: 1.0,
-        k_p: 1000.0,
-    };
-    model
-        .assemble_and_factor(&mesh, &mesh.positions, &s, &c, &w)
-        .unwrap();
+    common::assemble_growing_tenth(&mut model, &mesh);
     let (a, fixed) = model.system();
     let (a, fixed) = (a.clone(), fixed.to_vec());
     let n = 3 * a.n();

@@ -12,7 +12,10 @@
 //! / time per PCG iteration. The CPU PCG's matrix is the isotropic-plus-ring form
 //! (`iso_spmv_bytes`), the GPU's the explicit blocks (`spmv_bytes`).
 
-use metricdeform::shape::{ShapeModel, ShapeWeights};
+#[path = "../tests/common/mod.rs"]
+mod common;
+
+use metricdeform::shape::ShapeModel;
 use metricdeform::Mesh;
 use solver_cpu::{BlockPcgSolver, BlockSym3, CholeskySolver, IsoRingSym3, SpdSolver};
 use solver_gpu::{MixedPrecision, Preconditioner};
@@ -63,19 +66,8 @@ fn row(label: &str, mesh: &Mesh, quick_direct: bool) {
     let topo = metricdeform::mesh::topology::Topology::build(mesh);
     let mut model = ShapeModel::new(mesh, &topo, Vec::new()).unwrap();
     let nf = mesh.num_faces();
-    let n = mesh.num_vertices();
     // The first outer iteration of a demanding job: every face asked to grow 10 %.
-    let s = vec![1.1; nf];
-    let c = vec![1.1; n];
-    let w = ShapeWeights {
-        k_f: 1000.0,
-        k_m: 1.0,
-        k_l: 1.0,
-        k_p: 1000.0,
-    };
-    model
-        .assemble_and_factor(mesh, &mesh.positions, &s, &c, &w)
-        .unwrap();
+    common::assemble_growing_tenth(&mut model, mesh);
     let b: Vec<f64> = model.reference_gradient().iter().map(|g| -g).collect();
     let (iso, fixed) = model.system();
     // The CPU PCG works on the model's isotropic-plus-ring form; the direct and

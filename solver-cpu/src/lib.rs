@@ -826,7 +826,9 @@ mod tests {
     #[test]
     fn nested_dissection_is_the_same_on_several_threads_at_once() {
         let a = grid_laplacian(160, 1e-3);
-        let alone = crate::cholesky::nested_dissection(&a).expect("METIS ordering").0;
+        let alone = crate::cholesky::nested_dissection(&a)
+            .expect("METIS ordering")
+            .0;
         let together: Vec<Vec<usize>> = std::thread::scope(|scope| {
             let runs: Vec<_> = (0..4)
                 .map(|_| scope.spawn(|| crate::cholesky::nested_dissection(&a).unwrap().0))

@@ -843,6 +843,38 @@ mod tests {
         a
     }
 
+    /// The precisions the adapter runs the factor's solves in.
+    fn precisions(ctx: &Context) -> Vec<Precision> {
+        match ctx.shader_f64 {
+            true => vec![Precision::F32, Precision::F64],
+            false => vec![Precision::F32],
+        }
+    }
+
+    /// The host's supernodal factor of `k` in `precision` (nested
+    /// dissection), prepared.
+    fn host_factor(k: &SymCsc, precision: Precision) -> CholeskySolver {
+        let mut host = match precision {
+            Precision::F32 => CholeskySolver::single_precision(),
+            Precision::F64 => CholeskySolver::new(),
+        };
+        host.supernodal = true;
+        host.set_fill_ordering(FillOrdering::NestedDissection);
+        host.prepare(k).unwrap();
+        host
+    }
+
+    /// Values read back in `precision`, as f64.
+    fn decode(precision: Precision, z: &[u8]) -> Vec<f64> {
+        match precision {
+            Precision::F32 => bytemuck::cast_slice::<u8, f32>(z)
+                .iter()
+                .map(|&v| v as f64)
+                .collect(),
+            Precision::F64 => bytemuck::cast_slice::<u8, f64>(z).to_vec(),
+        }
+    }
+
     /// One application of `steps` to `r` (`ncols` columns) on the GPU.
     fn apply(
         ctx: &Context,
@@ -888,18 +920,8 @@ mod tests {
         let k = grid(70, 60);
         let n = k.n;
         let (bs, ncols) = (3, 2);
-        let mut precisions = vec![Precision::F32];
-        if ctx.shader_f64 {
-            precisions.push(Precision::F64);
-        }
-        for precision in precisions {
-            let mut host = match precision {
-                Precision::F32 => CholeskySolver::single_precision(),
-                Precision::F64 => CholeskySolver::new(),
-            };
-            host.supernodal = true;
-            host.set_fill_ordering(FillOrdering::NestedDissection);
-            host.prepare(&k).unwrap();
+        for precision in precisions(ctx) {
+            let mut host = host_factor(&k, precision);
             let rhs: Vec<f64> = (0..n * bs * ncols)
                 .map(|i| ((i * 7919) % 1013) as f64 / 1013.0 - 0.5)
                 .collect();
@@ -936,13 +958,7 @@ mod tests {
             let z1 = apply(ctx, &one, &r, &z, &rhs, ncols, precision);
             let z2 = apply(ctx, &split, &r, &z, &rhs, ncols, precision);
             assert!(z1 == z2, "{precision:?}: split updates differ");
-            let got: Vec<f64> = match precision {
-                Precision::F32 => bytemuck::cast_slice::<u8, f32>(&z2)
-                    .iter()
-                    .map(|&v| v as f64)
-                    .collect(),
-                Precision::F64 => bytemuck::cast_slice::<u8, f64>(&z2).to_vec(),
-            };
+            let got = decode(precision, &z2);
             let err = got
                 .iter()
                 .zip(&want)
@@ -995,19 +1011,8 @@ mod tests {
         let ctx = &s.ctx;
         let k = grid(90, 80);
         let (bs, ncols) = (3, 1);
-        let mut precisions = vec![Precision::F32];
-        if ctx.shader_f64 {
-            precisions.push(Precision::F64);
-        }
-        for precision in precisions {
-            let mut host = match precision {
-                Precision::F32 => CholeskySolver::single_precision(),
-                Precision::F64 => CholeskySolver::new(),
-            };
-            host.supernodal = true;
-            host.set_fill_ordering(FillOrdering::NestedDissection);
-            host.prepare(&k).unwrap();
-            let mut f = host.take_supernodal_factor().unwrap();
+        for precision in precisions(ctx) {
+            let mut f = host_factor(&k, precision).take_supernodal_factor().unwrap();
             f.invert_diagonal_blocks();
             let limit = crate::matrix::binding_limit(ctx);
             let g = GpuFactor::upload(ctx, &f, limit).unwrap();
@@ -1035,17 +1040,11 @@ mod tests {
             let rhs: Vec<f64> = (0..len)
                 .map(|i| ((i * 7919) % 1013) as f64 / 1013.0 - 0.5)
                 .collect();
-            let decode = |z: Vec<u8>| -> Vec<f64> {
-                match precision {
-                    Precision::F32 => bytemuck::cast_slice::<u8, f32>(&z)
-                        .iter()
-                        .map(|&v| v as f64)
-                        .collect(),
-                    Precision::F64 => bytemuck::cast_slice::<u8, f64>(&z).to_vec(),
-                }
-            };
-            let z1 = decode(apply(ctx, &one, &r, &z, &rhs, ncols, precision));
-            let z2 = decode(apply(ctx, &teams, &r, &z, &rhs, ncols, precision));
+            let z1 = decode(precision, &apply(ctx, &one, &r, &z, &rhs, ncols, precision));
+            let z2 = decode(
+                precision,
+                &apply(ctx, &teams, &r, &z, &rhs, ncols, precision),
+            );
             assert!(z2.iter().all(|v| v.is_finite()));
             let err = z1
                 .iter()

@@ -10,6 +10,7 @@ use metricdeform::mesh::io;
 use metricdeform::pipeline::{deform, Options, SolverBackend};
 use metricdeform::problem::Problem;
 use metricdeform::report::constraint_rows;
+use metricdeform::shape::{ShapeModel, ShapeWeights};
 use metricdeform::Mesh;
 use std::path::{Path, PathBuf};
 
@@ -218,4 +219,21 @@ pub fn max_deviation(mesh: &Mesh, a: &[DVec3], b: &[DVec3]) -> f64 {
         .map(|(p, q)| (*p - *q).length())
         .fold(0.0, f64::max)
         / diag
+}
+
+/// The shape system of the first outer iteration of a demanding job, assembled
+/// (and factored) in `model`: every face asked to grow 10 % (`s` and `c` 1.1),
+/// weights `k_f` 1000, `k_m = k_l` 1, `k_p` 1000.
+pub fn assemble_growing_tenth(model: &mut ShapeModel, mesh: &Mesh) {
+    let s = vec![1.1; mesh.num_faces()];
+    let c = vec![1.1; mesh.num_vertices()];
+    let w = ShapeWeights {
+        k_f: 1000.0,
+        k_m: 1.0,
+        k_l: 1.0,
+        k_p: 1000.0,
+    };
+    model
+        .assemble_and_factor(mesh, &mesh.positions, &s, &c, &w)
+        .unwrap();
 }
