@@ -833,9 +833,10 @@ fn adopt_factor_ahead(model: &mut ShapeModel, ahead: FactorAhead, kind: SystemKi
 /// the shape preconditioner on vertices, Eq. 7; made on the host, and
 /// uploaded as the GPU backend's Cholesky preconditioners) need fill-reducing
 /// orderings. The shape pattern (the 2-ring) gets METIS nested dissection,
-/// computed here once the shape model is set up and given to its solver; the
-/// face pattern gets faer's minimum degree, returned for the scale-factor
-/// solver: METIS runs one call at a time ([`nested_dissection_of_pattern`]:
+/// computed here once the shape model is set up and given to its solver,
+/// where the solver wants it ([`SpdSolver::wants_nested_dissection`]: the
+/// GPU's does not, and gets faer's minimum degree); the face pattern gets
+/// minimum degree, returned for the scale-factor solver: METIS runs one call at a time ([`nested_dissection_of_pattern`]:
 /// its random numbers are global state, and two calls at once gave orderings
 /// that differed from run to run), and minimum degree on the faces takes
 /// 0.8 s at homer 1.2M against METIS's 4.3 s for a factor of 53M values
@@ -848,6 +849,10 @@ fn fill_orderings(p: &Problem, model: &mut ShapeModel) -> Option<FillOrdering> {
     let vertices_big = nv >= NESTED_DISSECTION_FROM;
     if !faces_big || !vertices_big {
         return None;
+    }
+    if !model.solver().wants_nested_dissection() {
+        model.solver().set_fill_ordering(FillOrdering::Amd);
+        return Some(FillOrdering::Amd);
     }
     let t = Instant::now();
     let h = model.matrix();

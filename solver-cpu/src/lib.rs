@@ -375,6 +375,14 @@ pub trait SpdSolver {
     /// factor (of the scalar unknowns, or of the block rows of a block matrix);
     /// ignored by the others.
     fn set_fill_ordering(&mut self, _ordering: FillOrdering) {}
+    /// Whether a large factor of this solver's is worth a METIS
+    /// nested-dissection ordering (the default: the least fill, so the least
+    /// bytes per solve), or only faer's minimum degree (several times faster
+    /// to compute, for more fill): where the solves stream the factor at a
+    /// GPU's bandwidth, the ordering's seconds cost more than the fill.
+    fn wants_nested_dissection(&self) -> bool {
+        true
+    }
     /// A Cholesky solver set up as this one's factor of the shape matrices'
     /// isotropic part `K` will be (fill ordering, precision), for that
     /// factor's symbolic analysis to run ahead, on another thread, while the
