@@ -466,7 +466,7 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
     let mut shape_solver = o.backend.shape_solver()?;
     shape_solver.set_system_kind(SystemKind::ScaleDriven);
     let mut model = ShapeModel::with_solver(mesh, &p.topo, p.handles.clone(), shape_solver)?;
-    let face_ordering = fill_orderings(p, &mut model);
+    shape_fill_ordering(p, &mut model);
     crate::memory::release_free_memory();
     model
         .solver()
@@ -505,9 +505,8 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
                 {
                     let mut solver = o.backend.scale_solver()?;
                     solver.set_system_kind(SystemKind::ScaleFactors);
-                    if let Some(order) = face_ordering {
-                        solver.set_fill_ordering(order);
-                    }
+                    // Minimum degree at every size: see shape_fill_ordering.
+                    solver.set_fill_ordering(FillOrdering::Amd);
                     solver
                 },
             )?))
@@ -829,30 +828,29 @@ fn adopt_factor_ahead(model: &mut ShapeModel, ahead: FactorAhead, kind: SystemKi
     }
 }
 
-/// Every backend's two large factorizations (scale factors on faces, Eq. 3;
-/// the shape preconditioner on vertices, Eq. 7; made on the host, and
-/// uploaded as the GPU backend's Cholesky preconditioners) need fill-reducing
-/// orderings. The shape pattern (the 2-ring) gets METIS nested dissection,
-/// computed here once the shape model is set up and given to its solver,
-/// where the solver wants it ([`SpdSolver::wants_nested_dissection`]: the
-/// GPU's does not, and gets faer's minimum degree); the face pattern gets
-/// minimum degree, returned for the scale-factor solver: METIS runs one call at a time ([`nested_dissection_of_pattern`]:
-/// its random numbers are global state, and two calls at once gave orderings
-/// that differed from run to run), and minimum degree on the faces takes
-/// 0.8 s at homer 1.2M against METIS's 4.3 s for a factor of 53M values
-/// against 35M, made in the same 1.0 s (2-core development machine,
-/// 2026-11-26). Sizes below [`NESTED_DISSECTION_FROM`] keep the solvers' own
-/// (AMD) choice.
-fn fill_orderings(p: &Problem, model: &mut ShapeModel) -> Option<FillOrdering> {
-    let (nf, nv) = (p.mesh.num_faces(), p.mesh.num_vertices());
-    let faces_big = !p.constraints.is_empty() && nf >= NESTED_DISSECTION_FROM;
-    let vertices_big = nv >= NESTED_DISSECTION_FROM;
-    if !faces_big || !vertices_big {
-        return None;
+/// The fill-reducing ordering of the shape factor (the preconditioner of
+/// Eqs. 7 and 8, on the 2-ring pattern; made on the host, and uploaded as the
+/// GPU backend's Cholesky preconditioner): from [`NESTED_DISSECTION_FROM`]
+/// vertices on, METIS nested dissection where the solver wants it
+/// ([`SpdSolver::wants_nested_dissection`]), else faer's minimum degree (the
+/// GPU's: the factor is streamed at the device's bandwidth, and METIS's
+/// seconds on the host bound the speed-up). Below that size the solver's own
+/// choice (minimum degree) stands.
+///
+/// The scale factors' face pattern (Eq. 3) is ordered by minimum degree at
+/// every size (where its solver is made): METIS runs one call at a time
+/// ([`nested_dissection_of_pattern`]: its random numbers are global state,
+/// and two calls at once gave orderings that differed from run to run), and
+/// minimum degree on the faces takes 0.8 s at homer 1.2M against METIS's
+/// 4.3 s, for a factor of 53M values against 35M made in the same 1.0 s
+/// (2-core development machine, 2026-11-26).
+fn shape_fill_ordering(p: &Problem, model: &mut ShapeModel) {
+    if p.mesh.num_vertices() < NESTED_DISSECTION_FROM {
+        return;
     }
     if !model.solver().wants_nested_dissection() {
         model.solver().set_fill_ordering(FillOrdering::Amd);
-        return Some(FillOrdering::Amd);
+        return;
     }
     let t = Instant::now();
     let h = model.matrix();
@@ -866,7 +864,6 @@ fn fill_orderings(p: &Problem, model: &mut ShapeModel) -> Option<FillOrdering> {
             .solver()
             .set_fill_ordering(FillOrdering::Given(forward.into()));
     }
-    Some(FillOrdering::Amd)
 }
 
 fn compact(groups: &[usize]) -> Vec<usize> {

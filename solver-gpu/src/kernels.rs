@@ -257,23 +257,10 @@ pub fn squared_laplacian(s: &mut GpuSolver, r: &[f32], ncols: usize) -> Result<V
 /// `prepare_shape_owned`). The work vector and `z` are poisoned with NaN first.
 pub fn cholesky(s: &mut GpuSolver, r: &[f32], ncols: usize) -> Result<Vec<f32>, GpuError> {
     check_cols(s, r.len(), ncols)?;
-    let Some(precision) = s.chol.as_ref().map(|f| f.precision) else {
-        return Err(GpuError::Backend(
-            "the Cholesky preconditioner is not active".into(),
-        ));
-    };
-    // An f64 factor runs on the mixed-precision PCG's f64 vectors.
-    let f64 = precision == crate::precision::Precision::F64;
-    if f64 {
-        s.mixed_workspace(ncols)?;
-    } else {
-        s.workspace(ncols)?;
-    }
+    let precision = cholesky_workspace(s, ncols)?;
+    let ws = cholesky_ws(s, precision);
+    let f64 = precision == Precision::F64;
     let ctx = &s.ctx;
-    let ws = match f64 {
-        true => &s.mixed.as_ref().unwrap().ws,
-        false => s.ws.as_ref().unwrap(),
-    };
     let c = ws.chol.as_ref().unwrap();
     let input: Vec<f64> = r.iter().map(|&v| v as f64).collect();
     ctx.write_buffer(&ws.r, 0, &precision.encode(&input));
@@ -293,6 +280,30 @@ pub fn cholesky(s: &mut GpuSolver, r: &[f32], ncols: usize) -> Result<Vec<f32>, 
             Ok(z.iter().map(|&v| v as f32).collect())
         }
         false => ctx.read(&ws.z, r.len(), &mut None, Some(enc)),
+    }
+}
+
+/// The active Cholesky preconditioner's precision, with the workspace its
+/// solves run on made for `ncols` columns ([`cholesky_ws`]).
+fn cholesky_workspace(s: &mut GpuSolver, ncols: usize) -> Result<Precision, GpuError> {
+    let Some(precision) = s.chol.as_ref().map(|f| f.precision) else {
+        return Err(GpuError::Backend(
+            "the Cholesky preconditioner is not active".into(),
+        ));
+    };
+    match precision {
+        Precision::F64 => s.mixed_workspace(ncols)?,
+        Precision::F32 => s.workspace(ncols)?,
+    };
+    Ok(precision)
+}
+
+/// The workspace a factor of `precision` solves on: an f64 factor runs on
+/// the mixed-precision PCG's f64 vectors (made by [`cholesky_workspace`]).
+fn cholesky_ws(s: &GpuSolver, precision: Precision) -> &crate::pcg::Workspace {
+    match precision {
+        Precision::F64 => &s.mixed.as_ref().unwrap().ws,
+        Precision::F32 => s.ws.as_ref().unwrap(),
     }
 }
 
@@ -511,21 +522,9 @@ pub fn time_cholesky(
     most: u32,
 ) -> Result<CholeskyTiming, GpuError> {
     check_cols(s, r.len(), ncols)?;
-    let Some(precision) = s.chol.as_ref().map(|f| f.precision) else {
-        return Err(GpuError::Backend(
-            "the Cholesky preconditioner is not active".into(),
-        ));
-    };
+    let precision = cholesky_workspace(s, ncols)?;
+    let ws = cholesky_ws(s, precision);
     let f64 = precision == Precision::F64;
-    if f64 {
-        s.mixed_workspace(ncols)?;
-    } else {
-        s.workspace(ncols)?;
-    }
-    let ws = match f64 {
-        true => &s.mixed.as_ref().unwrap().ws,
-        false => s.ws.as_ref().unwrap(),
-    };
     let steps = s
         .cholesky_steps_with(precision, (&ws.r, &ws.z), 3, ncols, most)?
         .ok_or_else(|| GpuError::Backend("no Cholesky steps".into()))?;
