@@ -4,7 +4,7 @@
 
 use crate::GpuError;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, OnceLock};
 
 /// Uniform parameters shared by every shader (each declares the same struct).
 #[repr(C)]
@@ -225,10 +225,26 @@ const BACKENDS: wgpu::Backends = wgpu::Backends::VULKAN
     .union(wgpu::Backends::METAL)
     .union(wgpu::Backends::DX12);
 
+/// The process's one wgpu instance, made on first use and never dropped.
+///
+/// NVIDIA's Linux Vulkan driver is not safe against instances made and dropped
+/// on several threads at once (gfx-rs/wgpu#5930): the conformance suite, 16
+/// threads each opening its own context, died of SIGSEGV in three runs out
+/// of four on an H100 (driver 580.159.04), at an address in no library's
+/// symbols with no frame of ours on that thread's stack; one test at a time
+/// it passed. With one instance for the process, the driver's libraries stay
+/// loaded and no instance is made concurrently; adapters and devices are still
+/// opened and dropped per context. `WGPU_BACKEND` and the other variables
+/// `with_env` reads are read once, at first use.
 fn instance() -> wgpu::Instance {
-    let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
-    desc.backends = BACKENDS;
-    wgpu::Instance::new(desc.with_env())
+    static INSTANCE: OnceLock<wgpu::Instance> = OnceLock::new();
+    INSTANCE
+        .get_or_init(|| {
+            let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
+            desc.backends = BACKENDS;
+            wgpu::Instance::new(desc.with_env())
+        })
+        .clone()
 }
 
 impl AdapterSummary {
