@@ -40,7 +40,8 @@ else
   commit="checkout $(git rev-parse --short HEAD 2>/dev/null || echo '?') (no $BIN/COMMIT: the binaries' own commit is unknown)"
 fi
 echo "device: ${device:-none}; CPU: ${cpu:-unknown}, $(nproc) cores; $(date -u +%Y-%m-%d); $commit"
-log=$(mktemp -d)
+log=${LOG:-$(mktemp -d)}
+mkdir -p "$log"
 # Field k of a row's table line: | name | faces | multipliers | iterations | load | sd | ft | total | err | peak |
 field() { awk -F'|' -v k="$2" '/^\| girths/ {gsub(/ /, "", $k); print $k; exit}' "$1"; }
 echo
