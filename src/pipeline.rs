@@ -130,13 +130,14 @@ fn open_gpu() -> Result<Box<dyn SpdSolver>> {
 
 /// `--backend auto`'s measured crossover: the smallest mesh, in faces, from
 /// which the GPU backend ran faster than the CPU backend on the same machine
-/// (BENCHMARKS.md, "`auto` crossover"). `None`: at no measured size from
-/// which on. On an NVIDIA H100 against its 16-core host (2026-11-24, the
-/// Cholesky preconditioner) the GPU backend was 1.50x slower at 108k faces,
-/// 1.25x faster at 1.2M, and slower at 4.3M, where its factor did not fit
-/// one storage binding then (split over several since, not yet measured);
-/// so `auto` uses the CPU until the GPU is measured ahead from some size on.
-pub const GPU_FASTER_FROM_FACES: Option<usize> = None;
+/// (BENCHMARKS.md, "`auto` crossover"). `None` would mean at no measured
+/// size. On an NVIDIA H100 against its 16-core host (2026-11-27, the
+/// Cholesky preconditioner with teams of lanes) the GPU backend was 11.5x
+/// slower on the 5.9k-face demo job, 1.95x slower at 12k faces, even at 48k
+/// (1.05x faster, one run), 1.29x and 1.67x faster at 108k (two runs), 2.19x
+/// faster at 1.2M and at least 2.0x faster at 4.3M: from 100k faces on it was
+/// faster in every run.
+pub const GPU_FASTER_FROM_FACES: Option<usize> = Some(100_000);
 
 /// Whether `--backend auto` runs a mesh of `faces` faces on the GPU: only on
 /// a hardware adapter (never a CPU emulation such as lavapipe) and only from
@@ -196,8 +197,10 @@ pub fn choose_backend(name: &str, faces: usize) -> Result<BackendChoice> {
             },
             Ok(a) if a.device_type != "Cpu" => cpu(
                 Some(format!(
-                    "backend: cpu (auto: the GPU backend is not measured faster than the CPU at \
-                     {faces} faces; --backend gpu uses {} anyway)",
+                    "backend: cpu (auto: the GPU backend is measured faster than the CPU {}, \
+                     not at {faces} faces; --backend gpu uses {} anyway)",
+                    GPU_FASTER_FROM_FACES
+                        .map_or("at no size".into(), |f| format!("from {f} faces on")),
                     a.name
                 )),
                 false,
