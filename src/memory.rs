@@ -11,6 +11,15 @@ pub fn resident_memory_mb() -> f64 {
     proc_status_mb("VmRSS:")
 }
 
+/// Memory the system can give this process without swapping (Linux
+/// `MemAvailable`, `/proc/meminfo`), in bytes; `None` where unknown.
+pub fn available_memory_bytes() -> Option<u64> {
+    let info = std::fs::read_to_string("/proc/meminfo").ok()?;
+    let line = info.lines().find(|l| l.starts_with("MemAvailable:"))?;
+    let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb * 1024)
+}
+
 /// Hands the allocator's free memory back to the system (glibc keeps freed
 /// blocks of its per-thread arenas resident; a large set-up step leaves hundreds
 /// of MiB of them at a million faces). A no-op elsewhere.

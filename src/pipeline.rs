@@ -248,6 +248,16 @@ pub struct Options {
     /// the default; `"anderson"` sets 0).
     pub anderson_from_faces: usize,
     pub backend: SolverBackend,
+    /// Whether a backend that factors the shape systems' `K` ahead on other
+    /// threads (the GPU's) factors both kinds' at once, from the input's
+    /// positions, while the first scale factors are estimated, rather than
+    /// the fine-tune's after the scale-driven kind's. The factors, and so
+    /// the result, are the same to the bit; at once, the fine-tune need not
+    /// wait for its factor (8.7 s of a 32.4-s run at 1.2M faces on an H100's
+    /// host), and the host holds two factors at a time. `None`: at once
+    /// where the host has 4 threads or more and free memory for four such
+    /// factors ([`factorizations_at_once`]).
+    pub overlap_factorizations: Option<bool>,
     /// Checked at every progress report: once set, the run stops with
     /// [`Error::Interrupted`].
     pub interrupt: Option<Arc<AtomicBool>>,
@@ -291,6 +301,7 @@ impl Default for Options {
             preview: None,
             anderson_depth: ANDERSON_DEPTH,
             anderson_from_faces: ANDERSON_FROM_FACES,
+            overlap_factorizations: None,
             backend: SolverBackend::Cpu,
             interrupt: None,
         }
@@ -392,6 +403,7 @@ fn work_sum(a: WorkCounters, b: Option<WorkCounters>) -> WorkCounters {
     let b = b.unwrap_or_default();
     WorkCounters {
         preconditioner_setups: a.preconditioner_setups + b.preconditioner_setups,
+        setups_from_factors_ahead: a.setups_from_factors_ahead + b.setups_from_factors_ahead,
         solves: a.solves + b.solves,
         iterations: a.iterations + b.iterations,
         iterations_max: a.iterations_max.max(b.iterations_max),
@@ -521,6 +533,38 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
         // scale factors are estimated.
         let mut scale_driven_ahead =
             factor_ahead(&mut model, mesh, &x, &o.shape, SystemKind::ScaleDriven);
+        // The fine-tune's factor is of the input's `K` too (made at the
+        // first outer iteration otherwise, before the positions move): where
+        // the host has the room, it is made beside the scale-driven kind's.
+        let mut fine_tune_spawned = false;
+        if fine_tune_follows && scale_driven_ahead.is_some() {
+            let bytes = model
+                .solver()
+                .isotropic_factorer(SystemKind::FineTune)
+                .map_or(0, |t| {
+                    t.factor_nnz() * if t.is_single_precision() { 4 } else { 8 }
+                });
+            let free = crate::memory::available_memory_bytes();
+            let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+            let at_once = o
+                .overlap_factorizations
+                .unwrap_or_else(|| factorizations_at_once(threads, free, bytes as u64));
+            log::debug!(
+                "shape factors ahead {} ({threads} threads, {} MiB free, a factor {:.0} MiB)",
+                if at_once {
+                    "at once"
+                } else {
+                    "one after the other"
+                },
+                free.map_or("?".into(), |f| format!("{:.0}", f as f64 / 1048576.0)),
+                bytes as f64 / 1048576.0
+            );
+            if at_once {
+                fine_tune_ahead =
+                    factor_ahead(&mut model, mesh, &x, &o.fine_tune, SystemKind::FineTune);
+                fine_tune_spawned = true;
+            }
+        }
         stop_reason = "iteration cap".into();
         // The constraints in scale-factor form; their coefficients are
         // refilled at every iteration.
@@ -546,9 +590,12 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
             // is the fine-tune kind's set-up, made early: its upload and
             // time count in the scale-driven phase's totals, not in an
             // outer iteration's (the set-up itself in the fine-tune's).
-            if fine_tune_ahead
-                .as_ref()
-                .is_some_and(FactorAhead::is_finished)
+            // Not before the scale-driven kind's set-up, in the first, has
+            // taken its own factor made ahead: the solver keeps one such.
+            if iterations > 0
+                && fine_tune_ahead
+                    .as_ref()
+                    .is_some_and(FactorAhead::is_finished)
             {
                 let ahead = fine_tune_ahead.take().unwrap();
                 adopt_factor_ahead(&mut model, ahead, SystemKind::FineTune);
@@ -628,7 +675,7 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
                 adopt_factor_ahead(&mut model, ahead, SystemKind::ScaleDriven);
             }
             model.assemble_with_positions(mesh, &x, &s, &c, &o.shape, affine)?;
-            if iterations == 0 && fine_tune_follows {
+            if iterations == 0 && fine_tune_follows && !fine_tune_spawned {
                 fine_tune_ahead =
                     factor_ahead(&mut model, mesh, &x, &o.fine_tune, SystemKind::FineTune);
             }
@@ -785,10 +832,12 @@ fn scale_system_beside_analysis(
 /// (at 1.2M faces 2.5-2.9 s for the scale-driven kind, 5.5-5.8 s for the
 /// fine-tune's). The scale-driven kind's is made from its first matrix's
 /// `K` itself (the input's positions), while the first scale factors are
-/// estimated: the same factor. The fine-tune's is made from the first
-/// scale-driven step's positions instead of the fine-tune's start, while
-/// the scale-driven iteration runs: another preconditioner of the same
-/// systems (the same fine-tune PCG iterations at 108k and 1.2M faces,
+/// estimated: the same factor. The fine-tune's is made from the input's
+/// positions too (where the first scale-driven step starts) instead of the
+/// fine-tune's start, while the scale-driven iteration runs, or from the
+/// start beside the scale-driven kind's where the host has the room
+/// ([`factorizations_at_once`]): another preconditioner of the same systems
+/// (the same fine-tune PCG iterations at 108k and 1.2M faces,
 /// BENCHMARKS.md), handed to the solver as soon as it is made (the GPU
 /// uploads it beside the scale-driven factor, so that the host does not
 /// hold it).
@@ -811,6 +860,17 @@ fn factor_ahead(
     FactorAhead::spawn(twin, k)
         .inspect_err(|e| log::debug!("{kind:?} system's factor of K ahead: {e}"))
         .ok()
+}
+
+/// Whether the host makes the two shape kinds' factors ahead at once
+/// ([`Options::overlap_factorizations`]): with `threads` hardware threads
+/// and `free` bytes of available memory, for factors of `factor_bytes`
+/// each. Each numeric factorization keeps one thread busy (faer's
+/// supernodal factorization runs its supernodes one after another), beside
+/// the main thread and the GPU's driver; two factors and their scratch at
+/// once, with as much again to spare.
+pub fn factorizations_at_once(threads: usize, free: Option<u64>, factor_bytes: u64) -> bool {
+    threads >= 4 && free.is_some_and(|f| f / 4 >= factor_bytes)
 }
 
 /// Hands the factor `ahead` made for `kind` to the shape solver, once made;

@@ -114,6 +114,69 @@ fn gpu_sets_up_each_preconditioner_once_and_moves_one_value_set_per_outer_iterat
     assert!(rows.iter().all(|r| r.met), "{rows:?}");
 }
 
+/// The GPU's two shape factors made ahead at once, from the input's
+/// positions, are the factors made one after the other: the same result to
+/// the bit. Either way each shape kind's set-up takes its factor made ahead
+/// (the solver keeps one such at a time: the fine-tune's must not be handed
+/// over before the scale-driven kind has taken its own).
+#[test]
+fn gpu_shape_factors_made_at_once_give_the_result_made_one_after_the_other() {
+    if !gpu_available() {
+        return;
+    }
+    let job = job(SPOT_DEMO);
+    let problem = Problem::load(&job).unwrap();
+    let runs: Vec<Vec<u64>> = [false, true]
+        .into_iter()
+        .map(|at_once| {
+            let mut options = Options::from_spec(&job.spec.solver);
+            options.backend = SolverBackend::Gpu;
+            // Two outer iterations, then the fine-tune: both kinds set up.
+            options.max_iterations = 2;
+            options.overlap_factorizations = Some(at_once);
+            let out = deform(&problem, &options, &mut |_| {}).unwrap();
+            let w = &out.solver;
+            assert_eq!(
+                (
+                    w.scale_driven.setups_from_factors_ahead,
+                    w.fine_tune.setups_from_factors_ahead,
+                    w.fine_tune.preconditioner_setups
+                ),
+                (1, 1, 1),
+                "at once: {at_once}; {w:?}"
+            );
+            out.positions
+                .iter()
+                .flat_map(|p| p.to_array())
+                .map(f64::to_bits)
+                .collect()
+        })
+        .collect();
+    assert!(runs[0] == runs[1], "the results differ");
+}
+
+/// The host makes the two factors at once only with threads and memory to
+/// spare.
+#[test]
+fn shape_factors_are_made_at_once_only_with_room() {
+    use metricdeform::pipeline::factorizations_at_once;
+    let gib = 1u64 << 30;
+    assert!(factorizations_at_once(16, Some(128 * gib), 3 * gib));
+    assert!(
+        !factorizations_at_once(2, Some(128 * gib), gib),
+        "two threads"
+    );
+    assert!(
+        !factorizations_at_once(16, Some(3 * gib), gib),
+        "under four factors free"
+    );
+    assert!(factorizations_at_once(4, Some(4 * gib), gib));
+    assert!(
+        !factorizations_at_once(16, None, gib),
+        "free memory unknown"
+    );
+}
+
 /// The CPU backend reports its work too: factorizations, PCG iterations, no
 /// GPU time and no transfers.
 #[test]

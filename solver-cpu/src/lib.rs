@@ -68,6 +68,9 @@ pub struct WorkCounters {
     /// Preconditioner set-ups: numeric factorizations (CPU), AMG hierarchy
     /// builds (GPU).
     pub preconditioner_setups: usize,
+    /// Of those set-ups, the ones that took a factor made ahead on another
+    /// thread ([`FactorAhead`], [`SpdSolver::adopt_isotropic_factor`]).
+    pub setups_from_factors_ahead: usize,
     /// Solve calls.
     pub solves: usize,
     /// Iterations summed over solves (0 for direct solves).
@@ -117,6 +120,8 @@ impl WorkCounters {
     pub fn since(&self, earlier: &WorkCounters) -> WorkCounters {
         WorkCounters {
             preconditioner_setups: self.preconditioner_setups - earlier.preconditioner_setups,
+            setups_from_factors_ahead: self.setups_from_factors_ahead
+                - earlier.setups_from_factors_ahead,
             solves: self.solves - earlier.solves,
             iterations: self.iterations - earlier.iterations,
             iterations_max: self.iterations_max,

@@ -80,6 +80,7 @@ pub fn open_with(opts: OpenOptions) -> Result<GpuSolver, GpuError> {
         kind: SystemKind::default(),
         amg_kind: None,
         setups: 0,
+        setups_ahead: 0,
         work: WorkCounters::default(),
         amg_kept: false,
         hints: BatchHints::default(),
@@ -184,6 +185,8 @@ pub struct GpuSolver {
     /// Preconditioner set-ups (AMG hierarchy builds, block-Jacobi
     /// inverses when AMG is off or failed).
     setups: usize,
+    /// Of `setups`, those that took a factor made ahead (`chol_ahead`).
+    setups_ahead: usize,
     /// Solves and iterations.
     work: WorkCounters,
     /// The hierarchy was kept for new values ([`Self::upload`]): a solve
@@ -895,6 +898,7 @@ impl SpdSolver for GpuSolver {
         let t = self.ctx.traffic();
         WorkCounters {
             preconditioner_setups: self.setups,
+            setups_from_factors_ahead: self.setups_ahead,
             device_seconds: t.wait_seconds,
             device_waits: t.waits as usize,
             submit_seconds: t.submit_seconds,

@@ -263,7 +263,10 @@ impl GpuSolver {
         self.squared = None;
         self.amg_kind = None;
         let (g, made) = match ahead {
-            Some(g) => (g, "made ahead".to_string()),
+            Some(g) => {
+                self.setups_ahead += 1;
+                (g, "made ahead".to_string())
+            }
             None => {
                 let f = self.factor_here(k(), precision)?;
                 let factor_seconds = t.elapsed().as_secs_f64();
