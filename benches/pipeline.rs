@@ -52,6 +52,15 @@ fn row(
     let mut options = Options::from_spec(&job.spec.solver);
     options.preview = preview;
     options.backend = backend;
+    // `--factors-at-once on|off`: Options::overlap_factorizations (default:
+    // by the host's threads and free memory).
+    if let Some(j) = std::env::args().position(|a| a == "--factors-at-once") {
+        options.overlap_factorizations = match std::env::args().nth(j + 1).as_deref() {
+            Some("on") => Some(true),
+            Some("off") => Some(false),
+            other => panic!("--factors-at-once {other:?}: expected on or off"),
+        };
+    }
     let mut cpu_marks = Vec::new();
     let out = deform(&problem, &options, &mut host_cpu_marks(&mut cpu_marks)).unwrap();
     let total = t0.elapsed().as_secs_f64();

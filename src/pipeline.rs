@@ -16,8 +16,8 @@ use crate::{Error, Mesh, Result};
 use glam::DVec3;
 use solver_cpu::cholesky::NESTED_DISSECTION_FROM;
 use solver_cpu::{
-    nested_dissection_of_pattern, BlockPcgSolver, CholeskySolver, FactorAhead, FillOrdering,
-    SpdSolver, SystemKind, WorkCounters,
+    nested_dissection_of_pattern, BlockPcgSolver, CholeskySolver, FactorAhead, FactorPlan,
+    FillOrdering, SpdSolver, SymCsc, SystemKind, WorkCounters,
 };
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -249,14 +249,17 @@ pub struct Options {
     pub anderson_from_faces: usize,
     pub backend: SolverBackend,
     /// Whether a backend that factors the shape systems' `K` ahead on other
-    /// threads (the GPU's) factors both kinds' at once, from the input's
-    /// positions, while the first scale factors are estimated, rather than
-    /// the fine-tune's after the scale-driven kind's. The factors, and so
-    /// the result, are the same to the bit; at once, the fine-tune need not
-    /// wait for its factor (8.7 s of a 32.4-s run at 1.2M faces on an H100's
-    /// host), and the host holds two factors at a time. `None`: at once
-    /// where the host has 4 threads or more and free memory for four such
-    /// factors ([`factorizations_at_once`]).
+    /// threads (the GPU's) starts both kinds' factorizations at once, from
+    /// the input's positions, as soon as `K`'s symbolic analysis is made
+    /// (beside the scale factors' set-up), rather than the scale-driven
+    /// kind's after that set-up and the fine-tune's at the first outer
+    /// iteration. The factors, and so the result, are the same to the bit;
+    /// at once, neither the first shape solve nor the fine-tune need wait
+    /// for a factorization (the fine-tune waited 8.7 s of a 32.4-s run at
+    /// 1.2M faces on an H100's 16-core host), and the host holds both
+    /// factors at a time. `None`: at once where the host has 4 threads or
+    /// more and free memory for four such factors
+    /// ([`factorizations_at_once`]).
     pub overlap_factorizations: Option<bool>,
     /// Checked at every progress report: once set, the run stops with
     /// [`Error::Interrupted`].
@@ -526,45 +529,28 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
                 },
             )?))
         };
-        let mut scale_system = scale_system_beside_analysis(&mut model, make_scale_system)?;
+        // Where the host has the room, both shape kinds' factors of the
+        // input's `K` start as soon as `K`'s symbolic analysis is made,
+        // beside the scale factors' set-up (`factorizations_at_once`).
+        let early = FactorsAtOnce::prepare(&mut model, mesh, &x, o, fine_tune_follows);
+        let (mut scale_system, early) =
+            scale_system_beside_analysis(&mut model, make_scale_system, early)?;
         crate::memory::release_free_memory();
-        // The first shape matrix's `K` is known now (it depends on the
-        // positions and weights only): its factor is made while the first
-        // scale factors are estimated.
-        let mut scale_driven_ahead =
-            factor_ahead(&mut model, mesh, &x, &o.shape, SystemKind::ScaleDriven);
-        // The fine-tune's factor is of the input's `K` too (made at the
-        // first outer iteration otherwise, before the positions move): where
-        // the host has the room, it is made beside the scale-driven kind's.
-        let mut fine_tune_spawned = false;
-        if fine_tune_follows && scale_driven_ahead.is_some() {
-            let bytes = model
-                .solver()
-                .isotropic_factorer(SystemKind::FineTune)
-                .map_or(0, |t| {
-                    t.factor_nnz() * if t.is_single_precision() { 4 } else { 8 }
-                });
-            let free = crate::memory::available_memory_bytes();
-            let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
-            let at_once = o
-                .overlap_factorizations
-                .unwrap_or_else(|| factorizations_at_once(threads, free, bytes as u64));
-            log::debug!(
-                "shape factors ahead {} ({threads} threads, {} MiB free, a factor {:.0} MiB)",
-                if at_once {
-                    "at once"
-                } else {
-                    "one after the other"
-                },
-                free.map_or("?".into(), |f| format!("{:.0}", f as f64 / 1048576.0)),
-                bytes as f64 / 1048576.0
-            );
-            if at_once {
-                fine_tune_ahead =
-                    factor_ahead(&mut model, mesh, &x, &o.fine_tune, SystemKind::FineTune);
-                fine_tune_spawned = true;
+        let (mut scale_driven_ahead, fine_tune_spawned) = match early {
+            Some((sd, ft)) => {
+                let spawned = ft.is_some();
+                fine_tune_ahead = ft;
+                (Some(sd), spawned)
             }
-        }
+            // Else the first shape matrix's `K` (it depends on the positions
+            // and weights only) is factored while the first scale factors
+            // are estimated, and the fine-tune's at the first outer
+            // iteration.
+            None => (
+                factor_ahead(&mut model, mesh, &x, &o.shape, SystemKind::ScaleDriven),
+                false,
+            ),
+        };
         stop_reason = "iteration cap".into();
         // The constraints in scale-factor form; their coefficients are
         // refilled at every iteration.
@@ -801,27 +787,131 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
 /// the first scale estimate and the first shape solve (2.7-2.8 s at 1.2M
 /// faces on the development machine, on both backends). A failed analysis
 /// ahead is left to the first factorization, which makes it again and
-/// reports what fails.
+/// reports what fails. With `early`, that thread then starts the shape
+/// kinds' numeric factorizations where the host has the room
+/// ([`FactorsAtOnce::start`]); they come back with the scale system.
+#[allow(clippy::type_complexity)]
 fn scale_system_beside_analysis(
     model: &mut ShapeModel,
     make_scale_system: impl FnOnce() -> Result<Option<ScaleFactorSystem>>,
-) -> Result<Option<ScaleFactorSystem>> {
+    early: Option<FactorsAtOnce>,
+) -> Result<(
+    Option<ScaleFactorSystem>,
+    Option<(FactorAhead, Option<FactorAhead>)>,
+)> {
     let Some(analyser) = model.solver().isotropic_analyser() else {
-        return make_scale_system();
+        return Ok((make_scale_system()?, None));
     };
-    let (made, analysed, seconds) =
-        solver_cpu::analyse_beside(analyser, &model.matrix().iso, make_scale_system);
-    match analysed {
-        Ok(analysed) => {
+    let (made, analysed, seconds) = solver_cpu::analyse_beside_then(
+        analyser,
+        &model.matrix().iso,
+        |analysed| early.and_then(|e| e.start(analysed)),
+        make_scale_system,
+    );
+    let started = match analysed {
+        Ok((analysed, started)) => {
             log::debug!(
                 "symbolic analysis of the shape systems' K, beside the scale factors' set-up: \
                  {seconds:.3} s"
             );
             model.solver().adopt_isotropic_analysis(analysed);
+            started
         }
-        Err(e) => log::debug!("symbolic analysis of K ahead: {e}; left to the factorization"),
+        Err(e) => {
+            log::debug!("symbolic analysis of K ahead: {e}; left to the factorization");
+            None
+        }
+    };
+    Ok((made?, started))
+}
+
+/// The shape kinds' factors of the input's `K`, to be made at once on other
+/// threads as soon as `K`'s symbolic analysis is made
+/// ([`scale_system_beside_analysis`]): each kind's `K` (assembled before
+/// the analysis: it needs the pattern, not the analysis) and how the shape
+/// solver makes its factor ([`SpdSolver::isotropic_factor_plan`]).
+struct FactorsAtOnce {
+    scale_driven: (SymCsc, FactorPlan),
+    fine_tune: Option<(SymCsc, FactorPlan)>,
+    /// [`Options::overlap_factorizations`].
+    choice: Option<bool>,
+}
+
+impl FactorsAtOnce {
+    /// `None` where the solver makes no factors ahead, or the host could
+    /// not make them at once anyway (too few threads, its free memory
+    /// unknown) unless `o` asks for it.
+    fn prepare(
+        model: &mut ShapeModel,
+        mesh: &Mesh,
+        x: &[DVec3],
+        o: &Options,
+        fine_tune_follows: bool,
+    ) -> Option<FactorsAtOnce> {
+        let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+        let possible = match o.overlap_factorizations {
+            Some(choice) => choice,
+            None => threads >= 4 && crate::memory::available_memory_bytes().is_some(),
+        };
+        if !possible {
+            return None;
+        }
+        let plan = model
+            .solver()
+            .isotropic_factor_plan(SystemKind::ScaleDriven)?;
+        let fine_tune_plan = fine_tune_follows
+            .then(|| model.solver().isotropic_factor_plan(SystemKind::FineTune))
+            .flatten();
+        let t = Instant::now();
+        let scale_driven = (model.isotropic_part(mesh, x, &o.shape), plan);
+        let fine_tune = fine_tune_plan.map(|p| (model.isotropic_part(mesh, x, &o.fine_tune), p));
+        log::debug!(
+            "the shape kinds' K for their factors ahead assembled in {:.3} s",
+            t.elapsed().as_secs_f64()
+        );
+        Some(FactorsAtOnce {
+            scale_driven,
+            fine_tune,
+            choice: o.overlap_factorizations,
+        })
     }
-    made
+
+    /// On the analysing thread, `analysed` just made: both factorizations
+    /// started, each on its own thread, where the host has the room for
+    /// them ([`factorizations_at_once`]); `None` else (each kind's factor is
+    /// then made ahead one after the other, [`factor_ahead`]).
+    fn start(self, analysed: &CholeskySolver) -> Option<(FactorAhead, Option<FactorAhead>)> {
+        let (k, plan) = self.scale_driven;
+        let bytes = plan.factor_bytes(analysed);
+        let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+        let free = crate::memory::available_memory_bytes();
+        let at_once = self
+            .choice
+            .unwrap_or_else(|| factorizations_at_once(threads, free, bytes));
+        log::debug!(
+            "shape factors ahead {} ({threads} threads, {} MiB free, a factor {:.0} MiB)",
+            if at_once {
+                "at once, from the symbolic analysis on"
+            } else {
+                "one after the other"
+            },
+            free.map_or("?".into(), |f| format!("{:.0}", f as f64 / 1048576.0)),
+            bytes as f64 / 1048576.0
+        );
+        if !at_once {
+            return None;
+        }
+        let spawn = |k: SymCsc, plan: FactorPlan, kind: SystemKind| {
+            FactorAhead::spawn(plan.twin(analysed)?, k)
+                .inspect_err(|e| log::debug!("{kind:?} system's factor of K ahead: {e}"))
+                .ok()
+        };
+        let scale_driven = spawn(k, plan, SystemKind::ScaleDriven)?;
+        let fine_tune = self
+            .fine_tune
+            .and_then(|(k, plan)| spawn(k, plan, SystemKind::FineTune));
+        Some((scale_driven, fine_tune))
+    }
 }
 
 /// `kind`'s preconditioner, the Cholesky factor of `K` for the weights `w`
@@ -865,10 +955,11 @@ fn factor_ahead(
 /// Whether the host makes the two shape kinds' factors ahead at once
 /// ([`Options::overlap_factorizations`]): with `threads` hardware threads
 /// and `free` bytes of available memory, for factors of `factor_bytes`
-/// each. Each numeric factorization keeps one thread busy (faer's
-/// supernodal factorization runs its supernodes one after another), beside
-/// the main thread and the GPU's driver; two factors and their scratch at
-/// once, with as much again to spare.
+/// each. Each numeric factorization keeps about one thread busy (faer's
+/// supernodal factorization takes its supernodes one after another),
+/// beside the main thread (the scale factors' set-up) and the GPU's
+/// driver; two factors and their scratch at once, with as much again to
+/// spare.
 pub fn factorizations_at_once(threads: usize, free: Option<u64>, factor_bytes: u64) -> bool {
     threads >= 4 && free.is_some_and(|f| f / 4 >= factor_bytes)
 }

@@ -48,15 +48,30 @@ pub const NESTED_DISSECTION_FROM: usize = 50_000;
 /// solver (for [`SpdSolver::adopt_isotropic_analysis`]; `Err` where the
 /// analysis failed or panicked) and the analysis's seconds.
 pub fn analyse_beside<R>(
-    mut analyser: CholeskySolver,
+    analyser: CholeskySolver,
     k: &SymCsc,
     beside: impl FnOnce() -> R,
 ) -> (R, Result<CholeskySolver, SolverError>, f64) {
+    let (made, analysed, seconds) = analyse_beside_then(analyser, k, |_| (), beside);
+    (made, analysed.map(|(a, ())| a), seconds)
+}
+
+/// As [`analyse_beside`], and once the analysis is made, `then(&analysed)`
+/// runs on the analysing thread too (e.g. starts numeric factorizations on
+/// it, [`FactorPlan`]) while `beside()` may still run; its value comes back
+/// with the analysed solver. The seconds are the analysis's alone.
+pub fn analyse_beside_then<R, T: Send>(
+    mut analyser: CholeskySolver,
+    k: &SymCsc,
+    then: impl FnOnce(&CholeskySolver) -> T + Send,
+    beside: impl FnOnce() -> R,
+) -> (R, Result<(CholeskySolver, T), SolverError>, f64) {
     std::thread::scope(|scope| {
         let ahead = scope.spawn(move || {
             let t = std::time::Instant::now();
-            let done = analyser.analyse(k).map(|()| analyser);
-            (done, t.elapsed().as_secs_f64())
+            let done = analyser.analyse(k);
+            let seconds = t.elapsed().as_secs_f64();
+            (done.map(|()| (then(&analyser), analyser)), seconds)
         });
         let made = beside();
         let (analysed, seconds) = ahead.join().unwrap_or_else(|_| {
@@ -67,8 +82,45 @@ pub fn analyse_beside<R>(
                 0.0,
             )
         });
-        (made, analysed, seconds)
+        (made, analysed.map(|(t, a)| (a, t)), seconds)
     })
+}
+
+/// How a solver makes a shape kind's factor of `K` ahead
+/// ([`SpdSolver::isotropic_factor_plan`]), known before the analysis: its
+/// precision, and the most bytes one supernode may take (the device's
+/// storage binding, where the factor goes to a GPU).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FactorPlan {
+    /// The factor in f32.
+    pub single: bool,
+    /// The most bytes of the largest supernode's values.
+    pub largest_supernode_bytes: u64,
+}
+
+impl FactorPlan {
+    /// A numeric twin of `analysed` ([`CholeskySolver::numeric_twin`]) in
+    /// this plan's precision; `None` before an analysis or where the
+    /// largest supernode would not fit.
+    pub fn twin(&self, analysed: &CholeskySolver) -> Option<CholeskySolver> {
+        (analysed.largest_supernode_nnz() as u64 * self.value_bytes()
+            <= self.largest_supernode_bytes)
+            .then(|| analysed.numeric_twin(self.single))
+            .flatten()
+    }
+
+    /// Bytes of the factor's values on `analysed`'s analysis.
+    pub fn factor_bytes(&self, analysed: &CholeskySolver) -> u64 {
+        analysed.factor_nnz() as u64 * self.value_bytes()
+    }
+
+    fn value_bytes(&self) -> u64 {
+        if self.single {
+            4
+        } else {
+            8
+        }
+    }
 }
 
 /// A numeric factorization made on another thread while the caller goes on:

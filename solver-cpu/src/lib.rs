@@ -13,8 +13,8 @@ pub mod pcg;
 
 pub use block::{BlockRows, BlockSym3};
 pub use cholesky::{
-    analyse_beside, nested_dissection_of_pattern, CholeskySolver, FactorAhead, FillOrdering,
-    SupernodalFactor,
+    analyse_beside, analyse_beside_then, nested_dissection_of_pattern, CholeskySolver, FactorAhead,
+    FactorPlan, FillOrdering, SupernodalFactor,
 };
 pub use iso_ring::{sym3_block, IsoRingSym3, SparseRows};
 pub use pcg::{BlockPcgParams, BlockPcgSolver};
@@ -413,6 +413,13 @@ pub trait SpdSolver {
     fn isotropic_factorer(&self, _kind: SystemKind) -> Option<CholeskySolver> {
         None
     }
+    /// How this solver would make `kind`'s factor of `K` ahead, before its
+    /// symbolic analysis exists (for numeric factorizations started on the
+    /// analysing thread as soon as the analysis is made): `None` (the
+    /// default) where it makes no such factor for `kind`.
+    fn isotropic_factor_plan(&self, _kind: SystemKind) -> Option<FactorPlan> {
+        None
+    }
     /// Take `factored`, made from [`SpdSolver::isotropic_factorer`]'s solver,
     /// as `kind`'s preconditioner: that kind's set-up then uploads or uses it
     /// instead of factoring its first matrix's `K` (a preconditioner: made
@@ -679,6 +686,40 @@ mod tests {
         let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
         assert_eq!(bits(&x), bits(&y));
         assert_eq!(solver.symbolic_count, 1);
+    }
+
+    /// A factor plan's twin is a numeric twin in its precision where the
+    /// largest supernode fits its bound, and none where it does not or
+    /// before an analysis; the factor's bytes follow the precision.
+    #[test]
+    fn a_factor_plan_twins_an_analysis_whose_supernodes_fit() {
+        let n = 50;
+        let a = spd(n);
+        let mut s = a.scalar_pattern();
+        a.fill_scalar(&mut s, &vec![false; n]);
+        let mut solver = CholeskySolver::new();
+        let plan = |single, bytes| FactorPlan {
+            single,
+            largest_supernode_bytes: bytes,
+        };
+        assert!(
+            plan(false, u64::MAX).twin(&solver).is_none(),
+            "nothing analysed"
+        );
+        solver.analyse(&s).unwrap();
+        let largest = solver.largest_supernode_nnz() as u64;
+        assert!(largest > 0);
+        for single in [false, true] {
+            let value = if single { 4 } else { 8 };
+            let fits = plan(single, largest * value).twin(&solver).unwrap();
+            assert_eq!(fits.is_single_precision(), single);
+            assert!(!fits.is_factored_on(&solver), "not factored yet");
+            assert!(plan(single, largest * value - 1).twin(&solver).is_none());
+            assert_eq!(
+                plan(single, 0).factor_bytes(&solver),
+                solver.factor_nnz() as u64 * value
+            );
+        }
     }
 
     #[test]

@@ -849,16 +849,19 @@ impl SpdSolver for GpuSolver {
     /// factor's largest supernode would not fit a storage binding (the
     /// kind's set-up then falls back without a factorization).
     fn isotropic_factorer(&self, kind: SystemKind) -> Option<solver_cpu::CholeskySolver> {
-        let precision = self.factor_precision(kind);
+        self.isotropic_factor_plan(kind)?.twin(&self.chol_host)
+    }
+
+    /// In `kind`'s precision, each supernode within one storage binding
+    /// (as `GpuSolver::check_supernodes` asks).
+    fn isotropic_factor_plan(&self, kind: SystemKind) -> Option<solver_cpu::FactorPlan> {
         (kind != SystemKind::ScaleFactors
             && self.preconditioner == Preconditioner::Cholesky
-            && !self.chol_unavailable[0]
-            && self.check_supernodes(&self.chol_host, precision).is_ok())
-        .then(|| {
-            self.chol_host
-                .numeric_twin(precision == precision::Precision::F32)
-        })
-        .flatten()
+            && !self.chol_unavailable[0])
+            .then(|| solver_cpu::FactorPlan {
+                single: self.factor_precision(kind) == precision::Precision::F32,
+                largest_supernode_bytes: matrix::binding_limit(&self.ctx),
+            })
     }
 
     /// Uploaded now (its diagonal blocks inverted), beside the active

@@ -1,0 +1,42 @@
+#!/usr/bin/env bash
+# One device call, everything in priority order, each step time-boxed so
+# that what ran comes back: run from the repository root on the device
+# machine, with .devbin (scripts/device-pack.sh) and .gl carried.
+#   1. scripts/gpu-bench.sh 100k 1m (CPU and GPU rows, parity, proxies, the
+#      Cholesky bench), RUST_LOG=info;
+#   2. the kernels and conformance test binaries (16 threads; the 1.2M
+#      parity test skipped: step 1 is that check);
+#   3. the 4.3M rows, GPU then CPU, while time is left.
+# END (seconds, default 540) bounds the whole; logs go to $OUT/logs.tgz and
+# the table to $OUT/table.md.
+set -u
+T0=$(date +%s); el() { echo $(( $(date +%s) - T0 )); }
+END=${END:-540}; left() { echo $(( END - $(el) )); }
+R=$PWD; L=/tmp/devlog; mkdir -p "$L"
+pack() { tar czf "$OUT/logs.tgz" -C /tmp devlog 2>/dev/null; }
+for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig
+icd=/usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json
+[ -f $icd ] && export VK_DRIVER_FILES=$icd
+# The bench binaries read data/meshes under the path they were built in.
+[ -d /work/main/data ] || { mkdir -p /work; ln -sfn "$R" /work/main; }
+B=/tmp/bin; mkdir -p $B; tar xJf .devbin/bin.tar.xz -C $B
+{ nvidia-smi; lscpu | head -20; free -g; } > "$L/machine.txt" 2>&1
+"$B/metricdeform" adapters | tee "$L/adapters.txt"
+echo "== bench 100k 1m (t=$(el))"
+RUST_LOG=info LOG="$L" BIN=$B timeout "$(left)" "$R/scripts/gpu-bench.sh" 100k 1m 2>&1 | tee "$OUT/table.md"
+pack
+echo "== kernels tests (t=$(el))"
+timeout 60 "$B/kernels" > "$L/kernels-tests.txt" 2>&1; echo "rc $?"; tail -2 "$L/kernels-tests.txt"
+echo "== conformance (t=$(el))"
+timeout 90 "$B/conformance" --skip gpu_parity_at_a_million_faces_on_hardware > "$L/conformance-tests.txt" 2>&1
+echo "rc $?"; tail -2 "$L/conformance-tests.txt"
+pack
+for b in gpu cpu; do
+  echo "== 4m $b (t=$(el), left $(left))"
+  [ "$(left)" -gt 60 ] || break
+  RUST_LOG=info timeout "$(left)" "$B/pipeline-bench" --row girths-homer-4m per_constraint --backend $b --gpu-only \
+    > "$L/4m.$b" 2> "$L/4m.$b.err"; echo "rc $?"
+  grep -h '^| girths\|proxies' "$L/4m.$b"
+  pack
+done
+echo "== done t=$(el)"
