@@ -2,11 +2,15 @@
 # One device call, everything in priority order, each step time-boxed so
 # that what ran comes back: run from the repository root on the device
 # machine, with .devbin (scripts/device-pack.sh) and .gl carried.
-#   1. scripts/gpu-bench.sh 100k 1m (CPU and GPU rows, parity, proxies, the
-#      Cholesky bench), RUST_LOG=info;
-#   2. the kernels and conformance test binaries (16 threads; the 1.2M
+#   1. scripts/gpu-bench.sh 100k 1m (CPU and GPU rows, parity, proxies;
+#      the Cholesky bench too with CHOLESKY=1), with debug logs;
+#   2. the 1.2M GPU row again with the shape factors one after the other
+#      (`--factors-at-once off`), against step 1's default (at once on a
+#      host with 4 threads and the memory);
+#   3. the kernels and conformance test binaries (16 threads; the 1.2M
 #      parity test skipped: step 1 is that check);
-#   3. the 4.3M rows, GPU then CPU, while time is left.
+#   4. the 4.3M rows, GPU then CPU, while time is left (the CPU row took
+#      over 200 s on the H100's host).
 # END (seconds, default 540) bounds the whole; logs go to $OUT/logs.tgz and
 # the table to $OUT/table.md.
 set -u
@@ -20,10 +24,17 @@ icd=/usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json
 # The bench binaries read data/meshes under the path they were built in.
 [ -d /work/main/data ] || { mkdir -p /work; ln -sfn "$R" /work/main; }
 B=/tmp/bin; mkdir -p $B; tar xJf .devbin/bin.tar.xz -C $B
+[ "${CHOLESKY:-0}" = 1 ] || rm -f $B/cholesky-bench
+export RUST_LOG=${RUST_LOG:-info,metricdeform=debug,solver_gpu=debug}
 { nvidia-smi; lscpu | head -20; free -g; } > "$L/machine.txt" 2>&1
 "$B/metricdeform" adapters | tee "$L/adapters.txt"
 echo "== bench 100k 1m (t=$(el))"
-RUST_LOG=info LOG="$L" BIN=$B timeout "$(left)" "$R/scripts/gpu-bench.sh" 100k 1m 2>&1 | tee "$OUT/table.md"
+LOG="$L" BIN=$B timeout "$(left)" "$R/scripts/gpu-bench.sh" 100k 1m 2>&1 | tee "$OUT/table.md"
+pack
+echo "== 1m gpu, factors one after the other (t=$(el))"
+timeout "$(left)" "$B/pipeline-bench" --row girths-homer-1m per_constraint --backend gpu --gpu-only \
+  --factors-at-once off > "$L/1m.gpu.off" 2> "$L/1m.gpu.off.err"; echo "rc $?"
+grep -h '^| girths' "$L/1m.gpu.off"
 pack
 echo "== kernels tests (t=$(el))"
 timeout 60 "$B/kernels" > "$L/kernels-tests.txt" 2>&1; echo "rc $?"; tail -2 "$L/kernels-tests.txt"
@@ -34,7 +45,7 @@ pack
 for b in gpu cpu; do
   echo "== 4m $b (t=$(el), left $(left))"
   [ "$(left)" -gt 60 ] || break
-  RUST_LOG=info timeout "$(left)" "$B/pipeline-bench" --row girths-homer-4m per_constraint --backend $b --gpu-only \
+  timeout "$(left)" "$B/pipeline-bench" --row girths-homer-4m per_constraint --backend $b --gpu-only \
     > "$L/4m.$b" 2> "$L/4m.$b.err"; echo "rc $?"
   grep -h '^| girths\|proxies' "$L/4m.$b"
   pack
