@@ -14,8 +14,58 @@ use metricdeform::job::{Job, JobFormat};
 use metricdeform::memory::peak_memory_mb;
 use metricdeform::pipeline::{deform, Options, Progress, SolverBackend, SolverSummary};
 use metricdeform::problem::{max_error, Problem};
+use std::alloc::{GlobalAlloc, Layout, System};
 use std::path::Path;
+use std::sync::atomic::{AtomicUsize, Ordering as AtomicOrdering};
 use std::time::Instant;
+
+/// Counts the bytes of this process's Rust heap and their peak: the host
+/// memory the pipeline itself takes, apart from what the GPU driver
+/// allocates (on lavapipe, the emulated device's memory comes from the C
+/// heap and is not counted; VmHWM counts both).
+struct CountingHeap;
+
+static HEAP: AtomicUsize = AtomicUsize::new(0);
+static HEAP_PEAK: AtomicUsize = AtomicUsize::new(0);
+
+fn heap_grew(by: usize) {
+    let now = HEAP.fetch_add(by, AtomicOrdering::Relaxed) + by;
+    HEAP_PEAK.fetch_max(now, AtomicOrdering::Relaxed);
+}
+
+// SAFETY: every call goes to the system allocator as asked; the counters
+// only add and subtract the sizes it was given.
+unsafe impl GlobalAlloc for CountingHeap {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        let p = unsafe { System.alloc(layout) };
+        if !p.is_null() {
+            heap_grew(layout.size());
+        }
+        p
+    }
+    unsafe fn alloc_zeroed(&self, layout: Layout) -> *mut u8 {
+        let p = unsafe { System.alloc_zeroed(layout) };
+        if !p.is_null() {
+            heap_grew(layout.size());
+        }
+        p
+    }
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        unsafe { System.dealloc(ptr, layout) };
+        HEAP.fetch_sub(layout.size(), AtomicOrdering::Relaxed);
+    }
+    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
+        let p = unsafe { System.realloc(ptr, layout, new_size) };
+        if !p.is_null() {
+            HEAP.fetch_sub(layout.size(), AtomicOrdering::Relaxed);
+            heap_grew(new_size);
+        }
+        p
+    }
+}
+
+#[global_allocator]
+static COUNTING_HEAP: CountingHeap = CountingHeap;
 
 /// How a row refines its mesh.
 #[derive(Clone, Copy)]
@@ -65,6 +115,7 @@ fn row(
     let out = deform(&problem, &options, &mut host_cpu_marks(&mut cpu_marks)).unwrap();
     let total = t0.elapsed().as_secs_f64();
     let peak = peak_memory_mb();
+    let heap_peak = HEAP_PEAK.load(AtomicOrdering::Relaxed) as f64 / 1048576.0;
     println!(
         "| {name}{}{} | {} | {multipliers} | {} + {} | {:.3} | {:.3} | {:.3} | {:.3} | {:.2e} | {:.0} |",
         preview.map_or(String::new(), |n| format!(" (preview {n})")),
@@ -82,6 +133,11 @@ fn row(
         total,
         100.0 * max_error(&problem, &out.positions),
         peak
+    );
+    println!(
+        "{name} ({}): Rust heap peak {heap_peak:.0} MiB (the pipeline's own host allocations, \
+         the driver's not counted)",
+        backend.name()
     );
     if backend == SolverBackend::Cpu || std::env::args().any(|a| a == "--gpu-only") {
         proxies(name, backend.name(), &out.solver, &cpu_marks, None);
@@ -144,7 +200,15 @@ fn host_cpu_seconds() -> f64 {
 /// A progress callback that marks [`host_cpu_seconds`] at each scale-driven
 /// iteration's report (after its scale factors, before its shape step).
 fn host_cpu_marks(marks: &mut Vec<f64>) -> impl FnMut(Progress) + '_ {
+    let trace = std::env::args().any(|a| a == "--heap-trace");
     move |p| {
+        if trace {
+            eprintln!(
+                "heap at {p:?}: {:.0} MiB, peak so far {:.0} MiB",
+                HEAP.load(AtomicOrdering::Relaxed) as f64 / 1048576.0,
+                HEAP_PEAK.load(AtomicOrdering::Relaxed) as f64 / 1048576.0
+            );
+        }
         if let Progress::ScaleDriven { .. } = p {
             marks.push(host_cpu_seconds());
         }

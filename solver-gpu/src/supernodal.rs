@@ -329,6 +329,17 @@ impl GpuFactor {
         idx.extend_from_slice(&owner);
         let o_slot_owner = idx.len() as u32;
         idx.extend_from_slice(&slot_owner);
+        // The index sections go up first, in staging windows, and the host's
+        // copies of them are dropped before the values go up: at homer 1.2M
+        // (about 18M slots) they are some hundreds of MB beside the 1.1 GiB
+        // of values the caller holds.
+        drop((rows, slot_owner, tpos, cols, owner));
+        let idx_buf = ctx.storage_from_pieces(
+            "Cholesky index sections",
+            std::mem::size_of_val(&idx[..]) as u64,
+            [bytemuck::cast_slice::<u32, u8>(&idx)],
+        )?;
+        drop(idx);
         let bytes = b * f.nnz() as u64 + 8 * nrows as u64;
         let piece = |s: usize| -> &[u8] {
             let r = f.val_ptr[s] as usize..f.val_ptr[s + 1] as usize;
@@ -350,7 +361,7 @@ impl GpuFactor {
             })
             .collect::<Result<Vec<_>, _>>()?;
         Ok(GpuFactor {
-            idx: ctx.storage_init("Cholesky index sections", &idx)?,
+            idx: idx_buf,
             vals,
             offsets: [
                 o_sn,
