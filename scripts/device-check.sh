@@ -16,6 +16,13 @@
 set -u
 T0=$(date +%s); el() { echo $(( $(date +%s) - T0 )); }
 END=${END:-540}; left() { echo $(( END - $(el) )); }
+# Runs "$@" for at most the time left (at most $CAP seconds where given);
+# skipped where under 10 s are left (`timeout 0` would mean no limit).
+bounded() {
+  local t; t=$(left); [ -n "${CAP:-}" ] && [ "$CAP" -lt "$t" ] && t=$CAP
+  [ "$t" -gt 10 ] || { echo "skipped (no time left): $1"; return 124; }
+  timeout "$t" "$@"
+}
 R=$PWD; L=/tmp/devlog; mkdir -p "$L"
 pack() { tar czf "$OUT/logs.tgz" -C /tmp devlog 2>/dev/null; }
 for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig
@@ -29,23 +36,23 @@ export RUST_LOG=${RUST_LOG:-info,metricdeform=debug,solver_gpu=debug}
 { nvidia-smi; lscpu | head -20; free -g; } > "$L/machine.txt" 2>&1
 "$B/metricdeform" adapters | tee "$L/adapters.txt"
 echo "== bench 100k 1m (t=$(el))"
-LOG="$L" BIN=$B timeout "$(left)" "$R/scripts/gpu-bench.sh" 100k 1m 2>&1 | tee "$OUT/table.md"
+LOG="$L" BIN=$B bounded "$R/scripts/gpu-bench.sh" 100k 1m 2>&1 | tee "$OUT/table.md"
 pack
 echo "== 1m gpu, factors one after the other (t=$(el))"
-timeout "$(left)" "$B/pipeline-bench" --row girths-homer-1m per_constraint --backend gpu --gpu-only \
+bounded "$B/pipeline-bench" --row girths-homer-1m per_constraint --backend gpu --gpu-only \
   --factors-at-once off > "$L/1m.gpu.off" 2> "$L/1m.gpu.off.err"; echo "rc $?"
 grep -h '^| girths' "$L/1m.gpu.off"
 pack
 echo "== kernels tests (t=$(el))"
-timeout 60 "$B/kernels" > "$L/kernels-tests.txt" 2>&1; echo "rc $?"; tail -2 "$L/kernels-tests.txt"
+CAP=60 bounded "$B/kernels" > "$L/kernels-tests.txt" 2>&1; echo "rc $?"; tail -2 "$L/kernels-tests.txt"
 echo "== conformance (t=$(el))"
-timeout 90 "$B/conformance" --skip gpu_parity_at_a_million_faces_on_hardware > "$L/conformance-tests.txt" 2>&1
+CAP=90 bounded "$B/conformance" --skip gpu_parity_at_a_million_faces_on_hardware > "$L/conformance-tests.txt" 2>&1
 echo "rc $?"; tail -2 "$L/conformance-tests.txt"
 pack
 for b in gpu cpu; do
   echo "== 4m $b (t=$(el), left $(left))"
   [ "$(left)" -gt 60 ] || break
-  timeout "$(left)" "$B/pipeline-bench" --row girths-homer-4m per_constraint --backend $b --gpu-only \
+  bounded "$B/pipeline-bench" --row girths-homer-4m per_constraint --backend $b --gpu-only \
     > "$L/4m.$b" 2> "$L/4m.$b.err"; echo "rc $?"
   grep -h '^| girths\|proxies' "$L/4m.$b"
   pack

@@ -21,8 +21,7 @@ cp "$cholesky" "$tmp/cholesky-bench"
 cp "$conformance" "$tmp/conformance"
 cp "$kernels" "$tmp/kernels"
 strip "$tmp"/*
-git rev-parse --short HEAD > "$tmp/COMMIT"
-git diff --quiet HEAD || echo "+ uncommitted changes" >> "$tmp/COMMIT"
+{ git rev-parse --short HEAD | tr -d '\n'; git diff --quiet HEAD || printf '+uncommitted'; echo; } > "$tmp/COMMIT"
 mkdir -p .devbin
 tar cJf .devbin/bin.tar.xz -C "$tmp" .
 rm -rf "$tmp"
