@@ -6,6 +6,11 @@
 //! row also runs the CPU backend on the same problem and prints the largest
 //! vertex deviation between the two results, in % of the bbox diagonal.
 //! Each row runs in a fresh child process so that peak memory is per run.
+//! A row also prints its Rust heap's peak (this process's own allocations,
+//! counted by a global allocator here; a GPU driver's are not in it), and
+//! `--heap-trace` prints the heap at every progress report. `--gpu-only`:
+//! no CPU run after a GPU row; `--factors-at-once on|off`:
+//! `Options::overlap_factorizations`.
 
 #[path = "../tests/common/mod.rs"]
 mod common;
