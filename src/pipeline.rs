@@ -835,6 +835,8 @@ struct FactorsAtOnce {
     fine_tune: Option<(SymCsc, FactorPlan)>,
     /// [`Options::overlap_factorizations`].
     choice: Option<bool>,
+    /// The host's hardware threads.
+    threads: usize,
 }
 
 impl FactorsAtOnce {
@@ -873,6 +875,7 @@ impl FactorsAtOnce {
             scale_driven,
             fine_tune,
             choice: o.overlap_factorizations,
+            threads,
         })
     }
 
@@ -883,7 +886,7 @@ impl FactorsAtOnce {
     fn start(self, analysed: &CholeskySolver) -> Option<(FactorAhead, Option<FactorAhead>)> {
         let (k, plan) = self.scale_driven;
         let bytes = plan.factor_bytes(analysed);
-        let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+        let threads = self.threads;
         let free = crate::memory::available_memory_bytes();
         let at_once = self
             .choice
