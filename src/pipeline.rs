@@ -958,11 +958,13 @@ fn factor_ahead(
 /// Whether the host makes the two shape kinds' factors ahead at once
 /// ([`Options::overlap_factorizations`]): with `threads` hardware threads
 /// and `free` bytes of available memory, for factors of `factor_bytes`
-/// each. Each numeric factorization keeps about one thread busy (faer's
-/// supernodal factorization takes its supernodes one after another),
-/// beside the main thread (the scale factors' set-up) and the GPU's
-/// driver; two factors and their scratch at once, with as much again to
-/// spare.
+/// each. A numeric factorization runs its elimination tree's independent
+/// subtrees on rayon's threads (`solver_cpu::tree_factor`), yet at the
+/// minimum-degree ordering's top the tree lets it keep only about 4 threads
+/// busy (homer 1.2M's `K`: its parallelism 3.7), so two factorizations at
+/// once still fill a host with 4 threads or more, beside the main thread
+/// (the scale factors' set-up) and the GPU's driver; two factors and their
+/// scratch at once, with as much again to spare.
 pub fn factorizations_at_once(threads: usize, free: Option<u64>, factor_bytes: u64) -> bool {
     threads >= 4 && free.is_some_and(|f| f / 4 >= factor_bytes)
 }

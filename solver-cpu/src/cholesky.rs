@@ -11,6 +11,7 @@
 //! preconditioner, not a solver: its solves carry f32 rounding amplified by the
 //! condition number, so it is used inside the f64 PCG of [`crate::BlockPcgSolver`].
 
+use crate::tree_factor::factor_numeric_tree;
 use crate::{BlockSym3, SolveInfo, SolverError, SpdSolver, SymCsc, WorkCounters};
 use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::sparse::linalg::cholesky::{
@@ -305,6 +306,10 @@ pub struct CholeskySolver {
     /// factors): for [`CholeskySolver::take_supernodal_factor`]'s users, whose
     /// solves run a supernode per step.
     pub supernodal: bool,
+    /// Factor a supernodal factor's supernodes one after the other, on faer's
+    /// loop, instead of its elimination tree's independent subtrees at once
+    /// ([`crate::tree_factor`]; the default). For comparison.
+    pub sequential_supernodes: bool,
     /// Solve buffer in f32 (single precision only).
     buf32: Vec<f32>,
     factored: bool,
@@ -349,6 +354,7 @@ impl CholeskySolver {
             ordering: self.ordering.clone(),
             single,
             supernodal: self.supernodal,
+            sequential_supernodes: self.sequential_supernodes,
             ..Self::default()
         })
     }
@@ -984,30 +990,46 @@ impl SpdSolver for CholeskySolver {
         }
         let sym = self.symbolic.as_ref().unwrap();
         let par = get_global_parallelism();
-        // Scratch for this factorization only: at a million faces it is tens of
-        // MiB that would otherwise stay resident beside the factor.
-        let req = if self.single {
-            sym.factorize_numeric_llt_scratch::<f32>(par, Default::default())
-        } else {
-            sym.factorize_numeric_llt_scratch::<f64>(par, Default::default())
-        };
-        if self.numeric_count == 0 {
-            log::debug!(
-                "Cholesky numeric scratch: {:.1} MiB (factor {:.1} MiB)",
-                req.size_bytes() as f64 / 1048576.0,
-                self.factor_bytes() as f64 / 1048576.0
-            );
-        }
-        let mut scratch = MemBuffer::try_new(req).map_err(|_| SolverError::OutOfMemory)?;
         self.factored = false;
         let t_numeric = std::time::Instant::now();
-        let stack = MemStack::new(&mut scratch);
-        let factored = if self.single {
-            let values: Vec<f32> = a.values.iter().map(|&v| v as f32).collect();
-            factor_numeric(sym, &mut self.numeric32, sym_ref, &values, par, stack)
+        // A supernodal factor's independent subtrees on rayon's threads
+        // ([`crate::tree_factor`]); a simplicial one by faer.
+        let values32: Vec<f32>;
+        let tree = if self.sequential_supernodes {
+            values32 = if self.single {
+                a.values.iter().map(|&v| v as f32).collect()
+            } else {
+                Vec::new()
+            };
+            None
+        } else if self.single {
+            values32 = a.values.iter().map(|&v| v as f32).collect();
+            factor_numeric_tree(sym, &mut self.numeric32, sym_ref, &values32, par)
         } else {
-            factor_numeric(sym, &mut self.numeric, sym_ref, &a.values, par, stack)
+            values32 = Vec::new();
+            factor_numeric_tree(sym, &mut self.numeric, sym_ref, &a.values, par)
         };
+        let factored = match tree {
+            Some(factored) => factored,
+            None => {
+                // Scratch for this factorization only: at a million faces it
+                // is tens of MiB that would otherwise stay resident beside
+                // the factor.
+                let req = if self.single {
+                    sym.factorize_numeric_llt_scratch::<f32>(par, Default::default())
+                } else {
+                    sym.factorize_numeric_llt_scratch::<f64>(par, Default::default())
+                };
+                let mut scratch = MemBuffer::try_new(req).map_err(|_| SolverError::OutOfMemory)?;
+                let stack = MemStack::new(&mut scratch);
+                if self.single {
+                    factor_numeric(sym, &mut self.numeric32, sym_ref, &values32, par, stack)
+                } else {
+                    factor_numeric(sym, &mut self.numeric, sym_ref, &a.values, par, stack)
+                }
+            }
+        };
+        drop(values32);
         if !factored {
             return Err(SolverError::NotPositiveDefinite);
         }

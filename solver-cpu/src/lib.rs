@@ -10,6 +10,7 @@ pub mod block;
 pub mod cholesky;
 pub mod iso_ring;
 pub mod pcg;
+pub mod tree_factor;
 
 pub use block::{BlockRows, BlockSym3};
 pub use cholesky::{

@@ -1,0 +1,99 @@
+//! The numeric Cholesky factorization of the shape systems' isotropic part
+//! `K` (the preconditioner of Eqs. 7 and 8, made on the host by both
+//! backends), faer's loop over the supernodes one after the other against
+//! the elimination tree's independent subtrees at once
+//! (`solver_cpu::tree_factor`, the default), on 1 thread and on every thread
+//! of the machine: homer with every edge cut in 3 (108k faces) and in 10
+//! (1.2M faces), `K` at the input's positions with the pipeline's weights, in
+//! the orderings the backends use (the GPU's minimum degree, the CPU's METIS
+//! nested dissection).
+//!
+//! `cargo bench --bench cholesky_factor` (`-- --quick`: 108k only; `-- --1m`:
+//! 1.2M only). The best of `REPEAT` (default 2) factorizations is printed,
+//! with the largest difference between the two factors.
+
+use metricdeform::shape::{ShapeModel, ShapeWeights};
+use solver_cpu::{CholeskySolver, FillOrdering, SpdSolver};
+use std::path::Path;
+use std::time::Instant;
+
+fn main() {
+    let args: Vec<String> = std::env::args().collect();
+    let cuts: &[usize] = if args.iter().any(|a| a == "--quick") {
+        &[3]
+    } else if args.iter().any(|a| a == "--1m") {
+        &[10]
+    } else {
+        &[3, 10]
+    };
+    let repeat: usize = std::env::var("REPEAT")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(2);
+    let all = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/meshes");
+    let homer = metricdeform::mesh::io::read_mesh(&dir.join("homer.obj")).unwrap();
+    let w = ShapeWeights {
+        k_f: 1000.0,
+        k_m: 1.0,
+        k_l: 1.0,
+        k_p: 1000.0,
+    };
+    println!(
+        "| faces | ordering | nnz(L) | threads | faer, one supernode after another, s | subtrees at once, s | speed-up | largest difference / largest entry |"
+    );
+    println!("|---|---|---|---|---|---|---|---|");
+    for &cut in cuts {
+        let mesh = homer.subdivide_uniform(cut);
+        let topo = metricdeform::mesh::topology::Topology::build(&mesh);
+        let model = ShapeModel::new(&mesh, &topo, Vec::new()).unwrap();
+        let k = model.isotropic_part(&mesh, &mesh.positions, &w);
+        drop(model);
+        for (name, ordering) in [
+            ("minimum degree", FillOrdering::Amd),
+            ("METIS", FillOrdering::NestedDissection),
+        ] {
+            let mut base = CholeskySolver::new();
+            base.supernodal = true;
+            base.set_fill_ordering(ordering);
+            base.analyse(&k).unwrap();
+            let mut threads = vec![1, all];
+            threads.dedup();
+            for &t in &threads {
+                let pool = rayon::ThreadPoolBuilder::new()
+                    .num_threads(t)
+                    .build()
+                    .unwrap();
+                let (seconds, factors): (Vec<f64>, Vec<Vec<f64>>) = [true, false]
+                    .iter()
+                    .map(|&sequential| {
+                        let mut c = base.numeric_twin(false).unwrap();
+                        c.sequential_supernodes = sequential;
+                        let best = (0..repeat)
+                            .map(|_| {
+                                let t0 = Instant::now();
+                                pool.install(|| c.prepare(&k)).unwrap();
+                                t0.elapsed().as_secs_f64()
+                            })
+                            .fold(f64::INFINITY, f64::min);
+                        (best, c.take_supernodal_factor().unwrap().values64)
+                    })
+                    .unzip();
+                let largest = factors[0].iter().fold(0.0f64, |m, v| m.max(v.abs()));
+                let diff = factors[0]
+                    .iter()
+                    .zip(&factors[1])
+                    .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+                println!(
+                    "| {} | {name} | {} | {t} | {:.3} | {:.3} | {:.2}x | {:.1e} |",
+                    mesh.num_faces(),
+                    base.factor_nnz(),
+                    seconds[0],
+                    seconds[1],
+                    seconds[0] / seconds[1],
+                    diff / largest
+                );
+            }
+        }
+    }
+}
