@@ -225,8 +225,10 @@ impl ShapeModel {
         for &(f, _) in &topo.duplicate_faces {
             no_weight[f as usize] = true;
         }
-        let cot = Arc::new(cotangent_laplacian_masked(mesh, x, &no_weight));
-        let mv = Arc::new(mean_value_laplacian_masked(mesh, x, &no_weight));
+        let (cot, mv) = rayon::join(
+            || Arc::new(cotangent_laplacian_masked(mesh, x, &no_weight)),
+            || Arc::new(mean_value_laplacian_masked(mesh, x, &no_weight)),
+        );
         let vertex_area = vertex_areas(mesh, x);
         let areas = mesh.face_areas(x);
         let total_area: f64 = areas.iter().sum();

@@ -45,7 +45,10 @@ impl SparseRows {
     /// and its diagonal is 1 (0 for an empty row); otherwise the diagonal is the
     /// row's weight sum (a Laplacian: rows sum to zero).
     pub fn from_triplets(n: usize, mut t: Vec<(u32, u32, f64)>, normalise: bool) -> SparseRows {
-        t.sort_unstable_by_key(|e| (e.0, e.1));
+        // On rayon's threads; the values in the key make the order of a
+        // pair's duplicates, and so their sum, the same on every run.
+        use rayon::slice::ParallelSliceMut;
+        t.par_sort_unstable_by(|a, b| (a.0, a.1).cmp(&(b.0, b.1)).then(a.2.total_cmp(&b.2)));
         let mut start = vec![0usize; n + 1];
         let mut idx = Vec::with_capacity(t.len());
         let mut w: Vec<f64> = Vec::with_capacity(t.len());

@@ -286,7 +286,7 @@ pub struct NewtonInfo {
 /// A solver for symmetric positive definite systems: `prepare` once per matrix,
 /// then solve many right-hand sides. Implemented by the CPU Cholesky reference
 /// backend and by the GPU preconditioned-conjugate-gradient backend.
-pub trait SpdSolver {
+pub trait SpdSolver: Send {
     /// Factor (or upload) a scalar matrix. The symbolic analysis is reused while
     /// the sparsity pattern is unchanged.
     fn prepare(&mut self, a: &SymCsc) -> Result<(), SolverError>;
