@@ -4,12 +4,15 @@
 # machine, with .devbin (scripts/device-pack.sh) and .gl carried.
 #   1. scripts/gpu-bench.sh 100k 1m (CPU and GPU rows, parity, proxies;
 #      the Cholesky bench too with CHOLESKY=1), with debug logs;
-#   2. the 1.2M GPU row again with the shape factors one after the other
+#   2. the host's Cholesky factorization of K at 1.2M faces, faer's loop
+#      against the elimination tree's subtrees at once, on 1 thread and
+#      on all (benches/cholesky_factor.rs);
+#   3. the 1.2M GPU row again with the shape factors one after the other
 #      (`--factors-at-once off`), against step 1's default (at once on a
 #      host with 4 threads and the memory);
-#   3. the kernels and conformance test binaries (16 threads; the 1.2M
+#   4. the kernels and conformance test binaries (16 threads; the 1.2M
 #      parity test skipped: step 1 is that check);
-#   4. the 4.3M rows, GPU then CPU, while time is left (the CPU row took
+#   5. the 4.3M rows, GPU then CPU, while time is left (the CPU row took
 #      over 200 s on the H100's host).
 # END (seconds, default 540) bounds the whole; logs go to $OUT/logs.tgz and
 # the table to $OUT/table.md.
@@ -37,6 +40,9 @@ export RUST_LOG=${RUST_LOG:-info,metricdeform=debug,solver_gpu=debug}
 "$B/metricdeform" adapters | tee "$L/adapters.txt"
 echo "== bench 100k 1m (t=$(el))"
 LOG="$L" BIN=$B bounded "$R/scripts/gpu-bench.sh" 100k 1m 2>&1 | tee "$OUT/table.md"
+pack
+echo "== host Cholesky factorization at 1.2M (t=$(el))"
+REPEAT=1 CAP=100 bounded "$B/factor-bench" --1m 2> "$L/factor.err" | tee "$L/factor.md"
 pack
 echo "== 1m gpu, factors one after the other (t=$(el))"
 bounded "$B/pipeline-bench" --row girths-homer-1m per_constraint --backend gpu --gpu-only \

@@ -22,7 +22,7 @@
 
 use faer::dyn_stack::{MemBuffer, MemStack, StackReq};
 use faer::linalg::cholesky::llt::factor::{cholesky_in_place, cholesky_in_place_scratch, LltError};
-use faer::reborrow::Reborrow;
+use faer::reborrow::{Reborrow, ReborrowMut};
 use faer::sparse::linalg::cholesky::supernodal::SymbolicSupernodalCholesky;
 use faer::sparse::linalg::cholesky::{SymbolicCholesky, SymbolicCholeskyRaw};
 use faer::sparse::{SparseColMatRef, SymbolicSparseColMatRef};
@@ -36,6 +36,9 @@ const NONE: u32 = u32::MAX;
 /// Products below this many multiply-adds run as a plain loop (faer's kernels
 /// cost more than the arithmetic there).
 const SMALL_PRODUCT: usize = 4096;
+
+/// Columns per panel of an update's lower triangle.
+const PANEL: usize = 64;
 
 /// The supernodal elimination tree, its update lists and its cut into tasks.
 #[derive(Debug)]
@@ -390,32 +393,23 @@ impl<T: RealField + Copy + Send + Sync> Context<'_, T> {
                     }
                 }
             } else {
-                use faer::linalg::matmul::triangular::BlockStructure;
+                // The square's lower triangle in panels of columns, each
+                // with the rows below it (faer's triangular product would
+                // allocate a temporary square per call).
                 let ld = MatRef::from_column_major_slice(ld, dm, dq);
                 let bot = ld.subrows(first, rows);
-                let (top, rest) = bot.split_at_row(mid);
-                let p = MatMut::from_column_major_slice_mut(product, rows, mid);
-                let (p_top, p_rest) = p.split_at_row_mut(mid);
-                // The square's lower triangle only, then the rows below it.
-                faer::linalg::matmul::triangular::matmul(
-                    p_top,
-                    BlockStructure::TriangularLower,
-                    Accum::Replace,
-                    top,
-                    BlockStructure::Rectangular,
-                    top.transpose(),
-                    BlockStructure::Rectangular,
-                    T::one_impl(),
-                    par,
-                );
-                faer::linalg::matmul::matmul(
-                    p_rest,
-                    Accum::Replace,
-                    rest,
-                    top.transpose(),
-                    T::one_impl(),
-                    par,
-                );
+                let mut p = MatMut::from_column_major_slice_mut(product, rows, mid);
+                for j0 in (0..mid).step_by(PANEL) {
+                    let w = PANEL.min(mid - j0);
+                    faer::linalg::matmul::matmul(
+                        p.rb_mut().submatrix_mut(j0, j0, rows - j0, w),
+                        Accum::Replace,
+                        bot.subrows(j0, rows - j0),
+                        bot.subrows(j0, w).transpose(),
+                        T::one_impl(),
+                        par,
+                    );
+                }
             }
             for j in 0..mid {
                 let dst = &mut ls[local[j] * m..(local[j] + 1) * m];
