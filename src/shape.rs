@@ -30,8 +30,13 @@ use crate::mesh::topology::{vertex_components, Topology};
 use crate::mesh::{triangle_area_gradient, Mesh, COT_CAP};
 use crate::{Error, Result};
 use glam::DVec3;
+use rayon::prelude::*;
 use solver_cpu::{BlockPcgSolver, IsoRingSym3, ShapeOperatorModel, SparseRows, SpdSolver, SymCsc};
 use std::sync::Arc;
+
+/// Faces whose terms are computed at once, on rayon's threads, before they
+/// are added in face order (about 8 MB of terms).
+const ASSEMBLY_CHUNK: usize = 1 << 16;
 
 /// Weights of Eq. 7 / Eq. 19.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -481,33 +486,47 @@ impl ShapeModel {
             }
         }
 
-        // E_f (Eq. 4, fourth vertex eliminated).
-        for (f, t) in mesh.faces.iter().enumerate() {
-            if self.no_weight[f] {
-                continue;
-            }
-            // The gradient of log(area): d area / d corner over the area.
-            let Some((a2, da)) = triangle_area_gradient(mesh.corners(xc, f)) else {
-                continue;
-            };
-            let g: [DVec3; 3] = da.map(|d| d * 2.0 / a2);
-            let wf = 2.0 * w.k_f * self.face_weight[f];
-            let slots = &self.face_slots[f];
-            for kk in 0..3 {
-                for l in 0..=kk {
-                    let (a, b) = (t[kk], t[l]);
-                    let mut v = wf * g[kk].dot(g[l]);
-                    if a == b && kk != l {
-                        v *= 2.0;
+        // E_f (Eq. 4, fourth vertex eliminated). Each face's terms are
+        // computed on rayon's threads, a chunk of faces at a time, then
+        // added in face order: the same sums as one face after the other.
+        let (no_weight, face_weight) = (&self.no_weight, &self.face_weight);
+        let mut terms = vec![None; ASSEMBLY_CHUNK.min(mesh.faces.len())];
+        for start in (0..mesh.faces.len()).step_by(ASSEMBLY_CHUNK) {
+            let end = (start + ASSEMBLY_CHUNK).min(mesh.faces.len());
+            let chunk = &mut terms[..end - start];
+            chunk.par_iter_mut().enumerate().for_each(|(i, out)| {
+                let f = start + i;
+                *out = if no_weight[f] {
+                    None
+                } else {
+                    // The gradient of log(area): d area / d corner over the area.
+                    triangle_area_gradient(mesh.corners(xc, f))
+                        .map(|(a2, da)| (da.map(|d| d * 2.0 / a2), 2.0 * w.k_f * face_weight[f]))
+                };
+            });
+            for (i, term) in chunk.iter().enumerate() {
+                let Some((g, wf)) = term else {
+                    continue;
+                };
+                let f = start + i;
+                let t = mesh.faces[f];
+                let slots = &self.face_slots[f];
+                for kk in 0..3 {
+                    for l in 0..=kk {
+                        let (a, b) = (t[kk], t[l]);
+                        let mut v = wf * g[kk].dot(g[l]);
+                        if a == b && kk != l {
+                            v *= 2.0;
+                        }
+                        k.values[slots[kk * (kk + 1) / 2 + l] as usize] += v;
                     }
-                    k.values[slots[kk * (kk + 1) / 2 + l] as usize] += v;
-                }
-                if let Some((s, _, grad)) = gradient.as_mut() {
-                    let gk = wf * (1.0 - s[f]) * g[kk];
-                    let i = 3 * t[kk] as usize;
-                    grad[i] += gk.x;
-                    grad[i + 1] += gk.y;
-                    grad[i + 2] += gk.z;
+                    if let Some((s, _, grad)) = gradient.as_mut() {
+                        let gk = wf * (1.0 - s[f]) * g[kk];
+                        let i = 3 * t[kk] as usize;
+                        grad[i] += gk.x;
+                        grad[i + 1] += gk.y;
+                        grad[i + 2] += gk.z;
+                    }
                 }
             }
         }
@@ -515,15 +534,23 @@ impl ShapeModel {
         // E_m (Eqs. 5, 21): gradient at xc; the Hessian is the constant part
         // above (or the solver's).
         if let (true, Some((_, c, grad))) = (w.k_m > 0.0, gradient.as_mut()) {
-            for i in 0..n {
-                if self.vertex_area[i] <= 0.0 {
-                    continue;
-                }
-                let m = 1.0 / (4.0 * self.vertex_area[i]);
-                let r = (1.0 - c[i]) * self.cot.apply(xc, i);
+            // Each vertex's residual on rayon's threads, added in vertex order.
+            let (vertex_area, cot) = (&self.vertex_area, &self.cot);
+            let residual: Vec<DVec3> = (0..n)
+                .into_par_iter()
+                .map(|i| {
+                    if vertex_area[i] <= 0.0 {
+                        DVec3::ZERO
+                    } else {
+                        (1.0 - c[i]) * cot.apply(xc, i)
+                    }
+                })
+                .collect();
+            for (i, &r) in residual.iter().enumerate() {
                 if r == DVec3::ZERO {
                     continue;
                 }
+                let m = 1.0 / (4.0 * self.vertex_area[i]);
                 for (j, cj) in self.cot.row(i) {
                     let g = 2.0 * w.k_m * m * cj * r;
                     grad[3 * j] += g.x;

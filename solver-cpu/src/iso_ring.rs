@@ -144,7 +144,10 @@ impl SparseRows {
     }
 
     pub fn apply_all(&self, x: &[DVec3]) -> Vec<DVec3> {
-        (0..self.len()).map(|i| self.apply(x, i)).collect()
+        (0..self.len())
+            .into_par_iter()
+            .map(|i| self.apply(x, i))
+            .collect()
     }
 
     /// Whether `j` is in row `i` exactly when `i` is in row `j` (as for the

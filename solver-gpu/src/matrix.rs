@@ -342,18 +342,58 @@ impl HostMatrix {
         // the rings' part of the norm bound (`shape_norm_bound`).
         ring_abs.clear();
         ring_abs.resize(a.n(), 0.0);
-        for (i, c) in a.ring_c.iter().enumerate() {
-            if *c == [0.0; 6] {
-                continue;
-            }
-            let m = sym3_block(c);
-            let cs = sym3_norm_inf(c) * slots.abs_sum[i];
-            for (p, w) in a.rings.row(i) {
-                let f = w * w;
-                for (o, me) in diag[p].iter_mut().zip(&m) {
-                    *o += f * me;
+        if slots.symmetric {
+            // Per block row `p`, on rayon's threads: the rows `i` that hold
+            // `p` (its own neighbours and itself), in ascending order, as
+            // the loop over the rings below adds them.
+            let rings = &*a.rings;
+            diag.par_iter_mut()
+                .zip(ring_abs.par_iter_mut())
+                .enumerate()
+                .for_each(|(p, (d, abs))| {
+                    let nb = &rings.idx[rings.start[p]..rings.start[p + 1]];
+                    let below = nb.partition_point(|&i| (i as usize) < p);
+                    let rows = nb[..below]
+                        .iter()
+                        .map(|&i| i as usize)
+                        .chain(std::iter::once(p))
+                        .chain(nb[below..].iter().map(|&i| i as usize));
+                    for i in rows {
+                        let c = &a.ring_c[i];
+                        if *c == [0.0; 6] {
+                            continue;
+                        }
+                        let w = if i == p {
+                            rings.diag[p]
+                        } else {
+                            let row = &rings.idx[rings.start[i]..rings.start[i + 1]];
+                            match row.binary_search(&(p as u32)) {
+                                Ok(k) => -rings.w[rings.start[i] + k],
+                                Err(_) => continue,
+                            }
+                        };
+                        let m = sym3_block(c);
+                        let f = w * w;
+                        for (o, me) in d.iter_mut().zip(&m) {
+                            *o += f * me;
+                        }
+                        *abs += w.abs() * (sym3_norm_inf(c) * slots.abs_sum[i]);
+                    }
+                });
+        } else {
+            for (i, c) in a.ring_c.iter().enumerate() {
+                if *c == [0.0; 6] {
+                    continue;
                 }
-                ring_abs[p] += w.abs() * cs;
+                let m = sym3_block(c);
+                let cs = sym3_norm_inf(c) * slots.abs_sum[i];
+                for (p, w) in a.rings.row(i) {
+                    let f = w * w;
+                    for (o, me) in diag[p].iter_mut().zip(&m) {
+                        *o += f * me;
+                    }
+                    ring_abs[p] += w.abs() * cs;
+                }
             }
         }
         self.shape = Some(ShapeForm {
@@ -760,6 +800,10 @@ pub(crate) struct RingSlots {
     /// The pairs per part of the lower blocks, for the parts' size it was
     /// counted for ([`Self::pairs_per_part`]).
     part_pairs: std::sync::OnceLock<(usize, Vec<usize>)>,
+    /// Whether `p` is in row `i` exactly when `i` is in row `p`: then the
+    /// rings' diagonal blocks are gathered per block row
+    /// ([`HostMatrix::set_shape`]).
+    symmetric: bool,
 }
 
 impl RingSlots {
@@ -800,6 +844,7 @@ impl RingSlots {
             slot,
             abs_sum,
             part_pairs: Default::default(),
+            symmetric: rings.pattern_is_symmetric(),
         })
     }
 
