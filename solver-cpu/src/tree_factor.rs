@@ -22,7 +22,7 @@
 
 use faer::dyn_stack::{MemBuffer, MemStack, StackReq};
 use faer::linalg::cholesky::llt::factor::{cholesky_in_place, cholesky_in_place_scratch, LltError};
-use faer::reborrow::{Reborrow, ReborrowMut};
+use faer::reborrow::ReborrowMut;
 use faer::sparse::linalg::cholesky::supernodal::SymbolicSupernodalCholesky;
 use faer::sparse::linalg::cholesky::{SymbolicCholesky, SymbolicCholeskyRaw};
 use faer::sparse::{SparseColMatRef, SymbolicSparseColMatRef};
@@ -518,15 +518,62 @@ pub(crate) fn factorize_supernodal_numeric_llt_tree<T: RealField + Copy + Send +
     }
 }
 
-/// `sym`'s numeric factor of the lower triangle `(pattern, values)` into
-/// `out`, its supernodes on rayon's threads as above: `None` where `sym` is
-/// simplicial (the caller factors it with faer), else whether the matrix is
-/// positive definite in precision `T`.
-pub(crate) fn factor_numeric_tree<T: RealField + Copy + Send + Sync>(
+/// A lower triangle permuted to a symbolic factor's ordering (its rows
+/// unsorted within a column), owned: the input it was made from may go.
+pub(crate) struct PermutedLower<T> {
+    col_ptr: Vec<u32>,
+    row_idx: Vec<u32>,
+    values: Vec<T>,
+}
+
+/// `P A P^T`'s lower triangle for `sym`'s permutation `P`, from the lower
+/// triangle `(pattern, values)` of `A`.
+pub(crate) fn permute_lower<T: RealField + Copy>(
     sym: &SymbolicCholesky<u32>,
-    out: &mut [T],
     pattern: SymbolicSparseColMatRef<'_, u32>,
     values: &[T],
+) -> PermutedLower<T> {
+    let n = pattern.nrows();
+    let a = SparseColMatRef::new(pattern, values);
+    let mut col_ptr = vec![0u32; n + 1];
+    let mut row_idx = vec![0u32; values.len()];
+    let mut new_values = vec![T::zero_impl(); values.len()];
+    match sym.perm() {
+        Some(perm) => {
+            let mut buf =
+                MemBuffer::new(faer::sparse::utils::permute_self_adjoint_scratch::<u32>(n));
+            faer::sparse::utils::permute_self_adjoint_to_unsorted(
+                &mut new_values,
+                &mut col_ptr,
+                &mut row_idx,
+                a,
+                perm,
+                Side::Lower,
+                Side::Lower,
+                MemStack::new(&mut buf),
+            );
+        }
+        None => {
+            col_ptr.copy_from_slice(pattern.col_ptr());
+            row_idx.copy_from_slice(pattern.row_idx());
+            new_values.copy_from_slice(values);
+        }
+    }
+    PermutedLower {
+        col_ptr,
+        row_idx,
+        values: new_values,
+    }
+}
+
+/// `sym`'s numeric factor of `a` (made by [`permute_lower`]) into `out`, its
+/// supernodes on rayon's threads as above: `None` where `sym` is simplicial
+/// (the caller factors it with faer), else whether the matrix is positive
+/// definite in precision `T`.
+pub(crate) fn factor_permuted<T: RealField + Copy + Send + Sync>(
+    sym: &SymbolicCholesky<u32>,
+    out: &mut [T],
+    a: &PermutedLower<T>,
     par: Par,
 ) -> Option<bool> {
     let SymbolicCholeskyRaw::Supernodal(snodal) = sym.raw() else {
@@ -536,29 +583,15 @@ pub(crate) fn factor_numeric_tree<T: RealField + Copy + Send + Sync>(
     let t = std::time::Instant::now();
     let schedule = TreeSchedule::new(snodal, threads);
     let schedule_seconds = t.elapsed().as_secs_f64();
-    let n = pattern.nrows();
-    let a = SparseColMatRef::new(pattern, values);
-    let factored = match sym.perm() {
-        Some(perm) => {
-            let mut new_values = vec![T::zero_impl(); values.len()];
-            let mut new_col_ptr = vec![0u32; n + 1];
-            let mut new_row_idx = vec![0u32; values.len()];
-            let mut buf =
-                MemBuffer::new(faer::sparse::utils::permute_self_adjoint_scratch::<u32>(n));
-            let permuted = faer::sparse::utils::permute_self_adjoint_to_unsorted(
-                &mut new_values,
-                &mut new_col_ptr,
-                &mut new_row_idx,
-                a,
-                perm,
-                Side::Lower,
-                Side::Lower,
-                MemStack::new(&mut buf),
-            );
-            factorize_supernodal_numeric_llt_tree(out, permuted.rb(), snodal, &schedule, par)
-        }
-        None => factorize_supernodal_numeric_llt_tree(out, a, snodal, &schedule, par),
-    };
+    let n = a.col_ptr.len() - 1;
+    let pattern = SymbolicSparseColMatRef::new_unsorted_checked(n, n, &a.col_ptr, None, &a.row_idx);
+    let factored = factorize_supernodal_numeric_llt_tree(
+        out,
+        SparseColMatRef::new(pattern, &a.values),
+        snodal,
+        &schedule,
+        par,
+    );
     log::debug!(
         "Cholesky numeric factor: {} supernodes in {} tasks on {threads} threads (the tree's \
          parallelism {:.1}), schedule {schedule_seconds:.3} s, {:.3} s in all",
@@ -568,6 +601,20 @@ pub(crate) fn factor_numeric_tree<T: RealField + Copy + Send + Sync>(
         t.elapsed().as_secs_f64()
     );
     Some(factored.is_ok())
+}
+
+/// [`permute_lower`], then [`factor_permuted`].
+pub(crate) fn factor_numeric_tree<T: RealField + Copy + Send + Sync>(
+    sym: &SymbolicCholesky<u32>,
+    out: &mut [T],
+    pattern: SymbolicSparseColMatRef<'_, u32>,
+    values: &[T],
+    par: Par,
+) -> Option<bool> {
+    if !matches!(sym.raw(), SymbolicCholeskyRaw::Supernodal(_)) {
+        return None;
+    }
+    factor_permuted(sym, out, &permute_lower(sym, pattern, values), par)
 }
 
 #[cfg(test)]
