@@ -12,7 +12,7 @@
 //! 1.2M only). The best of `REPEAT` (default 2) factorizations is printed,
 //! with the largest difference between the two factors.
 
-use metricdeform::shape::{ShapeModel, ShapeWeights};
+use metricdeform::shape::ShapeModel;
 use solver_cpu::{CholeskySolver, FillOrdering, SpdSolver};
 use std::path::Path;
 use std::time::Instant;
@@ -33,12 +33,8 @@ fn main() {
     let all = std::thread::available_parallelism().map_or(1, |n| n.get());
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/meshes");
     let homer = metricdeform::mesh::io::read_mesh(&dir.join("homer.obj")).unwrap();
-    let w = ShapeWeights {
-        k_f: 1000.0,
-        k_m: 1.0,
-        k_l: 1.0,
-        k_p: 1000.0,
-    };
+    // The scale-driven kind's weights.
+    let w = metricdeform::pipeline::Options::default().shape;
     println!(
         "| faces | ordering | nnz(L) | threads | faer, one supernode after another, s | subtrees at once, s | speed-up | largest difference / largest entry |"
     );
