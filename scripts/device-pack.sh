@@ -8,7 +8,9 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 cargo build --release
-exe() { cargo "$@" --message-format=json 2>/dev/null \
+# The bench's or test's own executable (not the crate's binary, which cargo
+# lists too, and in an order that changes with what it rebuilt).
+exe() { cargo "$@" --message-format=json 2>/dev/null | grep -v '"kind":\["bin"\]' \
   | sed -n 's/.*"executable":"\([^"]*\)".*/\1/p' | tail -1; }
 pipeline=$(exe bench --bench pipeline --no-run)
 cholesky=$(exe bench --features bench-kernels --bench cholesky_teams --no-run)
