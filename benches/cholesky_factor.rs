@@ -9,8 +9,9 @@
 //! nested dissection).
 //!
 //! `cargo bench --bench cholesky_factor` (`-- --quick`: 108k only; `-- --1m`:
-//! 1.2M only). The best of `REPEAT` (default 2) factorizations is printed,
-//! with the largest difference between the two factors.
+//! 1.2M only; `THREADS=n` for n threads instead of all). The best of
+//! `REPEAT` (default 2) factorizations is printed, with the largest
+//! difference between the two factors.
 
 use metricdeform::shape::ShapeModel;
 use solver_cpu::{CholeskySolver, FillOrdering, SpdSolver};
@@ -30,7 +31,11 @@ fn main() {
         .ok()
         .and_then(|v| v.parse().ok())
         .unwrap_or(2);
-    let all = std::thread::available_parallelism().map_or(1, |n| n.get());
+    // Every thread of the machine, or THREADS.
+    let all = std::env::var("THREADS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/meshes");
     let homer = metricdeform::mesh::io::read_mesh(&dir.join("homer.obj")).unwrap();
     // The scale-driven kind's weights.
