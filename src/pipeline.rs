@@ -520,7 +520,7 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
                     Ok(made) => made.map(Some),
                     Err(panic) => std::panic::resume_unwind(panic),
                 },
-                Some(ScaleEarly::Here(make)) => make().map(Some),
+                Some(ScaleEarly::Made(made)) => made.map(Some),
             }
         };
         // Where the host has the room, both shape kinds' factors of the
@@ -773,11 +773,11 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
     })
 }
 
-/// The scale factors' system (Eq. 3) being set up on its own thread, or, where
-/// no thread could be made, the set-up to run here.
+/// The scale factors' system (Eq. 3) being set up on its own thread, or,
+/// where no thread could be made, set up already.
 enum ScaleEarly {
     Started(std::thread::JoinHandle<Result<ScaleFactorSystem>>),
-    Here(Box<dyn FnOnce() -> Result<ScaleFactorSystem>>),
+    Made(Result<ScaleFactorSystem>),
 }
 
 /// The scale factors' solver made, analysed and factored on another thread
@@ -786,27 +786,23 @@ enum ScaleEarly {
 /// they and it take 1.2-1.4 s and 2.2 s on the development machine, one
 /// after the other before.
 fn start_scale_system(p: &Problem, o: &Options, areas0: &[f64]) -> ScaleEarly {
-    let face_pairs = p.topo.face_pairs.clone();
-    let areas = areas0.to_vec();
     let (k_d, k_r, regulariser, backend) = (o.k_d, o.k_r, o.regulariser, o.backend);
-    let make = move || -> Result<ScaleFactorSystem> {
+    let make = move |face_pairs: &[[u32; 2]], areas: &[f64]| -> Result<ScaleFactorSystem> {
         let mut solver = backend.scale_solver()?;
         solver.set_system_kind(SystemKind::ScaleFactors);
         // Minimum degree at every size: see shape_fill_ordering.
         solver.set_fill_ordering(FillOrdering::Amd);
-        ScaleFactorSystem::with_solver(&face_pairs, &areas, k_d, k_r, regulariser, solver)
+        ScaleFactorSystem::with_solver(face_pairs, areas, k_d, k_r, regulariser, solver)
     };
-    let shared = std::sync::Arc::new(std::sync::Mutex::new(Some(make)));
-    let on_thread = shared.clone();
+    let (face_pairs, areas) = (p.topo.face_pairs.clone(), areas0.to_vec());
     match std::thread::Builder::new()
         .name("scale factors' set-up".into())
-        .spawn(move || (on_thread.lock().unwrap().take().unwrap())())
+        .spawn(move || make(&face_pairs, &areas))
     {
         Ok(handle) => ScaleEarly::Started(handle),
         Err(e) => {
-            log::debug!("no thread for the scale factors' set-up ({e}): made in turn");
-            let make = shared.lock().unwrap().take().unwrap();
-            ScaleEarly::Here(Box::new(make))
+            log::debug!("no thread for the scale factors' set-up ({e}): made here");
+            ScaleEarly::Made(make(&p.topo.face_pairs, areas0))
         }
     }
 }

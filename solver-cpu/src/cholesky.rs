@@ -1050,19 +1050,16 @@ impl SpdSolver for CholeskySolver {
         let t_numeric = std::time::Instant::now();
         // A supernodal factor's independent subtrees on rayon's threads
         // ([`crate::tree_factor`]); a simplicial one by faer.
-        let values32: Vec<f32>;
+        let values32: Vec<f32> = if self.single {
+            a.values.iter().map(|&v| v as f32).collect()
+        } else {
+            Vec::new()
+        };
         let tree = if self.sequential_supernodes {
-            values32 = if self.single {
-                a.values.iter().map(|&v| v as f32).collect()
-            } else {
-                Vec::new()
-            };
             None
         } else if self.single {
-            values32 = a.values.iter().map(|&v| v as f32).collect();
             factor_numeric_tree(sym, &mut self.numeric32, sym_ref, &values32, par)
         } else {
-            values32 = Vec::new();
             factor_numeric_tree(sym, &mut self.numeric, sym_ref, &a.values, par)
         };
         let factored = match tree {
