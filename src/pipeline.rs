@@ -990,9 +990,9 @@ fn factor_ahead(
 /// subtrees on rayon's threads (`solver_cpu::tree_factor`), yet at the
 /// minimum-degree ordering's top the tree lets it keep only about 4 threads
 /// busy (homer 1.2M's `K`: its parallelism 3.7), so two factorizations at
-/// once still fill a host with 4 threads or more, beside the main thread
-/// (the scale factors' set-up) and the GPU's driver; two factors and their
-/// scratch at once, with as much again to spare.
+/// once still fill a host with 4 threads or more, beside the scale
+/// factors' set-up (on its own thread) and the GPU's driver; two factors
+/// and their scratch at once, with as much again to spare.
 pub fn factorizations_at_once(threads: usize, free: Option<u64>, factor_bytes: u64) -> bool {
     threads >= 4 && free.is_some_and(|f| f / 4 >= factor_bytes)
 }
