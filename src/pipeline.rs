@@ -486,8 +486,19 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
     let scale_early = (!p.constraints.is_empty()).then(|| start_scale_system(p, o, &areas0));
     let mut shape_solver = o.backend.shape_solver()?;
     shape_solver.set_system_kind(SystemKind::ScaleDriven);
+    let fine_tune_follows = o.preview.is_none() && !p.constraints.is_empty();
+    // The shape pattern's nested dissection (it needs the faces alone)
+    // starts now too, where a factor will be ordered by it.
+    let mut ordering_early = (n >= NESTED_DISSECTION_FROM
+        && (shape_solver.wants_nested_dissection()
+            || (fine_tune_follows
+                && shape_solver
+                    .isotropic_factor_plan(SystemKind::FineTune)
+                    .is_some())))
+    .then(|| start_shape_ordering(mesh))
+    .flatten();
     let mut model = ShapeModel::with_solver(mesh, &p.topo, p.handles.clone(), shape_solver)?;
-    shape_fill_ordering(p, &mut model);
+    shape_fill_ordering(p, &mut model, &mut ordering_early);
     crate::memory::release_free_memory();
     model
         .solver()
@@ -510,7 +521,6 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
         ..SolverSummary::default()
     };
     let mut scale_factor_work = None;
-    let fine_tune_follows = o.preview.is_none() && !p.constraints.is_empty();
     let mut fine_tune_ahead = None;
     if !p.constraints.is_empty() || has_handles || has_curvature {
         let make_scale_system = || -> Result<Option<ScaleFactorSystem>> {
@@ -526,12 +536,18 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
         // Where the host has the room, both shape kinds' factors of the
         // input's `K` start as soon as `K`'s symbolic analysis is made,
         // beside the scale factors' set-up (`factorizations_at_once`).
-        let early = FactorsAtOnce::prepare(&mut model, mesh, &x, o, fine_tune_follows);
+        let early = FactorsAtOnce::prepare(
+            &mut model,
+            mesh,
+            &x,
+            o,
+            fine_tune_follows.then_some(&mut ordering_early),
+        );
         let (mut scale_system, early) =
             scale_system_beside_analysis(&mut model, make_scale_system, early)?;
         crate::memory::release_free_memory();
         let (mut scale_driven_ahead, fine_tune_spawned) = match early {
-            Some((sd, ft)) => {
+            Some(Ok((sd, ft))) => {
                 let spawned = ft.is_some();
                 fine_tune_ahead = ft;
                 (Some(sd), spawned)
@@ -540,10 +556,22 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
             // and weights only) is factored while the first scale factors
             // are estimated, and the fine-tune's at the first outer
             // iteration.
-            None => (
-                factor_ahead(&mut model, mesh, &x, &o.shape, SystemKind::ScaleDriven),
-                false,
-            ),
+            not_started => {
+                if let Some(Err(Some(ordering))) = not_started {
+                    ordering_early = Some(ordering);
+                }
+                (
+                    factor_ahead(
+                        &mut model,
+                        mesh,
+                        &x,
+                        &o.shape,
+                        SystemKind::ScaleDriven,
+                        None,
+                    ),
+                    false,
+                )
+            }
         };
         stop_reason = "iteration cap".into();
         // The constraints in scale-factor form; their coefficients are
@@ -656,8 +684,14 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
             }
             model.assemble_with_positions(mesh, &x, &s, &c, &o.shape, affine)?;
             if iterations == 0 && fine_tune_follows && !fine_tune_spawned {
-                fine_tune_ahead =
-                    factor_ahead(&mut model, mesh, &x, &o.fine_tune, SystemKind::FineTune);
+                fine_tune_ahead = factor_ahead(
+                    &mut model,
+                    mesh,
+                    &x,
+                    &o.fine_tune,
+                    SystemKind::FineTune,
+                    ordering_early.take(),
+                );
             }
             let t_solve = Instant::now();
             let g = model.solve_unconstrained(&x)?;
@@ -823,17 +857,14 @@ fn scale_system_beside_analysis(
     model: &mut ShapeModel,
     make_scale_system: impl FnOnce() -> Result<Option<ScaleFactorSystem>>,
     early: Option<FactorsAtOnce>,
-) -> Result<(
-    Option<ScaleFactorSystem>,
-    Option<(FactorAhead, Option<FactorAhead>)>,
-)> {
+) -> Result<(Option<ScaleFactorSystem>, Option<AtOnce>)> {
     let Some(analyser) = model.solver().isotropic_analyser() else {
-        return Ok((make_scale_system()?, None));
+        return Ok((make_scale_system()?, early.map(FactorsAtOnce::not_started)));
     };
     let (made, analysed, seconds) = solver_cpu::analyse_beside_then(
         analyser,
         &model.matrix().iso,
-        |analysed| early.and_then(|e| e.start(analysed)),
+        |analysed| early.map(|e| e.start(analysed)),
         make_scale_system,
     );
     let started = match analysed {
@@ -853,6 +884,11 @@ fn scale_system_beside_analysis(
     Ok((made?, started))
 }
 
+/// The shape kinds' factors made ahead at once ([`FactorsAtOnce::start`]),
+/// or, where they were not started, the fine-tune's fill ordering given
+/// back (for [`factor_ahead`]).
+type AtOnce = std::result::Result<(FactorAhead, Option<FactorAhead>), Option<EarlyOrdering>>;
+
 /// The shape kinds' factors of the input's `K`, to be made at once on other
 /// threads as soon as `K`'s symbolic analysis is made
 /// ([`scale_system_beside_analysis`]): each kind's `K` (assembled before
@@ -860,7 +896,9 @@ fn scale_system_beside_analysis(
 /// solver makes its factor ([`SpdSolver::isotropic_factor_plan`]).
 struct FactorsAtOnce {
     scale_driven: (SymCsc, FactorPlan),
-    fine_tune: Option<(SymCsc, FactorPlan)>,
+    /// With the shape pattern's nested dissection being made, where it is
+    /// ([`start_shape_ordering`]).
+    fine_tune: Option<(SymCsc, FactorPlan, Option<EarlyOrdering>)>,
     /// [`Options::overlap_factorizations`].
     choice: Option<bool>,
     /// The host's hardware threads.
@@ -870,13 +908,15 @@ struct FactorsAtOnce {
 impl FactorsAtOnce {
     /// `None` where the solver makes no factors ahead, or the host could
     /// not make them at once anyway (too few threads, its free memory
-    /// unknown) unless `o` asks for it.
+    /// unknown) unless `o` asks for it. `fine_tune` where the fine-tune
+    /// follows, with the fine-tune's fill ordering where one is being made
+    /// for it (taken from the caller only where the factors are made at once).
     fn prepare(
         model: &mut ShapeModel,
         mesh: &Mesh,
         x: &[DVec3],
         o: &Options,
-        fine_tune_follows: bool,
+        fine_tune: Option<&mut Option<EarlyOrdering>>,
     ) -> Option<FactorsAtOnce> {
         let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
         let possible = match o.overlap_factorizations {
@@ -889,12 +929,15 @@ impl FactorsAtOnce {
         let plan = model
             .solver()
             .isotropic_factor_plan(SystemKind::ScaleDriven)?;
-        let fine_tune_plan = fine_tune_follows
-            .then(|| model.solver().isotropic_factor_plan(SystemKind::FineTune))
-            .flatten();
+        let fine_tune_plan = fine_tune
+            .as_ref()
+            .and_then(|_| model.solver().isotropic_factor_plan(SystemKind::FineTune));
         let t = Instant::now();
         let scale_driven = (model.isotropic_part(mesh, x, &o.shape), plan);
-        let fine_tune = fine_tune_plan.map(|p| (model.isotropic_part(mesh, x, &o.fine_tune), p));
+        let fine_tune = fine_tune_plan.map(|p| {
+            let ordering = fine_tune.and_then(Option::take);
+            (model.isotropic_part(mesh, x, &o.fine_tune), p, ordering)
+        });
         log::debug!(
             "the shape kinds' K for their factors ahead assembled in {:.3} s",
             t.elapsed().as_secs_f64()
@@ -907,18 +950,30 @@ impl FactorsAtOnce {
         })
     }
 
+    /// Nothing started: the fine-tune's fill ordering given back.
+    fn not_started(self) -> AtOnce {
+        Self::given_back(self.fine_tune)
+    }
+
+    fn given_back(fine_tune: Option<(SymCsc, FactorPlan, Option<EarlyOrdering>)>) -> AtOnce {
+        Err(fine_tune.and_then(|(_, _, ordering)| ordering))
+    }
+
     /// On the analysing thread, `analysed` just made: both factorizations
     /// started, each on its own thread, where the host has the room for
-    /// them ([`factorizations_at_once`]); `None` else (each kind's factor is
-    /// then made ahead one after the other, [`factor_ahead`]).
-    fn start(self, analysed: &CholeskySolver) -> Option<(FactorAhead, Option<FactorAhead>)> {
-        let (k, plan) = self.scale_driven;
+    /// them ([`factorizations_at_once`]); else [`Self::not_started`] (each
+    /// kind's factor is then made ahead one after the other,
+    /// [`factor_ahead`]).
+    fn start(self, analysed: &CholeskySolver) -> AtOnce {
+        let FactorsAtOnce {
+            scale_driven: (k, plan),
+            fine_tune,
+            choice,
+            threads,
+        } = self;
         let bytes = plan.factor_bytes(analysed);
-        let threads = self.threads;
         let free = crate::memory::available_memory_bytes();
-        let at_once = self
-            .choice
-            .unwrap_or_else(|| factorizations_at_once(threads, free, bytes));
+        let at_once = choice.unwrap_or_else(|| factorizations_at_once(threads, free, bytes));
         log::debug!(
             "shape factors ahead {} ({threads} threads, {} MiB free, a factor {:.0} MiB)",
             if at_once {
@@ -929,19 +984,29 @@ impl FactorsAtOnce {
             free.map_or("?".into(), |f| format!("{:.0}", f as f64 / 1048576.0)),
             bytes as f64 / 1048576.0
         );
-        if !at_once {
-            return None;
-        }
-        let spawn = |k: SymCsc, plan: FactorPlan, kind: SystemKind| {
-            FactorAhead::spawn(plan.twin(analysed)?, k)
-                .inspect_err(|e| log::debug!("{kind:?} system's factor of K ahead: {e}"))
-                .ok()
+        let twin = plan.twin(analysed);
+        let (true, Some(twin)) = (at_once, twin) else {
+            return Self::given_back(fine_tune);
         };
-        let scale_driven = spawn(k, plan, SystemKind::ScaleDriven)?;
-        let fine_tune = self
-            .fine_tune
-            .and_then(|(k, plan)| spawn(k, plan, SystemKind::FineTune));
-        Some((scale_driven, fine_tune))
+        let scale_driven = match FactorAhead::spawn(twin, k) {
+            Ok(ahead) => ahead,
+            Err(e) => {
+                log::debug!("ScaleDriven system's factor of K ahead: {e}");
+                return Self::given_back(fine_tune);
+            }
+        };
+        let fine_tune = fine_tune.and_then(|(k, plan, ordering)| {
+            match ordering {
+                Some(ordering) => FactorAhead::spawn_analysing(plan, ordering.into_fill(), k),
+                None => plan
+                    .twin(analysed)
+                    .ok_or_else(|| solver_cpu::SolverError::Backend("no twin".into()))
+                    .and_then(|twin| FactorAhead::spawn(twin, k)),
+            }
+            .inspect_err(|e| log::debug!("FineTune system's factor of K ahead: {e}"))
+            .ok()
+        });
+        Ok((scale_driven, fine_tune))
     }
 }
 
@@ -964,21 +1029,38 @@ impl FactorsAtOnce {
 /// hold it).
 /// Dropped unjoined (the iteration stopped before its first step), the
 /// thread finishes on its own.
+/// With `ordering` (the shape pattern's nested dissection, being made on
+/// its own thread, [`start_shape_ordering`]), the factor is made on its own
+/// symbolic analysis in that ordering ([`FactorAhead::spawn_analysing`])
+/// instead of the shape systems' minimum-degree one: homer 1.2M's `K` has
+/// 102M factor values so against 147M, which the host holds until the
+/// upload and the GPU streams in every application.
 fn factor_ahead(
     model: &mut ShapeModel,
     mesh: &Mesh,
     x: &[DVec3],
     w: &ShapeWeights,
     kind: SystemKind,
+    ordering: Option<EarlyOrdering>,
 ) -> Option<FactorAhead> {
-    let twin = model.solver().isotropic_factorer(kind)?;
+    type Start = Box<dyn FnOnce(SymCsc) -> Result<FactorAhead, solver_cpu::SolverError>>;
+    let start: Start = match ordering {
+        Some(ordering) => {
+            let plan = model.solver().isotropic_factor_plan(kind)?;
+            Box::new(move |k| FactorAhead::spawn_analysing(plan, ordering.into_fill(), k))
+        }
+        None => {
+            let twin = model.solver().isotropic_factorer(kind)?;
+            Box::new(move |k| FactorAhead::spawn(twin, k))
+        }
+    };
     let t = Instant::now();
     let k = model.isotropic_part(mesh, x, w);
     log::debug!(
         "{kind:?} system's K for its factor ahead assembled in {:.3} s",
         t.elapsed().as_secs_f64()
     );
-    FactorAhead::spawn(twin, k)
+    start(k)
         .inspect_err(|e| log::debug!("{kind:?} system's factor of K ahead: {e}"))
         .ok()
 }
@@ -1020,9 +1102,11 @@ fn adopt_factor_ahead(model: &mut ShapeModel, ahead: FactorAhead, kind: SystemKi
 /// GPU backend's Cholesky preconditioner): from [`NESTED_DISSECTION_FROM`]
 /// vertices on, METIS nested dissection where the solver wants it
 /// ([`SpdSolver::wants_nested_dissection`]), else faer's minimum degree (the
-/// GPU's: the factor is streamed at the device's bandwidth, and METIS's
-/// seconds on the host bound the speed-up). Below that size the solver's own
-/// choice (minimum degree) stands.
+/// GPU's first factor, on the path to the first solve, where METIS's
+/// seconds on the host would bound the speed-up; its fine-tune's factor is
+/// made in METIS's ordering beside the scale-driven iteration,
+/// [`factor_ahead`]). Below that size the solver's own choice (minimum
+/// degree) stands.
 ///
 /// The scale factors' face pattern (Eq. 3) is ordered by minimum degree at
 /// every size (where its solver is made): METIS runs one call at a time
@@ -1031,7 +1115,10 @@ fn adopt_factor_ahead(model: &mut ShapeModel, ahead: FactorAhead, kind: SystemKi
 /// minimum degree on the faces takes 0.8 s at homer 1.2M against METIS's
 /// 4.3 s, for a factor of 53M values against 35M made in the same 1.0 s
 /// (2-core development machine, 2026-11-26).
-fn shape_fill_ordering(p: &Problem, model: &mut ShapeModel) {
+///
+/// The nested dissection is the one `early` has made since the start
+/// ([`start_shape_ordering`]), where it was started, and taken from it.
+fn shape_fill_ordering(p: &Problem, model: &mut ShapeModel, early: &mut Option<EarlyOrdering>) {
     if p.mesh.num_vertices() < NESTED_DISSECTION_FROM {
         return;
     }
@@ -1040,17 +1127,73 @@ fn shape_fill_ordering(p: &Problem, model: &mut ShapeModel) {
         return;
     }
     let t = Instant::now();
-    let h = model.matrix();
-    let vertices = nested_dissection_of_pattern(h.n(), &h.iso.col_ptr, &h.iso.row_idx);
+    let vertices = match early.take() {
+        Some(early) => early.join(),
+        None => {
+            let h = model.matrix();
+            nested_dissection_of_pattern(h.n(), &h.iso.col_ptr, &h.iso.row_idx)
+                .map(|(forward, _)| forward)
+        }
+    };
     log::debug!(
-        "fill ordering of the shape pattern (METIS): {:.3} s",
+        "fill ordering of the shape pattern (METIS): waited {:.3} s",
         t.elapsed().as_secs_f64()
     );
-    if let Some((forward, _)) = vertices {
+    if let Some(forward) = vertices {
         model
             .solver()
             .set_fill_ordering(FillOrdering::Given(forward.into()));
     }
+}
+
+/// The shape pattern's METIS nested dissection (`forward[new] = old`),
+/// being made on its own thread ([`start_shape_ordering`]).
+struct EarlyOrdering(std::thread::JoinHandle<Option<Vec<usize>>>);
+
+impl EarlyOrdering {
+    /// Waits for the ordering: `None` where METIS failed.
+    fn join(self) -> Option<Vec<usize>> {
+        match self.0.join() {
+            Ok(forward) => forward,
+            Err(panic) => std::panic::resume_unwind(panic),
+        }
+    }
+
+    /// The ordering as a factorization's fill ordering, waited for when
+    /// called (minimum degree where METIS failed).
+    fn into_fill(self) -> impl FnOnce() -> FillOrdering + Send + 'static {
+        move || match self.join() {
+            Some(forward) => FillOrdering::Given(forward.into()),
+            None => FillOrdering::Amd,
+        }
+    }
+}
+
+/// The shape pattern's nested dissection ([`nested_dissection_of_pattern`]
+/// of [`crate::shape::shape_pattern`]) started on its own thread: it needs
+/// the faces alone, so it runs beside the shape model's and the scale
+/// factors' set-ups instead of after them (METIS takes 4.8 s at homer 1.2M
+/// on the development machine, one thread). `None` where no thread could
+/// be had (the caller orders on its own then).
+fn start_shape_ordering(mesh: &Mesh) -> Option<EarlyOrdering> {
+    let (n, faces) = (mesh.num_vertices(), mesh.faces.clone());
+    std::thread::Builder::new()
+        .name("shape fill ordering".into())
+        .spawn(move || {
+            let t = Instant::now();
+            let (col_ptr, row_idx) = crate::shape::shape_pattern(n, &faces);
+            drop(faces);
+            let forward =
+                nested_dissection_of_pattern(n, &col_ptr, &row_idx).map(|(forward, _)| forward);
+            log::debug!(
+                "fill ordering of the shape pattern (METIS), on its own thread from the start:                  {:.3} s",
+                t.elapsed().as_secs_f64()
+            );
+            forward
+        })
+        .inspect_err(|e| log::debug!("no thread for the shape pattern's fill ordering: {e}"))
+        .ok()
+        .map(EarlyOrdering)
 }
 
 fn compact(groups: &[usize]) -> Vec<usize> {

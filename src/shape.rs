@@ -253,7 +253,7 @@ impl ShapeModel {
         };
 
         let t_setup = std::time::Instant::now();
-        let (col_ptr, row_idx) = two_ring_pattern(&cot);
+        let (col_ptr, row_idx) = two_ring_pattern(&cot.start, &cot.idx);
         let h = IsoRingSym3::new(n, col_ptr, row_idx, mv.clone());
         // E_m's Hessian is isotropic ((c c^T) (x) I3): one scalar per block slot.
         let same_rings = cot.start == mv.start && cot.idx == mv.idx;
@@ -814,19 +814,55 @@ fn em_hessian(cot: &Laplacian, vertex_area: &[f64], h: &IsoRingSym3) -> Vec<f64>
     hm
 }
 
-/// Lower-triangular pattern `(col_ptr, row_idx)` of the vertex pairs within two
-/// rings of each other (every pair inside one closed 1-ring of `ring`, whose
-/// rows list the closed 1-rings), diagonal first in every column; built column
-/// by column in parallel.
-fn two_ring_pattern(ring: &Laplacian) -> (Vec<usize>, Vec<usize>) {
+/// The shape systems' pattern (`K`'s and the shape matrices', Eqs. 7 and
+/// 8; lower CSC, as [`ShapeModel::matrix`]'s) from a mesh's `n` vertices
+/// and its faces alone,
+/// before the model and its Laplacians exist: for the fill ordering of its
+/// factors, made on another thread from the start. The 1-rings are the
+/// faces' sides (each pair of a face's distinct corners), as the cotangent
+/// Laplacian's pattern holds them.
+pub fn shape_pattern(n: usize, faces: &[[u32; 3]]) -> (Vec<usize>, Vec<usize>) {
     use rayon::prelude::*;
-    let n = ring.diag.len();
+    let mut pairs: Vec<u64> = faces
+        .par_iter()
+        .flat_map_iter(|f| {
+            (0..3).flat_map(move |k| {
+                let (a, b) = (f[k] as u64, f[(k + 1) % 3] as u64);
+                [(a << 32) | b, (b << 32) | a]
+            })
+        })
+        .filter(|p| p >> 32 != p & 0xffff_ffff)
+        .collect();
+    pairs.par_sort_unstable();
+    pairs.dedup();
+    let mut start = vec![0usize; n + 1];
+    for p in &pairs {
+        start[(p >> 32) as usize + 1] += 1;
+    }
+    for i in 0..n {
+        start[i + 1] += start[i];
+    }
+    let idx: Vec<u32> = pairs.iter().map(|p| *p as u32).collect();
+    drop(pairs);
+    two_ring_pattern(&start, &idx)
+}
+
+/// Lower-triangular pattern `(col_ptr, row_idx)` of the vertex pairs within two
+/// rings of each other (every pair inside one closed 1-ring: a vertex and
+/// its row of `(start, idx)`, which lists its 1-ring without itself),
+/// diagonal first in every column; built column by column in parallel.
+fn two_ring_pattern(start: &[usize], idx: &[u32]) -> (Vec<usize>, Vec<usize>) {
+    use rayon::prelude::*;
+    let n = start.len() - 1;
+    let row = |i: usize| {
+        std::iter::once(i).chain(idx[start[i]..start[i + 1]].iter().map(|&q| q as usize))
+    };
     let cols: Vec<Vec<usize>> = (0..n)
         .into_par_iter()
         .map(|j| {
             let mut rows: Vec<usize> = vec![j];
-            for (p, _) in ring.row(j) {
-                rows.extend(ring.row(p).map(|(q, _)| q).filter(|&q| q >= j));
+            for p in row(j) {
+                rows.extend(row(p).filter(|&q| q >= j));
             }
             rows.sort_unstable();
             rows.dedup();
@@ -923,6 +959,39 @@ mod tests {
         let topo = Topology::build(&mesh);
         let model = ShapeModel::new(&mesh, &topo, Vec::new()).unwrap();
         (mesh, model)
+    }
+
+    /// `shape_pattern`, from the faces alone, is the model's pattern: on
+    /// spot, and on spot with a collapsed face, a repeated face, a needle
+    /// and a vertex in no face added (their pairs stay in the pattern).
+    #[test]
+    fn shape_pattern_from_the_faces_is_the_models() {
+        let (mut mesh, model) = spot_model();
+        let pattern = |m: &ShapeModel| {
+            (
+                m.matrix().iso.col_ptr.clone(),
+                m.matrix().iso.row_idx.clone(),
+            )
+        };
+        assert_eq!(
+            shape_pattern(mesh.positions.len(), &mesh.faces),
+            pattern(&model)
+        );
+        let n = mesh.positions.len() as u32;
+        let f0 = mesh.faces[0];
+        let far = mesh.faces[mesh.faces.len() / 2];
+        mesh.faces.push([f0[0], f0[0], far[1]]);
+        mesh.faces.push(f0);
+        mesh.positions
+            .push(mesh.positions[far[0] as usize] + DVec3::new(1e-9, 0.0, 0.0));
+        mesh.faces.push([far[0], far[1], n]);
+        mesh.positions.push(DVec3::new(5.0, 5.0, 5.0));
+        let topo = Topology::build(&mesh);
+        let model = ShapeModel::new(&mesh, &topo, Vec::new()).unwrap();
+        let (col_ptr, row_idx) = shape_pattern(mesh.positions.len(), &mesh.faces);
+        assert_eq!(col_ptr.len(), n as usize + 3);
+        assert!(row_idx.len() > pattern(&spot_model().1).1.len());
+        assert_eq!((col_ptr, row_idx), pattern(&model));
     }
 
     /// Scale factors varying over the faces, curvature targets and

@@ -110,6 +110,18 @@ impl FactorPlan {
             .flatten()
     }
 
+    /// A supernodal solver in this plan's precision that has analysed
+    /// nothing and orders by `ordering`: for a factor made on its own
+    /// symbolic analysis ([`FactorAhead::spawn_analysing`]).
+    pub fn unanalysed(&self, ordering: FillOrdering) -> CholeskySolver {
+        CholeskySolver {
+            ordering,
+            single: self.single,
+            supernodal: true,
+            ..CholeskySolver::default()
+        }
+    }
+
     /// Bytes of the factor's values on `analysed`'s analysis.
     pub fn factor_bytes(&self, analysed: &CholeskySolver) -> u64 {
         analysed.factor_nnz() as u64 * self.value_bytes()
@@ -138,6 +150,39 @@ impl FactorAhead {
             .spawn(move || {
                 let t = std::time::Instant::now();
                 let done = twin.prepare_owned(k).map(|()| twin);
+                (done, t.elapsed().as_secs_f64())
+            })
+            .map(FactorAhead)
+            .map_err(|e| SolverError::Backend(format!("no thread for the factorization: {e}")))
+    }
+
+    /// Starts, on another thread, the symbolic analysis of `k` in `plan`'s
+    /// precision with the fill ordering `ordering()` returns (which may
+    /// wait for it, e.g. for METIS on a third thread), then its numeric
+    /// factorization: a factor of `k`'s pattern on its own analysis, not a
+    /// numeric twin's. It fails where the largest supernode would not fit
+    /// `plan`.
+    pub fn spawn_analysing(
+        plan: FactorPlan,
+        ordering: impl FnOnce() -> FillOrdering + Send + 'static,
+        k: SymCsc,
+    ) -> Result<FactorAhead, SolverError> {
+        std::thread::Builder::new()
+            .name("factor-ahead".into())
+            .spawn(move || {
+                let t = std::time::Instant::now();
+                let mut c = plan.unanalysed(ordering());
+                let done = c.analyse(&k).and_then(|()| {
+                    let bytes = c.largest_supernode_nnz() as u64 * plan.value_bytes();
+                    if bytes > plan.largest_supernode_bytes {
+                        return Err(SolverError::Backend(format!(
+                            "the factor's largest supernode ({bytes} bytes) exceeds the plan's \
+                             {} bytes",
+                            plan.largest_supernode_bytes
+                        )));
+                    }
+                    c.prepare_owned(k).map(|()| c)
+                });
                 (done, t.elapsed().as_secs_f64())
             })
             .map(FactorAhead)
@@ -385,6 +430,16 @@ impl CholeskySolver {
     pub fn is_factored_on(&self, other: &CholeskySolver) -> bool {
         self.factored
             && matches!((&self.symbolic, &other.symbolic), (Some(s), Some(o)) if Arc::ptr_eq(s, o))
+    }
+
+    /// Whether this solver holds a numeric factor of the pattern `other`
+    /// has analysed, on any analysis of it (its own ordering, e.g.
+    /// [`FactorAhead::spawn_analysing`]'s, or `other`'s shared).
+    pub fn is_factored_of_pattern_of(&self, other: &CholeskySolver) -> bool {
+        self.factored
+            && other.symbolic.is_some()
+            && self.pattern.is_some()
+            && self.pattern == other.pattern
     }
 
     /// Whether this solver's symbolic analysis is of the pattern

@@ -421,7 +421,9 @@ pub trait SpdSolver: Send {
     fn isotropic_factor_plan(&self, _kind: SystemKind) -> Option<FactorPlan> {
         None
     }
-    /// Take `factored`, made from [`SpdSolver::isotropic_factorer`]'s solver,
+    /// Take `factored`, made from [`SpdSolver::isotropic_factorer`]'s solver
+    /// or on its own analysis of the same pattern
+    /// ([`FactorAhead::spawn_analysing`] with [`SpdSolver::isotropic_factor_plan`]),
     /// as `kind`'s preconditioner: that kind's set-up then uploads or uses it
     /// instead of factoring its first matrix's `K` (a preconditioner: made
     /// from another matrix of the kind, it changes the iterations, not the
@@ -687,6 +689,62 @@ mod tests {
         let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
         assert_eq!(bits(&x), bits(&y));
         assert_eq!(solver.symbolic_count, 1);
+    }
+
+    /// A factor made on its own analysis in another ordering
+    /// ([`FactorAhead::spawn_analysing`]) is a factor of the pattern another
+    /// solver analysed, though not on that analysis, and solves as that
+    /// solver's own factor does (to rounding); a plan its largest supernode
+    /// does not fit refuses it.
+    #[test]
+    fn a_factor_on_its_own_analysis_is_of_the_analysed_pattern() {
+        let n = 50;
+        let a = spd(n);
+        let mut s = a.scalar_pattern();
+        a.fill_scalar(&mut s, &vec![false; n]);
+        let mut solver = CholeskySolver::new();
+        solver.analyse(&s).unwrap();
+        let reversed: std::sync::Arc<[usize]> = (0..s.n).rev().collect();
+        let plan = |bytes| FactorPlan {
+            single: false,
+            largest_supernode_bytes: bytes,
+        };
+        let spawn = |bytes| {
+            let ordering = FillOrdering::Given(reversed.clone());
+            FactorAhead::spawn_analysing(plan(bytes), move || ordering, s.clone())
+                .unwrap()
+                .join()
+                .0
+        };
+        let mut own = spawn(u64::MAX).unwrap();
+        assert_eq!((own.symbolic_count, own.numeric_count), (1, 1));
+        assert!(own.is_factored_of_pattern_of(&solver));
+        assert!(!own.is_factored_on(&solver), "its own analysis");
+        assert!(!solver.is_factored_of_pattern_of(&solver), "not factored");
+        assert!(!own.is_factored_of_pattern_of(&CholeskySolver::new()));
+        let mut other = s.clone();
+        other.row_idx.pop();
+        other.values.pop();
+        *other.col_ptr.last_mut().unwrap() -= 1;
+        let mut other_solver = CholeskySolver::new();
+        other_solver.analyse(&other).unwrap();
+        assert!(
+            !own.is_factored_of_pattern_of(&other_solver),
+            "another pattern"
+        );
+        assert!(
+            matches!(spawn(8), Err(SolverError::Backend(_))),
+            "too large a supernode"
+        );
+        solver.prepare(&s).unwrap();
+        let b: Vec<f64> = (0..3 * n).map(|i| (i as f64 * 0.3).sin()).collect();
+        let (mut x, mut y) = (b.clone(), b.clone());
+        solver.solve_in_place(&mut x, 1).unwrap();
+        own.solve_in_place(&mut y, 1).unwrap();
+        let scale = x.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        for (p, q) in x.iter().zip(&y) {
+            assert!((p - q).abs() <= 1e-12 * scale, "{p} against {q}");
+        }
     }
 
     /// A factor plan's twin is a numeric twin in its precision where the

@@ -1545,6 +1545,97 @@ fn a_factor_made_ahead_is_the_kinds_preconditioner() {
     assert_eq!(bits(&plain), bits(&ahead));
 }
 
+/// The fine-tune kind's factor of `K` made ahead on its own symbolic
+/// analysis in another fill ordering (METIS's nested dissection of the
+/// pattern, as the pipeline makes it beside the scale-driven iteration,
+/// `FactorAhead::spawn_analysing`), not on a twin of the solver's own
+/// minimum-degree analysis, is that kind's preconditioner too: its set-up
+/// factors nothing on the host, and its solve lands on the solution of the
+/// solver that factored the same `K` itself. A factor of another pattern is
+/// refused, and the set-up factors.
+#[test]
+fn a_factor_made_ahead_in_another_ordering_is_the_kinds_preconditioner() {
+    use solver_cpu::{FactorAhead, FillOrdering};
+    let (nx, ny) = (60, 40);
+    let n = nx * ny;
+    let mut rng = Rng(47);
+    let a = iso_grid(nx, ny, &mut rng);
+    let mut a_ft = a.clone();
+    a_ft.iso.values.iter_mut().for_each(|v| *v *= 1.7);
+    for j in 0..n {
+        a_ft.iso.values[a_ft.iso.col_ptr[j]] += 0.05 * rng.sym().abs();
+    }
+    let other = iso_grid(nx, ny + 1, &mut rng);
+    let fixed = fixed_every(n, 61);
+    let (forward, _) =
+        solver_cpu::nested_dissection_of_pattern(n, &a.iso.col_ptr, &a.iso.row_idx).unwrap();
+    let forward: std::sync::Arc<[usize]> = forward.into();
+    let b = rng.vec(3 * n);
+    // `ahead`: none, one of this pattern in METIS's ordering, or one of
+    // `other`'s pattern.
+    let solve = |ahead: Option<bool>| -> Option<(Vec<f64>, usize, usize)> {
+        let mut s = gpu()?;
+        s.set_system_kind(SystemKind::ScaleDriven);
+        prepare_shape(&mut s, a.clone(), &fixed);
+        assert_eq!(s.active_preconditioner(), Preconditioner::Cholesky);
+        if let Some(same_pattern) = ahead {
+            let plan = s
+                .isotropic_factor_plan(SystemKind::FineTune)
+                .expect("a plan for the fine-tune's factor");
+            let (k, ordering) = if same_pattern {
+                (
+                    a_ft.iso_held_identity(&fixed),
+                    FillOrdering::Given(forward.clone()),
+                )
+            } else {
+                let fixed = fixed_every(other.n(), 61);
+                (other.iso_held_identity(&fixed), FillOrdering::Amd)
+            };
+            let (factored, _) = FactorAhead::spawn_analysing(plan, move || ordering, k)
+                .unwrap()
+                .join();
+            let factored = factored.unwrap();
+            let twin = s.isotropic_factorer(SystemKind::FineTune).unwrap();
+            if same_pattern {
+                assert_ne!(
+                    factored.factor_nnz(),
+                    twin.factor_nnz(),
+                    "another ordering than the solver's analysis"
+                );
+            }
+            s.adopt_isotropic_factor(SystemKind::FineTune, factored);
+        }
+        s.set_system_kind(SystemKind::FineTune);
+        prepare_shape(&mut s, a_ft.clone(), &fixed);
+        assert_eq!(s.active_preconditioner(), Preconditioner::Cholesky);
+        let mut x = vec![0.0; b.len()];
+        s.set_tolerance(1e-10);
+        s.solve_with_guess(&b, &mut x, 1).unwrap();
+        let setups = s.counters().preconditioner_setups;
+        Some((x, kernels::cholesky_factorizations(&s), setups))
+    };
+    let Some((plain, factored, setups)) = solve(None) else {
+        return;
+    };
+    let (ahead, factored_ahead, setups_ahead) = solve(Some(true)).unwrap();
+    let (_, factored_other, setups_other) = solve(Some(false)).unwrap();
+    assert_eq!(
+        (factored, factored_ahead, factored_other),
+        (2, 1, 2),
+        "host factorizations: none for the kind whose factor was taken"
+    );
+    assert_eq!((setups, setups_ahead, setups_other), (2, 2, 2));
+    let scale = plain.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    let diff = plain
+        .iter()
+        .zip(&ahead)
+        .fold(0.0f64, |m, (p, q)| m.max((p - q).abs()));
+    assert!(
+        diff <= 1e-7 * scale,
+        "the solutions differ by {diff:e} (largest entry {scale:e})"
+    );
+}
+
 /// A Cholesky factor larger than one storage binding has its values split
 /// over several, at supernode boundaries: it stays the preconditioner, its
 /// solve is still the factor's, and the PCG lands on the CPU backend's

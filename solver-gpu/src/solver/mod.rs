@@ -812,7 +812,10 @@ impl SpdSolver for GpuSolver {
     /// No: the factor is made once per system kind and streamed at the
     /// GPU's bandwidth, where METIS's seconds on the host are the set-up
     /// that bounds the speed-up (homer 1.2M: 4.8 s against 0.7 s for
-    /// minimum degree, for 44 % more factor values).
+    /// minimum degree, for 44 % more factor values). A factor made ahead
+    /// on its own analysis may come in METIS's ordering
+    /// ([`SpdSolver::adopt_isotropic_factor`]): the pipeline makes the
+    /// fine-tune's so, beside the scale-driven iteration.
     fn wants_nested_dissection(&self) -> bool {
         false
     }
@@ -867,8 +870,10 @@ impl SpdSolver for GpuSolver {
     /// Uploaded now (its diagonal blocks inverted), beside the active
     /// factor, and kept for `kind`'s Cholesky set-up, which takes it where it
     /// is of that `K`'s pattern and the kind's precision
-    /// (`GpuSolver::setup_cholesky`). One that is not a factor on this
-    /// solver's analysis, or does not fit the device, is dropped: the
+    /// (`GpuSolver::setup_cholesky`). One that is not a factor of this
+    /// solver's analysed pattern (on any ordering: the GPU factor carries
+    /// its own permutation and supernodes), or does not fit the device, is
+    /// dropped: the
     /// kind's set-up factors again.
     fn adopt_isotropic_factor(&mut self, kind: SystemKind, factored: solver_cpu::CholeskySolver) {
         if kind == SystemKind::ScaleFactors {

@@ -316,17 +316,17 @@ impl GpuSolver {
         Ok((g, inverse_seconds))
     }
 
-    /// `factored`, a shape kind's factor made ahead on a twin of the host's
-    /// analysis, uploaded now, beside the active factor, for that kind's
+    /// `factored`, a shape kind's factor of the host's analysed pattern made
+    /// ahead (on a twin of that analysis, or on its own ordering), uploaded now, beside the active factor, for that kind's
     /// set-up: the host keeps no copy while the kind before it runs.
     pub(super) fn upload_factor_ahead(
         &mut self,
         kind: SystemKind,
         mut factored: solver_cpu::CholeskySolver,
     ) -> Result<(), GpuError> {
-        if !factored.is_factored_on(&self.chol_host) {
+        if !factored.is_factored_of_pattern_of(&self.chol_host) {
             return Err(GpuError::Backend(
-                "not a factor on the shape systems' analysis".into(),
+                "not a factor of the shape systems' pattern".into(),
             ));
         }
         let precision = match factored.is_single_precision() {
