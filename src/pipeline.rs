@@ -487,18 +487,34 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
     let mut shape_solver = o.backend.shape_solver()?;
     shape_solver.set_system_kind(SystemKind::ScaleDriven);
     let fine_tune_follows = o.preview.is_none() && !p.constraints.is_empty();
-    // The shape pattern's nested dissection (it needs the faces alone)
-    // starts now too, where a factor will be ordered by it.
-    let mut ordering_early = (n >= NESTED_DISSECTION_FROM
-        && (shape_solver.wants_nested_dissection()
-            || (fine_tune_follows
-                && shape_solver
-                    .isotropic_factor_plan(SystemKind::FineTune)
-                    .is_some())))
+    let shape_steps = !p.constraints.is_empty() || !p.handles.is_empty() || !p.curvature.is_empty();
+    // The shape systems' fill ordering (`shape_fill_ordering`) and the
+    // symbolic analysis of their `K` need the faces alone: they start now,
+    // on their own threads, beside the shape model's set-up. So does the
+    // nested dissection a minimum-degree solver's fine-tune factor is made
+    // in (`factor_ahead`).
+    let large = n >= NESTED_DISSECTION_FROM;
+    let nested = large && shape_solver.wants_nested_dissection();
+    if large && !nested {
+        shape_solver.set_fill_ordering(FillOrdering::Amd);
+    }
+    let analysis_early = shape_steps
+        .then(|| shape_solver.isotropic_analyser())
+        .flatten()
+        .and_then(|analyser| start_shape_analysis(mesh, analyser, nested));
+    let mut ordering_early = ((nested && analysis_early.is_none())
+        || (large
+            && !nested
+            && fine_tune_follows
+            && shape_solver
+                .isotropic_factor_plan(SystemKind::FineTune)
+                .is_some()))
     .then(|| start_shape_ordering(mesh))
     .flatten();
     let mut model = ShapeModel::with_solver(mesh, &p.topo, p.handles.clone(), shape_solver)?;
-    shape_fill_ordering(p, &mut model, &mut ordering_early);
+    if nested && analysis_early.is_none() {
+        shape_fill_ordering(&mut model, ordering_early.take());
+    }
     crate::memory::release_free_memory();
     model
         .solver()
@@ -544,7 +560,7 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
             fine_tune_follows.then_some(&mut ordering_early),
         );
         let (mut scale_system, early) =
-            scale_system_beside_analysis(&mut model, make_scale_system, early)?;
+            scale_system_beside_analysis(&mut model, make_scale_system, early, analysis_early)?;
         crate::memory::release_free_memory();
         let (mut scale_driven_ahead, fine_tune_spawned) = match early {
             Some(Ok((sd, ft))) => {
@@ -857,7 +873,28 @@ fn scale_system_beside_analysis(
     model: &mut ShapeModel,
     make_scale_system: impl FnOnce() -> Result<Option<ScaleFactorSystem>>,
     early: Option<FactorsAtOnce>,
+    analysis: Option<EarlyAnalysis>,
 ) -> Result<(Option<ScaleFactorSystem>, Option<AtOnce>)> {
+    if let Some(analysis) = analysis {
+        let t = Instant::now();
+        let started = match analysis.join() {
+            Ok(analysed) => {
+                log::debug!(
+                    "symbolic analysis of the shape systems' K, made from the start on its own \
+                     thread: waited {:.3} s",
+                    t.elapsed().as_secs_f64()
+                );
+                let started = early.map(|e| e.start(&analysed));
+                model.solver().adopt_isotropic_analysis(analysed);
+                started
+            }
+            Err(e) => {
+                log::debug!("symbolic analysis of K ahead: {e}; left to the factorization");
+                early.map(FactorsAtOnce::not_started)
+            }
+        };
+        return Ok((make_scale_system()?, started));
+    }
     let Some(analyser) = model.solver().isotropic_analyser() else {
         return Ok((make_scale_system()?, early.map(FactorsAtOnce::not_started)));
     };
@@ -1106,7 +1143,11 @@ fn adopt_factor_ahead(model: &mut ShapeModel, ahead: FactorAhead, kind: SystemKi
 /// seconds on the host would bound the speed-up; its fine-tune's factor is
 /// made in METIS's ordering beside the scale-driven iteration,
 /// [`factor_ahead`]). Below that size the solver's own choice (minimum
-/// degree) stands.
+/// degree) stands. Both are chosen in [`deform`], before the symbolic
+/// analysis starts on its own thread ([`start_shape_analysis`]); this sets
+/// a solver that makes no analysis ahead ([`SpdSolver::isotropic_analyser`])
+/// to `early`'s nested dissection (made since the start,
+/// [`start_shape_ordering`]), or makes it here.
 ///
 /// The scale factors' face pattern (Eq. 3) is ordered by minimum degree at
 /// every size (where its solver is made): METIS runs one call at a time
@@ -1115,19 +1156,9 @@ fn adopt_factor_ahead(model: &mut ShapeModel, ahead: FactorAhead, kind: SystemKi
 /// minimum degree on the faces takes 0.8 s at homer 1.2M against METIS's
 /// 4.3 s, for a factor of 53M values against 35M made in the same 1.0 s
 /// (2-core development machine, 2026-11-26).
-///
-/// The nested dissection is the one `early` has made since the start
-/// ([`start_shape_ordering`]), where it was started, and taken from it.
-fn shape_fill_ordering(p: &Problem, model: &mut ShapeModel, early: &mut Option<EarlyOrdering>) {
-    if p.mesh.num_vertices() < NESTED_DISSECTION_FROM {
-        return;
-    }
-    if !model.solver().wants_nested_dissection() {
-        model.solver().set_fill_ordering(FillOrdering::Amd);
-        return;
-    }
+fn shape_fill_ordering(model: &mut ShapeModel, early: Option<EarlyOrdering>) {
     let t = Instant::now();
-    let vertices = match early.take() {
+    let vertices = match early {
         Some(early) => early.join(),
         None => {
             let h = model.matrix();
@@ -1167,6 +1198,67 @@ impl EarlyOrdering {
             None => FillOrdering::Amd,
         }
     }
+}
+
+/// The symbolic analysis of the shape systems' `K`, being made on its own
+/// thread ([`start_shape_analysis`]).
+struct EarlyAnalysis(
+    std::thread::JoinHandle<std::result::Result<CholeskySolver, solver_cpu::SolverError>>,
+);
+
+impl EarlyAnalysis {
+    /// Waits for the analysed solver.
+    fn join(self) -> std::result::Result<CholeskySolver, solver_cpu::SolverError> {
+        self.0.join().unwrap_or_else(|_| {
+            Err(solver_cpu::SolverError::Backend(
+                "the symbolic analysis panicked".into(),
+            ))
+        })
+    }
+}
+
+/// `analyser` ([`SpdSolver::isotropic_analyser`], in the solver's fill
+/// ordering) makes the symbolic analysis of the shape systems' `K` on its
+/// own thread from the start, on [`crate::shape::shape_pattern`] (the
+/// model's pattern, known from the faces), after the pattern's nested
+/// dissection where `nested`: beside the shape model's set-up, not after it
+/// (homer 1.2M: minimum degree's analysis 1.15 s, METIS and its analysis
+/// 4.8 and 0.4 s on the development machine). `None` where no thread could
+/// be had (the analysis is then made beside the scale factors' set-up).
+fn start_shape_analysis(
+    mesh: &Mesh,
+    mut analyser: CholeskySolver,
+    nested: bool,
+) -> Option<EarlyAnalysis> {
+    let (n, faces) = (mesh.num_vertices(), mesh.faces.clone());
+    std::thread::Builder::new()
+        .name("shape symbolic analysis".into())
+        .spawn(move || {
+            let t = Instant::now();
+            let (col_ptr, row_idx) = crate::shape::shape_pattern(n, &faces);
+            drop(faces);
+            if nested {
+                let forward = nested_dissection_of_pattern(n, &col_ptr, &row_idx);
+                log::debug!(
+                    "fill ordering of the shape pattern (METIS), on its own thread from the \
+                     start: {:.3} s",
+                    t.elapsed().as_secs_f64()
+                );
+                if let Some((forward, _)) = forward {
+                    analyser.set_fill_ordering(FillOrdering::Given(forward.into()));
+                }
+            }
+            let pattern = SymCsc {
+                n,
+                col_ptr,
+                row_idx,
+                values: Vec::new(),
+            };
+            analyser.analyse(&pattern).map(|()| analyser)
+        })
+        .inspect_err(|e| log::debug!("no thread for the shape systems' symbolic analysis: {e}"))
+        .ok()
+        .map(EarlyAnalysis)
 }
 
 /// The shape pattern's nested dissection ([`nested_dissection_of_pattern`]
