@@ -41,15 +41,14 @@ pub(crate) struct HostMatrix {
     /// [`Self::map`]; made for the held vertices `map_fixed`.
     map: Vec<u32>,
     map_fixed: Vec<bool>,
-    /// For each lower-triangle input entry: its position in the full pattern, and
-    /// the position of its transpose (`u32::MAX` on the diagonal).
-    lower_to_full: Vec<(u32, u32)>,
     /// Full position of each row's diagonal block.
     pub diag: Vec<u32>,
     /// The input pattern's (lower CSC) fingerprint, to recognise a repeated
-    /// pattern, and its column pointers (for [`Self::block_map`]; its rows
-    /// are found through `lower_to_full` and `col_idx`): not a copy of the
-    /// pattern (48 MB at 1.2M faces).
+    /// pattern, and its column pointers: not a copy of the pattern (48 MB
+    /// at 1.2M faces). The full rows are sorted, so row `j` from its
+    /// diagonal on lists lower column `j`'s rows in their order: each full
+    /// block's lower entry is found from them ([`Self::lower_source`]), no
+    /// map of them kept (8 bytes a lower entry).
     key: solver_cpu::PatternKey,
     lower_col_ptr: Vec<u32>,
     /// [`Self::norm_inf`] of the current values (reset by every fill).
@@ -228,8 +227,10 @@ impl HostMatrix {
         }
         let row_ptr = count.clone();
         let mut next = count;
+        // Row r gets (r, j) for the columns j < r in ascending order, then
+        // (r, r) and (r, i) for the rows i > r of column r in their
+        // (ascending) order: every row sorted.
         let mut col_idx = vec![0u32; nnz_full];
-        let mut lower_to_full = Vec::with_capacity(row_idx.len());
         let mut diag = vec![0u32; n];
         for j in 0..n {
             for &i in &row_idx[col_ptr[j]..col_ptr[j + 1]] {
@@ -238,12 +239,10 @@ impl HostMatrix {
                 col_idx[lo as usize] = j as u32;
                 if i == j {
                     diag[i] = lo;
-                    lower_to_full.push((lo, u32::MAX));
                 } else {
                     let up = next[j];
                     next[j] += 1;
                     col_idx[up as usize] = i as u32;
-                    lower_to_full.push((lo, up));
                 }
             }
         }
@@ -262,7 +261,6 @@ impl HostMatrix {
             shape_rows: OnceLock::new(),
             map: Vec::new(),
             map_fixed: Vec::new(),
-            lower_to_full,
             diag,
             key: solver_cpu::PatternKey::of(col_ptr, row_idx),
             lower_col_ptr: col_ptr.iter().map(|&c| c as u32).collect(),
@@ -428,7 +426,7 @@ impl HostMatrix {
 
     /// Whether the matrix has values (a shape matrix taken back has none).
     pub fn is_filled(&self) -> bool {
-        self.bs == 1 || self.shape.is_some() || self.lower.len() == self.lower_to_full.len()
+        self.bs == 1 || self.shape.is_some() || self.lower.len() == self.lower_len()
     }
 
     /// New lower blocks (the input pattern's, in its order) with the rows and
@@ -436,7 +434,7 @@ impl HostMatrix {
     /// again only when the held vertices change.
     fn set_lower(&mut self, lower: Vec<[f64; 9]>, fixed: &[bool]) {
         debug_assert_eq!(self.bs, 3);
-        debug_assert_eq!(lower.len(), self.lower_to_full.len());
+        debug_assert_eq!(lower.len(), self.lower_len());
         self.norm = OnceLock::new();
         self.lower = lower;
         self.shape = None;
@@ -460,30 +458,63 @@ impl HostMatrix {
     /// without the transpose bit ([`Self::pattern`] bounds the blocks).
     fn block_map(&self, fixed: &[bool]) -> Vec<u32> {
         let mut map = vec![ZERO; self.nnz_blocks()];
-        let col_ptr = &self.lower_col_ptr;
-        let mut k = 0;
-        for j in 0..self.rows {
-            for _ in col_ptr[j]..col_ptr[j + 1] {
-                let (lo, up) = self.lower_to_full[k];
-                // The transpose lies in row j, at column i.
-                let i = if up == u32::MAX {
-                    j
-                } else {
-                    self.col_idx[up as usize] as usize
-                };
-                let cut = fixed[i] || fixed[j];
-                map[lo as usize] = match (cut, i == j) {
-                    (true, true) => IDENTITY,
-                    (true, false) => ZERO,
-                    (false, _) => k as u32,
-                };
-                if up != u32::MAX {
-                    map[up as usize] = if cut { ZERO } else { k as u32 | TRANSPOSE };
-                }
-                k += 1;
-            }
-        }
+        self.for_each_row_mut(&mut map, |r, p, c, out| {
+            let (k, transposed) = self.lower_source(r, p);
+            *out = match (fixed[r] || fixed[c], c == r) {
+                (true, true) => IDENTITY,
+                (true, false) => ZERO,
+                (false, _) if transposed => k as u32 | TRANSPOSE,
+                (false, _) => k as u32,
+            };
+        });
         map
+    }
+
+    /// For the block at full position `p` in row `r`, its lower-CSC input
+    /// entry and whether the block is that entry's transpose (the upper
+    /// triangle): at and right of the diagonal, row `r` lists lower column
+    /// `r`'s rows in order; left of it, `(r, c)` is found in row `c`'s.
+    fn lower_source(&self, r: usize, p: usize) -> (usize, bool) {
+        let c = self.col_idx[p] as usize;
+        if c >= r {
+            let t = p - self.diag[r] as usize;
+            return (self.lower_col_ptr[r] as usize + t, c > r);
+        }
+        let from = self.diag[c] as usize;
+        let row_c = &self.col_idx[from..self.row_ptr[c + 1] as usize];
+        // (r, c) is in lower column c, so r is in row c right of its diagonal.
+        let t = row_c.partition_point(|&q| (q as usize) < r);
+        debug_assert_eq!(row_c[t] as usize, r);
+        (self.lower_col_ptr[c] as usize + t, false)
+    }
+
+    /// `f(r, p, c, &mut out[p])` for every full position `p` of every row
+    /// `r` (column `c`), the rows on rayon's threads.
+    fn for_each_row_mut<T: Send>(
+        &self,
+        out: &mut [T],
+        f: impl Fn(usize, usize, usize, &mut T) + Sync,
+    ) {
+        const ROWS: usize = 1024;
+        let row_ptr = &self.row_ptr;
+        // `out` split at every ROWS-th row, for the threads.
+        let mut groups: Vec<(usize, &mut [T])> = Vec::with_capacity(self.rows.div_ceil(ROWS));
+        let mut rest = out;
+        for first in (0..self.rows).step_by(ROWS) {
+            let last = (first + ROWS).min(self.rows);
+            let len = (row_ptr[last] - row_ptr[first]) as usize;
+            let (group, tail) = rest.split_at_mut(len);
+            groups.push((first, group));
+            rest = tail;
+        }
+        groups.into_par_iter().for_each(|(first, group)| {
+            let base = row_ptr[first] as usize;
+            for r in first..(first + ROWS).min(self.rows) {
+                for p in row_ptr[r] as usize..row_ptr[r + 1] as usize {
+                    f(r, p, self.col_idx[p] as usize, &mut group[p - base]);
+                }
+            }
+        });
     }
 
     /// Per block of the full pattern, where its values come from (for
@@ -530,7 +561,6 @@ impl HostMatrix {
             + b(&self.lower)
             + b(&self.map)
             + b(&self.map_fixed)
-            + b(&self.lower_to_full)
             + b(&self.diag)
             + b(&self.lower_col_ptr);
         if let Some(f) = &self.shape {
@@ -544,7 +574,7 @@ impl HostMatrix {
 
     /// Lower-triangle blocks of the pattern.
     pub fn lower_len(&self) -> usize {
-        self.lower_to_full.len()
+        self.lower_col_ptr.last().map_or(0, |&l| l as usize)
     }
 
     /// The diagonal block of block row `row` (the identity for a held
@@ -611,12 +641,11 @@ impl HostMatrix {
     pub fn fill_scalar(&mut self, a: &SymCsc) {
         debug_assert_eq!(self.bs, 1);
         self.norm = OnceLock::new();
-        for (k, &(lo, up)) in self.lower_to_full.iter().enumerate() {
-            self.vals[lo as usize] = a.values[k];
-            if up != u32::MAX {
-                self.vals[up as usize] = a.values[k];
-            }
-        }
+        let mut vals = std::mem::take(&mut self.vals);
+        self.for_each_row_mut(&mut vals, |r, p, _, out| {
+            *out = a.values[self.lower_source(r, p).0];
+        });
+        self.vals = vals;
     }
 
     /// `||A||_inf`, the largest absolute row sum (an upper bound of `||A||_2`
@@ -1099,6 +1128,31 @@ mod shape_fill_tests {
                     };
                     assert_eq!(h.block_values(f), want, "held {held:?}, block ({i}, {j})");
                 }
+            }
+        }
+    }
+
+    /// A scalar matrix's every stored value, on both triangles, is its lower
+    /// entry's, found here by row and column.
+    #[test]
+    fn scalar_fill_writes_each_value_from_its_lower_entry() {
+        let a = strip(11);
+        let mut k = a.iso.clone();
+        for (e, v) in k.values.iter_mut().enumerate() {
+            *v = 1.0 + e as f64;
+        }
+        let (col_ptr, row_idx) = (&k.col_ptr, &k.row_idx);
+        let mut h = HostMatrix::pattern(11, 1, col_ptr, row_idx).unwrap();
+        h.fill_scalar(&k);
+        assert_eq!(h.lower_len(), row_idx.len());
+        for i in 0..11 {
+            for f in h.row_ptr[i] as usize..h.row_ptr[i + 1] as usize {
+                let j = h.col_idx[f] as usize;
+                let (r, c) = (i.max(j), i.min(j));
+                let e = (col_ptr[c]..col_ptr[c + 1])
+                    .find(|&e| row_idx[e] == r)
+                    .expect("(r, c) in the lower pattern");
+                assert_eq!(h.block_values(f)[0], k.values[e], "({i}, {j})");
             }
         }
     }
