@@ -1230,21 +1230,12 @@ fn start_shape_analysis(
     mut analyser: CholeskySolver,
     nested: bool,
 ) -> Option<EarlyAnalysis> {
-    let (n, faces) = (mesh.num_vertices(), mesh.faces.clone());
-    std::thread::Builder::new()
-        .name("shape symbolic analysis".into())
-        .spawn(move || {
-            let t = Instant::now();
-            let (col_ptr, row_idx) = crate::shape::shape_pattern(n, &faces);
-            drop(faces);
+    on_shape_pattern(
+        mesh,
+        "shape symbolic analysis",
+        move |n, col_ptr, row_idx| {
             if nested {
-                let forward = nested_dissection_of_pattern(n, &col_ptr, &row_idx);
-                log::debug!(
-                    "fill ordering of the shape pattern (METIS), on its own thread from the \
-                     start: {:.3} s",
-                    t.elapsed().as_secs_f64()
-                );
-                if let Some((forward, _)) = forward {
+                if let Some(forward) = shape_nested_dissection(n, &col_ptr, &row_idx) {
                     analyser.set_fill_ordering(FillOrdering::Given(forward.into()));
                 }
             }
@@ -1255,10 +1246,9 @@ fn start_shape_analysis(
                 values: Vec::new(),
             };
             analyser.analyse(&pattern).map(|()| analyser)
-        })
-        .inspect_err(|e| log::debug!("no thread for the shape systems' symbolic analysis: {e}"))
-        .ok()
-        .map(EarlyAnalysis)
+        },
+    )
+    .map(EarlyAnalysis)
 }
 
 /// The shape pattern's nested dissection ([`nested_dissection_of_pattern`]
@@ -1268,24 +1258,41 @@ fn start_shape_analysis(
 /// on the development machine, one thread). `None` where no thread could
 /// be had (the caller orders on its own then).
 fn start_shape_ordering(mesh: &Mesh) -> Option<EarlyOrdering> {
+    on_shape_pattern(mesh, "shape fill ordering", |n, col_ptr, row_idx| {
+        shape_nested_dissection(n, &col_ptr, &row_idx)
+    })
+    .map(EarlyOrdering)
+}
+
+/// `then(n, col_ptr, row_idx)` on the shape pattern of `mesh`
+/// ([`crate::shape::shape_pattern`]), on a thread of its own named `name`;
+/// `None` where no thread could be had.
+fn on_shape_pattern<T: Send + 'static>(
+    mesh: &Mesh,
+    name: &str,
+    then: impl FnOnce(usize, Vec<usize>, Vec<usize>) -> T + Send + 'static,
+) -> Option<std::thread::JoinHandle<T>> {
     let (n, faces) = (mesh.num_vertices(), mesh.faces.clone());
     std::thread::Builder::new()
-        .name("shape fill ordering".into())
+        .name(name.into())
         .spawn(move || {
-            let t = Instant::now();
             let (col_ptr, row_idx) = crate::shape::shape_pattern(n, &faces);
             drop(faces);
-            let forward =
-                nested_dissection_of_pattern(n, &col_ptr, &row_idx).map(|(forward, _)| forward);
-            log::debug!(
-                "fill ordering of the shape pattern (METIS), on its own thread from the start:                  {:.3} s",
-                t.elapsed().as_secs_f64()
-            );
-            forward
+            then(n, col_ptr, row_idx)
         })
-        .inspect_err(|e| log::debug!("no thread for the shape pattern's fill ordering: {e}"))
+        .inspect_err(|e| log::debug!("no thread for the {name}: {e}"))
         .ok()
-        .map(EarlyOrdering)
+}
+
+/// METIS's nested dissection of the shape pattern, `forward[new] = old`.
+fn shape_nested_dissection(n: usize, col_ptr: &[usize], row_idx: &[usize]) -> Option<Vec<usize>> {
+    let t = Instant::now();
+    let forward = nested_dissection_of_pattern(n, col_ptr, row_idx).map(|(forward, _)| forward);
+    log::debug!(
+        "fill ordering of the shape pattern (METIS), on its own thread from the start: {:.3} s",
+        t.elapsed().as_secs_f64()
+    );
+    forward
 }
 
 fn compact(groups: &[usize]) -> Vec<usize> {

@@ -1488,6 +1488,29 @@ fn an_isotropic_analysis_made_ahead_is_adopted() {
     assert_eq!(bits(&plain), bits(&ahead));
 }
 
+/// A 60 x 40 grid's shape matrix of the scale-driven kind, and another
+/// positive definite one on its pattern for the fine-tune (scaled, with a
+/// varied diagonal shift), its held vertices, and the generator.
+fn two_kinds_of_one_pattern(
+    seed: u64,
+) -> (
+    solver_cpu::IsoRingSym3,
+    solver_cpu::IsoRingSym3,
+    Vec<bool>,
+    Rng,
+) {
+    let (nx, ny) = (60, 40);
+    let n = nx * ny;
+    let mut rng = Rng(seed);
+    let a = iso_grid(nx, ny, &mut rng);
+    let mut a_ft = a.clone();
+    a_ft.iso.values.iter_mut().for_each(|v| *v *= 1.7);
+    for j in 0..n {
+        a_ft.iso.values[a_ft.iso.col_ptr[j]] += 0.05 * rng.sym().abs();
+    }
+    (a, a_ft, fixed_every(n, 61), rng)
+}
+
 /// The fine-tune kind's factor of `K`, made ahead on another thread by a
 /// solver sharing the scale-driven kind's analysis (`isotropic_factorer`),
 /// is that kind's preconditioner: its set-up factors nothing on the host,
@@ -1495,19 +1518,8 @@ fn an_isotropic_analysis_made_ahead_is_adopted() {
 /// to the bit. One set-up per kind either way.
 #[test]
 fn a_factor_made_ahead_is_the_kinds_preconditioner() {
-    let (nx, ny) = (60, 40);
-    let n = nx * ny;
-    let mut rng = Rng(43);
-    let a = iso_grid(nx, ny, &mut rng);
-    // Another positive definite K on the same pattern: scaled, with a
-    // varied diagonal shift.
-    let mut a_ft = a.clone();
-    a_ft.iso.values.iter_mut().for_each(|v| *v *= 1.7);
-    for j in 0..n {
-        a_ft.iso.values[a_ft.iso.col_ptr[j]] += 0.05 * rng.sym().abs();
-    }
-    let fixed = fixed_every(n, 61);
-    let b = rng.vec(3 * n);
+    let (a, a_ft, fixed, mut rng) = two_kinds_of_one_pattern(43);
+    let b = rng.vec(3 * a.n());
     let solve = |ahead: bool| -> Option<(Vec<f64>, usize, usize)> {
         let mut s = gpu()?;
         s.set_system_kind(SystemKind::ScaleDriven);
@@ -1556,17 +1568,9 @@ fn a_factor_made_ahead_is_the_kinds_preconditioner() {
 #[test]
 fn a_factor_made_ahead_in_another_ordering_is_the_kinds_preconditioner() {
     use solver_cpu::{FactorAhead, FillOrdering};
-    let (nx, ny) = (60, 40);
-    let n = nx * ny;
-    let mut rng = Rng(47);
-    let a = iso_grid(nx, ny, &mut rng);
-    let mut a_ft = a.clone();
-    a_ft.iso.values.iter_mut().for_each(|v| *v *= 1.7);
-    for j in 0..n {
-        a_ft.iso.values[a_ft.iso.col_ptr[j]] += 0.05 * rng.sym().abs();
-    }
-    let other = iso_grid(nx, ny + 1, &mut rng);
-    let fixed = fixed_every(n, 61);
+    let (a, a_ft, fixed, mut rng) = two_kinds_of_one_pattern(47);
+    let n = a.n();
+    let other = iso_grid(60, 41, &mut rng);
     let (forward, _) =
         solver_cpu::nested_dissection_of_pattern(n, &a.iso.col_ptr, &a.iso.row_idx).unwrap();
     let forward: std::sync::Arc<[usize]> = forward.into();
