@@ -281,24 +281,38 @@ impl ShapeModel {
                 ]
             })
             .collect();
+        // Row i's pairs (p, q), p >= q, in `mv.row(i)`'s order, made per
+        // chunk of rows on rayon's threads.
         let mut mv_slot_ptr = Vec::with_capacity(n + 1);
-        let pairs: usize = (0..n)
-            .map(|i| {
-                let d = mv.start[i + 1] - mv.start[i] + 1;
-                d * (d + 1) / 2
-            })
-            .sum();
-        let mut mv_slots = Vec::with_capacity(pairs);
         mv_slot_ptr.push(0);
         for i in 0..n {
-            for (p, _) in mv.row(i) {
-                for (q, _) in mv.row(i) {
-                    if p >= q {
-                        mv_slots.push(slot(p as u32, q as u32));
+            let d = mv.start[i + 1] - mv.start[i] + 1;
+            mv_slot_ptr.push(mv_slot_ptr[i] + d * (d + 1) / 2);
+        }
+        let mut mv_slots = vec![0u32; mv_slot_ptr[n]];
+        {
+            use rayon::prelude::*;
+            const ROWS: usize = 4096;
+            let mut chunks = Vec::with_capacity(n.div_ceil(ROWS));
+            let mut rest = &mut mv_slots[..];
+            for first in (0..n).step_by(ROWS) {
+                let last = (first + ROWS).min(n);
+                let (chunk, tail) = rest.split_at_mut(mv_slot_ptr[last] - mv_slot_ptr[first]);
+                chunks.push((first..last, chunk));
+                rest = tail;
+            }
+            chunks.into_par_iter().for_each(|(rows, chunk)| {
+                let mut out = chunk.iter_mut();
+                for i in rows {
+                    for (p, _) in mv.row(i) {
+                        for (q, _) in mv.row(i) {
+                            if p >= q {
+                                *out.next().unwrap() = slot(p as u32, q as u32);
+                            }
+                        }
                     }
                 }
-            }
-            mv_slot_ptr.push(mv_slots.len());
+            });
         }
         log::debug!(
             "shape model: {} vertices, {} blocks, set up in {:.3} s, resident {:.0} MiB",
@@ -853,28 +867,43 @@ pub fn shape_pattern(n: usize, faces: &[[u32; 3]]) -> (Vec<usize>, Vec<usize>) {
 /// diagonal first in every column; built column by column in parallel.
 fn two_ring_pattern(start: &[usize], idx: &[u32]) -> (Vec<usize>, Vec<usize>) {
     use rayon::prelude::*;
+    // Columns in chunks, each chunk's rows in one vector (not one per
+    // column: 600k allocations at homer 1.2M, and their concatenation).
+    const COLUMNS: usize = 4096;
     let n = start.len() - 1;
     let row = |i: usize| {
         std::iter::once(i).chain(idx[start[i]..start[i + 1]].iter().map(|&q| q as usize))
     };
-    let cols: Vec<Vec<usize>> = (0..n)
+    let chunks: Vec<(Vec<usize>, Vec<usize>)> = (0..n.div_ceil(COLUMNS))
         .into_par_iter()
-        .map(|j| {
-            let mut rows: Vec<usize> = vec![j];
-            for p in row(j) {
-                rows.extend(row(p).filter(|&q| q >= j));
+        .map(|c| {
+            let columns = c * COLUMNS..((c + 1) * COLUMNS).min(n);
+            let mut lens = Vec::with_capacity(columns.len());
+            let mut rows = Vec::new();
+            let mut column = Vec::new();
+            for j in columns {
+                column.clear();
+                column.push(j);
+                for p in row(j) {
+                    column.extend(row(p).filter(|&q| q >= j));
+                }
+                column.sort_unstable();
+                column.dedup();
+                lens.push(column.len());
+                rows.extend_from_slice(&column);
             }
-            rows.sort_unstable();
-            rows.dedup();
-            rows
+            (lens, rows)
         })
         .collect();
     let mut col_ptr = Vec::with_capacity(n + 1);
     col_ptr.push(0);
-    for c in &cols {
-        col_ptr.push(col_ptr.last().unwrap() + c.len());
+    for len in chunks.iter().flat_map(|(lens, _)| lens) {
+        col_ptr.push(col_ptr.last().unwrap() + len);
     }
-    let row_idx: Vec<usize> = cols.concat();
+    let mut row_idx = Vec::with_capacity(col_ptr[n]);
+    for (_, rows) in chunks {
+        row_idx.extend_from_slice(&rows);
+    }
     (col_ptr, row_idx)
 }
 
