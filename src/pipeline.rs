@@ -498,7 +498,7 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
     if large && !nested {
         shape_solver.set_fill_ordering(FillOrdering::Amd);
     }
-    let analysis_early = shape_steps
+    let mut analysis_early = shape_steps
         .then(|| shape_solver.isotropic_analyser())
         .flatten()
         .and_then(|analyser| start_shape_analysis(mesh, analyser, nested));
@@ -559,8 +559,19 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
             o,
             fine_tune_follows.then_some(&mut ordering_early),
         );
-        let (mut scale_system, early) =
-            scale_system_beside_analysis(&mut model, make_scale_system, early, analysis_early)?;
+        // A solver that makes no factor ahead needs the analysis at its
+        // first shape step only: the first scale factors are estimated
+        // meanwhile (the CPU backend's METIS, 4.8 s at 1.2M, runs on).
+        let factors_ahead = model
+            .solver()
+            .isotropic_factor_plan(SystemKind::ScaleDriven)
+            .is_some();
+        let (mut scale_system, early) = if analysis_early.is_some() && !factors_ahead {
+            (make_scale_system()?, None)
+        } else {
+            let analysis = analysis_early.take();
+            scale_system_beside_analysis(&mut model, make_scale_system, early, analysis)?
+        };
         crate::memory::release_free_memory();
         let (mut scale_driven_ahead, fine_tune_spawned) = match early {
             Some(Ok((sd, ft))) => {
@@ -698,6 +709,9 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
             if let Some(ahead) = scale_driven_ahead.take() {
                 adopt_factor_ahead(&mut model, ahead, SystemKind::ScaleDriven);
             }
+            if let Some(analysis) = analysis_early.take() {
+                adopt_early_analysis(&mut model, analysis);
+            }
             model.assemble_with_positions(mesh, &x, &s, &c, &o.shape, affine)?;
             if iterations == 0 && fine_tune_follows && !fine_tune_spawned {
                 fine_tune_ahead = factor_ahead(
@@ -766,6 +780,9 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
     );
     let mut x = best.1;
     let mut ft_iterations = 0;
+    if let Some(analysis) = analysis_early.take() {
+        adopt_early_analysis(&mut model, analysis);
+    }
     if fine_tune_follows {
         if let Some(ahead) = fine_tune_ahead.take() {
             adopt_factor_ahead(&mut model, ahead, SystemKind::FineTune);
@@ -876,22 +893,13 @@ fn scale_system_beside_analysis(
     analysis: Option<EarlyAnalysis>,
 ) -> Result<(Option<ScaleFactorSystem>, Option<AtOnce>)> {
     if let Some(analysis) = analysis {
-        let t = Instant::now();
-        let started = match analysis.join() {
-            Ok(analysed) => {
-                log::debug!(
-                    "symbolic analysis of the shape systems' K, made from the start on its own \
-                     thread: waited {:.3} s",
-                    t.elapsed().as_secs_f64()
-                );
+        let started = match analysis.join_logged() {
+            Some(analysed) => {
                 let started = early.map(|e| e.start(&analysed));
                 model.solver().adopt_isotropic_analysis(analysed);
                 started
             }
-            Err(e) => {
-                log::debug!("symbolic analysis of K ahead: {e}; left to the factorization");
-                early.map(FactorsAtOnce::not_started)
-            }
+            None => early.map(FactorsAtOnce::not_started),
         };
         return Ok((make_scale_system()?, started));
     }
@@ -1207,13 +1215,36 @@ struct EarlyAnalysis(
 );
 
 impl EarlyAnalysis {
-    /// Waits for the analysed solver.
-    fn join(self) -> std::result::Result<CholeskySolver, solver_cpu::SolverError> {
-        self.0.join().unwrap_or_else(|_| {
-            Err(solver_cpu::SolverError::Backend(
-                "the symbolic analysis panicked".into(),
-            ))
-        })
+    /// Waits for the analysed solver: `None` where the analysis failed
+    /// (left to the first factorization, which reports what fails).
+    fn join_logged(self) -> Option<CholeskySolver> {
+        let t = Instant::now();
+        match self.0.join() {
+            Ok(Ok(analysed)) => {
+                log::debug!(
+                    "symbolic analysis of the shape systems' K, made from the start on its own \
+                     thread: waited {:.3} s",
+                    t.elapsed().as_secs_f64()
+                );
+                Some(analysed)
+            }
+            Ok(Err(e)) => {
+                log::debug!("symbolic analysis of K ahead: {e}; left to the factorization");
+                None
+            }
+            Err(_) => {
+                log::debug!("symbolic analysis of K ahead panicked; left to the factorization");
+                None
+            }
+        }
+    }
+}
+
+/// The analysis made from the start, waited for and handed to the shape
+/// solver, where it was made.
+fn adopt_early_analysis(model: &mut ShapeModel, analysis: EarlyAnalysis) {
+    if let Some(analysed) = analysis.join_logged() {
+        model.solver().adopt_isotropic_analysis(analysed);
     }
 }
 
