@@ -1246,6 +1246,9 @@ fn adopt_early_analysis(model: &mut ShapeModel, analysis: EarlyAnalysis) {
     if let Some(analysed) = analysis.join_logged() {
         model.solver().adopt_isotropic_analysis(analysed);
     }
+    // METIS's and the analysis's scratch, freed on their thread, handed
+    // back before the factorization that follows.
+    crate::memory::release_free_memory();
 }
 
 /// `analyser` ([`SpdSolver::isotropic_analyser`], in the solver's fill
