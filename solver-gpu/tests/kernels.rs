@@ -1511,6 +1511,24 @@ fn two_kinds_of_one_pattern(
     (a, a_ft, fixed_every(n, 61), rng)
 }
 
+/// `a_ft` solved as the fine-tune kind's matrix: the solution, the host's
+/// Cholesky factorizations and the preconditioner set-ups so far.
+fn fine_tune_solve(
+    s: &mut GpuSolver,
+    a_ft: &solver_cpu::IsoRingSym3,
+    fixed: &[bool],
+    b: &[f64],
+) -> (Vec<f64>, usize, usize) {
+    s.set_system_kind(SystemKind::FineTune);
+    prepare_shape(s, a_ft.clone(), fixed);
+    assert_eq!(s.active_preconditioner(), Preconditioner::Cholesky);
+    let mut x = vec![0.0; b.len()];
+    s.set_tolerance(1e-10);
+    s.solve_with_guess(b, &mut x, 1).unwrap();
+    let setups = s.counters().preconditioner_setups;
+    (x, kernels::cholesky_factorizations(s), setups)
+}
+
 /// The fine-tune kind's factor of `K`, made ahead on another thread by a
 /// solver sharing the scale-driven kind's analysis (`isotropic_factorer`),
 /// is that kind's preconditioner: its set-up factors nothing on the host,
@@ -1538,14 +1556,7 @@ fn a_factor_made_ahead_is_the_kinds_preconditioner() {
             let (factored, _) = solver_cpu::FactorAhead::spawn(twin, k).unwrap().join();
             s.adopt_isotropic_factor(SystemKind::FineTune, factored.unwrap());
         }
-        s.set_system_kind(SystemKind::FineTune);
-        prepare_shape(&mut s, a_ft.clone(), &fixed);
-        assert_eq!(s.active_preconditioner(), Preconditioner::Cholesky);
-        let mut x = vec![0.0; b.len()];
-        s.set_tolerance(1e-10);
-        s.solve_with_guess(&b, &mut x, 1).unwrap();
-        let setups = s.counters().preconditioner_setups;
-        Some((x, kernels::cholesky_factorizations(&s), setups))
+        Some(fine_tune_solve(&mut s, &a_ft, &fixed, &b))
     };
     let Some((plain, factored, setups)) = solve(false) else {
         return;
@@ -1609,14 +1620,7 @@ fn a_factor_made_ahead_in_another_ordering_is_the_kinds_preconditioner() {
             }
             s.adopt_isotropic_factor(SystemKind::FineTune, factored);
         }
-        s.set_system_kind(SystemKind::FineTune);
-        prepare_shape(&mut s, a_ft.clone(), &fixed);
-        assert_eq!(s.active_preconditioner(), Preconditioner::Cholesky);
-        let mut x = vec![0.0; b.len()];
-        s.set_tolerance(1e-10);
-        s.solve_with_guess(&b, &mut x, 1).unwrap();
-        let setups = s.counters().preconditioner_setups;
-        Some((x, kernels::cholesky_factorizations(&s), setups))
+        Some(fine_tune_solve(&mut s, &a_ft, &fixed, &b))
     };
     let Some((plain, factored, setups)) = solve(None) else {
         return;
