@@ -1033,23 +1033,15 @@ impl FactorsAtOnce {
         let (true, Some(twin)) = (at_once, twin) else {
             return Self::given_back(fine_tune);
         };
-        let scale_driven = match FactorAhead::spawn(twin, k) {
-            Ok(ahead) => ahead,
-            Err(e) => {
-                log::debug!("ScaleDriven system's factor of K ahead: {e}");
-                return Self::given_back(fine_tune);
-            }
+        let Some(scale_driven) = FactorWay::Twin(twin).start(k, SystemKind::ScaleDriven) else {
+            return Self::given_back(fine_tune);
         };
         let fine_tune = fine_tune.and_then(|(k, plan, ordering)| {
-            match ordering {
-                Some(ordering) => FactorAhead::spawn_analysing(plan, ordering.into_fill(), k),
-                None => plan
-                    .twin(analysed)
-                    .ok_or_else(|| solver_cpu::SolverError::Backend("no twin".into()))
-                    .and_then(|twin| FactorAhead::spawn(twin, k)),
-            }
-            .inspect_err(|e| log::debug!("FineTune system's factor of K ahead: {e}"))
-            .ok()
+            let how = match ordering {
+                Some(ordering) => FactorWay::OwnAnalysis(plan, ordering),
+                None => FactorWay::Twin(plan.twin(analysed)?),
+            };
+            how.start(k, SystemKind::FineTune)
         });
         Ok((scale_driven, fine_tune))
     }
@@ -1088,16 +1080,11 @@ fn factor_ahead(
     kind: SystemKind,
     ordering: Option<EarlyOrdering>,
 ) -> Option<FactorAhead> {
-    type Start = Box<dyn FnOnce(SymCsc) -> Result<FactorAhead, solver_cpu::SolverError>>;
-    let start: Start = match ordering {
+    let how = match ordering {
         Some(ordering) => {
-            let plan = model.solver().isotropic_factor_plan(kind)?;
-            Box::new(move |k| FactorAhead::spawn_analysing(plan, ordering.into_fill(), k))
+            FactorWay::OwnAnalysis(model.solver().isotropic_factor_plan(kind)?, ordering)
         }
-        None => {
-            let twin = model.solver().isotropic_factorer(kind)?;
-            Box::new(move |k| FactorAhead::spawn(twin, k))
-        }
+        None => FactorWay::Twin(model.solver().isotropic_factorer(kind)?),
     };
     let t = Instant::now();
     let k = model.isotropic_part(mesh, x, w);
@@ -1105,9 +1092,33 @@ fn factor_ahead(
         "{kind:?} system's K for its factor ahead assembled in {:.3} s",
         t.elapsed().as_secs_f64()
     );
-    start(k)
+    how.start(k, kind)
+}
+
+/// How a shape kind's factor of `K` is made ahead: on the shape systems'
+/// analysis (a numeric twin, [`SpdSolver::isotropic_factorer`]), or on its
+/// own analysis in the nested dissection being made
+/// ([`FactorAhead::spawn_analysing`]). Made once or twice a run, so its
+/// size does not matter.
+#[allow(clippy::large_enum_variant)]
+enum FactorWay {
+    Twin(CholeskySolver),
+    OwnAnalysis(FactorPlan, EarlyOrdering),
+}
+
+impl FactorWay {
+    /// `k`'s factorization started on another thread; `None` (logged)
+    /// where no thread could be had.
+    fn start(self, k: SymCsc, kind: SystemKind) -> Option<FactorAhead> {
+        match self {
+            FactorWay::Twin(twin) => FactorAhead::spawn(twin, k),
+            FactorWay::OwnAnalysis(plan, ordering) => {
+                FactorAhead::spawn_analysing(plan, ordering.into_fill(), k)
+            }
+        }
         .inspect_err(|e| log::debug!("{kind:?} system's factor of K ahead: {e}"))
         .ok()
+    }
 }
 
 /// Whether the host makes the two shape kinds' factors ahead at once

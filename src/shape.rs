@@ -292,15 +292,7 @@ impl ShapeModel {
         let mut mv_slots = vec![0u32; mv_slot_ptr[n]];
         {
             use rayon::prelude::*;
-            const ROWS: usize = 4096;
-            let mut chunks = Vec::with_capacity(n.div_ceil(ROWS));
-            let mut rest = &mut mv_slots[..];
-            for first in (0..n).step_by(ROWS) {
-                let last = (first + ROWS).min(n);
-                let (chunk, tail) = rest.split_at_mut(mv_slot_ptr[last] - mv_slot_ptr[first]);
-                chunks.push((first..last, chunk));
-                rest = tail;
-            }
+            let chunks = solver_cpu::row_groups_mut(&mut mv_slots, n, |i| mv_slot_ptr[i], 4096);
             chunks.into_par_iter().for_each(|(rows, chunk)| {
                 let mut out = chunk.iter_mut();
                 for i in rows {

@@ -3,6 +3,27 @@
 
 use crate::SymCsc;
 
+/// `values`, the entries of `rows` rows stored one row after the other
+/// (row `r`'s from `start(r)` to `start(r + 1)`, `start(0)` the first),
+/// cut into groups of `group` rows: each group's rows and entries, for
+/// rayon's threads to fill apart.
+pub fn row_groups_mut<T>(
+    values: &mut [T],
+    rows: usize,
+    start: impl Fn(usize) -> usize,
+    group: usize,
+) -> Vec<(std::ops::Range<usize>, &mut [T])> {
+    let mut groups = Vec::with_capacity(rows.div_ceil(group.max(1)));
+    let mut rest = values;
+    for first in (0..rows).step_by(group.max(1)) {
+        let last = (first + group).min(rows);
+        let (entries, tail) = rest.split_at_mut(start(last) - start(first));
+        groups.push((first..last, entries));
+        rest = tail;
+    }
+    groups
+}
+
 /// The strictly lower blocks of a [`BlockSym3`] listed by block row: for row `i`,
 /// `entries[row_ptr[i]..row_ptr[i + 1]]` holds (block slot, block column). With
 /// the column-wise storage this gives a gather-only, row-parallel product.
@@ -233,5 +254,30 @@ impl BlockSym3 {
                 }
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::row_groups_mut;
+
+    /// Each group holds exactly its rows' entries, in order, the last one
+    /// short; rows of no entries included.
+    #[test]
+    fn row_groups_cut_the_entries_at_their_rows() {
+        let start = [0usize, 2, 2, 5, 6, 9, 9, 10];
+        let rows = start.len() - 1;
+        let mut values: Vec<usize> = (0..start[rows]).collect();
+        let groups = row_groups_mut(&mut values, rows, |r| start[r], 3);
+        let seen: Vec<(std::ops::Range<usize>, Vec<usize>)> =
+            groups.into_iter().map(|(r, v)| (r, v.to_vec())).collect();
+        assert_eq!(
+            seen,
+            vec![
+                (0..3, vec![0, 1, 2, 3, 4]),
+                (3..6, vec![5, 6, 7, 8]),
+                (6..7, vec![9]),
+            ]
+        );
     }
 }

@@ -12,7 +12,7 @@ pub mod iso_ring;
 pub mod pcg;
 pub mod tree_factor;
 
-pub use block::{BlockRows, BlockSym3};
+pub use block::{row_groups_mut, BlockRows, BlockSym3};
 pub use cholesky::{
     analyse_beside, analyse_beside_then, nested_dissection_of_pattern, CholeskySolver, FactorAhead,
     FactorPlan, FillOrdering, PatternKey, SupernodalFactor,

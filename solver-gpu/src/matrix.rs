@@ -495,21 +495,11 @@ impl HostMatrix {
         out: &mut [T],
         f: impl Fn(usize, usize, usize, &mut T) + Sync,
     ) {
-        const ROWS: usize = 1024;
         let row_ptr = &self.row_ptr;
-        // `out` split at every ROWS-th row, for the threads.
-        let mut groups: Vec<(usize, &mut [T])> = Vec::with_capacity(self.rows.div_ceil(ROWS));
-        let mut rest = out;
-        for first in (0..self.rows).step_by(ROWS) {
-            let last = (first + ROWS).min(self.rows);
-            let len = (row_ptr[last] - row_ptr[first]) as usize;
-            let (group, tail) = rest.split_at_mut(len);
-            groups.push((first, group));
-            rest = tail;
-        }
-        groups.into_par_iter().for_each(|(first, group)| {
-            let base = row_ptr[first] as usize;
-            for r in first..(first + ROWS).min(self.rows) {
+        let groups = solver_cpu::row_groups_mut(out, self.rows, |r| row_ptr[r] as usize, 1024);
+        groups.into_par_iter().for_each(|(rows, group)| {
+            let base = row_ptr[rows.start] as usize;
+            for r in rows {
                 for p in row_ptr[r] as usize..row_ptr[r + 1] as usize {
                     f(r, p, self.col_idx[p] as usize, &mut group[p - base]);
                 }
