@@ -295,6 +295,18 @@ fn proxies(
             ),
             per(shape.device_serial_steps, shape.iterations),
         ));
+        let (at_use, at_use_s, ahead, ahead_s) = phases.iter().fold((0, 0.0, 0, 0.0), |a, w| {
+            (
+                a.0 + w.device_compiles,
+                a.1 + w.device_compile_seconds,
+                a.2 + w.device_compiles_ahead,
+                a.3 + w.device_compile_ahead_seconds,
+            )
+        });
+        line.push_str(&format!(
+            "; pipelines compiled at their first use {at_use} ({at_use_s:.3} s), ahead on \
+             other threads {ahead} ({ahead_s:.3} s)"
+        ));
     }
     if let Some(c) = cpu {
         let (cpu_wall, _, _) = later_outer_seconds(c);

@@ -421,6 +421,11 @@ fn work_sum(a: WorkCounters, b: Option<WorkCounters>) -> WorkCounters {
         device_serial_steps: a.device_serial_steps + b.device_serial_steps,
         device_timed_passes: a.device_timed_passes + b.device_timed_passes,
         device_timed_seconds: a.device_timed_seconds + b.device_timed_seconds,
+        device_compiles: a.device_compiles + b.device_compiles,
+        device_compile_seconds: a.device_compile_seconds + b.device_compile_seconds,
+        device_compiles_ahead: a.device_compiles_ahead + b.device_compiles_ahead,
+        device_compile_ahead_seconds: a.device_compile_ahead_seconds
+            + b.device_compile_ahead_seconds,
     }
 }
 
@@ -438,7 +443,8 @@ fn log_work(phase: &str, w: &WorkCounters, seconds: Option<f64>) {
          {} preconditioner set-ups, {} solves, {} iterations (most in one solve {}), \
          {} bytes to and {} from the device, {:.3} s in queue submissions; kernels: {} dispatches, \
          {} bytes modelled ({} for the operator applications in their least storage), \
-         {} serial steps; {:.3} s of device time in {} timed passes",
+         {} serial steps; {:.3} s of device time in {} timed passes; {} pipelines compiled \
+         at their first use in {:.3} s, {} ahead on another thread in {:.3} s",
         w.device_seconds,
         w.device_waits,
         w.preconditioner_setups,
@@ -453,7 +459,11 @@ fn log_work(phase: &str, w: &WorkCounters, seconds: Option<f64>) {
         w.device_bytes_minimal,
         w.device_serial_steps,
         w.device_timed_seconds,
-        w.device_timed_passes
+        w.device_timed_passes,
+        w.device_compiles,
+        w.device_compile_seconds,
+        w.device_compiles_ahead,
+        w.device_compile_ahead_seconds
     );
 }
 
@@ -488,6 +498,16 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
     shape_solver.set_system_kind(SystemKind::ScaleDriven);
     let fine_tune_follows = o.preview.is_none() && !p.constraints.is_empty();
     let shape_steps = !p.constraints.is_empty() || !p.handles.is_empty() || !p.curvature.is_empty();
+    // A GPU's pipelines for the shape solves, compiled on another thread
+    // while the systems are set up: one column in the scale-driven phase;
+    // the fine-tune's first step solves one more than its multipliers.
+    if shape_steps {
+        shape_solver.warm_up(SystemKind::ScaleDriven, &[1]);
+    }
+    if fine_tune_follows {
+        let m = multiplier_count(&groups, o.multipliers);
+        shape_solver.warm_up(SystemKind::FineTune, &[m + 1, m]);
+    }
     // The shape systems' fill ordering (`shape_fill_ordering`) and the
     // symbolic analysis of their `K` need the faces alone: they start now,
     // on their own threads, beside the shape model's set-up. So does the
@@ -854,9 +874,19 @@ enum ScaleEarly {
 /// after the other before.
 fn start_scale_system(p: &Problem, o: &Options, areas0: &[f64]) -> ScaleEarly {
     let (k_d, k_r, regulariser, backend) = (o.k_d, o.k_r, o.regulariser, o.backend);
+    // The Newton steps on a GPU take one column per constraint (per
+    // constraint multipliers only: the others step on the host); after the
+    // first step only the rows of degree above 1 change and are solved.
+    let newton_columns = (o.multipliers == Multipliers::PerConstraint).then(|| {
+        let changing = p.constraints.iter().filter(|c| c.degree() != 1).count();
+        [p.constraints.len(), changing.max(1)]
+    });
     let make = move |face_pairs: &[[u32; 2]], areas: &[f64]| -> Result<ScaleFactorSystem> {
         let mut solver = backend.scale_solver()?;
         solver.set_system_kind(SystemKind::ScaleFactors);
+        if let Some(columns) = newton_columns {
+            solver.warm_up(SystemKind::ScaleFactors, &columns);
+        }
         // Minimum degree at every size: see shape_fill_ordering.
         solver.set_fill_ordering(FillOrdering::Amd);
         ScaleFactorSystem::with_solver(face_pairs, areas, k_d, k_r, regulariser, solver)
@@ -1338,6 +1368,15 @@ fn shape_nested_dissection(n: usize, col_ptr: &[usize], row_idx: &[usize]) -> Op
         t.elapsed().as_secs_f64()
     );
     forward
+}
+
+/// The fine-tune's multipliers (Eq. 8): one per constraint, or one per
+/// kind of metric among `groups` (compacted ids).
+fn multiplier_count(groups: &[usize], multipliers: Multipliers) -> usize {
+    match multipliers {
+        Multipliers::PerConstraint => groups.len(),
+        Multipliers::PerKind => groups.iter().max().map_or(0, |g| g + 1),
+    }
 }
 
 fn compact(groups: &[usize]) -> Vec<usize> {

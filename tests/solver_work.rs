@@ -114,6 +114,40 @@ fn gpu_sets_up_each_preconditioner_once_and_moves_one_value_set_per_outer_iterat
     assert!(rows.iter().all(|r| r.met), "{rows:?}");
 }
 
+/// GPU: every pipeline the run's solves use is compiled ahead, on another
+/// thread from the run's start (`SpdSolver::warm_up`): none is compiled
+/// where a scale estimate or a shape solve first runs it.
+#[test]
+fn gpu_compiles_the_pipelines_of_its_solves_ahead() {
+    if !gpu_available() {
+        return;
+    }
+    let (_, options, out) = run(SolverBackend::Gpu);
+    if !solver_gpu::default_adapter().unwrap().shader_f64 {
+        // Only the f64 path is compiled ahead.
+        return;
+    }
+    let w = &out.solver;
+    let mut phases = vec![
+        ("scale-driven", &w.scale_driven),
+        ("fine-tune", &w.fine_tune),
+    ];
+    // The scale factors' Newton steps run on the GPU with per-constraint
+    // multipliers only.
+    if options.multipliers == metricdeform::constrained_step::Multipliers::PerConstraint {
+        phases.push(("scale factors", &w.scale_factors));
+    }
+    for (phase, p) in phases {
+        eprintln!(
+            "{phase}: {} pipelines compiled at first use, {} ahead",
+            p.device_compiles, p.device_compiles_ahead
+        );
+        assert_eq!(p.device_compiles, 0, "{phase}: {p:?}");
+    }
+    let ahead = w.scale_driven.device_compiles_ahead + w.scale_factors.device_compiles_ahead;
+    assert!(ahead > 0, "{w:?}");
+}
+
 /// The GPU's two shape factors made ahead at once, from the input's
 /// positions, are the factors made one after the other: the same result to
 /// the bit. Either way each shape kind's set-up takes its factor made ahead

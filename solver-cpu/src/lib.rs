@@ -106,6 +106,15 @@ pub struct WorkCounters {
     /// the adapter has none) and the device seconds they took.
     pub device_timed_passes: u64,
     pub device_timed_seconds: f64,
+    /// Compute pipelines compiled for the device where they were first
+    /// needed, and the host seconds that took (a driver compiles each, from
+    /// its shader cache where it has one).
+    pub device_compiles: u64,
+    pub device_compile_seconds: f64,
+    /// Of the same, those compiled ahead of their use on another thread
+    /// ([`SpdSolver::warm_up`]) and that thread's seconds.
+    pub device_compiles_ahead: u64,
+    pub device_compile_ahead_seconds: f64,
 }
 
 impl WorkCounters {
@@ -137,6 +146,11 @@ impl WorkCounters {
             device_serial_steps: self.device_serial_steps - earlier.device_serial_steps,
             device_timed_passes: self.device_timed_passes - earlier.device_timed_passes,
             device_timed_seconds: self.device_timed_seconds - earlier.device_timed_seconds,
+            device_compiles: self.device_compiles - earlier.device_compiles,
+            device_compile_seconds: self.device_compile_seconds - earlier.device_compile_seconds,
+            device_compiles_ahead: self.device_compiles_ahead - earlier.device_compiles_ahead,
+            device_compile_ahead_seconds: self.device_compile_ahead_seconds
+                - earlier.device_compile_ahead_seconds,
         }
     }
 }
@@ -435,6 +449,11 @@ pub trait SpdSolver: Send {
     /// The kind of system the next `prepare*` calls bring (default
     /// [`SystemKind::ScaleDriven`]); see [`SystemKind`].
     fn set_system_kind(&mut self, _kind: SystemKind) {}
+
+    /// Starts making, on another thread, what solves of `kind` with these
+    /// column counts will need and can be made before their matrices exist:
+    /// a GPU's compute pipelines. A no-op for the host's solvers.
+    fn warm_up(&mut self, _kind: SystemKind, _columns: &[usize]) {}
     /// Minimise `(s - 1)^T A (s - 1)`, `A` the prepared scalar matrix,
     /// subject to `C_j(s) = 0` for the `constraints`, by sequential linearly
     /// constrained Newton steps from `s = 1` (paper Sec. 4, Eqs. 15-18,

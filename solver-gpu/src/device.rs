@@ -112,6 +112,10 @@ struct Traffic {
     serial_steps: AtomicU64,
     timed_passes: AtomicU64,
     timed_nanos: AtomicU64,
+    compiles: AtomicU64,
+    compile_nanos: AtomicU64,
+    compiles_ahead: AtomicU64,
+    compile_ahead_nanos: AtomicU64,
 }
 
 /// Modelled device work of recorded kernels, what a discrete GPU pays for:
@@ -212,6 +216,15 @@ pub struct TrafficCounts {
     /// end timestamps.
     pub timed_passes: u64,
     pub timed_seconds: f64,
+    /// Compute pipelines made where they were first needed (one per kernel
+    /// and column count), and the host seconds they took: a driver compiles
+    /// each, from its shader cache where it has one.
+    pub compiles: u64,
+    pub compile_seconds: f64,
+    /// Pipelines compiled ahead of their use on another thread
+    /// ([`Kernel::compile_ahead`]), and that thread's seconds.
+    pub compiles_ahead: u64,
+    pub compile_ahead_seconds: f64,
 }
 
 /// Most bytes of host staging memory one upload through
@@ -395,7 +408,22 @@ impl Context {
             },
             timed_passes: t.timed_passes.load(Ordering::Relaxed),
             timed_seconds: t.timed_nanos.load(Ordering::Relaxed) as f64 * 1e-9,
+            compiles: t.compiles.load(Ordering::Relaxed),
+            compile_seconds: t.compile_nanos.load(Ordering::Relaxed) as f64 * 1e-9,
+            compiles_ahead: t.compiles_ahead.load(Ordering::Relaxed),
+            compile_ahead_seconds: t.compile_ahead_nanos.load(Ordering::Relaxed) as f64 * 1e-9,
         }
+    }
+
+    /// Counts a pipeline made since `since`, `ahead` of its use.
+    fn count_compile(&self, since: std::time::Instant, ahead: bool) {
+        let t = &self.traffic;
+        let (count, nanos) = match ahead {
+            true => (&t.compiles_ahead, &t.compile_ahead_nanos),
+            false => (&t.compiles, &t.compile_nanos),
+        };
+        count.fetch_add(1, Ordering::Relaxed);
+        nanos.fetch_add(since.elapsed().as_nanos() as u64, Ordering::Relaxed);
     }
 
     /// Timestamp writes for a compute pass to be timed, where the adapter
@@ -926,6 +954,7 @@ pub(crate) enum Bind {
 
 /// A shader module with the explicit bind group layout (group 0) that all its
 /// entry points and all their column-count variants share.
+#[derive(Clone)]
 pub(crate) struct Shader {
     pub label: &'static str,
     pub module: wgpu::ShaderModule,
@@ -994,7 +1023,10 @@ impl Shader {
 }
 
 /// One entry point of a shader; its pipelines are specialised by the number of
-/// columns (the `NCOLS` override) and compiled on first use.
+/// columns (the `NCOLS` override) and compiled on first use, or ahead of it
+/// on another thread ([`Kernel::compile_ahead`]). Clones share the compiled
+/// pipelines.
+#[derive(Clone)]
 pub(crate) struct Kernel {
     pub label: &'static str,
     entry: &'static str,
@@ -1002,7 +1034,7 @@ pub(crate) struct Kernel {
     pipeline_layout: wgpu::PipelineLayout,
     /// Further pipeline-overridable constants (besides `NCOLS`).
     consts: Vec<(&'static str, f64)>,
-    variants: Mutex<Vec<Option<wgpu::ComputePipeline>>>,
+    variants: Arc<Mutex<Vec<Option<wgpu::ComputePipeline>>>>,
 }
 
 impl Kernel {
@@ -1023,19 +1055,39 @@ impl Kernel {
             module: shader.module.clone(),
             pipeline_layout: shader.pipeline_layout.clone(),
             consts: consts.to_vec(),
-            variants: Mutex::new(vec![None; crate::CMAX]),
+            variants: Arc::new(Mutex::new(vec![None; crate::CMAX])),
         }
     }
 
-    /// The pipeline for `ncols` columns (1..=CMAX).
+    /// The pipeline for `ncols` columns (1..=CMAX): compiled now unless it
+    /// was before (or is being compiled ahead: then when that ends).
     pub fn pipeline(&self, ctx: &Context, ncols: usize) -> Result<wgpu::ComputePipeline, GpuError> {
+        self.compiled(ctx, ncols, false)
+    }
+
+    /// Compiles the pipeline for `ncols` columns ahead of its use, on the
+    /// calling thread (counted apart from the compilations at use).
+    pub fn compile_ahead(&self, ctx: &Context, ncols: usize) -> Result<(), GpuError> {
+        self.compiled(ctx, ncols, true).map(|_| ())
+    }
+
+    fn compiled(
+        &self,
+        ctx: &Context,
+        ncols: usize,
+        ahead: bool,
+    ) -> Result<wgpu::ComputePipeline, GpuError> {
         assert!((1..=crate::CMAX).contains(&ncols));
-        let mut v = self.variants.lock().unwrap();
+        // Held while compiling: a use waits for the compilation ahead of it
+        // instead of compiling the same pipeline again.
+        let mut v = self.variants.lock().unwrap_or_else(|e| e.into_inner());
         if let Some(p) = &v[ncols - 1] {
             return Ok(p.clone());
         }
         let mut constants = vec![("NCOLS", ncols as f64)];
         constants.extend_from_slice(&self.consts);
+        let t = std::time::Instant::now();
+        // Error scopes are the calling thread's (wgpu's are thread-local).
         let scope = ctx.device.push_error_scope(wgpu::ErrorFilter::Validation);
         let p = ctx
             .device
@@ -1051,7 +1103,15 @@ impl Kernel {
                 },
                 cache: None,
             });
-        if let Some(e) = pollster::block_on(scope.pop()) {
+        let popped = pollster::block_on(scope.pop());
+        ctx.count_compile(t, ahead);
+        log::trace!(
+            "pipeline {} x{ncols} compiled{} in {:.4} s",
+            self.label,
+            if ahead { " ahead" } else { "" },
+            t.elapsed().as_secs_f64()
+        );
+        if let Some(e) = popped {
             return Err(GpuError::Backend(format!("pipeline {}: {e}", self.label)));
         }
         v[ncols - 1] = Some(p.clone());

@@ -209,6 +209,11 @@ impl ExpandBlocks {
         })
     }
 
+    /// The expansion's and the shape sum's kernels (one column each).
+    pub fn kernels(&self) -> [&Kernel; 2] {
+        [&self.kernel, &self.sum_kernel]
+    }
+
     /// The expansion of the lower blocks in `lower` through `map` into
     /// `chunks` (their values) and, when given, `lo` (one buffer per chunk).
     pub fn expansion(

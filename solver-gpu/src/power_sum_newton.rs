@@ -99,6 +99,22 @@ pub(crate) struct NewtonKernels {
 }
 
 impl NewtonKernels {
+    /// Its kernels: an estimation runs every one, with one column per constraint.
+    pub fn kernels(&self) -> [&Kernel; 10] {
+        [
+            &self.init,
+            &self.values,
+            &self.finish_values,
+            &self.rows,
+            &self.dots,
+            &self.multipliers,
+            &self.direction,
+            &self.step_length,
+            &self.advance,
+            &self.finish_step,
+        ]
+    }
+
     pub fn new(ctx: &Context) -> Result<Self, GpuError> {
         let shader = Shader::new(ctx, "power_sum_newton.wgsl", SOURCE, &BINDINGS)?;
         let k = |label, entry| Kernel::new(&shader, label, entry);

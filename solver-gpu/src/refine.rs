@@ -106,6 +106,18 @@ impl RefineKernels {
             shader,
         })
     }
+
+    /// Every kernel a refined solve runs ([`crate::solver`]'s compilations ahead).
+    pub fn kernels(&self) -> [&Kernel; 6] {
+        [
+            &self.product,
+            &self.add,
+            &self.residual,
+            &self.finish,
+            &self.start,
+            &self.scale_r,
+        ]
+    }
 }
 
 /// The refinement's vectors and bind groups for one f64 PCG workspace.

@@ -105,6 +105,11 @@ impl SupernodalKernels {
             kernels,
         }))
     }
+
+    /// Its kernels (pull, forward, backward): a solve runs all three.
+    pub fn kernels(&self) -> &[Kernel; 3] {
+        &self.kernels
+    }
 }
 
 /// A supernodal factor on the GPU, with its level schedule.

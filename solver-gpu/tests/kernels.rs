@@ -1929,3 +1929,63 @@ fn vertex_positions_are_wanted_until_the_kinds_factor_is_made() {
     prepare_shape(&mut s, a, &fixed);
     assert!(s.wants_vertex_positions(), "an AMG reads them");
 }
+
+/// The pipelines of a kind's solves compiled ahead on another thread
+/// (`SpdSolver::warm_up`): the scale-driven kind's one-column solve and the
+/// fine-tune's four- and three-column solves (its first step and the next)
+/// then compile none where they run, while a solver without it compiles
+/// some; the solutions are the same to the bit.
+#[test]
+fn warmed_up_kinds_compile_no_pipeline_where_they_solve() {
+    let mut rng = Rng(17);
+    let a = iso_grid(16, 12, &mut rng);
+    let n = a.n();
+    let fixed = fixed_every(n, 29);
+    let b1 = rng.vec(3 * n);
+    let b4 = rng.vec(3 * n * 4);
+    // (pipelines compiled where the systems were prepared and solved,
+    // pipelines compiled ahead, the solutions' bits)
+    let run = |warm: bool| -> Option<(u64, u64, Vec<u64>)> {
+        let mut s = gpu_f64()?;
+        if warm {
+            s.warm_up(SystemKind::ScaleDriven, &[1]);
+            s.warm_up(SystemKind::FineTune, &[4, 3]);
+            s.wait_for_warm_up();
+        }
+        s.set_tolerance(1e-10);
+        let before = s.counters();
+        let mut bits = Vec::new();
+        for (kind, b, ncols) in [
+            (SystemKind::ScaleDriven, &b1[..], 1),
+            (SystemKind::FineTune, &b4[..], 4),
+            (SystemKind::FineTune, &b4[..3 * n * 3], 3),
+        ] {
+            if ncols != 3 {
+                s.set_system_kind(kind);
+                prepare_shape(&mut s, a.clone(), &fixed);
+                assert_eq!(s.active_preconditioner(), Preconditioner::Cholesky);
+            }
+            let mut x = vec![0.0; b.len()];
+            s.solve_with_guess(b, &mut x, ncols).unwrap();
+            bits.extend(x.iter().map(|v| v.to_bits()));
+        }
+        let after = s.counters();
+        Some((
+            after.device_compiles - before.device_compiles,
+            after.device_compiles_ahead,
+            bits,
+        ))
+    };
+    let Some((at_use_cold, ahead_cold, cold)) = run(false) else {
+        return;
+    };
+    let (at_use_warm, ahead_warm, warm) = run(true).unwrap();
+    assert_eq!(ahead_cold, 0);
+    assert!(at_use_cold > 0, "a solver without warm-up compiled nothing");
+    assert!(ahead_warm > 0, "nothing compiled ahead");
+    assert_eq!(
+        at_use_warm, 0,
+        "{at_use_warm} compiled where the solves ran"
+    );
+    assert!(cold == warm, "the solutions differ");
+}

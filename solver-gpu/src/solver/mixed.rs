@@ -112,6 +112,33 @@ pub(super) struct MixedKernels {
 }
 
 impl MixedKernels {
+    fn new(ctx: &device::Context) -> Result<Self, GpuError> {
+        Ok(MixedKernels {
+            pcg: pcg::Pcg::new(ctx, precision::Precision::F64)?,
+            csr: csr_spmv::new_in(ctx, precision::Precision::F64)?,
+            bsr: bsr_spmv::new_f64(ctx)?,
+            convert: convert::Convert::new(ctx)?,
+            refine: refine::RefineKernels::new(ctx)?,
+        })
+    }
+
+    /// The kernels of an f64 solve of a block matrix with an f64 Cholesky
+    /// preconditioner, beside the factor's own: the product, the PCG steps,
+    /// the refinement.
+    pub(super) fn block_solve_kernels(&self) -> Vec<&device::Kernel> {
+        let p = &self.pcg;
+        let mut k = vec![
+            &self.bsr.kernel,
+            &p.finish_alpha,
+            &p.finish_beta,
+            &p.direction,
+            &p.update_amg,
+            &p.dot_rz,
+        ];
+        k.extend(self.refine.kernels());
+        k
+    }
+
     /// The f64 product for a matrix of block size `bs`.
     pub(crate) fn spmv(&self, bs: usize) -> Spmv<'_> {
         match bs {
@@ -181,6 +208,14 @@ impl GpuSolver {
         Ok(())
     }
 
+    /// The f64 kernels of the mixed-precision solve, made on first use.
+    pub(super) fn mixed_kernels(&mut self) -> Result<&MixedKernels, GpuError> {
+        if self.mixed_kernels.is_none() {
+            self.mixed_kernels = Some(MixedKernels::new(&self.ctx)?);
+        }
+        Ok(self.mixed_kernels.as_ref().unwrap())
+    }
+
     /// [`Self::mixed_workspace`]'s new matrix and workspace, its low parts
     /// written from the host unless `unwritten`.
     pub(super) fn build_mixed(
@@ -189,15 +224,7 @@ impl GpuSolver {
         stamp: (usize, usize),
         unwritten: bool,
     ) -> Result<(), GpuError> {
-        if self.mixed_kernels.is_none() {
-            self.mixed_kernels = Some(MixedKernels {
-                pcg: pcg::Pcg::new(&self.ctx, precision::Precision::F64)?,
-                csr: csr_spmv::new_in(&self.ctx, precision::Precision::F64)?,
-                bsr: bsr_spmv::new_f64(&self.ctx)?,
-                convert: convert::Convert::new(&self.ctx)?,
-                refine: refine::RefineKernels::new(&self.ctx)?,
-            });
-        }
+        self.mixed_kernels()?;
         let k = self.mixed_kernels.as_ref().unwrap();
         let h = self.host.as_ref().unwrap();
         let matrix = match h.bs {

@@ -25,6 +25,7 @@ mod mixed;
 mod newton;
 mod setup;
 mod upload;
+mod warm;
 
 use mixed::{floor_after_a_round, BatchHints, MixedData, MixedKernels, Round};
 
@@ -53,7 +54,7 @@ pub fn open_with(opts: OpenOptions) -> Result<GpuSolver, GpuError> {
     };
     ctx.check()?;
     Ok(GpuSolver {
-        ctx,
+        ctx: Arc::new(ctx),
         k: kernels,
         host: None,
         gpu: None,
@@ -113,6 +114,7 @@ pub fn open_with(opts: OpenOptions) -> Result<GpuSolver, GpuError> {
         chol_unavailable: [false; 2],
         chol_ahead: None,
         newton_kernels: None,
+        warming: Vec::new(),
         newton: None,
     })
 }
@@ -143,7 +145,7 @@ pub struct SolveStats {
 
 /// The GPU PCG solver.
 pub struct GpuSolver {
-    pub(crate) ctx: Context,
+    pub(crate) ctx: Arc<Context>,
     pub(crate) k: Kernels,
     pub(crate) host: Option<HostMatrix>,
     pub(crate) gpu: Option<GpuMatrix>,
@@ -262,6 +264,8 @@ pub struct GpuSolver {
     /// The scale factors' Newton steps on the device
     /// ([`SpdSolver::power_sum_newton`]): the kernels (compiled on first
     /// use) and the buffers of the last problem size.
+    /// Threads compiling pipelines ahead ([`SpdSolver::warm_up`]), by kind.
+    warming: Vec<(SystemKind, std::thread::JoinHandle<()>)>,
     newton_kernels: Option<power_sum_newton::NewtonKernels>,
     newton: Option<power_sum_newton::NewtonData>,
 }
@@ -698,6 +702,8 @@ impl SpdSolver for GpuSolver {
         a: IsoRingSym3,
         fixed: &[bool],
     ) -> Result<Option<IsoRingSym3>, SolverError> {
+        // A kind's first shape matrix is expanded on the GPU.
+        self.kind_pipelines_ready();
         let n = a.n();
         if fixed.len() != n
             || a.iso.values.len() != a.iso.row_idx.len()
@@ -781,6 +787,7 @@ impl SpdSolver for GpuSolver {
     }
 
     fn solve_in_place(&mut self, rhs: &mut [f64], ncols: usize) -> Result<SolveInfo, SolverError> {
+        self.kind_pipelines_ready();
         let b = rhs.to_vec();
         rhs.fill(0.0);
         self.solve(&b, rhs, ncols)
@@ -792,6 +799,7 @@ impl SpdSolver for GpuSolver {
         x: &mut [f64],
         ncols: usize,
     ) -> Result<SolveInfo, SolverError> {
+        self.kind_pipelines_ready();
         self.solve(b, x, ncols)
     }
 
@@ -898,8 +906,17 @@ impl SpdSolver for GpuSolver {
         rules: &solver_cpu::NewtonRules,
         s: &mut [f64],
     ) -> Option<Result<solver_cpu::NewtonInfo, SolverError>> {
+        self.kind_pipelines_ready();
         self.newton_on_device(constraints, rules, s)
             .map(|r| r.map_err(Into::into))
+    }
+
+    fn warm_up(&mut self, kind: SystemKind, columns: &[usize]) {
+        match self.warm_up_kind(kind, columns) {
+            Ok(n) if n > 0 => log::debug!("{kind:?} system: {n} pipelines to compile ahead"),
+            Ok(_) => {}
+            Err(e) => log::debug!("{kind:?} system's pipelines ahead: {e}; left to their use"),
+        }
     }
 
     fn counters(&self) -> WorkCounters {
@@ -918,6 +935,10 @@ impl SpdSolver for GpuSolver {
             device_serial_steps: t.kernels.serial_steps,
             device_timed_passes: t.timed_passes,
             device_timed_seconds: t.timed_seconds,
+            device_compiles: t.compiles,
+            device_compile_seconds: t.compile_seconds,
+            device_compiles_ahead: t.compiles_ahead,
+            device_compile_ahead_seconds: t.compile_ahead_seconds,
             ..self.work
         }
     }
