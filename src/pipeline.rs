@@ -253,8 +253,12 @@ pub struct Options {
     /// the input's positions, as soon as `K`'s symbolic analysis is made
     /// (beside the scale factors' set-up), rather than the scale-driven
     /// kind's after that set-up and the fine-tune's at the first outer
-    /// iteration. The factors, and so the result, are the same to the bit;
-    /// at once, neither the first shape solve nor the fine-tune need wait
+    /// iteration. Below [`NESTED_DISSECTION_FROM`] vertices the factors, and
+    /// so the result, are the same to the bit; from there on one after the
+    /// other the fine-tune's factor is made in METIS's ordering (a third
+    /// fewer values), at once on the shape systems' minimum-degree analysis
+    /// (not waiting for METIS's one thread). At once, neither the first
+    /// shape solve nor the fine-tune need wait
     /// for a factorization (the fine-tune waited 8.7 s of a 32.4-s run at
     /// 1.2M faces on an H100's 16-core host), and the host holds both
     /// factors at a time. `None`: at once where the host has 4 threads or
@@ -972,7 +976,8 @@ type AtOnce = std::result::Result<(FactorAhead, Option<FactorAhead>), Option<Ear
 struct FactorsAtOnce {
     scale_driven: (SymCsc, FactorPlan),
     /// With the shape pattern's nested dissection being made, where it is
-    /// ([`start_shape_ordering`]).
+    /// ([`start_shape_ordering`]): given back where the factors are not made
+    /// at once ([`factor_ahead`] makes the fine-tune's in it then).
     fine_tune: Option<(SymCsc, FactorPlan, Option<EarlyOrdering>)>,
     /// [`Options::overlap_factorizations`].
     choice: Option<bool>,
@@ -1066,12 +1071,15 @@ impl FactorsAtOnce {
         let Some(scale_driven) = FactorWay::Twin(twin).start(k, SystemKind::ScaleDriven) else {
             return Self::given_back(fine_tune);
         };
-        let fine_tune = fine_tune.and_then(|(k, plan, ordering)| {
-            let how = match ordering {
-                Some(ordering) => FactorWay::OwnAnalysis(plan, ordering),
-                None => FactorWay::Twin(plan.twin(analysed)?),
-            };
-            how.start(k, SystemKind::FineTune)
+        // The fine-tune's on a twin too, not in the nested dissection being
+        // made: METIS runs on one thread (4.8 s at homer 1.2M on the
+        // development machine, about 10 s expected on an H100's host), and
+        // made at once the factors are to be ready when the scale-driven
+        // phase ends, however soon; on a twin it is ready with the
+        // scale-driven kind's, for a third more factor values (homer 1.2M:
+        // 147M against 102M). The ordering's thread ends on its own.
+        let fine_tune = fine_tune.and_then(|(k, plan, _ordering)| {
+            FactorWay::Twin(plan.twin(analysed)?).start(k, SystemKind::FineTune)
         });
         Ok((scale_driven, fine_tune))
     }
@@ -1387,4 +1395,76 @@ fn compact(groups: &[usize]) -> Vec<usize> {
         .iter()
         .map(|g| ids.binary_search(g).unwrap())
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::time::Duration;
+
+    /// A 2-D grid's Laplacian plus the identity (SPD).
+    fn grid_k(nx: usize, ny: usize) -> SymCsc {
+        let id = |i: usize, j: usize| i * ny + j;
+        let mut pairs = Vec::new();
+        for i in 0..nx {
+            for j in 0..ny {
+                pairs.push((id(i, j), id(i, j)));
+                if i + 1 < nx {
+                    pairs.push((id(i + 1, j), id(i, j)));
+                }
+                if j + 1 < ny {
+                    pairs.push((id(i, j + 1), id(i, j)));
+                }
+            }
+        }
+        let mut k = SymCsc::from_pattern(nx * ny, pairs.iter().copied());
+        for &(r, c) in &pairs {
+            let s = k.slot(r, c).unwrap();
+            k.values[s] = if r == c { 5.0 } else { -1.0 };
+        }
+        k
+    }
+
+    /// Made at once, the fine-tune's factor is a twin of the shape systems'
+    /// analysis, ready with the scale-driven kind's: it does not wait for
+    /// the nested dissection being made for it (held here until both
+    /// factors are done; it would take seconds at a million faces).
+    #[test]
+    fn at_once_the_fine_tune_factor_waits_for_no_nested_dissection() {
+        let k = grid_k(30, 20);
+        let mut analysed = CholeskySolver::new();
+        analysed.supernodal = true;
+        analysed.analyse(&k).unwrap();
+        let plan = FactorPlan {
+            single: false,
+            largest_supernode_bytes: u64::MAX,
+        };
+        let (release, held) = std::sync::mpsc::channel::<()>();
+        let ordering = EarlyOrdering(std::thread::spawn(move || {
+            let _ = held.recv();
+            None
+        }));
+        let at_once = FactorsAtOnce {
+            scale_driven: (k.clone(), plan),
+            fine_tune: Some((k.clone(), plan, Some(ordering))),
+            choice: Some(true),
+            threads: 4,
+        };
+        let Ok((scale_driven, Some(fine_tune))) = at_once.start(&analysed) else {
+            panic!("both factors should have started");
+        };
+        let t = Instant::now();
+        while !(fine_tune.is_finished() && scale_driven.is_finished()) {
+            if t.elapsed() > Duration::from_secs(60) {
+                let _ = release.send(());
+                panic!("the factors wait for the nested dissection");
+            }
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        let _ = release.send(());
+        for ahead in [scale_driven, fine_tune] {
+            let factored = ahead.join().0.unwrap();
+            assert!(factored.is_factored_on(&analysed), "not a twin");
+        }
+    }
 }
