@@ -4,6 +4,8 @@
 # machine, with .devbin (scripts/device-pack.sh) and .gl carried.
 #   1. scripts/gpu-bench.sh 100k 1m (CPU and GPU rows, parity, proxies;
 #      the Cholesky bench too with CHOLESKY=1), with debug logs;
+#   1b. the 100k rows again, GPU then CPU: the driver's shader cache is
+#      warm by then (step 1's GPU rows ran on a fresh machine);
 #   2. the host's Cholesky factorization of K at 1.2M faces, faer's loop
 #      against the elimination tree's subtrees at once, on 1 thread and
 #      on all (benches/cholesky_factor.rs);
@@ -40,6 +42,13 @@ export RUST_LOG=${RUST_LOG:-info,metricdeform=debug,solver_gpu=debug}
 "$B/metricdeform" adapters | tee "$L/adapters.txt"
 echo "== bench 100k 1m (t=$(el))"
 LOG="$L" BIN=$B bounded "$R/scripts/gpu-bench.sh" 100k 1m 2>&1 | tee "$OUT/table.md"
+pack
+echo "== 100k again, the shader cache warm (t=$(el))"
+for b in gpu cpu; do
+  CAP=60 bounded "$B/pipeline-bench" --row girths-homer-100k per_constraint --backend $b --gpu-only \
+    > "$L/100k.$b.warm" 2> "$L/100k.$b.warm.err"; echo "rc $?"
+  grep -h '^| girths\|proxies' "$L/100k.$b.warm"
+done
 pack
 echo "== host Cholesky factorization at 1.2M (t=$(el))"
 REPEAT=1 CAP=100 bounded "$B/factor-bench" --1m 2> "$L/factor.err" | tee "$L/factor.md"
