@@ -1438,6 +1438,7 @@ mod tests {
         let plan = FactorPlan {
             single: false,
             largest_supernode_bytes: u64::MAX,
+            inverted: false,
         };
         let (release, held) = std::sync::mpsc::channel::<()>();
         let ordering = EarlyOrdering(std::thread::spawn(move || {

@@ -727,6 +727,7 @@ mod tests {
         let plan = |bytes| FactorPlan {
             single: false,
             largest_supernode_bytes: bytes,
+            inverted: false,
         };
         let spawn = |bytes| {
             let ordering = FillOrdering::Given(reversed.clone());
@@ -766,6 +767,47 @@ mod tests {
         }
     }
 
+    /// A plan that asks for the inverted form has the factoring thread take
+    /// the factor and invert its diagonal blocks: the solver made ahead is
+    /// still a factor of its analysis, and gives the very factor a twin's,
+    /// taken and inverted afterwards, is (to the bit), once.
+    #[test]
+    fn a_factor_made_ahead_inverted_is_the_factor_inverted_after() {
+        let n = 60;
+        let a = spd(n);
+        let mut s = a.scalar_pattern();
+        a.fill_scalar(&mut s, &vec![false; n]);
+        let mut analysed = CholeskySolver::new();
+        analysed.supernodal = true;
+        analysed.analyse(&s).unwrap();
+        let plan = |inverted| FactorPlan {
+            single: false,
+            largest_supernode_bytes: u64::MAX,
+            inverted,
+        };
+        let made = |inverted| {
+            let twin = plan(inverted).twin(&analysed).unwrap();
+            FactorAhead::spawn(twin, s.clone())
+                .unwrap()
+                .join()
+                .0
+                .unwrap()
+        };
+        let mut ahead = made(true);
+        assert!(ahead.is_factored_on(&analysed));
+        let mut after = made(false);
+        let mut want = after.take_supernodal_factor().unwrap();
+        assert!(!want.inverted);
+        want.invert_diagonal_blocks();
+        let got = ahead.take_supernodal_factor().unwrap();
+        assert!(got.inverted);
+        let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&got.values64), bits(&want.values64));
+        assert_eq!(got.rows, want.rows);
+        assert!(!ahead.is_factored_on(&analysed), "taken");
+        assert!(ahead.take_supernodal_factor().is_none(), "taken once");
+    }
+
     /// A factor plan's twin is a numeric twin in its precision where the
     /// largest supernode fits its bound, and none where it does not or
     /// before an analysis; the factor's bytes follow the precision.
@@ -779,6 +821,7 @@ mod tests {
         let plan = |single, bytes| FactorPlan {
             single,
             largest_supernode_bytes: bytes,
+            inverted: false,
         };
         assert!(
             plan(false, u64::MAX).twin(&solver).is_none(),

@@ -43,7 +43,9 @@ pub fn open() -> Result<GpuSolver, GpuError> {
 
 /// [`open`] with options (adapter name, lowered limits).
 pub fn open_with(opts: OpenOptions) -> Result<GpuSolver, GpuError> {
+    let t = std::time::Instant::now();
     let ctx = Context::open(&opts)?;
+    let device_seconds = t.elapsed().as_secs_f64();
     let kernels = Kernels {
         bsr: bsr_spmv::new(&ctx)?,
         csr: csr_spmv::new(&ctx)?,
@@ -53,6 +55,12 @@ pub fn open_with(opts: OpenOptions) -> Result<GpuSolver, GpuError> {
         amg: amg_gpu::AmgKernels::new(&ctx)?,
     };
     ctx.check()?;
+    log::debug!(
+        "GPU solver opened in {:.3} s: adapter and device {device_seconds:.3} s, the kernels' \
+         shader modules {:.3} s",
+        t.elapsed().as_secs_f64(),
+        t.elapsed().as_secs_f64() - device_seconds
+    );
     Ok(GpuSolver {
         ctx: Arc::new(ctx),
         k: kernels,
@@ -872,6 +880,8 @@ impl SpdSolver for GpuSolver {
             .then(|| solver_cpu::FactorPlan {
                 single: self.factor_precision(kind) == precision::Precision::F32,
                 largest_supernode_bytes: matrix::binding_limit(&self.ctx),
+                // Its solves apply the inverted form: made on the factoring thread.
+                inverted: true,
             })
     }
 
