@@ -1402,27 +1402,46 @@ mod tests {
     use super::*;
     use std::time::Duration;
 
-    /// A 2-D grid's Laplacian plus the identity (SPD).
+    /// The shape pattern ([`crate::shape::shape_pattern`]) of an `nx x ny`
+    /// grid of vertices cut into triangles, as a diagonally dominant
+    /// (so SPD) matrix: -1 off the diagonal, one more than the row's
+    /// neighbours on it.
     fn grid_k(nx: usize, ny: usize) -> SymCsc {
-        let id = |i: usize, j: usize| i * ny + j;
-        let mut pairs = Vec::new();
-        for i in 0..nx {
-            for j in 0..ny {
-                pairs.push((id(i, j), id(i, j)));
-                if i + 1 < nx {
-                    pairs.push((id(i + 1, j), id(i, j)));
-                }
-                if j + 1 < ny {
-                    pairs.push((id(i, j + 1), id(i, j)));
+        let v = |i: usize, j: usize| (i * ny + j) as u32;
+        let faces: Vec<[u32; 3]> = (0..nx - 1)
+            .flat_map(|i| (0..ny - 1).map(move |j| (i, j)))
+            .flat_map(|(i, j)| {
+                [
+                    [v(i, j), v(i + 1, j), v(i + 1, j + 1)],
+                    [v(i, j), v(i + 1, j + 1), v(i, j + 1)],
+                ]
+            })
+            .collect();
+        let n = nx * ny;
+        let (col_ptr, row_idx) = crate::shape::shape_pattern(n, &faces);
+        let mut neighbours = vec![0.0; n];
+        for c in 0..n {
+            for &r in &row_idx[col_ptr[c]..col_ptr[c + 1]] {
+                if r != c {
+                    neighbours[r] += 1.0;
+                    neighbours[c] += 1.0;
                 }
             }
         }
-        let mut k = SymCsc::from_pattern(nx * ny, pairs.iter().copied());
-        for &(r, c) in &pairs {
-            let s = k.slot(r, c).unwrap();
-            k.values[s] = if r == c { 5.0 } else { -1.0 };
+        let values = (0..n)
+            .flat_map(|c| {
+                row_idx[col_ptr[c]..col_ptr[c + 1]]
+                    .iter()
+                    .map(move |&r| (r, c))
+            })
+            .map(|(r, c)| if r == c { neighbours[c] + 1.0 } else { -1.0 })
+            .collect();
+        SymCsc {
+            n,
+            col_ptr,
+            row_idx,
+            values,
         }
-        k
     }
 
     /// Made at once, the fine-tune's factor is a twin of the shape systems'
