@@ -1034,7 +1034,9 @@ pub(crate) struct Kernel {
     pipeline_layout: wgpu::PipelineLayout,
     /// Further pipeline-overridable constants (besides `NCOLS`).
     consts: Vec<(&'static str, f64)>,
-    variants: Arc<Mutex<Vec<Option<wgpu::ComputePipeline>>>>,
+    /// One slot per column count, each locked alone: a compilation ahead
+    /// of one count does not hold up the use of another.
+    variants: Arc<[Mutex<Option<wgpu::ComputePipeline>>]>,
 }
 
 impl Kernel {
@@ -1055,7 +1057,7 @@ impl Kernel {
             module: shader.module.clone(),
             pipeline_layout: shader.pipeline_layout.clone(),
             consts: consts.to_vec(),
-            variants: Arc::new(Mutex::new(vec![None; crate::CMAX])),
+            variants: (0..crate::CMAX).map(|_| Mutex::new(None)).collect(),
         }
     }
 
@@ -1080,8 +1082,10 @@ impl Kernel {
         assert!((1..=crate::CMAX).contains(&ncols));
         // Held while compiling: a use waits for the compilation ahead of it
         // instead of compiling the same pipeline again.
-        let mut v = self.variants.lock().unwrap_or_else(|e| e.into_inner());
-        if let Some(p) = &v[ncols - 1] {
+        let mut v = self.variants[ncols - 1]
+            .lock()
+            .unwrap_or_else(|e| e.into_inner());
+        if let Some(p) = v.as_ref() {
             return Ok(p.clone());
         }
         let mut constants = vec![("NCOLS", ncols as f64)];
@@ -1114,7 +1118,7 @@ impl Kernel {
         if let Some(e) = popped {
             return Err(GpuError::Backend(format!("pipeline {}: {e}", self.label)));
         }
-        v[ncols - 1] = Some(p.clone());
+        *v = Some(p.clone());
         Ok(p)
     }
 }
