@@ -108,7 +108,7 @@ fn row(
     options.preview = preview;
     options.backend = backend;
     // `--factors-at-once on|off`: Options::overlap_factorizations (default:
-    // by the host's threads and free memory).
+    // off, the scale-driven kind's factor after the scale factors' set-up).
     if let Some(j) = std::env::args().position(|a| a == "--factors-at-once") {
         options.overlap_factorizations = match std::env::args().nth(j + 1).as_deref() {
             Some("on") => Some(true),

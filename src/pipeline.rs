@@ -249,21 +249,16 @@ pub struct Options {
     pub anderson_from_faces: usize,
     pub backend: SolverBackend,
     /// Whether a backend that factors the shape systems' `K` ahead on other
-    /// threads (the GPU's) starts both kinds' factorizations at once, from
-    /// the input's positions, as soon as `K`'s symbolic analysis is made
-    /// (beside the scale factors' set-up), rather than the scale-driven
-    /// kind's after that set-up and the fine-tune's at the first outer
-    /// iteration. Below [`NESTED_DISSECTION_FROM`] vertices the factors, and
-    /// so the result, are the same to the bit; from there on one after the
-    /// other the fine-tune's factor is made in METIS's ordering (a third
-    /// fewer values), at once on the shape systems' minimum-degree analysis
-    /// (not waiting for METIS's one thread). At once, neither the first
-    /// shape solve nor the fine-tune need wait
-    /// for a factorization (the fine-tune waited 8.7 s of a 32.4-s run at
-    /// 1.2M faces on an H100's 16-core host), and the host holds both
-    /// factors at a time. `None`: at once where the host has 4 threads or
-    /// more and free memory for four such factors
-    /// ([`factorizations_at_once`]).
+    /// threads (the GPU's) starts the scale-driven kind's factorization,
+    /// from the input's positions, as soon as `K`'s symbolic analysis is
+    /// made (`Some(true)`), beside the scale factors' set-up, rather than
+    /// after that set-up (`None`, the default, or `Some(false)`). Either way
+    /// the fine-tune's starts once the scale-driven kind's is handed over,
+    /// and the factors, and so the result, are the same to the bit. Not by
+    /// default: beside the scale factors' factorization it raised homer
+    /// 1.2M's host peak (Rust heap) to 2,676 MiB against 2,217, above the
+    /// CPU backend's 2,299 (and to 3,797 with the fine-tune's factor made
+    /// at once too, as before 2026-11-27's fourth session).
     pub overlap_factorizations: Option<bool>,
     /// Checked at every progress report: once set, the run stops with
     /// [`Error::Interrupted`].
@@ -573,16 +568,10 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
                 Some(ScaleEarly::Made(made)) => made.map(Some),
             }
         };
-        // Where the host has the room, both shape kinds' factors of the
-        // input's `K` start as soon as `K`'s symbolic analysis is made,
-        // beside the scale factors' set-up (`factorizations_at_once`).
-        let early = FactorsAtOnce::prepare(
-            &mut model,
-            mesh,
-            &x,
-            o,
-            fine_tune_follows.then_some(&mut ordering_early),
-        );
+        // Where asked for, the scale-driven kind's factor of the input's
+        // `K` starts as soon as `K`'s symbolic analysis is made, beside the
+        // scale factors' set-up (`Options::overlap_factorizations`).
+        let early = FactorsAtOnce::prepare(&mut model, mesh, &x, o);
         // A solver that makes no factor ahead needs the analysis at its
         // first shape step only: the first scale factors are estimated
         // meanwhile (the CPU backend's METIS, 4.8 s at 1.2M, runs on).
@@ -597,32 +586,20 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
             scale_system_beside_analysis(&mut model, make_scale_system, early, analysis)?
         };
         crate::memory::release_free_memory();
-        let (mut scale_driven_ahead, fine_tune_spawned) = match early {
-            Some(Ok((sd, ft))) => {
-                let spawned = ft.is_some();
-                fine_tune_ahead = ft;
-                (Some(sd), spawned)
-            }
-            // Else the first shape matrix's `K` (it depends on the positions
-            // and weights only) is factored while the first scale factors
-            // are estimated, and the fine-tune's at the first outer
-            // iteration.
-            not_started => {
-                if let Some(Err(Some(ordering))) = not_started {
-                    ordering_early = Some(ordering);
-                }
-                (
-                    factor_ahead(
-                        &mut model,
-                        mesh,
-                        &x,
-                        &o.shape,
-                        SystemKind::ScaleDriven,
-                        None,
-                    ),
-                    false,
-                )
-            }
+        // Else the first shape matrix's `K` (it depends on the positions and
+        // weights only) is factored while the first scale factors are
+        // estimated. The fine-tune's is started at the first outer
+        // iteration either way, once the scale-driven kind's is handed over.
+        let mut scale_driven_ahead = match early {
+            Some(ahead) => Some(ahead),
+            None => factor_ahead(
+                &mut model,
+                mesh,
+                &x,
+                &o.shape,
+                SystemKind::ScaleDriven,
+                None,
+            ),
         };
         stop_reason = "iteration cap".into();
         // The constraints in scale-factor form; their coefficients are
@@ -737,7 +714,7 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
                 adopt_early_analysis(&mut model, analysis);
             }
             model.assemble_with_positions(mesh, &x, &s, &c, &o.shape, affine)?;
-            if iterations == 0 && fine_tune_follows && !fine_tune_spawned {
+            if iterations == 0 && fine_tune_follows {
                 fine_tune_ahead = factor_ahead(
                     &mut model,
                     mesh,
@@ -916,34 +893,33 @@ fn start_scale_system(p: &Problem, o: &Options, areas0: &[f64]) -> ScaleEarly {
 /// the first scale estimate and the first shape solve (2.7-2.8 s at 1.2M
 /// faces on the development machine, on both backends). A failed analysis
 /// ahead is left to the first factorization, which makes it again and
-/// reports what fails. With `early`, that thread then starts the shape
-/// kinds' numeric factorizations where the host has the room
-/// ([`FactorsAtOnce::start`]); they come back with the scale system.
-#[allow(clippy::type_complexity)]
+/// reports what fails. With `early`, that thread then starts the
+/// scale-driven kind's numeric factorization where the host has the room
+/// ([`FactorsAtOnce::start`]); it comes back with the scale system.
 fn scale_system_beside_analysis(
     model: &mut ShapeModel,
     make_scale_system: impl FnOnce() -> Result<Option<ScaleFactorSystem>>,
     early: Option<FactorsAtOnce>,
     analysis: Option<EarlyAnalysis>,
-) -> Result<(Option<ScaleFactorSystem>, Option<AtOnce>)> {
+) -> Result<(Option<ScaleFactorSystem>, Option<FactorAhead>)> {
     if let Some(analysis) = analysis {
         let started = match analysis.join_logged() {
             Some(analysed) => {
-                let started = early.map(|e| e.start(&analysed));
+                let started = early.and_then(|e| e.start(&analysed));
                 model.solver().adopt_isotropic_analysis(analysed);
                 started
             }
-            None => early.map(FactorsAtOnce::not_started),
+            None => None,
         };
         return Ok((make_scale_system()?, started));
     }
     let Some(analyser) = model.solver().isotropic_analyser() else {
-        return Ok((make_scale_system()?, early.map(FactorsAtOnce::not_started)));
+        return Ok((make_scale_system()?, None));
     };
     let (made, analysed, seconds) = solver_cpu::analyse_beside_then(
         analyser,
         &model.matrix().iso,
-        |analysed| early.map(|e| e.start(analysed)),
+        |analysed| early.and_then(|e| e.start(analysed)),
         make_scale_system,
     );
     let started = match analysed {
@@ -963,125 +939,50 @@ fn scale_system_beside_analysis(
     Ok((made?, started))
 }
 
-/// The shape kinds' factors made ahead at once ([`FactorsAtOnce::start`]),
-/// or, where they were not started, the fine-tune's fill ordering given
-/// back (for [`factor_ahead`]).
-type AtOnce = std::result::Result<(FactorAhead, Option<FactorAhead>), Option<EarlyOrdering>>;
-
-/// The shape kinds' factors of the input's `K`, to be made at once on other
-/// threads as soon as `K`'s symbolic analysis is made
-/// ([`scale_system_beside_analysis`]): each kind's `K` (assembled before
-/// the analysis: it needs the pattern, not the analysis) and how the shape
-/// solver makes its factor ([`SpdSolver::isotropic_factor_plan`]).
+/// The scale-driven kind's factor of the input's `K`, to be made on another
+/// thread as soon as `K`'s symbolic analysis is made
+/// ([`scale_system_beside_analysis`]), beside the scale factors' set-up,
+/// where [`Options::overlap_factorizations`] asks for it: its `K`
+/// (assembled before the analysis: it needs the pattern, not the analysis)
+/// and how the shape solver makes its factor
+/// ([`SpdSolver::isotropic_factor_plan`]). The fine-tune's is made once this
+/// one is handed over ([`factor_ahead`]): both at once held two factors on
+/// the host (homer 1.2M: the GPU path's Rust heap peak 3,797 MiB).
 struct FactorsAtOnce {
     scale_driven: (SymCsc, FactorPlan),
-    /// With the shape pattern's nested dissection being made, where it is
-    /// ([`start_shape_ordering`]): given back where the factors are not made
-    /// at once ([`factor_ahead`] makes the fine-tune's in it then).
-    fine_tune: Option<(SymCsc, FactorPlan, Option<EarlyOrdering>)>,
-    /// [`Options::overlap_factorizations`].
-    choice: Option<bool>,
-    /// The host's hardware threads.
-    threads: usize,
 }
 
 impl FactorsAtOnce {
-    /// `None` where the solver makes no factors ahead, or the host could
-    /// not make them at once anyway (too few threads, its free memory
-    /// unknown) unless `o` asks for it. `fine_tune` where the fine-tune
-    /// follows, with the fine-tune's fill ordering where one is being made
-    /// for it (taken from the caller only where the factors are made at once).
+    /// `None` unless `o` asks for it and the solver makes factors ahead.
     fn prepare(
         model: &mut ShapeModel,
         mesh: &Mesh,
         x: &[DVec3],
         o: &Options,
-        fine_tune: Option<&mut Option<EarlyOrdering>>,
     ) -> Option<FactorsAtOnce> {
-        let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
-        let possible = match o.overlap_factorizations {
-            Some(choice) => choice,
-            None => threads >= 4 && crate::memory::available_memory_bytes().is_some(),
-        };
-        if !possible {
+        if o.overlap_factorizations != Some(true) {
             return None;
         }
         let plan = model
             .solver()
             .isotropic_factor_plan(SystemKind::ScaleDriven)?;
-        let fine_tune_plan = fine_tune
-            .as_ref()
-            .and_then(|_| model.solver().isotropic_factor_plan(SystemKind::FineTune));
         let t = Instant::now();
         let scale_driven = (model.isotropic_part(mesh, x, &o.shape), plan);
-        let fine_tune = fine_tune_plan.map(|p| {
-            let ordering = fine_tune.and_then(Option::take);
-            (model.isotropic_part(mesh, x, &o.fine_tune), p, ordering)
-        });
         log::debug!(
-            "the shape kinds' K for their factors ahead assembled in {:.3} s",
+            "ScaleDriven system's K for its factor ahead assembled in {:.3} s",
             t.elapsed().as_secs_f64()
         );
-        Some(FactorsAtOnce {
-            scale_driven,
-            fine_tune,
-            choice: o.overlap_factorizations,
-            threads,
-        })
+        Some(FactorsAtOnce { scale_driven })
     }
 
-    /// Nothing started: the fine-tune's fill ordering given back.
-    fn not_started(self) -> AtOnce {
-        Self::given_back(self.fine_tune)
-    }
-
-    fn given_back(fine_tune: Option<(SymCsc, FactorPlan, Option<EarlyOrdering>)>) -> AtOnce {
-        Err(fine_tune.and_then(|(_, _, ordering)| ordering))
-    }
-
-    /// On the analysing thread, `analysed` just made: both factorizations
-    /// started, each on its own thread, where the host has the room for
-    /// them ([`factorizations_at_once`]); else [`Self::not_started`] (each
-    /// kind's factor is then made ahead one after the other,
-    /// [`factor_ahead`]).
-    fn start(self, analysed: &CholeskySolver) -> AtOnce {
-        let FactorsAtOnce {
-            scale_driven: (k, plan),
-            fine_tune,
-            choice,
-            threads,
-        } = self;
-        let bytes = plan.factor_bytes(analysed);
-        let free = crate::memory::available_memory_bytes();
-        let at_once = choice.unwrap_or_else(|| factorizations_at_once(threads, free, bytes));
-        log::debug!(
-            "shape factors ahead {} ({threads} threads, {} MiB free, a factor {:.0} MiB)",
-            if at_once {
-                "at once, from the symbolic analysis on"
-            } else {
-                "one after the other"
-            },
-            free.map_or("?".into(), |f| format!("{:.0}", f as f64 / 1048576.0)),
-            bytes as f64 / 1048576.0
-        );
-        let twin = plan.twin(analysed);
-        let (true, Some(twin)) = (at_once, twin) else {
-            return Self::given_back(fine_tune);
-        };
-        let Some(scale_driven) = FactorWay::Twin(twin).start(k, SystemKind::ScaleDriven) else {
-            return Self::given_back(fine_tune);
-        };
-        // The fine-tune's on a twin too, not in the nested dissection being
-        // made: METIS runs on one thread (4.8 s at homer 1.2M on the
-        // development machine, about 10 s expected on an H100's host), and
-        // made at once the factors are to be ready when the scale-driven
-        // phase ends, however soon; on a twin it is ready with the
-        // scale-driven kind's, for a third more factor values (homer 1.2M:
-        // 147M against 102M). The ordering's thread ends on its own.
-        let fine_tune = fine_tune.and_then(|(k, plan, _ordering)| {
-            FactorWay::Twin(plan.twin(analysed)?).start(k, SystemKind::FineTune)
-        });
-        Ok((scale_driven, fine_tune))
+    /// On the analysing thread, `analysed` just made: the scale-driven
+    /// kind's factorization started on its own thread (`None` where no
+    /// twin or thread could be had: it is made after the scale factors'
+    /// set-up then, [`factor_ahead`]).
+    fn start(self, analysed: &CholeskySolver) -> Option<FactorAhead> {
+        let (k, plan) = self.scale_driven;
+        log::debug!("ScaleDriven system's factor ahead from the symbolic analysis on");
+        FactorWay::Twin(plan.twin(analysed)?).start(k, SystemKind::ScaleDriven)
     }
 }
 
@@ -1093,23 +994,29 @@ impl FactorsAtOnce {
 /// (at 1.2M faces 2.5-2.9 s for the scale-driven kind, 5.5-5.8 s for the
 /// fine-tune's). The scale-driven kind's is made from its first matrix's
 /// `K` itself (the input's positions), while the first scale factors are
-/// estimated: the same factor. The fine-tune's is made from the input's
-/// positions too (where the first scale-driven step starts) instead of the
-/// fine-tune's start, while the scale-driven iteration runs, or from the
-/// start beside the scale-driven kind's where the host has the room
-/// ([`factorizations_at_once`]): another preconditioner of the same systems
-/// (the same fine-tune PCG iterations at 108k and 1.2M faces,
-/// BENCHMARKS.md), handed to the solver as soon as it is made (the GPU
-/// uploads it beside the scale-driven factor, so that the host does not
-/// hold it).
+/// estimated: the same factor (or from the symbolic analysis on, where the
+/// host has the room, [`FactorsAtOnce`]). The fine-tune's is made from the
+/// input's positions too (where the first scale-driven step starts)
+/// instead of the fine-tune's start, while the scale-driven iteration runs,
+/// once the scale-driven kind's is handed over (so that the host holds one
+/// at a time): another preconditioner of the same systems (the same
+/// fine-tune PCG iterations at 108k and 1.2M faces, BENCHMARKS.md), handed
+/// to the solver as soon as it is made (the GPU uploads it beside the
+/// scale-driven factor, so that the host does not hold it).
 /// Dropped unjoined (the iteration stopped before its first step), the
 /// thread finishes on its own.
 /// With `ordering` (the shape pattern's nested dissection, being made on
 /// its own thread, [`start_shape_ordering`]), the factor is made on its own
-/// symbolic analysis in that ordering ([`FactorAhead::spawn_analysing`])
-/// instead of the shape systems' minimum-degree one: homer 1.2M's `K` has
-/// 102M factor values so against 147M, which the host holds until the
-/// upload and the GPU streams in every application.
+/// symbolic analysis in that ordering ([`FactorAhead::spawn_analysing`],
+/// which waits for it) instead of the shape systems' minimum-degree one:
+/// homer 1.2M's `K` has 102M factor values so against 147M, which the host
+/// holds until the upload and the GPU streams in every application. METIS
+/// runs on one thread (4.8 s at 1.2M on the development machine, about 10 s
+/// expected on an H100's host): where the scale-driven phase ends sooner
+/// the fine-tune waits, logged as "FineTune system's factor of K, made
+/// ahead on another thread: ... (waited for ... s)". A twin instead would
+/// hold a third more on the host, and taking whichever is ready would make
+/// the result depend on timing.
 fn factor_ahead(
     model: &mut ShapeModel,
     mesh: &Mesh,
@@ -1157,20 +1064,6 @@ impl FactorWay {
         .inspect_err(|e| log::debug!("{kind:?} system's factor of K ahead: {e}"))
         .ok()
     }
-}
-
-/// Whether the host makes the two shape kinds' factors ahead at once
-/// ([`Options::overlap_factorizations`]): with `threads` hardware threads
-/// and `free` bytes of available memory, for factors of `factor_bytes`
-/// each. A numeric factorization runs its elimination tree's independent
-/// subtrees on rayon's threads (`solver_cpu::tree_factor`), yet at the
-/// minimum-degree ordering's top the tree lets it keep only about 4 threads
-/// busy (homer 1.2M's `K`: its parallelism 3.7), so two factorizations at
-/// once still fill a host with 4 threads or more, beside the scale
-/// factors' set-up (on its own thread) and the GPU's driver; two factors
-/// and their scratch at once, with as much again to spare.
-pub fn factorizations_at_once(threads: usize, free: Option<u64>, factor_bytes: u64) -> bool {
-    threads >= 4 && free.is_some_and(|f| f / 4 >= factor_bytes)
 }
 
 /// Hands the factor `ahead` made for `kind` to the shape solver, once made;
@@ -1400,7 +1293,6 @@ fn compact(groups: &[usize]) -> Vec<usize> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use std::time::Duration;
 
     /// The shape pattern ([`crate::shape::shape_pattern`]) of an `nx x ny`
     /// grid of vertices cut into triangles, as a diagonally dominant
@@ -1444,12 +1336,12 @@ mod tests {
         }
     }
 
-    /// Made at once, the fine-tune's factor is a twin of the shape systems'
-    /// analysis, ready with the scale-driven kind's: it does not wait for
-    /// the nested dissection being made for it (held here until both
-    /// factors are done; it would take seconds at a million faces).
+    /// Made from the symbolic analysis on, the scale-driven kind's factor
+    /// is a twin of that analysis (the factor the first shape solve would
+    /// make), and nothing else is started: the fine-tune's waits for its
+    /// hand-over.
     #[test]
-    fn at_once_the_fine_tune_factor_waits_for_no_nested_dissection() {
+    fn from_the_analysis_on_the_scale_driven_factor_is_a_twin() {
         let k = grid_k(30, 20);
         let mut analysed = CholeskySolver::new();
         analysed.supernodal = true;
@@ -1459,32 +1351,21 @@ mod tests {
             largest_supernode_bytes: u64::MAX,
             inverted: false,
         };
-        let (release, held) = std::sync::mpsc::channel::<()>();
-        let ordering = EarlyOrdering(std::thread::spawn(move || {
-            let _ = held.recv();
-            None
-        }));
-        let at_once = FactorsAtOnce {
+        let early = FactorsAtOnce {
             scale_driven: (k.clone(), plan),
-            fine_tune: Some((k.clone(), plan, Some(ordering))),
-            choice: Some(true),
-            threads: 4,
         };
-        let Ok((scale_driven, Some(fine_tune))) = at_once.start(&analysed) else {
-            panic!("both factors should have started");
-        };
-        let t = Instant::now();
-        while !(fine_tune.is_finished() && scale_driven.is_finished()) {
-            if t.elapsed() > Duration::from_secs(60) {
-                let _ = release.send(());
-                panic!("the factors wait for the nested dissection");
-            }
-            std::thread::sleep(Duration::from_millis(5));
-        }
-        let _ = release.send(());
-        for ahead in [scale_driven, fine_tune] {
-            let factored = ahead.join().0.unwrap();
-            assert!(factored.is_factored_on(&analysed), "not a twin");
-        }
+        let mut factored = early.start(&analysed).unwrap().join().0.unwrap();
+        assert!(factored.is_factored_on(&analysed));
+        let mut direct = CholeskySolver::new();
+        direct.prepare(&k).unwrap();
+        let b: Vec<f64> = (0..k.n).map(|i| (i as f64 * 0.7).sin()).collect();
+        let (mut x, mut y) = (b.clone(), b);
+        factored.solve_in_place(&mut x, 1).unwrap();
+        direct.solve_in_place(&mut y, 1).unwrap();
+        let e = x
+            .iter()
+            .zip(&y)
+            .fold(0.0f64, |m, (p, q)| m.max((p - q).abs()));
+        assert!(e < 1e-12, "{e}");
     }
 }

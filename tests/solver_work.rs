@@ -148,9 +148,10 @@ fn gpu_compiles_the_pipelines_of_its_solves_ahead() {
     assert!(ahead > 0, "{w:?}");
 }
 
-/// The GPU's two shape factors made ahead at once, from the input's
-/// positions, are the factors made one after the other: the same result to
-/// the bit. Either way each shape kind's set-up takes its factor made ahead
+/// The GPU's scale-driven factor made from the symbolic analysis on
+/// (`Options::overlap_factorizations`), from the input's positions, is the
+/// factor made after the scale factors' set-up: the same result to the
+/// bit. Either way each shape kind's set-up takes its factor made ahead
 /// (the solver keeps one such at a time: the fine-tune's must not be handed
 /// over before the scale-driven kind has taken its own).
 #[test]
@@ -189,30 +190,6 @@ fn gpu_shape_factors_made_at_once_give_the_result_made_one_after_the_other() {
     assert!(runs[0] == runs[1], "the results differ");
 }
 
-/// The host makes the two factors at once only with threads and memory to
-/// spare.
-#[test]
-fn shape_factors_are_made_at_once_only_with_room() {
-    use metricdeform::pipeline::factorizations_at_once;
-    let gib = 1u64 << 30;
-    assert!(factorizations_at_once(16, Some(128 * gib), 3 * gib));
-    assert!(
-        !factorizations_at_once(2, Some(128 * gib), gib),
-        "two threads"
-    );
-    assert!(
-        !factorizations_at_once(16, Some(3 * gib), gib),
-        "under four factors free"
-    );
-    assert!(factorizations_at_once(4, Some(4 * gib), gib));
-    assert!(
-        !factorizations_at_once(16, None, gib),
-        "free memory unknown"
-    );
-}
-
-/// The CPU backend reports its work too: factorizations, PCG iterations, no
-/// GPU time and no transfers.
 #[test]
 fn cpu_reports_its_solver_work() {
     let (_, _, out) = run(SolverBackend::Cpu);
