@@ -127,8 +127,8 @@ impl GpuSolver {
 }
 
 impl Drop for GpuSolver {
-    /// The device outlives the threads compiling for it: they end here,
-    /// on the thread that made it.
+    /// The threads compiling for the solver's device end before the
+    /// solver does, so that the device is dropped where the solver is.
     fn drop(&mut self) {
         self.wait_for_warm_up();
     }
