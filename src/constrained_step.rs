@@ -28,11 +28,17 @@ pub struct Linearized {
     pub rows: Vec<Vec<f64>>,
 }
 
+/// How many groups `groups` (compacted ids, `groups[j]` the group of
+/// constraint j) names: one multiplier each where they are grouped per kind.
+pub fn group_count(groups: &[usize]) -> usize {
+    groups.iter().copied().max().map_or(0, |g| g + 1)
+}
+
 impl Linearized {
     /// Group per kind (`groups[j]` = group of constraint j): `F_g = sum C_j^2`,
     /// `grad F_g = sum 2 C_j grad C_j`.
     pub fn grouped(self, groups: &[usize]) -> Linearized {
-        let ng = groups.iter().copied().max().map_or(0, |g| g + 1);
+        let ng = group_count(groups);
         let n = self.rows.first().map_or(0, |r| r.len());
         let mut values = vec![0.0; ng];
         let mut rows = vec![vec![0.0; n]; ng];

@@ -4,7 +4,7 @@
 //! Eqs. 15-18 on a Hessian factored once).
 
 use crate::anderson::Anderson;
-use crate::constrained_step::Multipliers;
+use crate::constrained_step::{group_count, Multipliers};
 use crate::fine_tune::{fine_tune, FineTuneParams};
 use crate::metrics::{MetricKind, VolumeShare};
 use crate::problem::{max_error, Problem};
@@ -571,7 +571,7 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
         // Where asked for, the scale-driven kind's factor of the input's
         // `K` starts as soon as `K`'s symbolic analysis is made, beside the
         // scale factors' set-up (`Options::overlap_factorizations`).
-        let early = FactorsAtOnce::prepare(&mut model, mesh, &x, o);
+        let early = ScaleDrivenFromAnalysis::prepare(&mut model, mesh, &x, o);
         // A solver that makes no factor ahead needs the analysis at its
         // first shape step only: the first scale factors are estimated
         // meanwhile (the CPU backend's METIS, 4.8 s at 1.2M, runs on).
@@ -590,17 +590,16 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
         // weights only) is factored while the first scale factors are
         // estimated. The fine-tune's is started at the first outer
         // iteration either way, once the scale-driven kind's is handed over.
-        let mut scale_driven_ahead = match early {
-            Some(ahead) => Some(ahead),
-            None => factor_ahead(
+        let mut scale_driven_ahead = early.or_else(|| {
+            factor_ahead(
                 &mut model,
                 mesh,
                 &x,
                 &o.shape,
                 SystemKind::ScaleDriven,
                 None,
-            ),
-        };
+            )
+        });
         stop_reason = "iteration cap".into();
         // The constraints in scale-factor form; their coefficients are
         // refilled at every iteration.
@@ -893,13 +892,13 @@ fn start_scale_system(p: &Problem, o: &Options, areas0: &[f64]) -> ScaleEarly {
 /// the first scale estimate and the first shape solve (2.7-2.8 s at 1.2M
 /// faces on the development machine, on both backends). A failed analysis
 /// ahead is left to the first factorization, which makes it again and
-/// reports what fails. With `early`, that thread then starts the
-/// scale-driven kind's numeric factorization where the host has the room
-/// ([`FactorsAtOnce::start`]); it comes back with the scale system.
+/// reports what fails. With `early` (where asked for), that thread then
+/// starts the scale-driven kind's numeric factorization
+/// ([`ScaleDrivenFromAnalysis::start`]); it comes back with the scale system.
 fn scale_system_beside_analysis(
     model: &mut ShapeModel,
     make_scale_system: impl FnOnce() -> Result<Option<ScaleFactorSystem>>,
-    early: Option<FactorsAtOnce>,
+    early: Option<ScaleDrivenFromAnalysis>,
     analysis: Option<EarlyAnalysis>,
 ) -> Result<(Option<ScaleFactorSystem>, Option<FactorAhead>)> {
     if let Some(analysis) = analysis {
@@ -948,18 +947,18 @@ fn scale_system_beside_analysis(
 /// ([`SpdSolver::isotropic_factor_plan`]). The fine-tune's is made once this
 /// one is handed over ([`factor_ahead`]): both at once held two factors on
 /// the host (homer 1.2M: the GPU path's Rust heap peak 3,797 MiB).
-struct FactorsAtOnce {
+struct ScaleDrivenFromAnalysis {
     scale_driven: (SymCsc, FactorPlan),
 }
 
-impl FactorsAtOnce {
+impl ScaleDrivenFromAnalysis {
     /// `None` unless `o` asks for it and the solver makes factors ahead.
     fn prepare(
         model: &mut ShapeModel,
         mesh: &Mesh,
         x: &[DVec3],
         o: &Options,
-    ) -> Option<FactorsAtOnce> {
+    ) -> Option<ScaleDrivenFromAnalysis> {
         if o.overlap_factorizations != Some(true) {
             return None;
         }
@@ -972,7 +971,7 @@ impl FactorsAtOnce {
             "ScaleDriven system's K for its factor ahead assembled in {:.3} s",
             t.elapsed().as_secs_f64()
         );
-        Some(FactorsAtOnce { scale_driven })
+        Some(ScaleDrivenFromAnalysis { scale_driven })
     }
 
     /// On the analysing thread, `analysed` just made: the scale-driven
@@ -994,8 +993,8 @@ impl FactorsAtOnce {
 /// (at 1.2M faces 2.5-2.9 s for the scale-driven kind, 5.5-5.8 s for the
 /// fine-tune's). The scale-driven kind's is made from its first matrix's
 /// `K` itself (the input's positions), while the first scale factors are
-/// estimated: the same factor (or from the symbolic analysis on, where the
-/// host has the room, [`FactorsAtOnce`]). The fine-tune's is made from the
+/// estimated: the same factor (or from the symbolic analysis on, where
+/// asked for, [`ScaleDrivenFromAnalysis`]). The fine-tune's is made from the
 /// input's positions too (where the first scale-driven step starts)
 /// instead of the fine-tune's start, while the scale-driven iteration runs,
 /// once the scale-driven kind's is handed over (so that the host holds one
@@ -1276,7 +1275,7 @@ fn shape_nested_dissection(n: usize, col_ptr: &[usize], row_idx: &[usize]) -> Op
 fn multiplier_count(groups: &[usize], multipliers: Multipliers) -> usize {
     match multipliers {
         Multipliers::PerConstraint => groups.len(),
-        Multipliers::PerKind => groups.iter().max().map_or(0, |g| g + 1),
+        Multipliers::PerKind => group_count(groups),
     }
 }
 
@@ -1351,7 +1350,7 @@ mod tests {
             largest_supernode_bytes: u64::MAX,
             inverted: false,
         };
-        let early = FactorsAtOnce {
+        let early = ScaleDrivenFromAnalysis {
             scale_driven: (k.clone(), plan),
         };
         let mut factored = early.start(&analysed).unwrap().join().0.unwrap();

@@ -12,7 +12,7 @@
 //! its Jacobian row changed: a degree-1 constraint's row is the same at every
 //! Newton step of one estimation.
 
-use crate::constrained_step::{add_to_group, step_from_solutions, Multipliers};
+use crate::constrained_step::{add_to_group, group_count, step_from_solutions, Multipliers};
 use crate::Result;
 use solver_cpu::{NewtonRules, PowerSum, SpdSolver, SymCsc};
 
@@ -86,7 +86,7 @@ fn grouped_rows(
     rows: &mut Vec<f64>,
 ) -> Vec<f64> {
     let n = s.len();
-    let ng = groups.iter().copied().max().map_or(0, |g| g + 1);
+    let ng = group_count(groups);
     let mut grouped = vec![0.0; ng];
     rows.clear();
     rows.resize(n * ng, 0.0);

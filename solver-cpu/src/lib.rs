@@ -480,6 +480,14 @@ mod tests {
     use super::*;
 
     /// A random-ish SPD block matrix: Laplacian of a path plus a diagonal shift.
+    /// [`spd`]'s scalar part (no held rows).
+    fn spd_scalar(n: usize) -> SymCsc {
+        let a = spd(n);
+        let mut s = a.scalar_pattern();
+        a.fill_scalar(&mut s, &vec![false; n]);
+        s
+    }
+
     fn spd(n: usize) -> BlockSym3 {
         let mut a = BlockSym3::from_pattern(n, (1..n).map(|i| (i, i - 1)));
         for i in 1..n {
@@ -678,9 +686,7 @@ mod tests {
     #[test]
     fn a_numeric_twin_factors_on_the_shared_analysis() {
         let n = 50;
-        let a = spd(n);
-        let mut s = a.scalar_pattern();
-        a.fill_scalar(&mut s, &vec![false; n]);
+        let s = spd_scalar(n);
         let mut solver = CholeskySolver::new();
         assert!(solver.numeric_twin(false).is_none(), "nothing analysed");
         solver.analyse(&s).unwrap();
@@ -718,9 +724,7 @@ mod tests {
     #[test]
     fn a_factor_on_its_own_analysis_is_of_the_analysed_pattern() {
         let n = 50;
-        let a = spd(n);
-        let mut s = a.scalar_pattern();
-        a.fill_scalar(&mut s, &vec![false; n]);
+        let s = spd_scalar(n);
         let mut solver = CholeskySolver::new();
         solver.analyse(&s).unwrap();
         let reversed: std::sync::Arc<[usize]> = (0..s.n).rev().collect();
@@ -774,9 +778,7 @@ mod tests {
     #[test]
     fn a_factor_made_ahead_inverted_is_the_factor_inverted_after() {
         let n = 60;
-        let a = spd(n);
-        let mut s = a.scalar_pattern();
-        a.fill_scalar(&mut s, &vec![false; n]);
+        let s = spd_scalar(n);
         let mut analysed = CholeskySolver::new();
         analysed.supernodal = true;
         analysed.analyse(&s).unwrap();
@@ -814,9 +816,7 @@ mod tests {
     #[test]
     fn a_factor_plan_twins_an_analysis_whose_supernodes_fit() {
         let n = 50;
-        let a = spd(n);
-        let mut s = a.scalar_pattern();
-        a.fill_scalar(&mut s, &vec![false; n]);
+        let s = spd_scalar(n);
         let mut solver = CholeskySolver::new();
         let plan = |single, bytes| FactorPlan {
             single,

@@ -110,6 +110,9 @@ impl GpuSolver {
     /// Waits for the compilations ahead of the current system kind: before
     /// its first pipeline runs.
     pub(super) fn kind_pipelines_ready(&mut self) {
+        if self.warming.is_empty() {
+            return;
+        }
         let kind = self.kind;
         let (mine, others): (Vec<_>, Vec<_>) = std::mem::take(&mut self.warming)
             .into_iter()
