@@ -589,6 +589,33 @@ impl SupernodalFactor {
         }
     }
 
+    /// Levels of the supernodal elimination tree: a supernode's parent owns
+    /// its first row below the diagonal block; leaves are level 0, a parent
+    /// one above its highest child (a GPU solves a level's supernodes at
+    /// once). `None` where the factor is not in topological order.
+    pub fn levels(&self) -> Option<Vec<u32>> {
+        let ns = self.len();
+        let n = self.perm.len();
+        let mut owner = vec![0u32; n];
+        for s in 0..ns {
+            for c in self.begin[s]..self.begin[s + 1] {
+                *owner.get_mut(c as usize)? = s as u32;
+            }
+        }
+        let mut level = vec![0u32; ns];
+        for s in 0..ns {
+            let (a, b) = (self.row_ptr[s] as usize, self.row_ptr[s + 1] as usize);
+            if a < b {
+                let p = *owner.get(*self.rows.get(a)? as usize)? as usize;
+                if p <= s {
+                    return None;
+                }
+                level[p] = level[p].max(level[s] + 1);
+            }
+        }
+        Some(level)
+    }
+
     /// `(columns, rows below the diagonal block)` of supernode `s`.
     pub fn shape(&self, s: usize) -> (usize, usize) {
         (

@@ -9,6 +9,7 @@
 pub mod block;
 pub mod cholesky;
 pub mod iso_ring;
+pub mod ordering;
 pub mod pcg;
 pub mod tree_factor;
 
@@ -18,6 +19,7 @@ pub use cholesky::{
     FactorPlan, FillOrdering, PatternKey, SupernodalFactor,
 };
 pub use iso_ring::{sym3_block, IsoRingSym3, SparseRows};
+pub use ordering::{coordinate_nested_dissection, coordinate_nested_dissection_of_pairs};
 pub use pcg::{BlockPcgParams, BlockPcgSolver};
 
 /// Failure of a linear solve.
@@ -397,9 +399,11 @@ pub trait SpdSolver: Send {
     fn set_fill_ordering(&mut self, _ordering: FillOrdering) {}
     /// Whether a large factor of this solver's is worth a METIS
     /// nested-dissection ordering (the default: the least fill, so the least
-    /// bytes per solve), or only faer's minimum degree (several times faster
-    /// to compute, for more fill): where the solves stream the factor at a
-    /// GPU's bandwidth, the ordering's seconds cost more than the fill.
+    /// bytes per solve), or only an ordering made in a fraction of its time
+    /// for more fill (the nested dissection of the unknowns' positions,
+    /// [`coordinate_nested_dissection`], where the caller has them): where
+    /// the solves stream the factor at a GPU's bandwidth, METIS's seconds
+    /// cost more than the fill.
     fn wants_nested_dissection(&self) -> bool {
         true
     }

@@ -159,32 +159,6 @@ struct Segment {
     n_sn: u32,
 }
 
-/// Levels of the supernodal elimination tree: a supernode's parent owns its
-/// first row below the diagonal block; leaves are level 0, a parent one above
-/// its highest child. `None` where the factor is not in topological order.
-fn levels(f: &SupernodalFactor) -> Option<Vec<u32>> {
-    let ns = f.len();
-    let n = f.perm.len();
-    let mut owner = vec![0u32; n];
-    for s in 0..ns {
-        for c in f.begin[s]..f.begin[s + 1] {
-            *owner.get_mut(c as usize)? = s as u32;
-        }
-    }
-    let mut level = vec![0u32; ns];
-    for s in 0..ns {
-        let (a, b) = (f.row_ptr[s] as usize, f.row_ptr[s + 1] as usize);
-        if a < b {
-            let p = *owner.get(*f.rows.get(a)? as usize)? as usize;
-            if p <= s {
-                return None;
-            }
-            level[p] = level[p].max(level[s] + 1);
-        }
-    }
-    Some(level)
-}
-
 impl GpuFactor {
     /// Supernodes of the factor.
     pub fn supernodes(&self) -> usize {
@@ -203,7 +177,9 @@ impl GpuFactor {
         if !f.inverted {
             return Err(bad("diagonal blocks not inverted"));
         }
-        let level = levels(f).ok_or_else(|| bad("supernodes out of topological order"))?;
+        let level = f
+            .levels()
+            .ok_or_else(|| bad("supernodes out of topological order"))?;
         let n = f.perm.len();
         let nrows = f.rows.len();
         let total = 5 * ns + nrows + n + (n + 1) + nrows + 2 * n + nrows;
@@ -1103,7 +1079,7 @@ mod tests {
         c.set_fill_ordering(FillOrdering::NestedDissection);
         c.prepare(&a).unwrap();
         let f = c.take_supernodal_factor().unwrap();
-        let l = levels(&f).unwrap();
+        let l = f.levels().unwrap();
         let depth = *l.iter().max().unwrap() as usize + 1;
         // Nested dissection of a path: about log2(n) levels of separators.
         assert!(depth < 40, "depth {depth} of {} supernodes", f.len());
