@@ -8,7 +8,9 @@
 #      warm by then (step 1's GPU rows ran on a fresh machine);
 #   2. the host's Cholesky factorization of K at 1.2M faces, faer's loop
 #      against the elimination tree's subtrees at once, on 1 thread and
-#      on all (benches/cholesky_factor.rs);
+#      on all (benches/cholesky_factor.rs), and the fill orderings at
+#      1.2M: minimum degree, METIS and the positions' nested dissection,
+#      which runs on every thread (benches/fill_ordering.rs);
 #   3. the 1.2M GPU row again with the scale-driven kind's factor started
 #      from the symbolic analysis on (`--factors-at-once on`), against
 #      step 1's default (after the scale factors' set-up): time and peak;
@@ -52,6 +54,7 @@ done
 pack
 echo "== host Cholesky factorization at 1.2M (t=$(el))"
 REPEAT=1 CAP=100 bounded "$B/factor-bench" --1m 2> "$L/factor.err" | tee "$L/factor.md"
+CAP=60 bounded "$B/ordering-bench" --1m 2> "$L/ordering.err" | tee "$L/ordering.md"
 pack
 echo "== 1m gpu, the scale-driven factor from the analysis on (t=$(el))"
 bounded "$B/pipeline-bench" --row girths-homer-1m per_constraint --backend gpu --gpu-only \

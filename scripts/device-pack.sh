@@ -15,6 +15,7 @@ exe() { cargo "$@" --message-format=json 2>/dev/null | grep -v '"kind":\["bin"\]
 pipeline=$(exe bench --bench pipeline --no-run)
 cholesky=$(exe bench --features bench-kernels --bench cholesky_teams --no-run)
 factor=$(exe bench --bench cholesky_factor --no-run)
+ordering=$(exe bench --bench fill_ordering --no-run)
 conformance=$(exe test --release --all-features --no-run --test conformance)
 kernels=$(exe test --release --all-features -p solver-gpu --no-run --test kernels)
 tmp=$(mktemp -d)
@@ -22,6 +23,7 @@ cp target/release/metricdeform "$tmp/metricdeform"
 cp "$pipeline" "$tmp/pipeline-bench"
 cp "$cholesky" "$tmp/cholesky-bench"
 cp "$factor" "$tmp/factor-bench"
+cp "$ordering" "$tmp/ordering-bench"
 cp "$conformance" "$tmp/conformance"
 cp "$kernels" "$tmp/kernels"
 strip "$tmp"/*

@@ -16,12 +16,22 @@ use crate::{Error, Mesh, Result};
 use glam::DVec3;
 use solver_cpu::cholesky::NESTED_DISSECTION_FROM;
 use solver_cpu::{
+    coordinate_nested_dissection, coordinate_nested_dissection_of_pairs,
     nested_dissection_of_pattern, BlockPcgSolver, CholeskySolver, FactorAhead, FactorPlan,
     FillOrdering, SpdSolver, SymCsc, SystemKind, WorkCounters,
 };
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Instant;
+
+/// Faces from which the scale factors' system (Eq. 3) is ordered by the
+/// nested dissection of the faces' centroids
+/// ([`coordinate_nested_dissection_of_pairs`]) instead of minimum degree:
+/// homer's factors of that system (2-core development machine,
+/// 2026-11-27) had 3.47M values against 3.08M at 108k faces, 15.98M against
+/// 16.75M at 432k and 48.5M against 53.2M at 1.2M, for 0.25G flops to
+/// factor against 0.24G, 2.1G against 3.3G and 9.9G against 17.0G.
+pub const COORDINATE_ORDERING_FACES_FROM: usize = 300_000;
 
 /// Meshes from this many vertices on give an iterative backend the vertex
 /// positions for the scale-driven shape systems too (Eq. 7), so that its AMG
@@ -509,27 +519,25 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
     }
     // The shape systems' fill ordering (`shape_fill_ordering`) and the
     // symbolic analysis of their `K` need the faces alone: they start now,
-    // on their own threads, beside the shape model's set-up. So does the
-    // nested dissection a minimum-degree solver's fine-tune factor is made
-    // in (`factor_ahead`).
+    // on their own threads, beside the shape model's set-up.
     let large = n >= NESTED_DISSECTION_FROM;
     let nested = large && shape_solver.wants_nested_dissection();
-    if large && !nested {
+    let ordering = if nested {
+        ShapeOrdering::Metis
+    } else if large {
+        // Where no analysis is made ahead (no thread), the solver's own.
         shape_solver.set_fill_ordering(FillOrdering::Amd);
-    }
+        ShapeOrdering::Coordinates
+    } else {
+        ShapeOrdering::Solvers
+    };
     let mut analysis_early = shape_steps
         .then(|| shape_solver.isotropic_analyser())
         .flatten()
-        .and_then(|analyser| start_shape_analysis(mesh, analyser, nested));
-    let mut ordering_early = ((nested && analysis_early.is_none())
-        || (large
-            && !nested
-            && fine_tune_follows
-            && shape_solver
-                .isotropic_factor_plan(SystemKind::FineTune)
-                .is_some()))
-    .then(|| start_shape_ordering(mesh))
-    .flatten();
+        .and_then(|analyser| start_shape_analysis(mesh, analyser, ordering));
+    let mut ordering_early = (nested && analysis_early.is_none())
+        .then(|| start_shape_ordering(mesh))
+        .flatten();
     let mut model = ShapeModel::with_solver(mesh, &p.topo, p.handles.clone(), shape_solver)?;
     if nested && analysis_early.is_none() {
         shape_fill_ordering(&mut model, ordering_early.take());
@@ -590,16 +598,8 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
         // weights only) is factored while the first scale factors are
         // estimated. The fine-tune's is started at the first outer
         // iteration either way, once the scale-driven kind's is handed over.
-        let mut scale_driven_ahead = early.or_else(|| {
-            factor_ahead(
-                &mut model,
-                mesh,
-                &x,
-                &o.shape,
-                SystemKind::ScaleDriven,
-                None,
-            )
-        });
+        let mut scale_driven_ahead =
+            early.or_else(|| factor_ahead(&mut model, mesh, &x, &o.shape, SystemKind::ScaleDriven));
         stop_reason = "iteration cap".into();
         // The constraints in scale-factor form; their coefficients are
         // refilled at every iteration.
@@ -714,14 +714,8 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
             }
             model.assemble_with_positions(mesh, &x, &s, &c, &o.shape, affine)?;
             if iterations == 0 && fine_tune_follows {
-                fine_tune_ahead = factor_ahead(
-                    &mut model,
-                    mesh,
-                    &x,
-                    &o.fine_tune,
-                    SystemKind::FineTune,
-                    ordering_early.take(),
-                );
+                fine_tune_ahead =
+                    factor_ahead(&mut model, mesh, &x, &o.fine_tune, SystemKind::FineTune);
             }
             let t_solve = Instant::now();
             let g = model.solve_unconstrained(&x)?;
@@ -861,25 +855,47 @@ fn start_scale_system(p: &Problem, o: &Options, areas0: &[f64]) -> ScaleEarly {
         let changing = p.constraints.iter().filter(|c| c.degree() != 1).count();
         [p.constraints.len(), changing.max(1)]
     });
-    let make = move |face_pairs: &[[u32; 2]], areas: &[f64]| -> Result<ScaleFactorSystem> {
+    let make = move |face_pairs: &[[u32; 2]],
+                     areas: &[f64],
+                     centroids: Option<Vec<DVec3>>|
+          -> Result<ScaleFactorSystem> {
         let mut solver = backend.scale_solver()?;
         solver.set_system_kind(SystemKind::ScaleFactors);
         if let Some(columns) = newton_columns {
             solver.warm_up(SystemKind::ScaleFactors, &columns);
         }
-        // Minimum degree at every size: see shape_fill_ordering.
-        solver.set_fill_ordering(FillOrdering::Amd);
+        // See shape_fill_ordering.
+        let t = Instant::now();
+        let fill = centroids
+            .and_then(|c| coordinate_nested_dissection_of_pairs(&c, face_pairs))
+            .map_or(FillOrdering::Amd, |forward| {
+                log::debug!(
+                    "fill ordering of the faces (their centroids' nested dissection): {:.3} s",
+                    t.elapsed().as_secs_f64()
+                );
+                FillOrdering::Given(forward.into())
+            });
+        solver.set_fill_ordering(fill);
         ScaleFactorSystem::with_solver(face_pairs, areas, k_d, k_r, regulariser, solver)
     };
+    let centroids = |mesh: &Mesh| {
+        (mesh.faces.len() >= COORDINATE_ORDERING_FACES_FROM).then(|| {
+            mesh.faces
+                .iter()
+                .map(|f| f.iter().map(|&v| mesh.positions[v as usize]).sum::<DVec3>() / 3.0)
+                .collect::<Vec<DVec3>>()
+        })
+    };
     let (face_pairs, areas) = (p.topo.face_pairs.clone(), areas0.to_vec());
+    let c = centroids(&p.mesh);
     match std::thread::Builder::new()
         .name("scale factors' set-up".into())
-        .spawn(move || make(&face_pairs, &areas))
+        .spawn(move || make(&face_pairs, &areas, c))
     {
         Ok(handle) => ScaleEarly::Started(handle),
         Err(e) => {
             log::debug!("no thread for the scale factors' set-up ({e}): made here");
-            ScaleEarly::Made(make(&p.topo.face_pairs, areas0))
+            ScaleEarly::Made(make(&p.topo.face_pairs, areas0, centroids(&p.mesh)))
         }
     }
 }
@@ -981,7 +997,9 @@ impl ScaleDrivenFromAnalysis {
     fn start(self, analysed: &CholeskySolver) -> Option<FactorAhead> {
         let (k, plan) = self.scale_driven;
         log::debug!("ScaleDriven system's factor ahead from the symbolic analysis on");
-        FactorWay::Twin(plan.twin(analysed)?).start(k, SystemKind::ScaleDriven)
+        FactorAhead::spawn(plan.twin(analysed)?, k)
+            .inspect_err(|e| log::debug!("ScaleDriven system's factor of K ahead: {e}"))
+            .ok()
     }
 }
 
@@ -1004,65 +1022,26 @@ impl ScaleDrivenFromAnalysis {
 /// scale-driven factor, so that the host does not hold it).
 /// Dropped unjoined (the iteration stopped before its first step), the
 /// thread finishes on its own.
-/// With `ordering` (the shape pattern's nested dissection, being made on
-/// its own thread, [`start_shape_ordering`]), the factor is made on its own
-/// symbolic analysis in that ordering ([`FactorAhead::spawn_analysing`],
-/// which waits for it) instead of the shape systems' minimum-degree one:
-/// homer 1.2M's `K` has 102M factor values so against 147M, which the host
-/// holds until the upload and the GPU streams in every application. METIS
-/// runs on one thread (4.8 s at 1.2M on the development machine, about 10 s
-/// expected on an H100's host): where the scale-driven phase ends sooner
-/// the fine-tune waits, logged as "FineTune system's factor of K, made
-/// ahead on another thread: ... (waited for ... s)". A twin instead would
-/// hold a third more on the host, and taking whichever is ready would make
-/// the result depend on timing.
+/// Both kinds' factors are numeric twins of the shape systems' symbolic
+/// analysis, in its fill ordering (on a GPU, the coordinates' nested
+/// dissection, [`shape_fill_ordering`]).
 fn factor_ahead(
     model: &mut ShapeModel,
     mesh: &Mesh,
     x: &[DVec3],
     w: &ShapeWeights,
     kind: SystemKind,
-    ordering: Option<EarlyOrdering>,
 ) -> Option<FactorAhead> {
-    let how = match ordering {
-        Some(ordering) => {
-            FactorWay::OwnAnalysis(model.solver().isotropic_factor_plan(kind)?, ordering)
-        }
-        None => FactorWay::Twin(model.solver().isotropic_factorer(kind)?),
-    };
+    let twin = model.solver().isotropic_factorer(kind)?;
     let t = Instant::now();
     let k = model.isotropic_part(mesh, x, w);
     log::debug!(
         "{kind:?} system's K for its factor ahead assembled in {:.3} s",
         t.elapsed().as_secs_f64()
     );
-    how.start(k, kind)
-}
-
-/// How a shape kind's factor of `K` is made ahead: on the shape systems'
-/// analysis (a numeric twin, [`SpdSolver::isotropic_factorer`]), or on its
-/// own analysis in the nested dissection being made
-/// ([`FactorAhead::spawn_analysing`]). Made once or twice a run, so its
-/// size does not matter.
-#[allow(clippy::large_enum_variant)]
-enum FactorWay {
-    Twin(CholeskySolver),
-    OwnAnalysis(FactorPlan, EarlyOrdering),
-}
-
-impl FactorWay {
-    /// `k`'s factorization started on another thread; `None` (logged)
-    /// where no thread could be had.
-    fn start(self, k: SymCsc, kind: SystemKind) -> Option<FactorAhead> {
-        match self {
-            FactorWay::Twin(twin) => FactorAhead::spawn(twin, k),
-            FactorWay::OwnAnalysis(plan, ordering) => {
-                FactorAhead::spawn_analysing(plan, ordering.into_fill(), k)
-            }
-        }
+    FactorAhead::spawn(twin, k)
         .inspect_err(|e| log::debug!("{kind:?} system's factor of K ahead: {e}"))
         .ok()
-    }
 }
 
 /// Hands the factor `ahead` made for `kind` to the shape solver, once made;
@@ -1085,26 +1064,33 @@ fn adopt_factor_ahead(model: &mut ShapeModel, ahead: FactorAhead, kind: SystemKi
 
 /// The fill-reducing ordering of the shape factor (the preconditioner of
 /// Eqs. 7 and 8, on the 2-ring pattern; made on the host, and uploaded as the
-/// GPU backend's Cholesky preconditioner): from [`NESTED_DISSECTION_FROM`]
-/// vertices on, METIS nested dissection where the solver wants it
-/// ([`SpdSolver::wants_nested_dissection`]), else faer's minimum degree (the
-/// GPU's first factor, on the path to the first solve, where METIS's
-/// seconds on the host would bound the speed-up; its fine-tune's factor is
-/// made in METIS's ordering beside the scale-driven iteration,
-/// [`factor_ahead`]). Below that size the solver's own choice (minimum
-/// degree) stands. Both are chosen in [`deform`], before the symbolic
-/// analysis starts on its own thread ([`start_shape_analysis`]); this sets
-/// a solver that makes no analysis ahead ([`SpdSolver::isotropic_analyser`])
-/// to `early`'s nested dissection (made since the start,
-/// [`start_shape_ordering`]), or makes it here.
+/// GPU backend's Cholesky preconditioner), from [`NESTED_DISSECTION_FROM`]
+/// vertices on:
+/// - METIS nested dissection where the solver wants it
+///   ([`SpdSolver::wants_nested_dissection`]: the CPU backend, whose solves
+///   stream the factor from host memory; METIS's factors are the smallest,
+///   homer 1.2M's 102M values);
+/// - else (a GPU's, whose set-ups bound its speed-up) the nested dissection
+///   of the vertices' positions ([`coordinate_nested_dissection`]): made on
+///   every thread, in 0.57 s at homer 1.2M on the development machine's two
+///   against METIS's 4.5 s on one, for 123M values (minimum degree's,
+///   the GPU's before, 147M; 71G flops to factor against 112G, 25
+///   levels against 26). Both shape kinds' factors are made in it, so the
+///   fine-tune's needs no METIS either.
 ///
-/// The scale factors' face pattern (Eq. 3) is ordered by minimum degree at
-/// every size (where its solver is made): METIS runs one call at a time
+/// Below that size the solver's own choice (minimum degree) stands. Both are
+/// chosen in [`deform`], before the symbolic analysis starts on its own
+/// thread ([`start_shape_analysis`]); this sets a solver that makes no
+/// analysis ahead ([`SpdSolver::isotropic_analyser`]) to `early`'s METIS
+/// ordering (made since the start, [`start_shape_ordering`]), or makes it
+/// here.
+///
+/// The scale factors' face pattern (Eq. 3) is ordered by minimum degree
+/// below [`COORDINATE_ORDERING_FACES_FROM`] faces and by the nested
+/// dissection of the faces' centroids from there on ([`start_scale_system`]),
+/// on both backends: METIS runs one call at a time
 /// ([`nested_dissection_of_pattern`]: its random numbers are global state,
-/// and two calls at once gave orderings that differed from run to run), and
-/// minimum degree on the faces takes 0.8 s at homer 1.2M against METIS's
-/// 4.3 s, for a factor of 53M values against 35M made in the same 1.0 s
-/// (2-core development machine, 2026-11-26).
+/// and two calls at once gave orderings that differed from run to run).
 fn shape_fill_ordering(model: &mut ShapeModel, early: Option<EarlyOrdering>) {
     let t = Instant::now();
     let vertices = match early {
@@ -1136,15 +1122,6 @@ impl EarlyOrdering {
         match self.0.join() {
             Ok(forward) => forward,
             Err(panic) => std::panic::resume_unwind(panic),
-        }
-    }
-
-    /// The ordering as a factorization's fill ordering, waited for when
-    /// called (minimum degree where METIS failed).
-    fn into_fill(self) -> impl FnOnce() -> FillOrdering + Send + 'static {
-        move || match self.join() {
-            Some(forward) => FillOrdering::Given(forward.into()),
-            None => FillOrdering::Amd,
         }
     }
 }
@@ -1195,24 +1172,38 @@ fn adopt_early_analysis(model: &mut ShapeModel, analysis: EarlyAnalysis) {
 /// `analyser` ([`SpdSolver::isotropic_analyser`], in the solver's fill
 /// ordering) makes the symbolic analysis of the shape systems' `K` on its
 /// own thread from the start, on [`crate::shape::shape_pattern`] (the
-/// model's pattern, known from the faces), after the pattern's nested
-/// dissection where `nested`: beside the shape model's set-up, not after it
-/// (homer 1.2M: minimum degree's analysis 1.15 s, METIS and its analysis
-/// 4.8 and 0.4 s on the development machine). `None` where no thread could
+/// model's pattern, known from the faces), after the pattern's `ordering`
+/// ([`shape_fill_ordering`]): beside the shape model's set-up, not after it
+/// (homer 1.2M on the development machine: minimum degree's analysis 1.15
+/// s; METIS and its analysis 4.8 and 0.4 s; the vertices' nested
+/// dissection and its analysis 0.57 and 0.33 s). `None` where no thread could
 /// be had (the analysis is then made beside the scale factors' set-up).
 fn start_shape_analysis(
     mesh: &Mesh,
     mut analyser: CholeskySolver,
-    nested: bool,
+    ordering: ShapeOrdering,
 ) -> Option<EarlyAnalysis> {
+    let positions = (ordering == ShapeOrdering::Coordinates).then(|| mesh.positions.clone());
     on_shape_pattern(
         mesh,
         "shape symbolic analysis",
         move |n, col_ptr, row_idx| {
-            if nested {
-                if let Some(forward) = shape_nested_dissection(n, &col_ptr, &row_idx) {
-                    analyser.set_fill_ordering(FillOrdering::Given(forward.into()));
+            let forward = match (ordering, positions) {
+                (ShapeOrdering::Metis, _) => shape_nested_dissection(n, &col_ptr, &row_idx),
+                (ShapeOrdering::Coordinates, Some(positions)) => {
+                    let t = Instant::now();
+                    let forward = coordinate_nested_dissection(&positions, &col_ptr, &row_idx);
+                    log::debug!(
+                        "fill ordering of the shape pattern (the vertices' nested dissection), on \
+                         its own thread from the start: {:.3} s",
+                        t.elapsed().as_secs_f64()
+                    );
+                    forward
                 }
+                _ => None,
+            };
+            if let Some(forward) = forward {
+                analyser.set_fill_ordering(FillOrdering::Given(forward.into()));
             }
             let pattern = SymCsc {
                 n,
@@ -1224,6 +1215,18 @@ fn start_shape_analysis(
         },
     )
     .map(EarlyAnalysis)
+}
+
+/// Which fill ordering the shape systems' analysis ahead is made in
+/// ([`shape_fill_ordering`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum ShapeOrdering {
+    /// The solver's own (minimum degree).
+    Solvers,
+    /// METIS's nested dissection of the pattern.
+    Metis,
+    /// The nested dissection of the vertices' positions.
+    Coordinates,
 }
 
 /// The shape pattern's nested dissection ([`nested_dissection_of_pattern`]
