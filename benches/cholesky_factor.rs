@@ -13,20 +13,15 @@
 //! `REPEAT` (default 2) factorizations is printed, with the largest
 //! difference between the two factors.
 
+#[path = "../tests/common/mod.rs"]
+mod common;
+
 use metricdeform::shape::ShapeModel;
 use solver_cpu::{CholeskySolver, FillOrdering, SpdSolver};
-use std::path::Path;
 use std::time::Instant;
 
 fn main() {
-    let args: Vec<String> = std::env::args().collect();
-    let cuts: &[usize] = if args.iter().any(|a| a == "--quick") {
-        &[3]
-    } else if args.iter().any(|a| a == "--1m") {
-        &[10]
-    } else {
-        &[3, 10]
-    };
+    let (cuts, homer) = common::homer_cuts(&[3, 10]);
     let repeat: usize = std::env::var("REPEAT")
         .ok()
         .and_then(|v| v.parse().ok())
@@ -36,8 +31,6 @@ fn main() {
         .ok()
         .and_then(|v| v.parse().ok())
         .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
-    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/meshes");
-    let homer = metricdeform::mesh::io::read_mesh(&dir.join("homer.obj")).unwrap();
     // The scale-driven kind's weights.
     let w = metricdeform::pipeline::Options::default().shape;
     println!(

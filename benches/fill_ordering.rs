@@ -12,13 +12,15 @@
 //! `cargo bench --bench fill_ordering` (`-- --quick`: 108k only; `-- --1m`:
 //! 1.2M only).
 
+#[path = "../tests/common/mod.rs"]
+mod common;
+
 use glam::DVec3;
 use metricdeform::shape::ShapeModel;
 use solver_cpu::{
     coordinate_nested_dissection, coordinate_nested_dissection_of_pairs,
     nested_dissection_of_pattern, CholeskySolver, FillOrdering, SpdSolver, SymCsc,
 };
-use std::path::Path;
 use std::time::Instant;
 
 /// The orderings compared.
@@ -79,16 +81,7 @@ fn row(
 }
 
 fn main() {
-    let args: Vec<String> = std::env::args().collect();
-    let cuts: &[usize] = if args.iter().any(|a| a == "--quick") {
-        &[3]
-    } else if args.iter().any(|a| a == "--1m") {
-        &[10]
-    } else {
-        &[3, 6, 10]
-    };
-    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/meshes");
-    let homer = metricdeform::mesh::io::read_mesh(&dir.join("homer.obj")).unwrap();
+    let (cuts, homer) = common::homer_cuts(&[3, 6, 10]);
     let w = metricdeform::pipeline::Options::default().shape;
     println!(
         "| pattern | faces | ordering | ordering s | analysis s | factor values | flops | numeric factorization s | supernodes | levels |"

@@ -112,6 +112,21 @@ pub fn meshes() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("data/meshes")
 }
 
+/// A bench's sizes of homer, as edge cuts: 3 (108k faces) with `--quick`,
+/// 10 (1.2M) with `--1m`, else `all`; and homer itself.
+pub fn homer_cuts(all: &'static [usize]) -> (&'static [usize], Mesh) {
+    let args: Vec<String> = std::env::args().collect();
+    let cuts: &[usize] = if args.iter().any(|a| a == "--quick") {
+        &[3]
+    } else if args.iter().any(|a| a == "--1m") {
+        &[10]
+    } else {
+        all
+    };
+    let homer = metricdeform::mesh::io::read_mesh(&meshes().join("homer.obj")).unwrap();
+    (cuts, homer)
+}
+
 pub fn job(text: &str) -> Job {
     Job::from_str(text, JobFormat::Toml, &meshes(), "test job").unwrap()
 }
