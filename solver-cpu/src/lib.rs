@@ -615,6 +615,35 @@ mod tests {
         }
     }
 
+    /// The key tells apart patterns that differ in one entry, or in the
+    /// order of two, and is the same for equal patterns.
+    #[test]
+    fn a_pattern_key_changes_with_any_entry() {
+        let a = grid_laplacian(7, 1.0);
+        let key = PatternKey::of(&a.col_ptr, &a.row_idx);
+        assert_eq!(key, PatternKey::of(&a.col_ptr.clone(), &a.row_idx.clone()));
+        for i in 0..a.row_idx.len() {
+            let mut rows = a.row_idx.clone();
+            rows[i] += 1;
+            assert_ne!(key, PatternKey::of(&a.col_ptr, &rows), "row entry {i}");
+            if i + 1 < rows.len() && a.row_idx[i] != a.row_idx[i + 1] {
+                let mut swapped = a.row_idx.clone();
+                swapped.swap(i, i + 1);
+                assert_ne!(
+                    key,
+                    PatternKey::of(&a.col_ptr, &swapped),
+                    "entries {i} and {}",
+                    i + 1
+                );
+            }
+        }
+        for i in 1..a.col_ptr.len() - 1 {
+            let mut cols = a.col_ptr.clone();
+            cols[i] -= 1;
+            assert_ne!(key, PatternKey::of(&cols, &a.row_idx), "column pointer {i}");
+        }
+    }
+
     #[test]
     fn given_fill_ordering_is_used_once_then_released() {
         let n = 50;
