@@ -38,6 +38,38 @@ use std::sync::Arc;
 /// are added in face order (about 8 MB of terms).
 const ASSEMBLY_CHUNK: usize = 1 << 16;
 
+/// Faces per thread from which the assembly's sums into `K` and the
+/// gradient run on several threads ([`vertex_ranges`]).
+const FACES_PER_RANGE: usize = 16_384;
+
+/// Bounds `0 = b_0 < b_1 < ... = n` of the vertex ranges the assembly's
+/// sums are cut into: one per rayon thread, or fewer on a small mesh
+/// (one range: one thread, as before).
+fn vertex_ranges(n: usize, faces: usize) -> Vec<usize> {
+    let ranges = rayon::current_num_threads()
+        .min(faces / FACES_PER_RANGE)
+        .clamp(1, n.max(1));
+    (0..=ranges).map(|r| r * n / ranges).collect()
+}
+
+/// `data` cut at the ascending offsets `at` (the first 0, the last its
+/// length): one slice per range between two offsets.
+fn split_at_bounds<T>(data: &mut [T], at: impl Iterator<Item = usize>) -> Vec<&mut [T]> {
+    let mut parts = Vec::new();
+    let mut rest = data;
+    let mut done = 0;
+    for (i, b) in at.enumerate() {
+        if i == 0 {
+            continue;
+        }
+        let (part, tail) = std::mem::take(&mut rest).split_at_mut(b - done);
+        parts.push(part);
+        rest = tail;
+        done = b;
+    }
+    parts
+}
+
 /// Weights of Eq. 7 / Eq. 19.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ShapeWeights {
@@ -495,7 +527,12 @@ impl ShapeModel {
         // E_f (Eq. 4, fourth vertex eliminated). Each face's terms are
         // computed on rayon's threads, a chunk of faces at a time, then
         // added in face order: the same sums as one face after the other.
+        // The adding is on rayon's threads too: the vertices are cut into
+        // ranges, and each range's columns of `K` and entries of the
+        // gradient are added to by one thread, face after face, so each
+        // sum is the same, in the same order, on any number of threads.
         let (no_weight, face_weight) = (&self.no_weight, &self.face_weight);
+        let bounds = vertex_ranges(n, mesh.faces.len());
         let mut terms = vec![None; ASSEMBLY_CHUNK.min(mesh.faces.len())];
         for start in (0..mesh.faces.len()).step_by(ASSEMBLY_CHUNK) {
             let end = (start + ASSEMBLY_CHUNK).min(mesh.faces.len());
@@ -510,31 +547,58 @@ impl ShapeModel {
                         .map(|(a2, da)| (da.map(|d| d * 2.0 / a2), 2.0 * w.k_f * face_weight[f]))
                 };
             });
-            for (i, term) in chunk.iter().enumerate() {
-                let Some((g, wf)) = term else {
-                    continue;
-                };
-                let f = start + i;
-                let t = mesh.faces[f];
-                let slots = &self.face_slots[f];
-                for kk in 0..3 {
-                    for l in 0..=kk {
-                        let (a, b) = (t[kk], t[l]);
-                        let mut v = wf * g[kk].dot(g[l]);
-                        if a == b && kk != l {
-                            v *= 2.0;
+            let chunk = &*chunk;
+            let parts = split_at_bounds(&mut k.values, bounds.iter().map(|&b| k.col_ptr[b]));
+            let grad_parts = gradient
+                .as_mut()
+                .map(|(s, _, grad)| (*s, split_at_bounds(grad, bounds.iter().map(|&b| 3 * b))));
+            let (s, grad_parts): (Option<&[f64]>, Vec<Option<&mut [f64]>>) = match grad_parts {
+                Some((s, g)) => (Some(s), g.into_iter().map(Some).collect()),
+                None => (None, (0..parts.len()).map(|_| None).collect()),
+            };
+            let face_slots = &self.face_slots;
+            let col_ptr = &k.col_ptr;
+            parts
+                .into_par_iter()
+                .zip(grad_parts)
+                .zip(bounds.par_windows(2))
+                .for_each(|((values, mut grad), range)| {
+                    let (lo, hi) = (range[0], range[1]);
+                    let base = col_ptr[lo];
+                    let mine = |v: u32| (lo..hi).contains(&(v as usize));
+                    for (i, term) in chunk.iter().enumerate() {
+                        let Some((g, wf)) = term else {
+                            continue;
+                        };
+                        let f = start + i;
+                        let t = mesh.faces[f];
+                        if !t.iter().any(|&v| mine(v)) {
+                            continue;
                         }
-                        k.values[slots[kk * (kk + 1) / 2 + l] as usize] += v;
+                        let slots = &face_slots[f];
+                        for kk in 0..3 {
+                            for l in 0..=kk {
+                                let (a, b) = (t[kk], t[l]);
+                                // A lower slot's column is its smaller index.
+                                if !mine(a.min(b)) {
+                                    continue;
+                                }
+                                let mut v = wf * g[kk].dot(g[l]);
+                                if a == b && kk != l {
+                                    v *= 2.0;
+                                }
+                                values[slots[kk * (kk + 1) / 2 + l] as usize - base] += v;
+                            }
+                            if let (Some(s), Some(grad), true) = (s, grad.as_mut(), mine(t[kk])) {
+                                let gk = wf * (1.0 - s[f]) * g[kk];
+                                let i = 3 * (t[kk] as usize - lo);
+                                grad[i] += gk.x;
+                                grad[i + 1] += gk.y;
+                                grad[i + 2] += gk.z;
+                            }
+                        }
                     }
-                    if let Some((s, _, grad)) = gradient.as_mut() {
-                        let gk = wf * (1.0 - s[f]) * g[kk];
-                        let i = 3 * t[kk] as usize;
-                        grad[i] += gk.x;
-                        grad[i + 1] += gk.y;
-                        grad[i + 2] += gk.z;
-                    }
-                }
-            }
+                });
         }
 
         // E_m (Eqs. 5, 21): gradient at xc; the Hessian is the constant part
@@ -980,6 +1044,52 @@ mod tests {
         let topo = Topology::build(&mesh);
         let model = ShapeModel::new(&mesh, &topo, Vec::new()).unwrap();
         (mesh, model)
+    }
+
+    /// The assembly's sums into `K`, the rings' `C_i` and the gradient are
+    /// the same to the bit on 1, 3 and 4 threads: the vertex ranges
+    /// (`vertex_ranges`, 4 of them on 4 threads here) add each face's terms
+    /// in face order, as one thread does.
+    #[test]
+    fn the_assembly_is_the_same_on_any_number_of_threads() {
+        let (mut mesh, _) = spot_model();
+        mesh = mesh.subdivide_midpoint().subdivide_midpoint();
+        let nf = mesh.faces.len();
+        assert!(nf >= 4 * FACES_PER_RANGE, "{nf} faces: one range only");
+        let topo = Topology::build(&mesh);
+        let x: Vec<DVec3> = mesh
+            .positions
+            .iter()
+            .enumerate()
+            .map(|(i, p)| *p * (1.0 + 0.05 * (i as f64 * 0.37).sin()))
+            .collect();
+        let s: Vec<f64> = (0..nf)
+            .map(|f| 1.0 + 0.2 * (f as f64 * 0.11).cos())
+            .collect();
+        let c = vec![1.0; mesh.num_vertices()];
+        let on = |threads: usize| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap()
+                .install(|| {
+                    assert_eq!(vertex_ranges(mesh.num_vertices(), nf).len() - 1, threads);
+                    let mut model = ShapeModel::new(&mesh, &topo, Vec::new()).unwrap();
+                    let w = crate::pipeline::Options::default().shape;
+                    model
+                        .assemble_with_positions(&mesh, &x, &s, &c, &w, false)
+                        .unwrap();
+                    let m = model.matrix();
+                    let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<u64>>();
+                    let rings: Vec<f64> = m.ring_c.iter().flatten().copied().collect();
+                    let grad = model.gradient_at(&vec![0.0; 3 * mesh.num_vertices()]);
+                    (bits(&m.iso.values), bits(&rings), bits(&grad))
+                })
+        };
+        let one = on(1);
+        assert!(one.2.iter().any(|&g| g != 0), "a gradient to compare");
+        assert!(one == on(3), "3 threads");
+        assert!(one == on(4), "4 threads");
     }
 
     /// `shape_pattern`, from the faces alone, is the model's pattern: on
