@@ -1057,16 +1057,8 @@ mod tests {
         let nf = mesh.faces.len();
         assert!(nf >= 4 * FACES_PER_RANGE, "{nf} faces: one range only");
         let topo = Topology::build(&mesh);
-        let x: Vec<DVec3> = mesh
-            .positions
-            .iter()
-            .enumerate()
-            .map(|(i, p)| *p * (1.0 + 0.05 * (i as f64 * 0.37).sin()))
-            .collect();
-        let s: Vec<f64> = (0..nf)
-            .map(|f| 1.0 + 0.2 * (f as f64 * 0.11).cos())
-            .collect();
-        let c = vec![1.0; mesh.num_vertices()];
+        let x = perturbed(&mesh, 0.05);
+        let (s, c, w) = varied_job(nf, mesh.num_vertices());
         let on = |threads: usize| {
             rayon::ThreadPoolBuilder::new()
                 .num_threads(threads)
@@ -1075,7 +1067,6 @@ mod tests {
                 .install(|| {
                     assert_eq!(vertex_ranges(mesh.num_vertices(), nf).len() - 1, threads);
                     let mut model = ShapeModel::new(&mesh, &topo, Vec::new()).unwrap();
-                    let w = crate::pipeline::Options::default().shape;
                     model
                         .assemble_with_positions(&mesh, &x, &s, &c, &w, false)
                         .unwrap();
@@ -1128,6 +1119,15 @@ mod tests {
     /// Scale factors varying over the faces, curvature targets and
     /// fine-tune-like weights (E_m and E_l strong) for `nf` faces and `n`
     /// vertices.
+    /// `mesh`'s positions, each scaled by up to `1 +- amount`.
+    fn perturbed(mesh: &Mesh, amount: f64) -> Vec<DVec3> {
+        mesh.positions
+            .iter()
+            .enumerate()
+            .map(|(i, p)| *p * (1.0 + amount * (i as f64 * 0.1).sin()))
+            .collect()
+    }
+
     fn varied_job(nf: usize, n: usize) -> (Vec<f64>, Vec<f64>, ShapeWeights) {
         let s = (0..nf).map(|f| 1.1 + 0.05 * (f as f64).sin()).collect();
         let w = ShapeWeights {
@@ -1150,12 +1150,7 @@ mod tests {
         let n = mesh.num_vertices();
         let (s, c, mut w) = varied_job(mesh.num_faces(), n);
         w.k_p = 10.0;
-        let xc: Vec<DVec3> = mesh
-            .positions
-            .iter()
-            .enumerate()
-            .map(|(i, p)| *p * (1.0 + 0.02 * (i as f64 * 0.1).sin()))
-            .collect();
+        let xc = perturbed(&mesh, 0.02);
         let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
         // With handles (E_p), and without (a held vertex).
         for with_handles in [true, false] {
