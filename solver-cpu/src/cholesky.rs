@@ -246,33 +246,12 @@ pub fn nested_dissection_of_pattern(
     col_ptr: &[usize],
     row_idx: &[usize],
 ) -> Option<(Vec<usize>, Vec<usize>)> {
-    if n == 0 || row_idx.len() > i32::MAX as usize / 2 {
+    if n == 0 {
         return None;
     }
-    let mut degree = vec![0i32; n + 1];
-    for c in 0..n {
-        for &r in &row_idx[col_ptr[c]..col_ptr[c + 1]] {
-            if r != c {
-                degree[r + 1] += 1;
-                degree[c + 1] += 1;
-            }
-        }
-    }
-    for i in 0..n {
-        degree[i + 1] += degree[i];
-    }
-    let mut xadj = degree.clone();
-    let mut adjncy = vec![0i32; xadj[n] as usize];
-    for c in 0..n {
-        for &r in &row_idx[col_ptr[c]..col_ptr[c + 1]] {
-            if r != c {
-                adjncy[degree[r] as usize] = c as i32;
-                degree[r] += 1;
-                adjncy[degree[c] as usize] = r as i32;
-                degree[c] += 1;
-            }
-        }
-    }
+    let graph = crate::ordering::Adjacency::of_lower(n, col_ptr, row_idx)?;
+    let mut xadj: Vec<i32> = graph.xadj.iter().map(|&x| x as i32).collect();
+    let mut adjncy: Vec<i32> = graph.adj.into_iter().map(|v| v as i32).collect();
     let mut nvtxs = n as i32;
     let mut options = [0i32; metis_sys::METIS_NOPTIONS as usize];
     let mut perm = vec![0i32; n];

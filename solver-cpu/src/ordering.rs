@@ -1,26 +1,31 @@
-//! Nested dissection by coordinate bisection: a fill-reducing ordering of a
-//! mesh's sparsity pattern from the positions of its unknowns (vertices, or
-//! face centroids), made on every thread.
+//! Nested dissection from the positions of the unknowns: a fill-reducing
+//! ordering of a mesh's sparsity pattern (vertices, or face centroids),
+//! made on every thread.
 //!
-//! A set `X` of unknowns is split at the median of its positions along the
-//! longest side of its bounding box into `L` and `R`. The unknowns of one
-//! side with a neighbour on the other (the side with fewer) are the vertex
-//! separator `S`; the rest of the two sides are ordered first, recursively
-//! and at once, and `S` last:
+//! A set `X` of unknowns is cut by a plane into `L` and `R`: across the one,
+//! of the three axes and the cube's four diagonals, whose cut between
+//! 64 equal slices of `X`'s extent has the fewest unknowns on its
+//! smaller border, each side keeping at least 30 % of `X`. The
+//! separator `S` is a minimum vertex cover of the cut's edges (König's
+//! theorem, from a maximum matching). The rest of the two sides are ordered
+//! first, recursively and at once, and `S` last:
 //!
 //! ```text
 //! order(X) = order(L \ S), order(R \ S), S
 //! ```
 //!
-//! With no path from `L \ S` to `R \ S` but through `S`, the two blocks of
-//! the factor below them stay zero (George, "Nested dissection of a regular
-//! finite element mesh", 1973). On a surface mesh the separators are the
-//! curves where planes cut it: `O(sqrt n)` unknowns, as METIS's, without
-//! its one thread (METIS's random numbers are global state, so its calls
-//! run one at a time, [`crate::nested_dissection_of_pattern`]). Each split
-//! is `O(|X|)`: the whole ordering is `O(n log n)` work, its two halves at
-//! once at every level. The result depends on the pattern and the positions
-//! alone, not on the threads.
+//! Sets of at most 64 unknowns are ordered by faer's minimum degree,
+//! as METIS orders its small parts. With no path from `L \ S` to `R \ S`
+//! but through `S`, the two blocks of the factor below them stay zero
+//! (George, "Nested dissection of a regular finite element mesh", 1973). On
+//! a surface mesh the separators are the curves where planes cut it, of
+//! `O(sqrt n)` unknowns, without METIS's one thread (METIS's random numbers
+//! are global state, so its calls run one at a time,
+//! [`crate::nested_dissection_of_pattern`]); its fill is between METIS's and
+//! minimum degree's (BENCHMARKS.md, "Fill orderings from the positions").
+//! Each cut is `O(|X|)` work: the whole ordering is `O(n log n)`, its passes
+//! and its two halves on rayon's threads. The result depends on the pattern
+//! and the positions alone, not on the threads.
 
 use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::sparse::linalg::amd;
@@ -29,13 +34,14 @@ use glam::DVec3;
 use rayon::prelude::*;
 use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
 
-/// Sets this small are ordered as they are (leaves of the dissection).
+/// Sets this small are the dissection's leaves, ordered by minimum degree.
 const LEAF: usize = 64;
 
 /// Each side of a cut holds at least this share of the set.
 const BALANCE: f64 = 0.3;
 
-/// Sets from this size on split their halves on two threads.
+/// Sets from this size on run their passes and their halves on rayon's
+/// threads.
 const PARALLEL_FROM: usize = 4096;
 
 /// The nested dissection of the symmetric pattern `(col_ptr, row_idx)` (its
@@ -48,19 +54,7 @@ pub fn coordinate_nested_dissection(
     col_ptr: &[usize],
     row_idx: &[usize],
 ) -> Option<Vec<usize>> {
-    let n = points.len();
-    if col_ptr.len() != n + 1
-        || col_ptr.last() != Some(&row_idx.len())
-        || col_ptr.windows(2).any(|w| w[0] > w[1])
-    {
-        return None;
-    }
-    let edges = (0..n).flat_map(|c| {
-        row_idx[col_ptr[c]..col_ptr[c + 1]]
-            .iter()
-            .map(move |&r| (r, c))
-    });
-    dissect(points, Adjacency::of_edges(n, edges)?)
+    dissect(points, Adjacency::of_lower(points.len(), col_ptr, row_idx)?)
 }
 
 /// As [`coordinate_nested_dissection`], for the pattern whose off-diagonal
@@ -76,7 +70,7 @@ pub fn coordinate_nested_dissection_of_pairs(
 
 fn dissect(points: &[DVec3], graph: Adjacency) -> Option<Vec<usize>> {
     let n = points.len();
-    if n >= u32::MAX as usize / 2 || !points.iter().all(|p| p.is_finite()) {
+    if !points.iter().all(|p| p.is_finite()) {
         return None;
     }
     let points: Vec<[f64; 3]> = points.iter().map(|p| p.to_array()).collect();
@@ -96,19 +90,41 @@ fn dissect(points: &[DVec3], graph: Adjacency) -> Option<Vec<usize>> {
 }
 
 /// Both triangles of a symmetric pattern, diagonal left out: `adj[xadj[v]..
-/// xadj[v + 1]]` are `v`'s neighbours.
-struct Adjacency {
-    xadj: Vec<usize>,
-    adj: Vec<u32>,
+/// xadj[v + 1]]` are `v`'s neighbours, in the order of the entries they come
+/// from (as METIS takes a graph, [`crate::nested_dissection_of_pattern`]).
+pub(crate) struct Adjacency {
+    pub(crate) xadj: Vec<usize>,
+    pub(crate) adj: Vec<u32>,
 }
 
 impl Adjacency {
+    /// From the lower-triangular pattern `(col_ptr, row_idx)` of an `n x n`
+    /// symmetric matrix, column by column. `None` where the sizes disagree.
+    pub(crate) fn of_lower(n: usize, col_ptr: &[usize], row_idx: &[usize]) -> Option<Adjacency> {
+        if col_ptr.len() != n + 1
+            || col_ptr.last() != Some(&row_idx.len())
+            || col_ptr.windows(2).any(|w| w[0] > w[1])
+        {
+            return None;
+        }
+        let edges = (0..n).flat_map(|c| {
+            row_idx[col_ptr[c]..col_ptr[c + 1]]
+                .iter()
+                .map(move |&r| (r, c))
+        });
+        Adjacency::of_edges(n, edges)
+    }
+
     /// From the entries `(r, c)` of a symmetric pattern, each pair once;
-    /// the diagonal's are left out. `None` where an index is out of range.
+    /// the diagonal's are left out. `None` where an index is out of range,
+    /// or `n` or the entries too many for 32-bit indices (METIS's).
     fn of_edges(
         n: usize,
         edges: impl Iterator<Item = (usize, usize)> + Clone,
     ) -> Option<Adjacency> {
+        if n >= i32::MAX as usize {
+            return None;
+        }
         let mut xadj = vec![0usize; n + 1];
         for (r, c) in edges.clone() {
             if r >= n || c >= n {
@@ -121,6 +137,9 @@ impl Adjacency {
         }
         for i in 0..n {
             xadj[i + 1] += xadj[i];
+        }
+        if xadj[n] > i32::MAX as usize {
+            return None;
         }
         let mut fill = xadj.clone();
         let mut adj = vec![0u32; xadj[n]];
