@@ -108,7 +108,7 @@ fn row(
     options.preview = preview;
     options.backend = backend;
     // `--factors-at-once on|off`: Options::overlap_factorizations (default:
-    // off, the scale-driven kind's factor after the scale factors' set-up).
+    // on from 8 of rayon's threads, `pipeline::overlaps_factorizations`).
     if let Some(j) = std::env::args().position(|a| a == "--factors-at-once") {
         options.overlap_factorizations = match std::env::args().nth(j + 1).as_deref() {
             Some("on") => Some(true),

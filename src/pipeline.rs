@@ -262,13 +262,15 @@ pub struct Options {
     /// threads (the GPU's) starts the scale-driven kind's factorization,
     /// from the input's positions, as soon as `K`'s symbolic analysis is
     /// made (`Some(true)`), beside the scale factors' set-up, rather than
-    /// after that set-up (`None`, the default, or `Some(false)`). Either way
-    /// the fine-tune's starts once the scale-driven kind's is handed over,
-    /// and the factors, and so the result, are the same to the bit. Not by
-    /// default: beside the scale factors' factorization it raised homer
-    /// 1.2M's host peak (Rust heap) to 2,676 MiB against 2,217, above the
-    /// CPU backend's 2,299 (and to 3,797 with the fine-tune's factor made
-    /// at once too, as before 2026-11-27's fourth session).
+    /// after that set-up (`Some(false)`). Either way the fine-tune's starts
+    /// once the scale-driven kind's is handed over, and the factors, and so
+    /// the result, are the same to the bit. `None` (the default): where
+    /// rayon has at least [`OVERLAP_FACTORIZATIONS_FROM_THREADS`] threads
+    /// ([`overlaps_factorizations`]). On an H200's 16-core host it took homer
+    /// 1.2M's GPU run from 15.2 to 13.0 s, its host peak (VmHWM) 2,748
+    /// against 2,721 MiB: the peak is set later, by the fine-tune's factor.
+    /// On the 2-core development machine it raised the Rust heap's peak to
+    /// 2,676 MiB against 2,217, and no speed-up was to be seen there.
     pub overlap_factorizations: Option<bool>,
     /// Checked at every progress report: once set, the run stops with
     /// [`Error::Interrupted`].
@@ -954,6 +956,19 @@ fn scale_system_beside_analysis(
     Ok((made?, started))
 }
 
+/// From this many of rayon's threads on, [`Options::overlap_factorizations`]
+/// is on unless set: the scale-driven kind's factorization and the scale
+/// factors' set-up each use several threads, which a 2-core host does not
+/// have to spare (BENCHMARKS.md, "Real GPU").
+pub const OVERLAP_FACTORIZATIONS_FROM_THREADS: usize = 8;
+
+/// [`Options::overlap_factorizations`], or by default whether rayon's pool
+/// (the calling thread's) has [`OVERLAP_FACTORIZATIONS_FROM_THREADS`].
+pub fn overlaps_factorizations(o: &Options) -> bool {
+    o.overlap_factorizations
+        .unwrap_or_else(|| rayon::current_num_threads() >= OVERLAP_FACTORIZATIONS_FROM_THREADS)
+}
+
 /// The scale-driven kind's factor of the input's `K`, to be made on another
 /// thread as soon as `K`'s symbolic analysis is made
 /// ([`scale_system_beside_analysis`]), beside the scale factors' set-up,
@@ -975,7 +990,7 @@ impl ScaleDrivenFromAnalysis {
         x: &[DVec3],
         o: &Options,
     ) -> Option<ScaleDrivenFromAnalysis> {
-        if o.overlap_factorizations != Some(true) {
+        if !overlaps_factorizations(o) {
             return None;
         }
         let plan = model
@@ -1369,5 +1384,30 @@ mod tests {
             .zip(&y)
             .fold(0.0f64, |m, (p, q)| m.max((p - q).abs()));
         assert!(e < 1e-12, "{e}");
+    }
+
+    /// Unset, the overlap follows the calling thread's rayon pool: on from
+    /// [`OVERLAP_FACTORIZATIONS_FROM_THREADS`] threads, off below; set, it
+    /// is what was set on any pool.
+    #[test]
+    fn factorizations_overlap_by_default_on_hosts_with_threads_to_spare() {
+        let on = |threads: usize, set: Option<bool>| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            let o = Options {
+                overlap_factorizations: set,
+                ..Options::default()
+            };
+            pool.install(|| overlaps_factorizations(&o))
+        };
+        let from = OVERLAP_FACTORIZATIONS_FROM_THREADS;
+        assert!(!on(2, None));
+        assert!(!on(from - 1, None));
+        assert!(on(from, None));
+        assert!(on(16, None));
+        assert!(on(2, Some(true)));
+        assert!(!on(16, Some(false)));
     }
 }
