@@ -307,6 +307,13 @@ fn cholesky_ws(s: &GpuSolver, precision: Precision) -> &crate::pcg::Workspace {
     }
 }
 
+/// Whether the Laplacian square term's values are being summed ahead on
+/// another thread (`GpuSolver::start_square_values`), and how many such
+/// sums the shape matrices took.
+pub fn square_values_ahead(s: &GpuSolver) -> (bool, usize) {
+    (s.square_ahead.is_some(), s.squares_taken_ahead)
+}
+
 /// Whether the active Cholesky preconditioner's factor is f64.
 pub fn cholesky_is_f64(s: &GpuSolver) -> Option<bool> {
     s.chol

@@ -123,11 +123,38 @@ pub(crate) fn laplacian_square_values(
     let Some(model) = &a.laplacian_square else {
         return Ok(None);
     };
-    let s = &*model.laplacian;
-    if !(s.start == a.rings.start && s.idx == a.rings.idx && slots.of(&a.rings)) {
+    if !square_through_slots(model, a, slots) {
         return a.laplacian_square_values();
     }
-    let mut values = vec![0f64; a.iso.row_idx.len()];
+    Ok(Some(square_values_through_slots(
+        model,
+        slots,
+        a.iso.row_idx.len(),
+    )))
+}
+
+/// Whether `model`'s Laplacian `S` has the rows of `a`'s rings, whose pairs'
+/// slots `slots` holds: then [`square_values_through_slots`] sums its
+/// square.
+pub(crate) fn square_through_slots(
+    model: &ShapeOperatorModel,
+    a: &IsoRingSym3,
+    slots: &RingSlots,
+) -> bool {
+    let s = &*model.laplacian;
+    slots.of(&a.rings) && s.start == a.rings.start && s.idx == a.rings.idx
+}
+
+/// [`laplacian_square_values`] of `model` on a lower pattern of `entries`
+/// entries, where [`square_through_slots`] holds: its rows' pairs go
+/// through `slots` (one serial pass, in the rows' order).
+pub(crate) fn square_values_through_slots(
+    model: &ShapeOperatorModel,
+    slots: &RingSlots,
+    entries: usize,
+) -> Vec<f64> {
+    let s = &*model.laplacian;
+    let mut values = vec![0f64; entries];
     let mut row = Vec::new();
     for i in 0..s.len() {
         let m = model.square_weight(i);
@@ -147,7 +174,7 @@ pub(crate) fn laplacian_square_values(
             }
         }
     }
-    Ok(Some(values))
+    values
 }
 
 impl HostMatrix {

@@ -1397,7 +1397,6 @@ fn check_factor_solve(
 /// iterations, with one set-up per system kind.
 #[test]
 fn cholesky_preconditioner_is_the_factor_solve_per_component() {
-    use solver_cpu::BlockPcgSolver;
     let Some(mut s) = gpu() else { return };
     let mut rng = Rng(97);
     for (nx, ny) in [(7, 5), (260, 200)] {
@@ -1429,11 +1428,7 @@ fn cholesky_preconditioner_is_the_factor_solve_per_component() {
             "{nx}x{ny}: {} iterations",
             info.iterations
         );
-        let mut cpu = BlockPcgSolver::new();
-        cpu.set_tolerance(1e-12);
-        cpu.prepare_shape_owned(a, &fixed).unwrap();
-        let mut y = vec![0.0; b.len()];
-        cpu.solve_with_guess(&b, &mut y, 2).unwrap();
+        let y = cpu_shape_solve(a, &fixed, &b, 2);
         let e = rel_err(&x, &y);
         assert!(e < 1e-8, "{nx}x{ny}: GPU against CPU {e:e}");
         // Another matrix of the same kind keeps the factor; a new kind makes one.
@@ -1650,7 +1645,6 @@ fn a_factor_made_ahead_in_another_ordering_is_the_kinds_preconditioner() {
 /// solution as with one buffer.
 #[test]
 fn cholesky_factor_over_one_binding_is_split_over_several() {
-    use solver_cpu::BlockPcgSolver;
     let (nx, ny) = (260, 200);
     let n = nx * ny;
     let mut rng = Rng(5);
@@ -1686,11 +1680,7 @@ fn cholesky_factor_over_one_binding_is_split_over_several() {
     s.set_tolerance(1e-10);
     let info = s.solve_with_guess(&b, &mut x, 2).unwrap();
     assert!(info.iterations <= 2 * 6, "{} iterations", info.iterations);
-    let mut cpu = BlockPcgSolver::new();
-    cpu.set_tolerance(1e-12);
-    cpu.prepare_shape_owned(a, &fixed).unwrap();
-    let mut y = vec![0.0; b.len()];
-    cpu.solve_with_guess(&b, &mut y, 2).unwrap();
+    let y = cpu_shape_solve(a, &fixed, &b, 2);
     let e = rel_err(&x, &y);
     assert!(e < 1e-8, "GPU against CPU {e:e}");
 }
@@ -1848,6 +1838,17 @@ fn scale_factor_system_is_preconditioned_by_its_own_factor() {
     assert!(iterations <= 6, "f32 PCG: {iterations} iterations");
 }
 
+/// The CPU backend's solve of the shape matrix `a` for `ncols` columns
+/// `b`, to 1e-12: the reference of the GPU's shape solves.
+fn cpu_shape_solve(a: IsoRingSym3, fixed: &[bool], b: &[f64], ncols: usize) -> Vec<f64> {
+    let mut cpu = solver_cpu::BlockPcgSolver::new();
+    cpu.set_tolerance(1e-12);
+    cpu.prepare_shape_owned(a, fixed).unwrap();
+    let mut y = vec![0.0; b.len()];
+    cpu.solve_with_guess(b, &mut y, ncols).unwrap();
+    y
+}
+
 /// `s` prepared with the shape matrix `a`; `a` back (a copy of it where the
 /// solver keeps it).
 fn prepare_shape(s: &mut GpuSolver, a: IsoRingSym3, fixed: &[bool]) -> IsoRingSym3 {
@@ -1988,4 +1989,98 @@ fn warmed_up_kinds_compile_no_pipeline_where_they_solve() {
         "{at_use_warm} compiled where the solves ran"
     );
     assert!(cold == warm, "the solutions differ");
+}
+
+/// A scale-driven shape matrix on the 2-ring pattern of an `nx x ny` grid,
+/// its rings each vertex's grid neighbours (as E_l's rows), `K` a weighted
+/// Laplacian plus a positive diagonal, no `C_i`; and a Laplacian square
+/// model whose `S` has the rings' rows (as E_m's cotangent rows have E_l's
+/// columns).
+fn ring_grid(
+    nx: usize,
+    ny: usize,
+    rng: &mut Rng,
+) -> (IsoRingSym3, std::sync::Arc<solver_cpu::ShapeOperatorModel>) {
+    use solver_cpu::{ShapeOperatorModel, SparseRows};
+    use std::sync::Arc;
+    let n = nx * ny;
+    let edges = grid_edges(nx, ny);
+    let t: Vec<(u32, u32, f64)> = edges
+        .iter()
+        .flat_map(|&(i, j)| {
+            let w = 1.0 + 0.5 * rng.sym();
+            [(i as u32, j as u32, w), (j as u32, i as u32, w)]
+        })
+        .collect();
+    let rings = Arc::new(SparseRows::from_triplets(n, t, false));
+    // Every pair of a ring's vertices (the row's own vertex included).
+    let mut pairs: Vec<(usize, usize)> = (0..n).map(|i| (i, i)).collect();
+    for i in 0..n {
+        let members: Vec<usize> = std::iter::once(i)
+            .chain(rings.row(i).map(|(j, _)| j))
+            .collect();
+        for &p in &members {
+            for &q in &members {
+                pairs.push((p.max(q), p.min(q)));
+            }
+        }
+    }
+    let pattern = SymCsc::from_pattern(n, pairs);
+    let mut a = IsoRingSym3::new(n, pattern.col_ptr, pattern.row_idx, rings.clone());
+    for j in 0..n {
+        for k in a.iso.col_ptr[j]..a.iso.col_ptr[j + 1] {
+            a.iso.values[k] = if a.iso.row_idx[k] == j {
+                8.0 + rng.sym()
+            } else {
+                -0.05 * (1.0 + rng.sym().abs())
+            };
+        }
+    }
+    let model = Arc::new(ShapeOperatorModel {
+        laplacian: rings,
+        mt: (0..n).map(|_| 0.5 + 0.4 * rng.sym()).collect(),
+        c: 0.0,
+    });
+    (a, model)
+}
+
+/// The Laplacian square term's values are summed on another thread from
+/// the scale-driven kind's first shape matrix on (once its factor is made),
+/// and the next matrix, which names the term, takes them: its solve equals
+/// the CPU's direct solve of that matrix. Block Jacobi (no factor: its
+/// matrices never name the term) starts none.
+#[test]
+fn the_laplacian_squares_values_are_summed_ahead_and_taken() {
+    let Some(mut s) = gpu() else { return };
+    if !s.adapter().shader_f64 {
+        // No shape sum on the GPU: nothing to sum ahead.
+        return;
+    }
+    let mut rng = Rng(91);
+    let (a, model) = ring_grid(30, 20, &mut rng);
+    let n = a.n();
+    let fixed = fixed_every(n, 53);
+    s.set_system_kind(SystemKind::ScaleDriven);
+    s.set_preconditioner(Preconditioner::Cholesky).unwrap();
+    s.set_shape_model(Some(model.clone()));
+    prepare_shape(&mut s, a.clone(), &fixed);
+    assert_eq!(kernels::square_values_ahead(&s), (true, 0), "started");
+    let mut named = a.clone();
+    named.laplacian_square = Some(model.clone());
+    prepare_shape(&mut s, named.clone(), &fixed);
+    assert_eq!(kernels::square_values_ahead(&s), (false, 1), "taken");
+    let b = rng.vec(3 * n);
+    let mut x = vec![0.0; b.len()];
+    s.set_tolerance(1e-11);
+    s.solve_with_guess(&b, &mut x, 1).unwrap();
+    let y = cpu_shape_solve(named, &fixed, &b, 1);
+    let e = rel_err(&x, &y);
+    assert!(e < 1e-8, "GPU against CPU {e:e}");
+    // Block Jacobi: no factor, so no matrix will name the term.
+    let Some(mut s) = gpu() else { return };
+    s.set_system_kind(SystemKind::ScaleDriven);
+    s.set_preconditioner(Preconditioner::BlockJacobi).unwrap();
+    s.set_shape_model(Some(model));
+    prepare_shape(&mut s, a, &fixed);
+    assert_eq!(kernels::square_values_ahead(&s), (false, 0));
 }

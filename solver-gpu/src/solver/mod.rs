@@ -28,6 +28,7 @@ mod upload;
 mod warm;
 
 use mixed::{floor_after_a_round, BatchHints, MixedData, MixedKernels, Round};
+use upload::SquareAhead;
 
 /// Whether some adapter is available.
 pub fn gpu_available() -> bool {
@@ -101,6 +102,8 @@ pub fn open_with(opts: OpenOptions) -> Result<GpuSolver, GpuError> {
         shape_sum: None,
         square: None,
         square_values: None,
+        square_ahead: None,
+        squares_taken_ahead: 0,
         minv_scratch: Vec::new(),
         diagonal_current: false,
         expand: None,
@@ -225,6 +228,11 @@ pub struct GpuSolver {
     /// its values until the shape sum takes them up.
     square: Option<Arc<matrix::SquareParts>>,
     square_values: Option<Vec<f64>>,
+    /// That term's values being summed on another thread, for the model and
+    /// ring slots named ([`Self::start_square_values`]).
+    pub(crate) square_ahead: Option<SquareAhead>,
+    /// Such values taken by [`Self::square_parts`] (for the tests).
+    pub(crate) squares_taken_ahead: usize,
     /// The f32 inverse diagonal blocks of the last matrix uploaded, kept
     /// for the next one's (`block_jacobi::inverse_diagonal`).
     minv_scratch: Vec<f32>,
@@ -755,6 +763,9 @@ impl SpdSolver for GpuSolver {
         };
         self.fixed.clear();
         self.fixed.extend_from_slice(fixed);
+        if let (true, Some(slots)) = (on_gpu, self.ring_slots.clone()) {
+            self.start_square_values(h.shape_form(), &slots);
+        }
         let filled = t.elapsed().as_secs_f64();
         let uploaded = self.upload(h, same);
         // Taken up by the shape sum, or not needed.
