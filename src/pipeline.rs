@@ -1054,7 +1054,13 @@ fn factor_ahead(
         "{kind:?} system's K for its factor ahead assembled in {:.3} s",
         t.elapsed().as_secs_f64()
     );
-    FactorAhead::spawn(twin, k)
+    // The fine-tune's is waited for only when the fine-tune starts: its
+    // work yields the cores to the scale-driven iteration's.
+    let spawned = match kind {
+        SystemKind::FineTune => FactorAhead::spawn_in_background(twin, k),
+        _ => FactorAhead::spawn(twin, k),
+    };
+    spawned
         .inspect_err(|e| log::debug!("{kind:?} system's factor of K ahead: {e}"))
         .ok()
 }

@@ -154,15 +154,45 @@ pub struct FactorAhead(std::thread::JoinHandle<(Result<CholeskySolver, SolverErr
 
 impl FactorAhead {
     /// Starts factoring `k` with `twin`.
-    pub fn spawn(mut twin: CholeskySolver, k: SymCsc) -> Result<FactorAhead, SolverError> {
+    pub fn spawn(twin: CholeskySolver, k: SymCsc) -> Result<FactorAhead, SolverError> {
+        FactorAhead::spawn_on(twin, k, None)
+    }
+
+    /// [`Self::spawn`] for a factor that no phase waits for yet (the
+    /// fine-tune's, made while the scale-driven iteration runs): its
+    /// parallel work runs on [`background_pool`]'s threads, at a lower
+    /// scheduling priority, instead of rayon's global pool, where the
+    /// running phase's own parallel work (the shape terms' sums) queued
+    /// behind it. On an H200's 16-core host the outer iterations that the
+    /// fine-tune's factorization overlapped summed their shape terms in
+    /// 0.19-0.38 s against 0.115 s at homer 1.2M, and in 0.96-1.13 s
+    /// against 0.41 s at 4.3M. The same factor either way.
+    pub fn spawn_in_background(
+        twin: CholeskySolver,
+        k: SymCsc,
+    ) -> Result<FactorAhead, SolverError> {
+        FactorAhead::spawn_on(twin, k, background_pool())
+    }
+
+    fn spawn_on(
+        mut twin: CholeskySolver,
+        k: SymCsc,
+        pool: Option<&'static rayon::ThreadPool>,
+    ) -> Result<FactorAhead, SolverError> {
         std::thread::Builder::new()
             .name("factor-ahead".into())
             .spawn(move || {
                 let t = std::time::Instant::now();
-                let done = twin.prepare_owned(k).map(|()| {
-                    twin.invert_taken_if_wanted();
-                    twin
-                });
+                let factor = move || {
+                    twin.prepare_owned(k).map(|()| {
+                        twin.invert_taken_if_wanted();
+                        twin
+                    })
+                };
+                let done = match pool {
+                    Some(pool) => pool.install(factor),
+                    None => factor(),
+                };
                 (done, t.elapsed().as_secs_f64())
             })
             .map(FactorAhead)
@@ -222,6 +252,64 @@ impl FactorAhead {
             )
         })
     }
+}
+
+/// rayon's threads for work that no phase waits for yet
+/// ([`FactorAhead::spawn_in_background`]): as many as the global pool's
+/// (at its first use), each 10 steps nicer than the thread that made the
+/// pool (at most 19) where the OS gives threads their own priority (Linux),
+/// so that the running phase's threads take the cores first. Made on first
+/// use and kept; `None` where no pool could be built (the work then runs on
+/// the global pool).
+pub fn background_pool() -> Option<&'static rayon::ThreadPool> {
+    static POOL: std::sync::OnceLock<Option<rayon::ThreadPool>> = std::sync::OnceLock::new();
+    POOL.get_or_init(|| {
+        let nicer = thread_priority().map(|p| (p + 10).min(19));
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(rayon::current_num_threads())
+            .thread_name(|i| format!("background-{i}"))
+            .start_handler(move |_| {
+                if let Some(p) = nicer {
+                    set_thread_priority(p);
+                }
+            })
+            .build()
+            .inspect_err(|e| log::debug!("no background thread pool: {e}"))
+            .ok()
+    })
+    .as_ref()
+}
+
+/// The calling thread's nice value (Linux; `None` elsewhere).
+pub fn thread_priority() -> Option<i32> {
+    #[cfg(target_os = "linux")]
+    {
+        // SAFETY: plain system calls on the calling thread's id. errno is
+        // cleared first: -1 is a valid nice value.
+        unsafe {
+            let tid = libc::syscall(libc::SYS_gettid) as libc::id_t;
+            *libc::__errno_location() = 0;
+            let p = libc::getpriority(libc::PRIO_PROCESS, tid);
+            (*libc::__errno_location() == 0).then_some(p)
+        }
+    }
+    #[cfg(not(target_os = "linux"))]
+    None
+}
+
+/// Sets the calling thread's nice value (Linux; nothing elsewhere, or where
+/// the OS refuses).
+fn set_thread_priority(nice: i32) {
+    #[cfg(target_os = "linux")]
+    // SAFETY: plain system calls on the calling thread's id.
+    unsafe {
+        let tid = libc::syscall(libc::SYS_gettid) as libc::id_t;
+        if libc::setpriority(libc::PRIO_PROCESS, tid, nice) != 0 {
+            log::debug!("background thread's priority left as it was");
+        }
+    }
+    #[cfg(not(target_os = "linux"))]
+    let _ = nice;
 }
 
 /// METIS nested-dissection permutation of the graph of `a` (diagonal ignored):

@@ -15,8 +15,9 @@ pub mod tree_factor;
 
 pub use block::{row_groups_mut, BlockRows, BlockSym3};
 pub use cholesky::{
-    analyse_beside, analyse_beside_then, nested_dissection_of_pattern, CholeskySolver, FactorAhead,
-    FactorPlan, FillOrdering, PatternKey, SupernodalFactor,
+    analyse_beside, analyse_beside_then, background_pool, nested_dissection_of_pattern,
+    thread_priority, CholeskySolver, FactorAhead, FactorPlan, FillOrdering, PatternKey,
+    SupernodalFactor,
 };
 pub use iso_ring::{sym3_block, IsoRingSym3, SparseRows};
 pub use ordering::{coordinate_nested_dissection, coordinate_nested_dissection_of_pairs};
@@ -713,6 +714,27 @@ mod tests {
         assert_eq!(solver.numeric_count, 2);
     }
 
+    /// The background pool's threads run nicer than the thread that asks
+    /// (where the OS has per-thread priorities), and work installed in it
+    /// runs on them.
+    #[test]
+    fn background_threads_are_nicer() {
+        let pool = background_pool().expect("a background pool");
+        let name = pool.install(|| std::thread::current().name().map(String::from));
+        assert!(
+            name.as_deref()
+                .is_some_and(|n| n.starts_with("background-")),
+            "{name:?}"
+        );
+        if let Some(caller) = thread_priority() {
+            let background = pool.install(thread_priority).unwrap();
+            assert!(
+                background > caller || background == 19,
+                "background {background}, caller {caller}"
+            );
+        }
+    }
+
     /// A numeric twin factors on its solver's analysis (no analysis of its
     /// own, on another thread) what that solver would: the same solve to
     /// the bit. It is a factor of its pattern on that analysis only.
@@ -728,6 +750,12 @@ mod tests {
         let twin = solver.numeric_twin(false).unwrap();
         let (twin, _) = FactorAhead::spawn(twin, s2.clone()).unwrap().join();
         let mut twin = twin.unwrap();
+        // In the background pool: the same factor.
+        let (background, _) =
+            FactorAhead::spawn_in_background(solver.numeric_twin(false).unwrap(), s2.clone())
+                .unwrap()
+                .join();
+        let mut background = background.unwrap();
         assert_eq!((twin.symbolic_count, twin.numeric_count), (0, 1));
         assert!(twin.is_factored_on(&solver));
         assert!(!twin.is_factored_on(&CholeskySolver::new()));
@@ -742,10 +770,13 @@ mod tests {
         solver.prepare(&s2).unwrap();
         let b: Vec<f64> = (0..3 * n).map(|i| (i as f64 * 0.3).sin()).collect();
         let (mut x, mut y) = (b.clone(), b.clone());
+        let mut z = b.clone();
         solver.solve_in_place(&mut x, 1).unwrap();
         twin.solve_in_place(&mut y, 1).unwrap();
+        background.solve_in_place(&mut z, 1).unwrap();
         let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
         assert_eq!(bits(&x), bits(&y));
+        assert_eq!(bits(&x), bits(&z));
         assert_eq!(solver.symbolic_count, 1);
     }
 
