@@ -739,7 +739,12 @@ impl SpdSolver for GpuSolver {
         let (col_ptr, row_idx) = (&a.iso.col_ptr, &a.iso.row_idx);
         let same = self.same_pattern(3, col_ptr, row_idx);
         if !(same && self.ring_slots.as_ref().is_some_and(|r| r.of(&a.rings))) {
+            let t = std::time::Instant::now();
             self.ring_slots = Some(Arc::new(RingSlots::new(&a.rings, col_ptr, row_idx)?));
+            log::debug!(
+                "ring pairs' slots found in {:.3} s",
+                t.elapsed().as_secs_f64()
+            );
         }
         match self.kind {
             SystemKind::ScaleDriven | SystemKind::FineTune => {
