@@ -66,8 +66,8 @@ grep -h '^| girths' "$L/1m.gpu.off"
 pack
 # Runs "$@" (a test binary) in the background, its output in $1. Still
 # running after $WATCH seconds (a whole run takes under 10 s on an H200),
-# it is stopped, and each thread's name, state, kernel wait channel and
-# kernel stack go to $1.threads first: the kernels binary hung in 4 of 10
+# it is stopped, and each thread's name, state, kernel wait channel,
+# system call and kernel stack go to $1.threads first: the kernels binary hung in 4 of 10
 # runs at 16 threads on the H200 (BENCHMARKS.md).
 watched() {
   local out=$1; shift
@@ -77,7 +77,11 @@ watched() {
   if kill -0 $p 2>/dev/null; then
     echo "hung after $s s: $(grep -c ' ok$' "$out") tests finished"
     for t in /proc/$p/task/*; do
-      echo "$(cat $t/comm) $(awk '{print $3}' $t/stat) $(cat $t/wchan 2>/dev/null)"
+      # Name (spaces made _), state, kernel wait channel; then the system
+      # call it sits in (202 futex: a lock; 16 ioctl: the driver; 7 poll)
+      # and its kernel stack.
+      echo "$(tr ' ' _ < $t/comm) $(awk '/^State/ {print $2}' $t/status) $(cat $t/wchan 2>/dev/null)"
+      echo "    syscall $(cat $t/syscall 2>/dev/null)"
       cat $t/stack 2>/dev/null | head -8 | sed 's/^/    /'
     done > "$out.threads"
     grep -v '^    ' "$out.threads" | awk '{print $2, $3}' | sort | uniq -c | sort -rn | head
