@@ -227,6 +227,16 @@ pub struct TrafficCounts {
     pub compile_ahead_seconds: f64,
 }
 
+/// The mapped staging buffer of [`Context::storage_from_pieces`],
+/// kept for the windows of the uploads it serves (none before the first).
+#[derive(Default)]
+pub(crate) struct Staging {
+    buffer: Option<wgpu::Buffer>,
+    /// Whether `buffer` is mapped for writing (else its last window may
+    /// still be being copied out).
+    mapped: bool,
+}
+
 /// Most bytes of host staging memory one upload through
 /// [`Context::storage_from_pieces`] fills before it is handed to the queue
 /// and waited for.
@@ -566,24 +576,32 @@ impl Context {
     }
 
     /// A storage buffer holding the concatenation of `pieces` (`bytes` in
-    /// all, a multiple of 4), copied straight into wgpu's staging memory in
+    /// all, a multiple of 4), copied straight into a mapped staging buffer in
     /// windows of at most [`STAGING_WINDOW`] bytes: no host copy of the whole
-    /// is made, and the host holds at most one window of staging at a time
-    /// (each is submitted, and waited for before the next one is filled: a
-    /// factor of 3.5 GB would otherwise double the host's peak).
+    /// is made, and the host holds one window of staging (each is copied
+    /// to the buffer by its own submission, and waited for before the next
+    /// one is filled: a factor of 3.5 GB would otherwise double the host's
+    /// peak). `staging`'s one buffer serves every window, of this upload and
+    /// of the others it is passed to (a Cholesky factor's index sections
+    /// and value chunks): a fresh one per window (wgpu's
+    /// `write_buffer_with`, before) was fresh memory to fault in each time,
+    /// 15 % of the main thread's samples in homer 1.2M's GPU run on
+    /// lavapipe, most of the factor uploads' time.
     pub fn storage_from_pieces<'a>(
         &self,
+        staging: &mut Staging,
         what: &str,
         bytes: u64,
         pieces: impl IntoIterator<Item = &'a [u8]>,
     ) -> Result<wgpu::Buffer, GpuError> {
-        self.storage_from_pieces_in(what, bytes, pieces, STAGING_WINDOW)
+        self.storage_from_pieces_in(staging, what, bytes, pieces, STAGING_WINDOW)
     }
 
     /// [`Self::storage_from_pieces`] with windows of `window` bytes (a
     /// multiple of 4).
     fn storage_from_pieces_in<'a>(
         &self,
+        staging: &mut Staging,
         what: &str,
         bytes: u64,
         pieces: impl IntoIterator<Item = &'a [u8]>,
@@ -591,18 +609,21 @@ impl Context {
     ) -> Result<wgpu::Buffer, GpuError> {
         let b = self.storage(what, bytes)?;
         let mut at = 0u64;
-        let mut window: Option<(wgpu::QueueWriteBufferView, u64, u64)> = None;
+        let mut window: Option<(wgpu::BufferViewMut, u64, u64)> = None;
         for piece in pieces {
             let mut p = piece;
             while !p.is_empty() {
                 if window.is_none() {
                     let len = window_bytes.min(bytes.saturating_sub(at));
-                    let size = wgpu::BufferSize::new(len).ok_or_else(|| {
-                        GpuError::Backend(format!("{what}: pieces longer than {bytes} bytes"))
-                    })?;
-                    let view = self.queue.write_buffer_with(&b, at, size).ok_or_else(|| {
-                        GpuError::Backend(format!("{what}: no staging memory for {len} bytes"))
-                    })?;
+                    if len == 0 {
+                        return Err(GpuError::Backend(format!(
+                            "{what}: pieces longer than {bytes} bytes"
+                        )));
+                    }
+                    let view = self
+                        .staging_window(staging, len)?
+                        .get_mapped_range_mut(0..len)
+                        .map_err(|e| GpuError::Backend(format!("{what}: staging: {e}")))?;
                     window = Some((view, at, len));
                 }
                 let (view, start, len) = window.as_mut().unwrap();
@@ -614,13 +635,15 @@ impl Context {
                 p = &p[take..];
                 if at == end {
                     drop(window.take());
-                    self.submit(None);
+                    let st = staging.buffer.as_ref().unwrap();
+                    st.unmap();
+                    staging.mapped = false;
+                    let mut enc = self.encoder("upload");
+                    enc.copy_buffer_to_buffer(st, 0, &b, start, end - start);
+                    self.submit(Some(enc));
                     self.traffic
                         .to_device
                         .fetch_add(end - start, Ordering::Relaxed);
-                    if at < bytes {
-                        self.wait()?;
-                    }
                 }
             }
         }
@@ -630,6 +653,44 @@ impl Context {
             )));
         }
         Ok(b)
+    }
+
+    /// `staging`'s buffer, mapped and of at least `len` bytes: made (mapped)
+    /// where it has none or a smaller one, else mapped again once the GPU
+    /// has copied its last window out (one host wait).
+    fn staging_window<'s>(
+        &self,
+        staging: &'s mut Staging,
+        len: u64,
+    ) -> Result<&'s wgpu::Buffer, GpuError> {
+        if staging.buffer.as_ref().is_none_or(|b| b.size() < len) {
+            staging.buffer = Some(self.create(&wgpu::BufferDescriptor {
+                label: Some("upload staging"),
+                size: len,
+                usage: wgpu::BufferUsages::MAP_WRITE | wgpu::BufferUsages::COPY_SRC,
+                mapped_at_creation: true,
+            })?);
+            staging.mapped = true;
+        }
+        let st = staging.buffer.as_ref().unwrap();
+        if !staging.mapped {
+            self.map_for_writing(st)?;
+            staging.mapped = true;
+        }
+        Ok(st)
+    }
+
+    /// Maps `staging` (`MAP_WRITE`) again once the GPU is done with it: one
+    /// host wait.
+    fn map_for_writing(&self, staging: &wgpu::Buffer) -> Result<(), GpuError> {
+        let (tx, rx) = std::sync::mpsc::channel();
+        staging.map_async(wgpu::MapMode::Write, .., move |r| {
+            let _ = tx.send(r);
+        });
+        self.wait()?;
+        rx.recv()
+            .map_err(|_| GpuError::Backend("buffer map callback dropped".into()))?
+            .map_err(|e| GpuError::Backend(format!("map upload staging: {e}")))
     }
 
     pub fn uniform(&self, what: &str, p: &Params) -> Result<wgpu::Buffer, GpuError> {
@@ -1150,16 +1211,30 @@ mod tests {
         let cuts = [0, 3, 4, 130, 131, 1000, 2999, 3001, 4000];
         let pieces: Vec<&[u8]> = cuts.windows(2).map(|w| &data[w[0]..w[1]]).collect();
         let waits = ctx.traffic().waits;
+        let mut staging = super::Staging::default();
         let b = ctx
-            .storage_from_pieces_in("test", 4000, pieces.iter().copied(), 64)
+            .storage_from_pieces_in(&mut staging, "test", 4000, pieces.iter().copied(), 64)
             .unwrap();
         // 63 windows of 64 bytes: a wait between each two.
         assert_eq!(ctx.traffic().waits - waits, 4000u64.div_ceil(64) - 1);
         let back: Vec<u8> = ctx.read(&b, 4000, &mut None, None).unwrap();
         assert_eq!(back, data);
-        let short = ctx.storage_from_pieces_in("test", 4000, pieces[..3].iter().copied(), 64);
+        // The same staging buffer serves a second upload: the same bytes.
+        let first = staging.buffer.clone();
+        let again = ctx
+            .storage_from_pieces_in(&mut staging, "test", 4000, pieces.iter().copied(), 64)
+            .unwrap();
+        assert!(
+            first.is_some() && staging.buffer == first,
+            "the same buffer"
+        );
+        let back: Vec<u8> = ctx.read(&again, 4000, &mut None, None).unwrap();
+        assert_eq!(back, data);
+        let fresh = super::Staging::default;
+        let short =
+            ctx.storage_from_pieces_in(&mut fresh(), "test", 4000, pieces[..3].iter().copied(), 64);
         assert!(short.is_err());
-        let long = ctx.storage_from_pieces_in("test", 8, pieces.iter().copied(), 64);
+        let long = ctx.storage_from_pieces_in(&mut fresh(), "test", 8, pieces.iter().copied(), 64);
         assert!(long.is_err());
     }
 
@@ -1174,7 +1249,13 @@ mod tests {
         let data: Vec<u8> = (0..1000u32).map(|i| (i * 11 % 251) as u8).collect();
         let before = ctx.traffic();
         let b = ctx
-            .storage_from_pieces_in("test", 1000, [&data[..]], 128)
+            .storage_from_pieces_in(
+                &mut super::Staging::default(),
+                "test",
+                1000,
+                [&data[..]],
+                128,
+            )
             .unwrap();
         let uploaded = ctx.traffic();
         assert_eq!(uploaded.submits - before.submits, 1000u64.div_ceil(128));

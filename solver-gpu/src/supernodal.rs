@@ -315,7 +315,10 @@ impl GpuFactor {
         // (about 18M slots) they are some hundreds of MB beside the 1.1 GiB
         // of values the caller holds.
         drop((rows, slot_owner, tpos, cols, owner));
+        // One staging buffer for every window of the index and the values.
+        let mut staging = crate::device::Staging::default();
         let idx_buf = ctx.storage_from_pieces(
+            &mut staging,
             "Cholesky index sections",
             std::mem::size_of_val(&idx[..]) as u64,
             [bytemuck::cast_slice::<u32, u8>(&idx)],
@@ -332,6 +335,7 @@ impl GpuFactor {
         let vals = (0..chunk_len.len())
             .map(|k| {
                 ctx.storage_from_pieces(
+                    &mut staging,
                     &format!("Cholesky values ({precision:?}, chunk {k})"),
                     chunk_len[k] as u64 * b,
                     order
