@@ -513,6 +513,23 @@ impl ShapeModel {
     /// each such pass took about 0.15 s of the first shape matrix's and each
     /// factor-ahead `K`'s assembly on one thread of an H200's host, and of
     /// every CPU-backend assembly).
+    /// [`vertex_ranges`] for `faces`, and each range's rows of `mv` with an
+    /// entry in it ([`RowsByRange`]), made once for those ranges.
+    fn rows_by_range(&self, faces: usize) -> (Vec<usize>, Arc<Vec<Vec<u32>>>) {
+        let bounds = vertex_ranges(self.n, faces);
+        let mut cached = self.rows_by_range.lock().unwrap_or_else(|e| e.into_inner());
+        let rows = match cached.as_ref() {
+            Some(r) if r.bounds == bounds => r.rows.clone(),
+            _ => {
+                let r = RowsByRange::new(&self.mv, &bounds);
+                let made = r.rows.clone();
+                *cached = Some(r);
+                made
+            }
+        };
+        (bounds, rows)
+    }
+
     fn add_ring_pairs(
         &self,
         k: &mut SymCsc,
@@ -520,20 +537,7 @@ impl ShapeModel {
         faces: usize,
         weight: impl Fn(usize) -> f64 + Sync,
     ) {
-        let n = self.n;
-        let bounds = vertex_ranges(n, faces);
-        let by_range = {
-            let mut cached = self.rows_by_range.lock().unwrap_or_else(|e| e.into_inner());
-            match cached.as_ref() {
-                Some(r) if r.bounds == bounds => r.rows.clone(),
-                _ => {
-                    let r = RowsByRange::new(&self.mv, &bounds);
-                    let made = r.rows.clone();
-                    *cached = Some(r);
-                    made
-                }
-            }
-        };
+        let (bounds, by_range) = self.rows_by_range(faces);
         let col_ptr = &k.col_ptr;
         let parts = split_at_bounds(&mut k.values, bounds.iter().map(|&b| col_ptr[b]));
         let (ptr, slots) = (&self.mv_slot_ptr, &self.mv_slots);
@@ -707,17 +711,40 @@ impl ShapeModel {
                     }
                 })
                 .collect();
-            for (i, &r) in residual.iter().enumerate() {
-                if r == DVec3::ZERO {
-                    continue;
+            // Added by vertex range on rayon's threads where the cotangent
+            // rows have the mean-value rows' entries (`hm` empty: the rows
+            // by range serve both), each entry's terms in row order as on one
+            // thread; else one row after the other.
+            let add = |grad: &mut [f64], lo: usize, rows: &mut dyn Iterator<Item = usize>| {
+                for i in rows {
+                    let r = residual[i];
+                    if r == DVec3::ZERO {
+                        continue;
+                    }
+                    let m = 1.0 / (4.0 * vertex_area[i]);
+                    for (j, cj) in cot.row(i) {
+                        let Some(j) = j.checked_sub(lo).filter(|&j| 3 * j < grad.len()) else {
+                            continue;
+                        };
+                        let g = 2.0 * w.k_m * m * cj * r;
+                        grad[3 * j] += g.x;
+                        grad[3 * j + 1] += g.y;
+                        grad[3 * j + 2] += g.z;
+                    }
                 }
-                let m = 1.0 / (4.0 * self.vertex_area[i]);
-                for (j, cj) in self.cot.row(i) {
-                    let g = 2.0 * w.k_m * m * cj * r;
-                    grad[3 * j] += g.x;
-                    grad[3 * j + 1] += g.y;
-                    grad[3 * j + 2] += g.z;
-                }
+            };
+            if self.hm.is_empty() {
+                let (bounds, by_range) = self.rows_by_range(mesh.faces.len());
+                let parts = split_at_bounds(grad, bounds.iter().map(|&b| 3 * b));
+                parts
+                    .into_par_iter()
+                    .zip(bounds.par_windows(2))
+                    .zip(by_range.par_iter())
+                    .for_each(|((part, range), mine)| {
+                        add(part, range[0], &mut mine.iter().map(|&i| i as usize))
+                    });
+            } else {
+                add(grad, 0, &mut (0..n));
             }
         }
 
@@ -744,18 +771,19 @@ impl ShapeModel {
                     };
                     self.add_ring_pairs(k, &self.mv, mesh.faces.len(), iso);
                 }
-                for i in 0..n {
-                    let a = self.vertex_area[i] * norm;
-                    if a <= 0.0 {
-                        continue;
-                    }
-                    let di = d[i];
-                    let dd = di.length_squared();
-                    // C_i's diagonal: all of |d|^2 in the ring, or its third.
-                    let third = dd / 3.0;
-                    if let Some(ring_c) = ring_c.as_deref_mut() {
-                        let on_diag = if whole_ring { dd } else { third };
-                        ring_c[i] = [
+                // Each ring's C_i, on rayon's threads (one value each).
+                if let Some(ring_c) = ring_c {
+                    let area = &self.vertex_area;
+                    ring_c.par_iter_mut().enumerate().for_each(|(i, c)| {
+                        let a = area[i] * norm;
+                        if a <= 0.0 {
+                            return;
+                        }
+                        let di = d[i];
+                        let dd = di.length_squared();
+                        // C_i's diagonal: all of |d|^2 in the ring, or its third.
+                        let on_diag = if whole_ring { dd } else { dd / 3.0 };
+                        *c = [
                             a * (on_diag - di.x * di.x),
                             a * (on_diag - di.y * di.y),
                             a * (on_diag - di.z * di.z),
@@ -763,7 +791,7 @@ impl ShapeModel {
                             -a * di.x * di.z,
                             -a * di.y * di.z,
                         ];
-                    }
+                    });
                 }
             }
         }
