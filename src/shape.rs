@@ -235,7 +235,6 @@ pub struct ShapeModel {
     grad: Vec<f64>,
 }
 
-/// Where [`ShapeModel::hessian_terms`] puts the terms.
 /// Per vertex range (`bounds`, as [`vertex_ranges`] gives them), the rows
 /// of a ring matrix (ascending) with an entry in the range: the rows whose
 /// pairs' slots may lie in the range's columns of `K` (a lower slot's
@@ -267,6 +266,7 @@ impl RowsByRange {
     }
 }
 
+/// Where [`ShapeModel::hessian_terms`] puts the terms.
 struct Terms<'a> {
     /// `K`, on the 2-ring pattern: its values are overwritten.
     k: &'a mut SymCsc,
@@ -498,21 +498,6 @@ impl ShapeModel {
         Ok(())
     }
 
-    /// The Hessian's terms for the weights `w` at the reference positions
-    /// `xc` (Eqs. 4-6, 19, and the springs of faces without shape weight),
-    /// into `t` (see [`Terms`]): `K`'s values (overwritten), E_l's `C_i`
-    /// and the gradient where asked for. One home for every term's sums, in
-    /// one order, whether for a solve or for a factor made ahead.
-    /// Adds `weight(i) R_ip R_iq` into `K`'s slot of each pair `p >= q` of
-    /// each row `i` of `rows` (E_m's cotangent or E_l's mean-value rows: the
-    /// pairs' slots are `mv_slots`), rows with weight 0 left out. On rayon's
-    /// threads by the vertex ranges of the E_f sums ([`vertex_ranges`] for
-    /// `faces`): each range's columns of `K` take their terms from the rows
-    /// with an entry in the range, in row order, so every sum is the one
-    /// a single thread makes (the rows one after the other: at homer 1.2M
-    /// each such pass took about 0.15 s of the first shape matrix's and each
-    /// factor-ahead `K`'s assembly on one thread of an H200's host, and of
-    /// every CPU-backend assembly).
     /// [`vertex_ranges`] for `faces`, and each range's rows of `mv` with an
     /// entry in it ([`RowsByRange`]), made once for those ranges.
     fn rows_by_range(&self, faces: usize) -> (Vec<usize>, Arc<Vec<Vec<u32>>>) {
@@ -530,6 +515,16 @@ impl ShapeModel {
         (bounds, rows)
     }
 
+    /// Adds `weight(i) R_ip R_iq` into `K`'s slot of each pair `p >= q` of
+    /// each row `i` of `rows` (E_m's cotangent or E_l's mean-value rows: the
+    /// pairs' slots are `mv_slots`), rows with weight 0 left out. On rayon's
+    /// threads by the vertex ranges of the E_f sums ([`vertex_ranges`] for
+    /// `faces`): each range's columns of `K` take their terms from the rows
+    /// with an entry in the range, in row order, so every sum is the one
+    /// a single thread makes. One after the other, the two such passes took
+    /// about 0.3 s of every `K` assembled apart at homer 1.2M on an H200's
+    /// host (inferred: the CPU backend's assemblies, 0.36-0.43 s, against
+    /// the GPU path's 0.115 s without them).
     fn add_ring_pairs(
         &self,
         k: &mut SymCsc,
@@ -569,6 +564,11 @@ impl ShapeModel {
             });
     }
 
+    /// The Hessian's terms for the weights `w` at the reference positions
+    /// `xc` (Eqs. 4-6, 19, and the springs of faces without shape weight),
+    /// into `t` (see [`Terms`]): `K`'s values (overwritten), E_l's `C_i`
+    /// and the gradient where asked for. One home for every term's sums, in
+    /// one order, whether for a solve or for a factor made ahead.
     fn hessian_terms(&self, mesh: &Mesh, xc: &[DVec3], w: &ShapeWeights, t: Terms<'_>) {
         let n = self.n;
         let Terms {

@@ -869,11 +869,13 @@ pub(crate) struct RingSlots {
 impl RingSlots {
     /// The slots of `rings`' pairs in the lower pattern `(col_ptr, row_idx)`;
     /// an error names the first pair outside it. Each pair's slot is a
-    /// binary search of its column: rows in ranges of
-    /// [`RINGS_PER_TASK`] on rayon's threads, each range into its own part
-    /// of the slots (on one thread this took 0.5 s at homer 1.2M and 1.5 s
-    /// at 4.3M on an H200's host, before the first shape solve). The same
-    /// slots on any number of threads.
+    /// binary search of its column: rows in groups of [`RINGS_PER_TASK`] on
+    /// rayon's threads, each group into its own part of the slots
+    /// ([`solver_cpu::row_groups_mut`]). On one thread, about 0.5 s at homer
+    /// 1.2M and 1.5 s at 4.3M before the first shape solve on an H200's
+    /// host (inferred from the log's gap around it, not timed apart there);
+    /// 0.20 s at 1.2M on the development machine, 0.11 s on its 2 threads.
+    /// The same slots on any number of threads.
     pub fn new(
         rings: &Arc<SparseRows>,
         col_ptr: &[usize],
@@ -894,22 +896,14 @@ impl RingSlots {
             )));
         }
         let mut slot = vec![0u32; total];
-        let ranges: Vec<std::ops::Range<usize>> = (0..rings.len())
-            .step_by(RINGS_PER_TASK)
-            .map(|a| a..(a + RINGS_PER_TASK).min(rings.len()))
-            .collect();
-        let mut parts = Vec::with_capacity(ranges.len());
-        let mut rest = &mut slot[..];
-        for r in &ranges {
-            let (part, tail) = rest.split_at_mut(start[r.end] - start[r.start]);
-            parts.push(part);
-            rest = tail;
-        }
-        // Each range's first pair outside the pattern: the first range's
+        let groups =
+            solver_cpu::row_groups_mut(&mut slot, rings.len(), |i| start[i], RINGS_PER_TASK);
+        // Each group's first pair outside the pattern: the first group's
         // with one is the first of all.
-        let fill = |(r, part): (&std::ops::Range<usize>, &mut [u32])| -> Result<(), SolverError> {
+        let fill = |(r, part): (std::ops::Range<usize>, &mut [u32])| -> Result<(), SolverError> {
             let mut at = 0usize;
-            for i in r.clone() {
+            let first = r.start;
+            for i in r {
                 for (p, q, _) in rings.pairs(i) {
                     let found = (q < n)
                         .then(|| {
@@ -930,7 +924,7 @@ impl RingSlots {
                     *to = k as u32;
                     at += 1;
                 }
-                if at != start[i + 1] - start[r.start] {
+                if at != start[i + 1] - start[first] {
                     return Err(SolverError::DimensionMismatch(format!(
                         "ring row {i} repeats a column"
                     )));
@@ -938,7 +932,7 @@ impl RingSlots {
             }
             Ok(())
         };
-        let filled: Vec<Result<(), SolverError>> = ranges.par_iter().zip(parts).map(fill).collect();
+        let filled: Vec<Result<(), SolverError>> = groups.into_par_iter().map(fill).collect();
         filled.into_iter().collect::<Result<(), SolverError>>()?;
         let start = start.into_iter().map(|v| v as u32).collect();
         let abs_sum = (0..rings.len())

@@ -309,10 +309,12 @@ impl GpuSolver {
         }
         let (model, slots) = (model.clone(), slots.clone());
         let entries = a.iso.row_idx.len();
-        let (m, s) = (model.clone(), slots.clone());
         let values = std::thread::Builder::new()
             .name("square-values".into())
-            .spawn(move || matrix::square_values_through_slots(&m, &s, entries));
+            .spawn({
+                let (model, slots) = (model.clone(), slots.clone());
+                move || matrix::square_values_through_slots(&model, &slots, entries)
+            });
         match values {
             Ok(values) => {
                 log::debug!(
