@@ -116,6 +116,17 @@ struct Traffic {
     compile_nanos: AtomicU64,
     compiles_ahead: AtomicU64,
     compile_ahead_nanos: AtomicU64,
+    /// What threads working beside the caller
+    /// ([`Context::beside_the_caller`]) submitted and waited for.
+    beside_submits: AtomicU64,
+    beside_waits: AtomicU64,
+    beside_nanos: AtomicU64,
+}
+
+thread_local! {
+    /// Whether this thread works for a solver beside the thread that calls
+    /// it ([`Context::beside_the_caller`]).
+    static BESIDE: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
 }
 
 /// Modelled device work of recorded kernels, what a discrete GPU pays for:
@@ -225,6 +236,14 @@ pub struct TrafficCounts {
     /// ([`Kernel::compile_ahead`]), and that thread's seconds.
     pub compiles_ahead: u64,
     pub compile_ahead_seconds: f64,
+    /// Submissions and waits made on threads beside the solver's caller
+    /// ([`Context::beside_the_caller`]: a factor made ahead, uploaded on
+    /// its own thread), and the seconds they took there. They hold up none
+    /// of the caller's work: `submits`, `waits` and their seconds leave
+    /// them out.
+    pub beside_submits: u64,
+    pub beside_waits: u64,
+    pub beside_seconds: f64,
 }
 
 /// The mapped staging buffer of [`Context::storage_from_pieces`],
@@ -422,7 +441,34 @@ impl Context {
             compile_seconds: t.compile_nanos.load(Ordering::Relaxed) as f64 * 1e-9,
             compiles_ahead: t.compiles_ahead.load(Ordering::Relaxed),
             compile_ahead_seconds: t.compile_ahead_nanos.load(Ordering::Relaxed) as f64 * 1e-9,
+            beside_submits: t.beside_submits.load(Ordering::Relaxed),
+            beside_waits: t.beside_waits.load(Ordering::Relaxed),
+            beside_seconds: t.beside_nanos.load(Ordering::Relaxed) as f64 * 1e-9,
         }
+    }
+
+    /// Runs `f` (on a thread of its own) with its submissions and waits
+    /// counted as work beside the solver's caller
+    /// ([`TrafficCounts::beside_submits`]), not the caller's.
+    pub fn beside_the_caller<R>(&self, f: impl FnOnce() -> R) -> R {
+        let was = BESIDE.with(|b| b.replace(true));
+        let r = f();
+        BESIDE.with(|b| b.set(was));
+        r
+    }
+
+    /// Counts a submission (`wait`: a wait) that took `nanos`, the caller's
+    /// or, on a thread beside it, apart.
+    fn count_queue(&self, wait: bool, nanos: u64) {
+        let t = &self.traffic;
+        let (count, time) = match (BESIDE.with(|b| b.get()), wait) {
+            (true, true) => (&t.beside_waits, &t.beside_nanos),
+            (true, false) => (&t.beside_submits, &t.beside_nanos),
+            (false, true) => (&t.waits, &t.wait_nanos),
+            (false, false) => (&t.submits, &t.submit_nanos),
+        };
+        count.fetch_add(1, Ordering::Relaxed);
+        time.fetch_add(nanos, Ordering::Relaxed);
     }
 
     /// Counts a pipeline made since `since`, `ahead` of its use.
@@ -807,10 +853,7 @@ impl Context {
             Some(enc) => self.queue.submit([enc.finish()]),
             None => self.queue.submit(std::iter::empty()),
         };
-        self.traffic.submits.fetch_add(1, Ordering::Relaxed);
-        self.traffic
-            .submit_nanos
-            .fetch_add(t.elapsed().as_nanos() as u64, Ordering::Relaxed);
+        self.count_queue(false, t.elapsed().as_nanos() as u64);
     }
 
     /// Submit and wait for the queue to drain.
@@ -822,10 +865,7 @@ impl Context {
     pub fn wait(&self) -> Result<(), GpuError> {
         let t = std::time::Instant::now();
         let polled = self.device.poll(wgpu::PollType::wait_indefinitely());
-        self.traffic.waits.fetch_add(1, Ordering::Relaxed);
-        self.traffic
-            .wait_nanos
-            .fetch_add(t.elapsed().as_nanos() as u64, Ordering::Relaxed);
+        self.count_queue(true, t.elapsed().as_nanos() as u64);
         polled.map_err(|e| GpuError::Backend(format!("poll: {e}")))?;
         self.check()
     }

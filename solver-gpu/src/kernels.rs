@@ -335,6 +335,14 @@ pub fn cholesky_factorizations(s: &GpuSolver) -> usize {
     s.chol_host.numeric_count
 }
 
+/// Queue submissions the solver made on its caller's thread, and on
+/// threads beside it (a factor made ahead, uploaded on its own thread,
+/// [`solver_cpu::SpdSolver::adopt_isotropic_factor`]).
+pub fn submissions(s: &GpuSolver) -> (u64, u64) {
+    let t = s.ctx.traffic();
+    (t.submits, t.beside_submits)
+}
+
 /// Storage buffers the active Cholesky preconditioner's values are split
 /// into (one where they fit a binding); `None` when it is not active.
 pub fn cholesky_chunks(s: &GpuSolver) -> Option<usize> {

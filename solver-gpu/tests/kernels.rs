@@ -1563,6 +1563,53 @@ fn a_factor_made_ahead_is_the_kinds_preconditioner() {
     assert_eq!(bits(&plain), bits(&ahead));
 }
 
+/// A factor made ahead goes up on a thread of its own, beside the solver's
+/// caller: its submissions are counted there, and they are exactly those
+/// the caller makes itself where the kind's set-up factors and uploads on
+/// its thread (the same solve otherwise, to the bit). The kind's set-up
+/// takes it (no host factorization).
+#[test]
+fn a_factor_made_ahead_goes_up_beside_the_caller() {
+    let (a, a_ft, fixed, mut rng) = two_kinds_of_one_pattern(53);
+    let b = rng.vec(3 * a.n());
+    let run = |ahead: bool| -> Option<((u64, u64), Vec<f64>, usize)> {
+        let mut s = gpu()?;
+        s.set_system_kind(SystemKind::ScaleDriven);
+        prepare_shape(&mut s, a.clone(), &fixed);
+        let before = kernels::submissions(&s);
+        if ahead {
+            let twin = s.isotropic_factorer(SystemKind::FineTune).unwrap();
+            let k = a_ft.iso_held_identity(&fixed);
+            let (factored, _) = solver_cpu::FactorAhead::spawn(twin, k).unwrap().join();
+            s.adopt_isotropic_factor(SystemKind::FineTune, factored.unwrap());
+        }
+        let (x, factorizations, _) = fine_tune_solve(&mut s, &a_ft, &fixed, &b);
+        let after = kernels::submissions(&s);
+        let made = (after.0 - before.0, after.1 - before.1);
+        Some((made, x, factorizations))
+    };
+    let Some(((here, none_beside), plain, factored)) = run(false) else {
+        return;
+    };
+    let ((caller, beside), ahead, factored_ahead) = run(true).unwrap();
+    assert_eq!(
+        none_beside, 0,
+        "nothing beside the caller without a factor ahead"
+    );
+    assert_eq!((factored, factored_ahead), (2, 1));
+    assert!(
+        beside >= 2,
+        "index sections and values: {beside} submissions"
+    );
+    assert_eq!(
+        (caller, beside),
+        (here - beside, beside),
+        "the upload's submissions moved off the caller's thread"
+    );
+    let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+    assert_eq!(bits(&plain), bits(&ahead));
+}
+
 /// The fine-tune kind's factor of `K` made ahead on its own symbolic
 /// analysis in another fill ordering (METIS's nested dissection of the
 /// pattern, as the pipeline makes it beside the scale-driven iteration,

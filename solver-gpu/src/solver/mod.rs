@@ -274,9 +274,9 @@ pub struct GpuSolver {
     /// serves instead for the rest of the run.
     chol_unavailable: [bool; 2],
     /// A shape kind's factor of `K` made ahead on another thread and
-    /// uploaded ([`SpdSolver::adopt_isotropic_factor`]), for that kind's
-    /// set-up.
-    chol_ahead: Option<(SystemKind, supernodal::GpuFactor)>,
+    /// uploaded on its own ([`SpdSolver::adopt_isotropic_factor`]), for that
+    /// kind's set-up.
+    chol_ahead: Option<(SystemKind, setup::FactorUpload)>,
     /// The scale factors' Newton steps on the device
     /// ([`SpdSolver::power_sum_newton`]): the kernels (compiled on first
     /// use) and the buffers of the last problem size.
@@ -746,12 +746,6 @@ impl SpdSolver for GpuSolver {
                 t.elapsed().as_secs_f64()
             );
         }
-        match self.kind {
-            SystemKind::ScaleDriven | SystemKind::FineTune => {
-                self.cholesky_for_kind(same, (col_ptr, row_idx), || a.iso_held_identity(fixed))
-            }
-            SystemKind::ScaleFactors => self.drop_cholesky(),
-        }
         let t = std::time::Instant::now();
         let mut h = self.take_host(same, n, 3, col_ptr, row_idx)?;
         let slots = self.ring_slots.clone().unwrap();
@@ -766,12 +760,25 @@ impl SpdSolver for GpuSolver {
             h.fill_shape(&a, &slots, fixed)?;
             Some(a)
         };
+        let filled = t.elapsed().as_secs_f64();
+        // The kind's preconditioner, after the host's part of the matrix:
+        // a factor made ahead goes up on its own thread meanwhile
+        // ([`Self::upload_factor_ahead`]).
+        let a = kept.as_ref().or(h.shape_form()).unwrap();
+        match self.kind {
+            SystemKind::ScaleDriven | SystemKind::FineTune => {
+                self.cholesky_for_kind(same, (&a.iso.col_ptr, &a.iso.row_idx), || {
+                    a.iso_held_identity(fixed)
+                })
+            }
+            SystemKind::ScaleFactors => self.drop_cholesky(),
+        }
         self.fixed.clear();
         self.fixed.extend_from_slice(fixed);
         if let (true, Some(slots)) = (on_gpu, self.ring_slots.clone()) {
             self.start_square_values(h.shape_form(), &slots);
         }
-        let filled = t.elapsed().as_secs_f64();
+        let t = std::time::Instant::now();
         let uploaded = self.upload(h, same);
         // Taken up by the shape sum, or not needed.
         self.square_values = None;
@@ -780,7 +787,7 @@ impl SpdSolver for GpuSolver {
             "shape matrix: {} on the host in {filled:.3} s, uploaded in {:.3} s; \
              the solver's host copy {:.1} MB (beyond the matrix's own form)",
             if on_gpu { "diagonal blocks" } else { "blocks" },
-            t.elapsed().as_secs_f64() - filled,
+            t.elapsed().as_secs_f64(),
             self.host.as_ref().map_or(0, |h| h.host_bytes()) as f64 / 1e6
         );
         Ok(kept)
