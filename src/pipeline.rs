@@ -589,19 +589,40 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
             .solver()
             .isotropic_factor_plan(SystemKind::ScaleDriven)
             .is_some();
-        let (mut scale_system, early) = if analysis_early.is_some() && !factors_ahead {
-            (make_scale_system()?, None)
-        } else {
-            let analysis = analysis_early.take();
-            scale_system_beside_analysis(&mut model, make_scale_system, early, analysis)?
+        // The fine-tune's `K` of the input (its factor's, made ahead from
+        // the first outer iteration on) is assembled while the scale
+        // factors' set-up is waited for.
+        let fine_tune_k = |model: &ShapeModel| {
+            (fine_tune_follows && factors_ahead)
+                .then(|| isotropic_part_logged(model, mesh, x0, &o.fine_tune, SystemKind::FineTune))
         };
+        let (mut scale_system, early, mut fine_tune_k) =
+            if analysis_early.is_some() && !factors_ahead {
+                (make_scale_system()?, None, None)
+            } else {
+                let analysis = analysis_early.take();
+                scale_system_beside_analysis(
+                    &mut model,
+                    make_scale_system,
+                    early,
+                    analysis,
+                    fine_tune_k,
+                )?
+            };
         crate::memory::release_free_memory();
         // Else the first shape matrix's `K` (it depends on the positions and
         // weights only) is factored while the first scale factors are
         // estimated. The fine-tune's is started at the first outer
         // iteration either way, once the scale-driven kind's is handed over.
-        let mut scale_driven_ahead =
-            early.or_else(|| factor_ahead(&mut model, mesh, &x, &o.shape, SystemKind::ScaleDriven));
+        let mut scale_driven_ahead = early.or_else(|| {
+            factor_ahead(
+                &mut model,
+                (mesh, &x),
+                &o.shape,
+                SystemKind::ScaleDriven,
+                None,
+            )
+        });
         stop_reason = "iteration cap".into();
         // The constraints in scale-factor form; their coefficients are
         // refilled at every iteration.
@@ -716,8 +737,13 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
             }
             model.assemble_with_positions(mesh, &x, &s, &c, &o.shape, affine)?;
             if iterations == 0 && fine_tune_follows {
-                fine_tune_ahead =
-                    factor_ahead(&mut model, mesh, &x, &o.fine_tune, SystemKind::FineTune);
+                fine_tune_ahead = factor_ahead(
+                    &mut model,
+                    (mesh, &x),
+                    &o.fine_tune,
+                    SystemKind::FineTune,
+                    fine_tune_k.take(),
+                );
             }
             let t_solve = Instant::now();
             let g = model.solve_unconstrained(&x)?;
@@ -913,12 +939,17 @@ fn start_scale_system(p: &Problem, o: &Options, areas0: &[f64]) -> ScaleEarly {
 /// reports what fails. With `early` (where asked for), that thread then
 /// starts the scale-driven kind's numeric factorization
 /// ([`ScaleDrivenFromAnalysis::start`]); it comes back with the scale system.
-fn scale_system_beside_analysis(
+/// Where the analysis was made from the start, `meanwhile` runs on this
+/// thread after it, before the scale factors' set-up is waited for (at
+/// homer 1.2M on the H200's host, 1.7 s of waiting), and its result comes
+/// back too.
+fn scale_system_beside_analysis<T>(
     model: &mut ShapeModel,
     make_scale_system: impl FnOnce() -> Result<Option<ScaleFactorSystem>>,
     early: Option<ScaleDrivenFromAnalysis>,
     analysis: Option<EarlyAnalysis>,
-) -> Result<(Option<ScaleFactorSystem>, Option<FactorAhead>)> {
+    meanwhile: impl FnOnce(&ShapeModel) -> Option<T>,
+) -> Result<(Option<ScaleFactorSystem>, Option<FactorAhead>, Option<T>)> {
     if let Some(analysis) = analysis {
         let started = match analysis.join_logged() {
             Some(analysed) => {
@@ -928,10 +959,11 @@ fn scale_system_beside_analysis(
             }
             None => None,
         };
-        return Ok((make_scale_system()?, started));
+        let made = meanwhile(model);
+        return Ok((make_scale_system()?, started, made));
     }
     let Some(analyser) = model.solver().isotropic_analyser() else {
-        return Ok((make_scale_system()?, None));
+        return Ok((make_scale_system()?, None, None));
     };
     let (made, analysed, seconds) = solver_cpu::analyse_beside_then(
         analyser,
@@ -953,7 +985,7 @@ fn scale_system_beside_analysis(
             None
         }
     };
-    Ok((made?, started))
+    Ok((made?, started, None))
 }
 
 /// From this many of rayon's threads on, [`Options::overlap_factorizations`]
@@ -996,13 +1028,10 @@ impl ScaleDrivenFromAnalysis {
         let plan = model
             .solver()
             .isotropic_factor_plan(SystemKind::ScaleDriven)?;
-        let t = Instant::now();
-        let scale_driven = (model.isotropic_part(mesh, x, &o.shape), plan);
-        log::debug!(
-            "ScaleDriven system's K for its factor ahead assembled in {:.3} s",
-            t.elapsed().as_secs_f64()
-        );
-        Some(ScaleDrivenFromAnalysis { scale_driven })
+        let k = isotropic_part_logged(model, mesh, x, &o.shape, SystemKind::ScaleDriven);
+        Some(ScaleDrivenFromAnalysis {
+            scale_driven: (k, plan),
+        })
     }
 
     /// On the analysing thread, `analysed` just made: the scale-driven
@@ -1040,20 +1069,16 @@ impl ScaleDrivenFromAnalysis {
 /// Both kinds' factors are numeric twins of the shape systems' symbolic
 /// analysis, in its fill ordering (on a GPU, the coordinates' nested
 /// dissection, [`shape_fill_ordering`]).
+/// `k`, where given, is that `K`, assembled before.
 fn factor_ahead(
     model: &mut ShapeModel,
-    mesh: &Mesh,
-    x: &[DVec3],
+    (mesh, x): (&Mesh, &[DVec3]),
     w: &ShapeWeights,
     kind: SystemKind,
+    k: Option<SymCsc>,
 ) -> Option<FactorAhead> {
     let twin = model.solver().isotropic_factorer(kind)?;
-    let t = Instant::now();
-    let k = model.isotropic_part(mesh, x, w);
-    log::debug!(
-        "{kind:?} system's K for its factor ahead assembled in {:.3} s",
-        t.elapsed().as_secs_f64()
-    );
+    let k = k.unwrap_or_else(|| isotropic_part_logged(model, mesh, x, w, kind));
     // The fine-tune's is waited for only when the fine-tune starts: its
     // work yields the cores to the scale-driven iteration's.
     let spawned = match kind {
@@ -1063,6 +1088,23 @@ fn factor_ahead(
     spawned
         .inspect_err(|e| log::debug!("{kind:?} system's factor of K ahead: {e}"))
         .ok()
+}
+
+/// [`ShapeModel::isotropic_part`], for `kind`'s factor made ahead, timed.
+fn isotropic_part_logged(
+    model: &ShapeModel,
+    mesh: &Mesh,
+    x: &[DVec3],
+    w: &ShapeWeights,
+    kind: SystemKind,
+) -> SymCsc {
+    let t = Instant::now();
+    let k = model.isotropic_part(mesh, x, w);
+    log::debug!(
+        "{kind:?} system's K for its factor ahead assembled in {:.3} s",
+        t.elapsed().as_secs_f64()
+    );
+    k
 }
 
 /// Hands the factor `ahead` made for `kind` to the shape solver, once made;
