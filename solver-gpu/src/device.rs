@@ -121,6 +121,7 @@ struct Traffic {
     beside_submits: AtomicU64,
     beside_waits: AtomicU64,
     beside_nanos: AtomicU64,
+    beside_to_device: AtomicU64,
 }
 
 thread_local! {
@@ -244,6 +245,8 @@ pub struct TrafficCounts {
     pub beside_submits: u64,
     pub beside_waits: u64,
     pub beside_seconds: f64,
+    /// Of `to_device`, the bytes written on threads beside the caller.
+    pub beside_to_device: u64,
 }
 
 /// The mapped staging buffer of [`Context::storage_from_pieces`],
@@ -444,6 +447,7 @@ impl Context {
             beside_submits: t.beside_submits.load(Ordering::Relaxed),
             beside_waits: t.beside_waits.load(Ordering::Relaxed),
             beside_seconds: t.beside_nanos.load(Ordering::Relaxed) as f64 * 1e-9,
+            beside_to_device: t.beside_to_device.load(Ordering::Relaxed),
         }
     }
 
@@ -455,6 +459,16 @@ impl Context {
         let r = f();
         BESIDE.with(|b| b.set(was));
         r
+    }
+
+    /// Counts `bytes` written to the device (on a thread beside the caller:
+    /// counted there too).
+    fn count_to_device(&self, bytes: u64) {
+        let t = &self.traffic;
+        t.to_device.fetch_add(bytes, Ordering::Relaxed);
+        if BESIDE.with(|b| b.get()) {
+            t.beside_to_device.fetch_add(bytes, Ordering::Relaxed);
+        }
     }
 
     /// Counts a submission (`wait`: a wait) that took `nanos`, the caller's
@@ -534,9 +548,7 @@ impl Context {
 
     /// `queue.write_buffer`, counted.
     pub fn write_buffer(&self, buffer: &wgpu::Buffer, offset: u64, data: &[u8]) {
-        self.traffic
-            .to_device
-            .fetch_add(data.len() as u64, Ordering::Relaxed);
+        self.count_to_device(data.len() as u64);
         self.queue.write_buffer(buffer, offset, data);
     }
 
@@ -554,7 +566,7 @@ impl Context {
         let Some(size) = wgpu::BufferSize::new(len) else {
             return;
         };
-        self.traffic.to_device.fetch_add(len, Ordering::Relaxed);
+        self.count_to_device(len);
         if let Some(mut view) = self.queue.write_buffer_with(buffer, 0, size) {
             fill(view.slice(..));
         }
@@ -687,9 +699,7 @@ impl Context {
                     let mut enc = self.encoder("upload");
                     enc.copy_buffer_to_buffer(st, 0, &b, start, end - start);
                     self.submit(Some(enc));
-                    self.traffic
-                        .to_device
-                        .fetch_add(end - start, Ordering::Relaxed);
+                    self.count_to_device(end - start);
                 }
             }
         }

@@ -444,16 +444,25 @@ impl ShapeSum {
     }
 
     /// The sum of `a`'s pattern and rings (pairs' slots `slots`) into
-    /// `lower` (the pattern's lower blocks), one dispatch per part.
+    /// `lower` (the pattern's lower blocks), one dispatch per part; its
+    /// pairs' buffers `pairs` where they went up ahead (for this pattern
+    /// and `lower`'s parts), else sent up here.
     pub fn new(
         k: &ExpandBlocks,
         ctx: &Context,
-        a: &IsoRingSym3,
-        slots: &RingSlots,
+        (a, slots): (&IsoRingSym3, &RingSlots),
         lower: &LowerParts,
+        pairs: Option<PairBuffers>,
     ) -> Result<ShapeSum, GpuError> {
         let nnz = a.iso.row_idx.len();
-        let (start, ring, f) = slots.by_block(&a.rings, nnz);
+        let pairs = match pairs {
+            Some(p) if p.blocks == nnz && p.parts.len() == lower.buffers.len() => p,
+            _ => PairBuffers::upload(
+                ctx,
+                (&a.rings, nnz, slots),
+                (lower.part_blocks, lower.buffers.len()),
+            )?,
+        };
         let iso = ctx.storage("shape sum: K values (f64)", 8 * nnz.max(1) as u64)?;
         let ring_c = ctx.storage(
             "shape sum: ring matrices C_i (f64)",
@@ -463,35 +472,19 @@ impl ShapeSum {
             "shape sum: constant term's values (f64)",
             8 * nnz.max(1) as u64,
         )?;
-        let start_buf = ctx.storage_init("shape sum: ring pairs per lower block", &start)?;
+        let start_buf = pairs.start;
         let mut keep = vec![start_buf.clone()];
         let mut params = Vec::new();
         let mut parts = Vec::new();
-        for (part, out) in lower.buffers.iter().enumerate() {
+        for (part, (out, (ring_buf, f_buf, pair0))) in
+            lower.buffers.iter().zip(pairs.parts).enumerate()
+        {
             let blocks = lower.range(part);
-            let pairs = start[blocks.start] as usize..start[blocks.end] as usize;
-            // (A part without pairs binds one placeholder entry.)
-            let ring_buf = ctx.storage_init(
-                &format!("shape sum: ring of each pair (part {part})"),
-                if pairs.is_empty() {
-                    &[0]
-                } else {
-                    &ring[pairs.clone()]
-                },
-            )?;
-            let f_buf = ctx.storage_init(
-                &format!("shape sum: weight of each pair (f64, part {part})"),
-                if pairs.is_empty() {
-                    &[0.0]
-                } else {
-                    &f[pairs.clone()]
-                },
-            )?;
             let p = SumParams {
                 slots: blocks.len() as u32,
                 square: 0,
                 block0: blocks.start as u32,
-                pair0: pairs.start as u32,
+                pair0,
             };
             let p_buf = ctx.uniform_of("sum_shape_blocks params", &p)?;
             let bind = k.sum_shader.bind(
@@ -515,7 +508,7 @@ impl ShapeSum {
             params.push((p, p_buf));
             keep.extend([ring_buf, f_buf]);
         }
-        let pairs = f.len() as u64;
+        let pairs = pairs.pairs as u64;
         let bytes = 8 * nnz as u64 + 4 * (nnz as u64 + 1) + pairs * (4 + 8 + 48) + 72 * nnz as u64;
         Ok(ShapeSum {
             rings: a.rings.clone(),
@@ -528,6 +521,65 @@ impl ShapeSum {
             nnz,
             bytes,
             keep,
+        })
+    }
+}
+
+/// The ring pairs of a shape pattern gathered by lower block, on the GPU
+/// (`sum_shape_blocks.wgsl`'s `start`, and per part of the lower blocks its
+/// pairs' rings and weights, [`RingSlots::by_block`]): made once per
+/// pattern and rings, 16.8M pairs and 214 MB at homer 1.2M (0.28 s to
+/// gather and 0.46 s to send up on the development machine), on a thread
+/// beside the solver's caller where it can ([`PairBuffers::upload`]).
+pub(crate) struct PairBuffers {
+    start: wgpu::Buffer,
+    /// Per part: its pairs' rings, their weights, and its first pair.
+    parts: Vec<(wgpu::Buffer, wgpu::Buffer, u32)>,
+    /// Lower blocks and pairs in all.
+    blocks: usize,
+    pairs: usize,
+}
+
+impl PairBuffers {
+    /// The pairs of `rings` (their slots `slots` in a pattern of `blocks`
+    /// lower blocks) gathered by lower block and sent up, cut as lower parts
+    /// of `part_blocks` blocks, `parts` of them.
+    pub fn upload(
+        ctx: &Context,
+        (rings, blocks, slots): (&SparseRows, usize, &RingSlots),
+        (part_blocks, parts): (usize, usize),
+    ) -> Result<PairBuffers, GpuError> {
+        let (start, ring, f) = slots.by_block(rings, blocks);
+        let start_buf = ctx.storage_init("shape sum: ring pairs per lower block", &start)?;
+        let parts = (0..parts)
+            .map(|part| {
+                let b = LowerParts::range_of(part, part_blocks, blocks);
+                let pairs = start[b.start] as usize..start[b.end] as usize;
+                // (A part without pairs binds one placeholder entry.)
+                let ring_buf = ctx.storage_init(
+                    &format!("shape sum: ring of each pair (part {part})"),
+                    if pairs.is_empty() {
+                        &[0]
+                    } else {
+                        &ring[pairs.clone()]
+                    },
+                )?;
+                let f_buf = ctx.storage_init(
+                    &format!("shape sum: weight of each pair (f64, part {part})"),
+                    if pairs.is_empty() {
+                        &[0.0]
+                    } else {
+                        &f[pairs.clone()]
+                    },
+                )?;
+                Ok((ring_buf, f_buf, pairs.start as u32))
+            })
+            .collect::<Result<Vec<_>, GpuError>>()?;
+        Ok(PairBuffers {
+            start: start_buf,
+            parts,
+            blocks,
+            pairs: f.len(),
         })
     }
 }
@@ -894,20 +946,45 @@ mod tests {
     /// kind's factor is made, the solver adds a Laplacian square term the
     /// matrices name: its values go up once, and the blocks and solves are
     /// still the host's sum's. Taken back, the matrix is gone from the
-    /// solver until the next one.
+    /// solver until the next one. The ring pairs go up on a thread beside
+    /// the caller (`PairBuffers`), or with the sum where that is off: the
+    /// same blocks either way.
     #[test]
     fn shape_blocks_summed_on_the_gpu_are_the_hosts() {
-        let Some(s) = mixed_solver() else {
-            return;
-        };
-        shape_sum_case(s, 40, 1);
-        // Lower blocks in three parts (the sum one dispatch each, with its
-        // own pairs), read back through them by the expansion.
-        let s = mixed_solver_with_limit(15_000).unwrap();
-        shape_sum_case(s, 200, 3);
+        for ahead in [true, false] {
+            let Some(mut s) = mixed_solver() else {
+                return;
+            };
+            s.pairs_sent_ahead = ahead;
+            shape_sum_case(s, 40, 1);
+            // Lower blocks in three parts (the sum one dispatch each, with
+            // its own pairs), read back through them by the expansion.
+            let mut s = mixed_solver_with_limit(15_000).unwrap();
+            s.pairs_sent_ahead = ahead;
+            shape_sum_case(s, 200, 3);
+        }
+    }
+
+    /// The pairs go up ahead by default from `PAIRS_AHEAD_FROM_THREADS` of
+    /// rayon's threads on, not below (where the extra threads slowed the
+    /// main thread's own work on two cores).
+    #[test]
+    fn pairs_go_up_ahead_on_hosts_with_threads_to_spare() {
+        let from = crate::solver::PAIRS_AHEAD_FROM_THREADS;
+        for (threads, ahead) in [(from - 1, false), (from, true)] {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            let Some(s) = pool.install(mixed_solver) else {
+                return;
+            };
+            assert_eq!(s.pairs_sent_ahead, ahead, "{threads} threads");
+        }
     }
 
     fn shape_sum_case(mut s: crate::GpuSolver, n: usize, parts: usize) {
+        let ahead = s.pairs_sent_ahead;
         let mut fixed = vec![false; n];
         fixed[7] = true;
         let rings = crate::matrix::shape_strip(n, 0.0).rings;
@@ -932,7 +1009,18 @@ mod tests {
             want.fill_shape(&a, &slots, &fixed).unwrap();
             // K is read apart (factored) for the kind's first matrix only.
             assert_eq!(s.wants_isotropic_part(), seed == 0.0, "seed {seed}");
+            let pairs = slots.by_block(&a.rings, nnz).2.len();
+            let beside0 = s.ctx.traffic().beside_to_device;
             let kept = s.prepare_shape_owned(a, &fixed).unwrap();
+            let beside = s.ctx.traffic().beside_to_device - beside0;
+            // The pairs' starts and, per part, their rings and weights, from
+            // the thread beside the caller.
+            let pairs_up = match ahead && seed == 0.0 {
+                true => 4 * (nnz + 1) + 12 * pairs,
+                false => 0,
+            };
+            assert_eq!(beside as usize, pairs_up, "seed {seed}");
+            assert_eq!(s.pairs_taken_ahead, usize::from(ahead), "seed {seed}");
             assert!(!s.wants_isotropic_part(), "the kind's factor is made");
             assert!(kept.is_none(), "kept in its form by the solver");
             let up = s.ctx.traffic().to_device - up0;

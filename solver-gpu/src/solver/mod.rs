@@ -27,6 +27,16 @@ mod setup;
 mod upload;
 mod warm;
 
+/// From this many of rayon's threads on, the shape sum's ring pairs go up on
+/// a thread of their own, beside the first shape matrix's host part and the
+/// kind's factor's upload ([`GpuSolver::start_pairs_ahead`]). On the
+/// development machine's 2 cores at homer 1.2M, lavapipe: the matrix's own
+/// upload fell from 0.55-1.45 s to 0.19-0.26 s, but its diagonal blocks rose
+/// from 0.2-0.33 s to 0.71-0.76 s and the factor's upload was waited for
+/// longer, with four threads on two cores: 2.3 and 4.2 s from the first
+/// scale factors to the first solve, against 1.6 s.
+pub(crate) const PAIRS_AHEAD_FROM_THREADS: usize = 4;
+
 use mixed::{floor_after_a_round, BatchHints, MixedData, MixedKernels, Round};
 use upload::SquareAhead;
 
@@ -104,6 +114,9 @@ pub fn open_with(opts: OpenOptions) -> Result<GpuSolver, GpuError> {
         square_values: None,
         square_ahead: None,
         squares_taken_ahead: 0,
+        pairs_ahead: None,
+        pairs_taken_ahead: 0,
+        pairs_sent_ahead: rayon::current_num_threads() >= PAIRS_AHEAD_FROM_THREADS,
         minv_scratch: Vec::new(),
         diagonal_current: false,
         expand: None,
@@ -233,6 +246,13 @@ pub struct GpuSolver {
     pub(crate) square_ahead: Option<SquareAhead>,
     /// Such values taken by [`Self::square_parts`] (for the tests).
     pub(crate) squares_taken_ahead: usize,
+    /// The shape sum's ring pairs going up on their own thread
+    /// ([`Self::start_pairs_ahead`]), and how many such the sums took.
+    pairs_ahead: Option<upload::PairsAhead>,
+    pub(crate) pairs_taken_ahead: usize,
+    /// Whether they go up ahead: from [`PAIRS_AHEAD_FROM_THREADS`] of
+    /// rayon's threads (the tests set it either way).
+    pub(crate) pairs_sent_ahead: bool,
     /// The f32 inverse diagonal blocks of the last matrix uploaded, kept
     /// for the next one's (`block_jacobi::inverse_diagonal`).
     minv_scratch: Vec<f32>,
@@ -740,11 +760,13 @@ impl SpdSolver for GpuSolver {
         let same = self.same_pattern(3, col_ptr, row_idx);
         if !(same && self.ring_slots.as_ref().is_some_and(|r| r.of(&a.rings))) {
             let t = std::time::Instant::now();
-            self.ring_slots = Some(Arc::new(RingSlots::new(&a.rings, col_ptr, row_idx)?));
+            let slots = Arc::new(RingSlots::new(&a.rings, col_ptr, row_idx)?);
             log::debug!(
                 "ring pairs' slots found in {:.3} s",
                 t.elapsed().as_secs_f64()
             );
+            self.start_pairs_ahead(&a, &slots);
+            self.ring_slots = Some(slots);
         }
         let t = std::time::Instant::now();
         let mut h = self.take_host(same, n, 3, col_ptr, row_idx)?;

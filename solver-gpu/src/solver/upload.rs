@@ -207,6 +207,8 @@ impl GpuSolver {
             self.expansion = Some((e, stamp, split, self.fixed.clone()));
             self.expansions += 1;
         }
+        let ahead = self.pairs_ahead.take();
+        let mut took_ahead = false;
         let k = self.expand.as_ref().unwrap();
         match (h.shape_form(), self.ring_slots.as_ref()) {
             (Some(a), Some(slots)) => {
@@ -217,7 +219,9 @@ impl GpuSolver {
                 if !current {
                     self.shape_sum = None;
                     let lower = &self.expand_lower.as_ref().unwrap().1;
-                    let sum = expand_blocks::ShapeSum::new(k, &self.ctx, a, slots, lower)?;
+                    let pairs = ahead.and_then(|p| p.join(slots));
+                    took_ahead = pairs.is_some();
+                    let sum = expand_blocks::ShapeSum::new(k, &self.ctx, (a, slots), lower, pairs)?;
                     self.shape_sum = Some((stamp, sum));
                 }
                 let sum = &mut self.shape_sum.as_mut().unwrap().1;
@@ -239,6 +243,7 @@ impl GpuSolver {
             }
         }
         self.lower_of = Some(self.matrices);
+        self.pairs_taken_ahead += usize::from(took_ahead);
         Ok(true)
     }
 
@@ -339,6 +344,48 @@ impl GpuSolver {
         self.ctx.shader_f64 && expand_blocks::ShapeSum::fits(a, slots, limit)
     }
 
+    /// Starts gathering the ring pairs of `a`'s new `slots` by lower block,
+    /// and sending them up, on a thread beside the caller, for the shape
+    /// sum of `a`'s pattern ([`Self::join_pairs_ahead`]): the host part of
+    /// the matrix (its diagonal blocks) and the kind's factor's upload go
+    /// on meanwhile. Nothing where the GPU does not sum the blocks.
+    pub(super) fn start_pairs_ahead(&mut self, a: &IsoRingSym3, slots: &Arc<RingSlots>) {
+        self.pairs_ahead = None;
+        let limit = matrix::binding_limit(&self.ctx);
+        let blocks = a.iso.row_idx.len();
+        let Some(layout) = expand_blocks::LowerParts::layout(blocks, limit) else {
+            return;
+        };
+        if !self.pairs_sent_ahead || !self.shape_sum_possible(a, slots) {
+            return;
+        }
+        let (ctx, rings, slots) = (self.ctx.clone(), a.rings.clone(), slots.clone());
+        let ours = slots.clone();
+        let thread = std::thread::Builder::new()
+            .name("shape sum's pairs".into())
+            .spawn(move || {
+                ctx.beside_the_caller(|| {
+                    let t = std::time::Instant::now();
+                    let (parts, part_blocks) = layout;
+                    let up = expand_blocks::PairBuffers::upload(
+                        &ctx,
+                        (&rings, blocks, &ours),
+                        (part_blocks, parts),
+                    );
+                    log::debug!(
+                        "shape sum's ring pairs gathered by block and sent up on their own \
+                         thread in {:.3} s",
+                        t.elapsed().as_secs_f64()
+                    );
+                    up
+                })
+            });
+        match thread {
+            Ok(thread) => self.pairs_ahead = Some(PairsAhead { slots, thread }),
+            Err(e) => log::debug!("no thread for the shape sum's pairs ({e}): made at the sum"),
+        }
+    }
+
     /// Whether the prepared matrix has this lower pattern and block size.
     pub(super) fn same_pattern(&self, bs: usize, col_ptr: &[usize], row_idx: &[usize]) -> bool {
         self.host
@@ -359,6 +406,41 @@ impl GpuSolver {
         match (same, self.host.take()) {
             (true, Some(h)) => Ok(h),
             _ => HostMatrix::pattern(n, bs, col_ptr, row_idx),
+        }
+    }
+}
+
+/// The ring pairs of `slots` gathered by lower block and going up on a
+/// thread of their own ([`GpuSolver::start_pairs_ahead`]).
+pub(crate) struct PairsAhead {
+    slots: Arc<RingSlots>,
+    thread: std::thread::JoinHandle<Result<expand_blocks::PairBuffers, GpuError>>,
+}
+
+impl PairsAhead {
+    /// The pairs, once up, where they are those of `slots`; `None` where
+    /// not (or they failed: the shape sum sends them up itself).
+    fn join(self, slots: &Arc<RingSlots>) -> Option<expand_blocks::PairBuffers> {
+        if !Arc::ptr_eq(&self.slots, slots) {
+            return None;
+        }
+        let t = std::time::Instant::now();
+        let up = match self.thread.join() {
+            Ok(up) => up,
+            Err(panic) => std::panic::resume_unwind(panic),
+        };
+        match up {
+            Ok(p) => {
+                log::debug!(
+                    "shape sum's ring pairs: waited {:.3} s for their thread",
+                    t.elapsed().as_secs_f64()
+                );
+                Some(p)
+            }
+            Err(e) => {
+                log::debug!("shape sum's ring pairs ahead: {e}; sent up at the sum");
+                None
+            }
         }
     }
 }
