@@ -249,10 +249,14 @@ fn proxies(
     let shape = &s.scale_driven;
     let all_iterations = s.scale_factors.iterations + shape.iterations + s.fine_tune.iterations;
     let waits = s.scale_factors.device_waits + shape.device_waits + s.fine_tune.device_waits;
+    let beside = s.scale_factors.device_waits_beside
+        + shape.device_waits_beside
+        + s.fine_tune.device_waits_beside;
     let mut line = format!(
         "{name} ({backend}) proxies: outer iteration after the first {wall:.3} s, {host:.3} s of it \
          on the host ({} CPU seconds of the host's threads; {submits:.3} s in queue submissions); shape solves: {} scale-driven with {:.1} iterations on average (most {}), \
-         {} fine-tune with at most {}; host waits per PCG iteration {:.3} ({waits} / {all_iterations}), \
+         {} fine-tune with at most {}; host waits per PCG iteration {:.3} ({waits} / {all_iterations}; \
+         {beside} more on threads beside the main one), \
          per outer iteration {:.1} ({} + {} + {} in {} outer iterations: scale factors, scale-driven, \
          fine-tune); preconditioner set-ups {} + {} + {} (scale factors, scale-driven, fine-tune); {:.1} MB moved",
         host_cpu.map_or("no".into(), |c| format!("{c:.3}")),

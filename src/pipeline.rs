@@ -423,6 +423,7 @@ fn work_sum(a: WorkCounters, b: Option<WorkCounters>) -> WorkCounters {
         iterations_max: a.iterations_max.max(b.iterations_max),
         device_seconds: a.device_seconds + b.device_seconds,
         device_waits: a.device_waits + b.device_waits,
+        device_waits_beside: a.device_waits_beside + b.device_waits_beside,
         submit_seconds: a.submit_seconds + b.submit_seconds,
         bytes_to_device: a.bytes_to_device + b.bytes_to_device,
         bytes_from_device: a.bytes_from_device + b.bytes_from_device,
@@ -450,7 +451,7 @@ fn log_work(phase: &str, w: &WorkCounters, seconds: Option<f64>) {
         None => "(".into(),
     };
     log::info!(
-        "{phase}: {time}{:.3} s waiting for the GPU in {} waits), \
+        "{phase}: {time}{:.3} s waiting for the GPU in {} waits; {} more on threads beside), \
          {} preconditioner set-ups, {} solves, {} iterations (most in one solve {}), \
          {} bytes to and {} from the device, {:.3} s in queue submissions; kernels: {} dispatches, \
          {} bytes modelled ({} for the operator applications in their least storage), \
@@ -458,6 +459,7 @@ fn log_work(phase: &str, w: &WorkCounters, seconds: Option<f64>) {
          at their first use in {:.3} s, {} ahead on another thread in {:.3} s",
         w.device_seconds,
         w.device_waits,
+        w.device_waits_beside,
         w.preconditioner_setups,
         w.solves,
         w.iterations,

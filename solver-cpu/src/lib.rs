@@ -85,6 +85,9 @@ pub struct WorkCounters {
     pub device_seconds: f64,
     /// Times the host waited for the device.
     pub device_waits: usize,
+    /// Times a thread working beside the caller (a factor's upload) waited
+    /// for the device: not in `device_waits`, they hold up no solve.
+    pub device_waits_beside: usize,
     /// Host seconds spent handing work to the device's queue (0 without
     /// one); on a CPU emulation of a GPU they include its running of the
     /// work.
@@ -140,6 +143,7 @@ impl WorkCounters {
             iterations_max: self.iterations_max,
             device_seconds: self.device_seconds - earlier.device_seconds,
             device_waits: self.device_waits - earlier.device_waits,
+            device_waits_beside: self.device_waits_beside - earlier.device_waits_beside,
             submit_seconds: self.submit_seconds - earlier.submit_seconds,
             bytes_to_device: self.bytes_to_device - earlier.bytes_to_device,
             bytes_from_device: self.bytes_from_device - earlier.bytes_from_device,

@@ -1316,6 +1316,47 @@ mod tests {
         assert!(after.submit_seconds > before.submit_seconds);
     }
 
+    /// The same upload on a thread beside the caller
+    /// (`Context::beside_the_caller`): its submissions, waits (one per
+    /// window after the first, the staging buffer mapped again) and bytes
+    /// are counted beside, the caller's counts left as they were; the
+    /// bytes land all the same.
+    #[test]
+    fn an_upload_beside_the_caller_is_counted_apart() {
+        let Some(s) = crate::test_solver() else {
+            return;
+        };
+        let ctx = s.ctx.clone();
+        let data: Vec<u8> = (0..1000u32).map(|i| (i * 7 % 251) as u8).collect();
+        let before = ctx.traffic();
+        let b = std::thread::scope(|scope| {
+            scope
+                .spawn(|| {
+                    ctx.beside_the_caller(|| {
+                        ctx.storage_from_pieces_in(
+                            &mut super::Staging::default(),
+                            "test",
+                            1000,
+                            [&data[..]],
+                            128,
+                        )
+                    })
+                })
+                .join()
+                .unwrap()
+                .unwrap()
+        });
+        let after = ctx.traffic();
+        let windows = 1000u64.div_ceil(128);
+        assert_eq!(after.beside_submits - before.beside_submits, windows);
+        assert_eq!(after.beside_waits - before.beside_waits, windows - 1);
+        assert_eq!(after.beside_to_device - before.beside_to_device, 1000);
+        assert_eq!(after.to_device - before.to_device, 1000);
+        assert_eq!((after.submits, after.waits), (before.submits, before.waits));
+        let back: Vec<u8> = ctx.read(&b, 1000, &mut None, None).unwrap();
+        assert_eq!(back, data);
+    }
+
     /// A read-back's bytes handed back are filled again by a later read of
     /// no more bytes (the same memory), with that read's bytes.
     #[test]

@@ -981,6 +981,7 @@ impl SpdSolver for GpuSolver {
             setups_from_factors_ahead: self.setups_ahead,
             device_seconds: t.wait_seconds,
             device_waits: t.waits as usize,
+            device_waits_beside: t.beside_waits as usize,
             submit_seconds: t.submit_seconds,
             bytes_to_device: t.to_device,
             bytes_from_device: t.from_device,
