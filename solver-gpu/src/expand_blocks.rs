@@ -955,22 +955,22 @@ mod tests {
             let Some(mut s) = mixed_solver() else {
                 return;
             };
-            s.pairs_sent_ahead = ahead;
+            s.beside_uploads = ahead;
             shape_sum_case(s, 40, 1);
             // Lower blocks in three parts (the sum one dispatch each, with
             // its own pairs), read back through them by the expansion.
             let mut s = mixed_solver_with_limit(15_000).unwrap();
-            s.pairs_sent_ahead = ahead;
+            s.beside_uploads = ahead;
             shape_sum_case(s, 200, 3);
         }
     }
 
-    /// The pairs go up ahead by default from `PAIRS_AHEAD_FROM_THREADS` of
-    /// rayon's threads on, not below (where the extra threads slowed the
-    /// main thread's own work on two cores).
+    /// Uploads go up beside the caller by default from
+    /// `BESIDE_UPLOADS_FROM_THREADS` of rayon's threads on, not below (where
+    /// the extra threads slowed the main thread's own work on two cores).
     #[test]
-    fn pairs_go_up_ahead_on_hosts_with_threads_to_spare() {
-        let from = crate::solver::PAIRS_AHEAD_FROM_THREADS;
+    fn uploads_go_up_beside_the_caller_on_hosts_with_threads_to_spare() {
+        let from = crate::solver::BESIDE_UPLOADS_FROM_THREADS;
         for (threads, ahead) in [(from - 1, false), (from, true)] {
             let pool = rayon::ThreadPoolBuilder::new()
                 .num_threads(threads)
@@ -979,12 +979,12 @@ mod tests {
             let Some(s) = pool.install(mixed_solver) else {
                 return;
             };
-            assert_eq!(s.pairs_sent_ahead, ahead, "{threads} threads");
+            assert_eq!(s.beside_uploads, ahead, "{threads} threads");
         }
     }
 
     fn shape_sum_case(mut s: crate::GpuSolver, n: usize, parts: usize) {
-        let ahead = s.pairs_sent_ahead;
+        let ahead = s.beside_uploads;
         let mut fixed = vec![false; n];
         fixed[7] = true;
         let rings = crate::matrix::shape_strip(n, 0.0).rings;

@@ -335,6 +335,12 @@ pub fn cholesky_factorizations(s: &GpuSolver) -> usize {
     s.chol_host.numeric_count
 }
 
+/// Whether uploads go up on threads beside the caller (by default from 4
+/// of rayon's threads on; a test sets it either way).
+pub fn set_beside_uploads(s: &mut GpuSolver, on: bool) {
+    s.beside_uploads = on;
+}
+
 /// Queue submissions the solver made on its caller's thread, and on
 /// threads beside it (a factor made ahead, uploaded on its own thread,
 /// [`solver_cpu::SpdSolver::adopt_isotropic_factor`]).

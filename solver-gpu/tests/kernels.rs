@@ -1564,16 +1564,18 @@ fn a_factor_made_ahead_is_the_kinds_preconditioner() {
 }
 
 /// A factor made ahead goes up on a thread of its own, beside the solver's
-/// caller: its submissions are counted there, and they are exactly those
-/// the caller makes itself where the kind's set-up factors and uploads on
-/// its thread (the same solve otherwise, to the bit). The kind's set-up
-/// takes it (no host factorization).
+/// caller, where uploads go beside it: its submissions are counted there,
+/// and they are exactly those the caller makes itself where the kind's
+/// set-up factors and uploads on its thread (the same solve otherwise, to
+/// the bit). The kind's set-up takes it (no host factorization). Where
+/// uploads stay on the caller's thread, nothing is submitted beside it.
 #[test]
 fn a_factor_made_ahead_goes_up_beside_the_caller() {
     let (a, a_ft, fixed, mut rng) = two_kinds_of_one_pattern(53);
     let b = rng.vec(3 * a.n());
     let run = |ahead: bool| -> Option<((u64, u64), Vec<f64>, usize)> {
         let mut s = gpu()?;
+        kernels::set_beside_uploads(&mut s, true);
         s.set_system_kind(SystemKind::ScaleDriven);
         prepare_shape(&mut s, a.clone(), &fixed);
         let before = kernels::submissions(&s);
@@ -1608,6 +1610,19 @@ fn a_factor_made_ahead_goes_up_beside_the_caller() {
     );
     let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
     assert_eq!(bits(&plain), bits(&ahead));
+    // Uploads on the caller's thread: the factor made ahead still taken.
+    let mut s = gpu().unwrap();
+    kernels::set_beside_uploads(&mut s, false);
+    s.set_system_kind(SystemKind::ScaleDriven);
+    prepare_shape(&mut s, a.clone(), &fixed);
+    let twin = s.isotropic_factorer(SystemKind::FineTune).unwrap();
+    let k = a_ft.iso_held_identity(&fixed);
+    let (factored, _) = solver_cpu::FactorAhead::spawn(twin, k).unwrap().join();
+    s.adopt_isotropic_factor(SystemKind::FineTune, factored.unwrap());
+    let (here, factorizations, _) = fine_tune_solve(&mut s, &a_ft, &fixed, &b);
+    assert_eq!(kernels::submissions(&s).1, 0, "nothing beside the caller");
+    assert_eq!(factorizations, 1);
+    assert_eq!(bits(&here), bits(&ahead));
 }
 
 /// The fine-tune kind's factor of `K` made ahead on its own symbolic

@@ -27,15 +27,20 @@ mod setup;
 mod upload;
 mod warm;
 
-/// From this many of rayon's threads on, the shape sum's ring pairs go up on
-/// a thread of their own, beside the first shape matrix's host part and the
-/// kind's factor's upload ([`GpuSolver::start_pairs_ahead`]). On the
-/// development machine's 2 cores at homer 1.2M, lavapipe: the matrix's own
-/// upload fell from 0.55-1.45 s to 0.19-0.26 s, but its diagonal blocks rose
-/// from 0.2-0.33 s to 0.71-0.76 s and the factor's upload was waited for
-/// longer, with four threads on two cores: 2.3 and 4.2 s from the first
-/// scale factors to the first solve, against 1.6 s.
-pub(crate) const PAIRS_AHEAD_FROM_THREADS: usize = 4;
+/// From this many of rayon's threads on, uploads go up on threads of their
+/// own, beside the caller: a factor made ahead
+/// ([`GpuSolver::upload_factor_ahead`]) and the shape sum's ring pairs
+/// ([`GpuSolver::start_pairs_ahead`]). Below, on the caller's thread. On the
+/// development machine's 2 cores at homer 1.2M, lavapipe, those threads
+/// shared the cores with the main thread's own passes and with lavapipe's
+/// copies:
+/// - the scale-driven factor's upload took 0.7-0.95 s in three runs and
+///   1.9-3.9 s in four (0.60 and 2.96 s in two runs on the main thread:
+///   lavapipe's copies vary that much);
+/// - the first matrix's diagonal blocks took 0.53-0.76 s against 0.2-0.33 s;
+/// - the main thread took 1.6-4.2 s from the first scale factors to the
+///   first solve, against 2.4 s before.
+pub(crate) const BESIDE_UPLOADS_FROM_THREADS: usize = 4;
 
 use mixed::{floor_after_a_round, BatchHints, MixedData, MixedKernels, Round};
 use upload::SquareAhead;
@@ -116,7 +121,7 @@ pub fn open_with(opts: OpenOptions) -> Result<GpuSolver, GpuError> {
         squares_taken_ahead: 0,
         pairs_ahead: None,
         pairs_taken_ahead: 0,
-        pairs_sent_ahead: rayon::current_num_threads() >= PAIRS_AHEAD_FROM_THREADS,
+        beside_uploads: rayon::current_num_threads() >= BESIDE_UPLOADS_FROM_THREADS,
         minv_scratch: Vec::new(),
         diagonal_current: false,
         expand: None,
@@ -250,9 +255,10 @@ pub struct GpuSolver {
     /// ([`Self::start_pairs_ahead`]), and how many such the sums took.
     pairs_ahead: Option<upload::PairsAhead>,
     pub(crate) pairs_taken_ahead: usize,
-    /// Whether they go up ahead: from [`PAIRS_AHEAD_FROM_THREADS`] of
-    /// rayon's threads (the tests set it either way).
-    pub(crate) pairs_sent_ahead: bool,
+    /// Whether uploads go up on threads beside the caller: from
+    /// [`BESIDE_UPLOADS_FROM_THREADS`] of rayon's threads (the tests set it
+    /// either way).
+    pub(crate) beside_uploads: bool,
     /// The f32 inverse diagonal blocks of the last matrix uploaded, kept
     /// for the next one's (`block_jacobi::inverse_diagonal`).
     minv_scratch: Vec<f32>,

@@ -5,10 +5,16 @@
 use super::*;
 
 /// A shape kind's factor made ahead on its way to the GPU, on a thread of
-/// its own ([`GpuSolver::upload_factor_ahead`]), and its precision.
+/// its own, or up already ([`GpuSolver::upload_factor_ahead`]), and its
+/// precision.
 pub(crate) struct FactorUpload {
-    thread: std::thread::JoinHandle<Result<supernodal::GpuFactor, GpuError>>,
+    upload: Uploading,
     precision: precision::Precision,
+}
+
+enum Uploading {
+    Beside(std::thread::JoinHandle<Result<supernodal::GpuFactor, GpuError>>),
+    Done(Result<supernodal::GpuFactor, GpuError>),
 }
 
 impl GpuSolver {
@@ -335,13 +341,15 @@ impl GpuSolver {
 
     /// `factored`, a shape kind's factor of the host's analysed pattern made
     /// ahead (on a twin of that analysis, or on its own ordering), sent up to
-    /// the GPU on a thread of its own, beside the active factor, for that
-    /// kind's set-up to take ([`Self::join_factor_upload`]): the caller goes
-    /// on at once (with the scale-driven kind's first matrix: its host
-    /// assembly, and its ring pairs' slots; with the scale-driven iteration,
-    /// for the fine-tune's), where it waited for the inversion of the
-    /// diagonal blocks and the upload before (homer 1.2M on the H200's
-    /// host: 0.54 and 0.45 s). The host drops its copy once the copy is up.
+    /// the GPU beside the active factor, for that kind's set-up to take
+    /// ([`Self::join_factor_upload`]). Where uploads go beside the caller
+    /// ([`super::BESIDE_UPLOADS_FROM_THREADS`]) it goes up on a thread of its
+    /// own and the caller goes on at once (with the scale-driven kind's first
+    /// matrix: its host assembly, and its ring pairs' slots; with the
+    /// scale-driven iteration, for the fine-tune's), where it waited for the
+    /// inversion of the diagonal blocks and the upload before (homer 1.2M on
+    /// the H200's host: 0.54 and 0.45 s); else here. The host drops its copy
+    /// once the copy is up.
     pub(super) fn upload_factor_ahead(
         &mut self,
         kind: SystemKind,
@@ -363,24 +371,32 @@ impl GpuSolver {
         drop(factored);
         let ctx = self.ctx.clone();
         let limit = matrix::binding_limit(&self.ctx);
-        let thread = std::thread::Builder::new()
-            .name(format!("{kind:?} factor upload"))
-            .spawn(move || {
-                ctx.beside_the_caller(|| {
-                    let t = std::time::Instant::now();
-                    f.invert_diagonal_blocks();
-                    let inverse_seconds = t.elapsed().as_secs_f64();
-                    let g = supernodal::GpuFactor::upload(&ctx, &f, limit)?;
-                    log::debug!(
-                        "Cholesky factor made ahead ({kind:?} system, {precision:?}): inverted \
-                         form {inverse_seconds:.3} s, uploaded in {:.3} s, on its own thread",
-                        t.elapsed().as_secs_f64() - inverse_seconds
-                    );
-                    Ok(g)
-                })
-            })
-            .map_err(|e| GpuError::Backend(format!("a thread for its upload: {e}")))?;
-        self.chol_ahead = Some((kind, FactorUpload { thread, precision }));
+        let beside = self.beside_uploads;
+        let mut up = move || {
+            let t = std::time::Instant::now();
+            f.invert_diagonal_blocks();
+            let inverse_seconds = t.elapsed().as_secs_f64();
+            let g = supernodal::GpuFactor::upload(&ctx, &f, limit)?;
+            log::debug!(
+                "Cholesky factor made ahead ({kind:?} system, {precision:?}): inverted form \
+                 {inverse_seconds:.3} s, uploaded in {:.3} s{}",
+                t.elapsed().as_secs_f64() - inverse_seconds,
+                if beside { ", on its own thread" } else { "" }
+            );
+            Ok(g)
+        };
+        let upload = match beside {
+            true => {
+                let ctx = self.ctx.clone();
+                let thread = std::thread::Builder::new()
+                    .name(format!("{kind:?} factor upload"))
+                    .spawn(move || ctx.beside_the_caller(up))
+                    .map_err(|e| GpuError::Backend(format!("a thread for its upload: {e}")))?;
+                Uploading::Beside(thread)
+            }
+            false => Uploading::Done(up()),
+        };
+        self.chol_ahead = Some((kind, FactorUpload { upload, precision }));
         Ok(())
     }
 
@@ -393,9 +409,12 @@ impl GpuSolver {
         up: FactorUpload,
     ) -> Option<supernodal::GpuFactor> {
         let t = std::time::Instant::now();
-        let uploaded = match up.thread.join() {
-            Ok(uploaded) => uploaded,
-            Err(panic) => std::panic::resume_unwind(panic),
+        let uploaded = match up.upload {
+            Uploading::Beside(thread) => match thread.join() {
+                Ok(uploaded) => uploaded,
+                Err(panic) => std::panic::resume_unwind(panic),
+            },
+            Uploading::Done(uploaded) => uploaded,
         };
         let taken = uploaded.and_then(|g| {
             self.ctx.check()?;

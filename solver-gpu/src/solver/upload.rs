@@ -356,7 +356,7 @@ impl GpuSolver {
         let Some(layout) = expand_blocks::LowerParts::layout(blocks, limit) else {
             return;
         };
-        if !self.pairs_sent_ahead || !self.shape_sum_possible(a, slots) {
+        if !self.beside_uploads || !self.shape_sum_possible(a, slots) {
             return;
         }
         let (ctx, rings, slots) = (self.ctx.clone(), a.rings.clone(), slots.clone());
