@@ -555,23 +555,16 @@ impl PairBuffers {
             .map(|part| {
                 let b = LowerParts::range_of(part, part_blocks, blocks);
                 let pairs = start[b.start] as usize..start[b.end] as usize;
-                // (A part without pairs binds one placeholder entry.)
-                let ring_buf = ctx.storage_init(
-                    &format!("shape sum: ring of each pair (part {part})"),
-                    if pairs.is_empty() {
-                        &[0]
-                    } else {
-                        &ring[pairs.clone()]
-                    },
-                )?;
-                let f_buf = ctx.storage_init(
-                    &format!("shape sum: weight of each pair (f64, part {part})"),
-                    if pairs.is_empty() {
-                        &[0.0]
-                    } else {
-                        &f[pairs.clone()]
-                    },
-                )?;
+                // A part without pairs binds one placeholder entry.
+                let part_of = |what: &str, all: &[u8], size: usize| {
+                    let bytes = match pairs.is_empty() {
+                        true => &[0u8; 8][..size],
+                        false => &all[pairs.start * size..pairs.end * size],
+                    };
+                    ctx.storage_init(&format!("shape sum: {what} (part {part})"), bytes)
+                };
+                let ring_buf = part_of("ring of each pair", bytemuck::cast_slice(&ring), 4)?;
+                let f_buf = part_of("weight of each pair (f64)", bytemuck::cast_slice(&f), 8)?;
                 Ok((ring_buf, f_buf, pairs.start as u32))
             })
             .collect::<Result<Vec<_>, GpuError>>()?;

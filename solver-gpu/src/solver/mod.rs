@@ -42,6 +42,14 @@ mod warm;
 ///   first solve, against 2.4 s before.
 pub(crate) const BESIDE_UPLOADS_FROM_THREADS: usize = 4;
 
+/// `thread`'s value, its panic carried on to the caller.
+fn joined<T>(thread: std::thread::JoinHandle<T>) -> T {
+    match thread.join() {
+        Ok(value) => value,
+        Err(panic) => std::panic::resume_unwind(panic),
+    }
+}
+
 use mixed::{floor_after_a_round, BatchHints, MixedData, MixedKernels, Round};
 use upload::SquareAhead;
 

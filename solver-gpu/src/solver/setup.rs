@@ -410,10 +410,7 @@ impl GpuSolver {
     ) -> Option<supernodal::GpuFactor> {
         let t = std::time::Instant::now();
         let uploaded = match up.upload {
-            Uploading::Beside(thread) => match thread.join() {
-                Ok(uploaded) => uploaded,
-                Err(panic) => std::panic::resume_unwind(panic),
-            },
+            Uploading::Beside(thread) => joined(thread),
             Uploading::Done(uploaded) => uploaded,
         };
         let taken = uploaded.and_then(|g| {

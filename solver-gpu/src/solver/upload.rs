@@ -346,19 +346,19 @@ impl GpuSolver {
 
     /// Starts gathering the ring pairs of `a`'s new `slots` by lower block,
     /// and sending them up, on a thread beside the caller, for the shape
-    /// sum of `a`'s pattern ([`Self::join_pairs_ahead`]): the host part of
+    /// sum of `a`'s pattern ([`PairsAhead::join`]): the host part of
     /// the matrix (its diagonal blocks) and the kind's factor's upload go
     /// on meanwhile. Nothing where the GPU does not sum the blocks.
     pub(super) fn start_pairs_ahead(&mut self, a: &IsoRingSym3, slots: &Arc<RingSlots>) {
         self.pairs_ahead = None;
+        if !self.beside_uploads || !self.shape_sum_possible(a, slots) {
+            return;
+        }
         let limit = matrix::binding_limit(&self.ctx);
         let blocks = a.iso.row_idx.len();
         let Some(layout) = expand_blocks::LowerParts::layout(blocks, limit) else {
             return;
         };
-        if !self.beside_uploads || !self.shape_sum_possible(a, slots) {
-            return;
-        }
         let (ctx, rings, slots) = (self.ctx.clone(), a.rings.clone(), slots.clone());
         let ours = slots.clone();
         let thread = std::thread::Builder::new()
@@ -425,11 +425,7 @@ impl PairsAhead {
             return None;
         }
         let t = std::time::Instant::now();
-        let up = match self.thread.join() {
-            Ok(up) => up,
-            Err(panic) => std::panic::resume_unwind(panic),
-        };
-        match up {
+        match joined(self.thread) {
             Ok(p) => {
                 log::debug!(
                     "shape sum's ring pairs: waited {:.3} s for their thread",
