@@ -910,27 +910,36 @@ impl ShapeModel {
         &self.grad
     }
 
-    /// Energy (up to a constant) at `xref + dx`: `1/2 dx^T H dx + g0 . dx`.
+    /// Energy (up to a constant) at `xref + dx`: `1/2 dx^T H dx + g0 . dx`,
+    /// held dofs left out (`dx` is zero there). 0 at `dx = 0` with no
+    /// product made; else `H`'s quadratic form on rayon's threads
+    /// ([`IsoRingSym3::quadratic_form`]), the same on any number of them.
     pub fn energy(&self, dx: &[f64]) -> f64 {
-        let mut hd = vec![0.0; dx.len()];
-        // Sequential product: a few per Newton step; the solver keeps the row
-        // index of its parallel product, the model does not repeat it.
-        self.matrix().mul_vec(dx, &mut hd);
-        let mut e = 0.0;
-        for i in 0..dx.len() {
-            let v = i / 3;
-            if self.fixed[v] {
-                continue;
-            }
-            e += 0.5 * dx[i] * hd[i] + self.grad[i] * dx[i];
+        if dx.iter().all(|&v| v == 0.0) {
+            return 0.0;
         }
-        e
+        let held = |i: usize| self.fixed[i / 3];
+        let held_moved = (0..self.n).any(|v| self.fixed[v] && dx[3 * v..3 * v + 3] != [0.0; 3]);
+        let free: Vec<f64>;
+        let dx_free = if held_moved {
+            free = (0..dx.len())
+                .map(|i| if held(i) { 0.0 } else { dx[i] })
+                .collect();
+            &free[..]
+        } else {
+            dx
+        };
+        let linear: f64 = dx_free.iter().zip(&self.grad).map(|(d, g)| g * d).sum();
+        0.5 * self.matrix().quadratic_form(dx_free) + linear
     }
 
-    /// Gradient at `xref + dx`: `H dx + g0` (held dofs zero).
+    /// Gradient at `xref + dx`: `H dx + g0` (held dofs zero); `g0` with no
+    /// product made at `dx = 0` (the fine-tune's first step).
     pub fn gradient_at(&self, dx: &[f64]) -> Vec<f64> {
         let mut g = vec![0.0; dx.len()];
-        self.matrix().mul_vec(dx, &mut g);
+        if dx.iter().any(|&v| v != 0.0) {
+            self.matrix().mul_vec(dx, &mut g);
+        }
         for i in 0..dx.len() {
             g[i] = if self.fixed[i / 3] {
                 0.0
@@ -1291,6 +1300,79 @@ mod tests {
             assert_eq!(bits(&k.values), bits(&assembled.values));
             let elsewhere = model.isotropic_part(&mesh, &mesh.positions, &w);
             assert_ne!(bits(&elsewhere.values), bits(&assembled.values));
+        }
+    }
+
+    /// The energy and the gradient are those of the product `H dx` with the
+    /// held dofs left out, with handles and with a held vertex: where `dx`
+    /// is zero at the held vertex (as the fine-tune's steps are) and where
+    /// it is not.
+    #[test]
+    fn energy_and_gradient_are_the_products_held_dofs_left_out() {
+        let (mesh, _) = spot_model();
+        let topo = Topology::build(&mesh);
+        let n = mesh.num_vertices();
+        let (s, c, mut w) = varied_job(mesh.num_faces(), n);
+        w.k_p = 10.0;
+        let xc = perturbed(&mesh, 0.02);
+        for with_handles in [true, false] {
+            let handles: Vec<HandleTarget> = [5u32, 700, 1400]
+                .iter()
+                .filter(|_| with_handles)
+                .map(|&v| HandleTarget {
+                    vertex: v,
+                    target: mesh.positions[v as usize] + DVec3::new(0.01, 0.0, -0.02),
+                })
+                .collect();
+            let mut model = ShapeModel::new(&mesh, &topo, handles).unwrap();
+            model.assemble_and_factor(&mesh, &xc, &s, &c, &w).unwrap();
+            let held = |i: usize| model.fixed[i / 3];
+            // Handles are soft (E_p); without them one vertex is held.
+            assert_eq!((0..3 * n).any(held), !with_handles);
+            let zero = vec![0.0; 3 * n];
+            assert_eq!(model.energy(&zero), 0.0);
+            let g0: Vec<f64> = (0..3 * n)
+                .map(|i| {
+                    if held(i) {
+                        0.0
+                    } else {
+                        model.reference_gradient()[i]
+                    }
+                })
+                .collect();
+            assert!(g0.iter().any(|&g| g != 0.0));
+            assert_eq!(model.gradient_at(&zero), g0);
+            let moved: Vec<f64> = (0..3 * n).map(|i| 1e-3 * (0.37 * i as f64).sin()).collect();
+            let still: Vec<f64> = (0..3 * n)
+                .map(|i| if held(i) { 0.0 } else { moved[i] })
+                .collect();
+            for dx in [&still, &moved] {
+                let mut hd = vec![0.0; 3 * n];
+                model.matrix().mul_vec(dx, &mut hd);
+                // The sum over the free dofs of the product with the free part.
+                let mut hf = vec![0.0; 3 * n];
+                model.matrix().mul_vec(&still, &mut hf);
+                let want: f64 = (0..3 * n)
+                    .filter(|&i| !held(i))
+                    .map(|i| 0.5 * still[i] * hf[i] + model.reference_gradient()[i] * dx[i])
+                    .sum();
+                let got = model.energy(dx);
+                assert!(want.abs() > 1e-9, "an energy to compare: {want}");
+                assert!(
+                    (got - want).abs() <= 1e-11 * want.abs(),
+                    "{got} against {want}"
+                );
+                let g = model.gradient_at(dx);
+                let scale = hd.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+                for i in 0..3 * n {
+                    let want = if held(i) {
+                        0.0
+                    } else {
+                        hd[i] + model.reference_gradient()[i]
+                    };
+                    assert!((g[i] - want).abs() <= 1e-12 * scale, "gradient {i}");
+                }
+            }
         }
     }
 
