@@ -34,10 +34,6 @@ use rayon::prelude::*;
 use solver_cpu::{BlockPcgSolver, IsoRingSym3, ShapeOperatorModel, SparseRows, SpdSolver, SymCsc};
 use std::sync::Arc;
 
-/// Faces whose terms are computed at once, on rayon's threads, before they
-/// are added in face order (about 8 MB of terms).
-const ASSEMBLY_CHUNK: usize = 1 << 16;
-
 /// Faces per thread from which the assembly's sums into `K` and the
 /// gradient run on several threads ([`vertex_ranges`]).
 const FACES_PER_RANGE: usize = 16_384;
@@ -226,6 +222,9 @@ pub struct ShapeModel {
     /// the cotangent rows have the same entries wherever `mv_slots` serve
     /// them (`hm` empty).
     rows_by_range: std::sync::Mutex<Option<RowsByRange>>,
+    /// The same for the faces: each range's faces (ascending) with a corner
+    /// in it, whose E_f terms add to the range's columns of `K`.
+    faces_by_range: std::sync::Mutex<Option<RowsByRange>>,
     pub fixed: Vec<bool>,
     /// Components re-centred after each step (those without handles): vertex lists.
     free_components: Vec<Vec<u32>>,
@@ -262,6 +261,43 @@ impl RowsByRange {
         RowsByRange {
             bounds: bounds.to_vec(),
             rows: Arc::new(by_range),
+        }
+    }
+
+    /// Per range, the faces (ascending) with a corner in it; each range's
+    /// list made on a thread of its own.
+    fn of_faces(faces: &[[u32; 3]], bounds: &[usize]) -> RowsByRange {
+        let by_range = bounds
+            .par_windows(2)
+            .map(|r| {
+                let mine = |v: u32| (r[0]..r[1]).contains(&(v as usize));
+                (0..faces.len() as u32)
+                    .filter(|&f| faces[f as usize].iter().any(|&v| mine(v)))
+                    .collect()
+            })
+            .collect();
+        RowsByRange {
+            bounds: bounds.to_vec(),
+            rows: Arc::new(by_range),
+        }
+    }
+}
+
+/// `cache`'s lists where they were made for `bounds`, else `make(bounds)`'s,
+/// kept in it.
+fn cached_by_range(
+    cache: &std::sync::Mutex<Option<RowsByRange>>,
+    bounds: &[usize],
+    make: impl FnOnce(&[usize]) -> RowsByRange,
+) -> Arc<Vec<Vec<u32>>> {
+    let mut cached = cache.lock().unwrap_or_else(|e| e.into_inner());
+    match cached.as_ref() {
+        Some(r) if r.bounds == bounds => r.rows.clone(),
+        _ => {
+            let r = make(bounds);
+            let made = r.rows.clone();
+            *cached = Some(r);
+            made
         }
     }
 }
@@ -424,6 +460,7 @@ impl ShapeModel {
             mv_slot_ptr,
             mv_slots,
             rows_by_range: Default::default(),
+            faces_by_range: Default::default(),
             fixed,
             free_components: free,
             handles,
@@ -502,16 +539,19 @@ impl ShapeModel {
     /// entry in it ([`RowsByRange`]), made once for those ranges.
     fn rows_by_range(&self, faces: usize) -> (Vec<usize>, Arc<Vec<Vec<u32>>>) {
         let bounds = vertex_ranges(self.n, faces);
-        let mut cached = self.rows_by_range.lock().unwrap_or_else(|e| e.into_inner());
-        let rows = match cached.as_ref() {
-            Some(r) if r.bounds == bounds => r.rows.clone(),
-            _ => {
-                let r = RowsByRange::new(&self.mv, &bounds);
-                let made = r.rows.clone();
-                *cached = Some(r);
-                made
-            }
-        };
+        let rows = cached_by_range(&self.rows_by_range, &bounds, |b| {
+            RowsByRange::new(&self.mv, b)
+        });
+        (bounds, rows)
+    }
+
+    /// [`vertex_ranges`] for `faces`, and each range's faces with a corner
+    /// in it ([`RowsByRange::of_faces`]), made once for those ranges.
+    fn faces_by_range(&self, faces: &[[u32; 3]]) -> (Vec<usize>, Arc<Vec<Vec<u32>>>) {
+        let bounds = vertex_ranges(self.n, faces.len());
+        let rows = cached_by_range(&self.faces_by_range, &bounds, |b| {
+            RowsByRange::of_faces(faces, b)
+        });
         (bounds, rows)
     }
 
@@ -579,7 +619,7 @@ impl ShapeModel {
             mut gradient,
         } = t;
         if self.hm.is_empty() {
-            k.values.iter_mut().for_each(|v| *v = 0.0);
+            k.values.par_iter_mut().for_each(|v| *v = 0.0);
             // E_m's Hessian sum_i 2 m_i delta_i^T delta_i, on mv's pair slots.
             if w.k_m > 0.0 && !square_named {
                 let area = &self.vertex_area;
@@ -595,10 +635,10 @@ impl ShapeModel {
             }
         }
         if let Some(ring_c) = ring_c.as_deref_mut() {
-            ring_c.iter_mut().for_each(|c| *c = [0.0; 6]);
+            ring_c.par_iter_mut().for_each(|c| *c = [0.0; 6]);
         }
         if let Some((_, _, grad)) = gradient.as_mut() {
-            grad.iter_mut().for_each(|g| *g = 0.0);
+            grad.par_iter_mut().for_each(|g| *g = 0.0);
         }
 
         // Faces without shape weight: springs on their sides, zero gradient at xc.
@@ -619,82 +659,68 @@ impl ShapeModel {
             }
         }
 
-        // E_f (Eq. 4, fourth vertex eliminated). Each face's terms are
-        // computed on rayon's threads, a chunk of faces at a time, then
-        // added in face order: the same sums as one face after the other.
-        // The adding is on rayon's threads too: the vertices are cut into
-        // ranges, and each range's columns of `K` and entries of the
-        // gradient are added to by one thread, face after face, so each
-        // sum is the same, in the same order, on any number of threads.
+        // E_f (Eq. 4, fourth vertex eliminated), on rayon's threads: the
+        // vertices are cut into ranges, and each range's columns of `K` and
+        // entries of the gradient are added to by one thread, from the faces
+        // with a corner in the range (`faces_by_range`), face after face, so
+        // each sum is the same, in the same order, on any number of threads.
+        // A face across ranges has its terms computed by each of them.
         let (no_weight, face_weight) = (&self.no_weight, &self.face_weight);
-        let bounds = vertex_ranges(n, mesh.faces.len());
-        let mut terms = vec![None; ASSEMBLY_CHUNK.min(mesh.faces.len())];
-        for start in (0..mesh.faces.len()).step_by(ASSEMBLY_CHUNK) {
-            let end = (start + ASSEMBLY_CHUNK).min(mesh.faces.len());
-            let chunk = &mut terms[..end - start];
-            chunk.par_iter_mut().enumerate().for_each(|(i, out)| {
-                let f = start + i;
-                *out = if no_weight[f] {
-                    None
-                } else {
+        let (bounds, faces_of) = self.faces_by_range(&mesh.faces);
+        let parts = split_at_bounds(&mut k.values, bounds.iter().map(|&b| k.col_ptr[b]));
+        let grad_parts = gradient
+            .as_mut()
+            .map(|(s, _, grad)| (*s, split_at_bounds(grad, bounds.iter().map(|&b| 3 * b))));
+        let (s, grad_parts): (Option<&[f64]>, Vec<Option<&mut [f64]>>) = match grad_parts {
+            Some((s, g)) => (Some(s), g.into_iter().map(Some).collect()),
+            None => (None, (0..parts.len()).map(|_| None).collect()),
+        };
+        let face_slots = &self.face_slots;
+        let col_ptr = &k.col_ptr;
+        parts
+            .into_par_iter()
+            .zip(grad_parts)
+            .zip(bounds.par_windows(2))
+            .zip(faces_of.par_iter())
+            .for_each(|(((values, mut grad), range), faces)| {
+                let (lo, hi) = (range[0], range[1]);
+                let base = col_ptr[lo];
+                let mine = |v: u32| (lo..hi).contains(&(v as usize));
+                for &f in faces {
+                    let f = f as usize;
+                    if no_weight[f] {
+                        continue;
+                    }
                     // The gradient of log(area): d area / d corner over the area.
-                    triangle_area_gradient(mesh.corners(xc, f))
-                        .map(|(a2, da)| (da.map(|d| d * 2.0 / a2), 2.0 * w.k_f * face_weight[f]))
-                };
-            });
-            let chunk = &*chunk;
-            let parts = split_at_bounds(&mut k.values, bounds.iter().map(|&b| k.col_ptr[b]));
-            let grad_parts = gradient
-                .as_mut()
-                .map(|(s, _, grad)| (*s, split_at_bounds(grad, bounds.iter().map(|&b| 3 * b))));
-            let (s, grad_parts): (Option<&[f64]>, Vec<Option<&mut [f64]>>) = match grad_parts {
-                Some((s, g)) => (Some(s), g.into_iter().map(Some).collect()),
-                None => (None, (0..parts.len()).map(|_| None).collect()),
-            };
-            let face_slots = &self.face_slots;
-            let col_ptr = &k.col_ptr;
-            parts
-                .into_par_iter()
-                .zip(grad_parts)
-                .zip(bounds.par_windows(2))
-                .for_each(|((values, mut grad), range)| {
-                    let (lo, hi) = (range[0], range[1]);
-                    let base = col_ptr[lo];
-                    let mine = |v: u32| (lo..hi).contains(&(v as usize));
-                    for (i, term) in chunk.iter().enumerate() {
-                        let Some((g, wf)) = term else {
-                            continue;
-                        };
-                        let f = start + i;
-                        let t = mesh.faces[f];
-                        if !t.iter().any(|&v| mine(v)) {
-                            continue;
+                    let Some((a2, da)) = triangle_area_gradient(mesh.corners(xc, f)) else {
+                        continue;
+                    };
+                    let (g, wf) = (da.map(|d| d * 2.0 / a2), 2.0 * w.k_f * face_weight[f]);
+                    let t = mesh.faces[f];
+                    let slots = &face_slots[f];
+                    for kk in 0..3 {
+                        for l in 0..=kk {
+                            let (a, b) = (t[kk], t[l]);
+                            // A lower slot's column is its smaller index.
+                            if !mine(a.min(b)) {
+                                continue;
+                            }
+                            let mut v = wf * g[kk].dot(g[l]);
+                            if a == b && kk != l {
+                                v *= 2.0;
+                            }
+                            values[slots[kk * (kk + 1) / 2 + l] as usize - base] += v;
                         }
-                        let slots = &face_slots[f];
-                        for kk in 0..3 {
-                            for l in 0..=kk {
-                                let (a, b) = (t[kk], t[l]);
-                                // A lower slot's column is its smaller index.
-                                if !mine(a.min(b)) {
-                                    continue;
-                                }
-                                let mut v = wf * g[kk].dot(g[l]);
-                                if a == b && kk != l {
-                                    v *= 2.0;
-                                }
-                                values[slots[kk * (kk + 1) / 2 + l] as usize - base] += v;
-                            }
-                            if let (Some(s), Some(grad), true) = (s, grad.as_mut(), mine(t[kk])) {
-                                let gk = wf * (1.0 - s[f]) * g[kk];
-                                let i = 3 * (t[kk] as usize - lo);
-                                grad[i] += gk.x;
-                                grad[i + 1] += gk.y;
-                                grad[i + 2] += gk.z;
-                            }
+                        if let (Some(s), Some(grad), true) = (s, grad.as_mut(), mine(t[kk])) {
+                            let gk = wf * (1.0 - s[f]) * g[kk];
+                            let i = 3 * (t[kk] as usize - lo);
+                            grad[i] += gk.x;
+                            grad[i + 1] += gk.y;
+                            grad[i + 2] += gk.z;
                         }
                     }
-                });
-        }
+                }
+            });
 
         // E_m (Eqs. 5, 21): gradient at xc; the Hessian is the constant part
         // above (or the solver's).
