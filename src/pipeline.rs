@@ -569,6 +569,7 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
     };
     let mut scale_factor_work = None;
     let mut fine_tune_ahead = None;
+    let mut scale_system_dropped = None;
     if !p.constraints.is_empty() || has_handles || has_curvature {
         let make_scale_system = || -> Result<Option<ScaleFactorSystem>> {
             match scale_early {
@@ -793,6 +794,9 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
             }
         }
         scale_factor_work = scale_system.as_ref().map(|s| s.counters());
+        // Its solver (on a GPU, its device and buffers) is released while
+        // the fine-tune runs.
+        scale_system_dropped = Some(drop_beside(scale_system));
     }
     let t1 = Instant::now();
     summary.scale_driven = model.solver().counters();
@@ -852,6 +856,11 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
             }
         })
         .collect();
+    if let Some(thread) = scale_system_dropped.flatten() {
+        if let Err(panic) = thread.join() {
+            std::panic::resume_unwind(panic);
+        }
+    }
     Ok(Outcome {
         positions: x,
         scale_driven_iterations: iterations,
@@ -862,6 +871,16 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
         stop_reason,
         solver: summary,
     })
+}
+
+/// `value` dropped on a thread of its own, to be joined (`None`: no thread
+/// could be had, and it was dropped here).
+fn drop_beside<T: Send + 'static>(value: T) -> Option<std::thread::JoinHandle<()>> {
+    std::thread::Builder::new()
+        .name("drop beside".into())
+        .spawn(move || drop(value))
+        .inspect_err(|e| log::debug!("no thread to drop on ({e}): dropped here"))
+        .ok()
 }
 
 /// The scale factors' system (Eq. 3) being set up on its own thread, or,
