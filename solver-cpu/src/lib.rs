@@ -17,7 +17,7 @@ pub use block::{row_groups_mut, BlockRows, BlockSym3};
 pub use cholesky::{
     analyse_beside, analyse_beside_then, background_pool, nested_dissection_of_pattern,
     thread_priority, CholeskySolver, FactorAhead, FactorPlan, FillOrdering, PatternKey,
-    SupernodalFactor,
+    SupernodalFactor, PATTERN_KEY_RUN,
 };
 pub use iso_ring::{sym3_block, IsoRingSym3, SparseRows};
 pub use ordering::{coordinate_nested_dissection, coordinate_nested_dissection_of_pairs};
@@ -647,6 +647,43 @@ mod tests {
             cols[i] -= 1;
             assert_ne!(key, PatternKey::of(&cols, &a.row_idx), "column pointer {i}");
         }
+    }
+
+    /// Over several runs of the hash: the same key on one thread and on
+    /// four, and another where one word changes in any run, or two words
+    /// across a run's end trade places.
+    #[test]
+    fn a_pattern_key_of_several_runs_is_the_same_on_any_number_of_threads() {
+        let col_ptr: Vec<usize> = (0..PATTERN_KEY_RUN + 10).map(|i| 3 * i).collect();
+        let row_idx: Vec<usize> = (0..2 * PATTERN_KEY_RUN + 7)
+            .map(|i| i / 3 + i % 3)
+            .collect();
+        let on = |threads: usize, rows: &[usize]| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            pool.install(|| PatternKey::of(&col_ptr, rows))
+        };
+        let key = on(1, &row_idx);
+        assert_eq!(key, on(4, &row_idx));
+        for i in [
+            0,
+            PATTERN_KEY_RUN - 1,
+            PATTERN_KEY_RUN,
+            2 * PATTERN_KEY_RUN + 6,
+        ] {
+            let mut rows = row_idx.clone();
+            rows[i] += 1;
+            assert_ne!(key, on(4, &rows), "row entry {i}");
+        }
+        let mut swapped = row_idx.clone();
+        swapped.swap(PATTERN_KEY_RUN - 1, PATTERN_KEY_RUN);
+        assert_ne!(swapped, row_idx);
+        assert_ne!(key, on(4, &swapped), "across a run's end");
+        let mut cols = col_ptr.clone();
+        cols[PATTERN_KEY_RUN + 5] += 1;
+        assert_ne!(key, PatternKey::of(&cols, &row_idx), "a column pointer");
     }
 
     #[test]
