@@ -18,7 +18,7 @@ use solver_cpu::cholesky::NESTED_DISSECTION_FROM;
 use solver_cpu::{
     coordinate_nested_dissection, coordinate_nested_dissection_of_pairs,
     nested_dissection_of_pattern, BlockPcgSolver, CholeskySolver, FactorAhead, FactorPlan,
-    FillOrdering, SpdSolver, SymCsc, SystemKind, WorkCounters,
+    FillOrdering, SolverError, SpdSolver, SymCsc, SystemKind, WorkCounters,
 };
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -504,10 +504,12 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
         "deform: {nf} faces, resident {:.0} MiB at the start",
         crate::memory::resident_memory_mb()
     );
-    // The scale factors' set-up (its pattern, symbolic analysis and factor;
-    // Eq. 3) needs the input alone: it starts now, beside the shape model's.
-    let scale_early = (!p.constraints.is_empty()).then(|| start_scale_system(p, o, &areas0));
     let mut shape_solver = o.backend.shape_solver()?;
+    // The scale factors' set-up (its pattern, symbolic analysis and factor;
+    // Eq. 3) needs the input alone: it starts now, beside the shape model's,
+    // with a solver on the shape solver's device where it has one.
+    let scale_early = (!p.constraints.is_empty())
+        .then(|| start_scale_system(p, o, &areas0, shape_solver.sibling()));
     shape_solver.set_system_kind(SystemKind::ScaleDriven);
     let fine_tune_follows = o.preview.is_none() && !p.constraints.is_empty();
     let shape_steps = !p.constraints.is_empty() || !p.handles.is_empty() || !p.curvature.is_empty();
@@ -895,7 +897,12 @@ enum ScaleEarly {
 /// model's set-up and the shape pattern's symbolic analysis: at homer 1.2M
 /// they and it take 1.2-1.4 s and 2.2 s on the development machine, one
 /// after the other before.
-fn start_scale_system(p: &Problem, o: &Options, areas0: &[f64]) -> ScaleEarly {
+fn start_scale_system(
+    p: &Problem,
+    o: &Options,
+    areas0: &[f64],
+    sibling: Option<std::result::Result<Box<dyn SpdSolver>, SolverError>>,
+) -> ScaleEarly {
     let (k_d, k_r, regulariser, backend) = (o.k_d, o.k_r, o.regulariser, o.backend);
     // The Newton steps on a GPU take one column per constraint (per
     // constraint multipliers only: the others step on the host); after the
@@ -906,9 +913,13 @@ fn start_scale_system(p: &Problem, o: &Options, areas0: &[f64]) -> ScaleEarly {
     });
     let make = move |face_pairs: &[[u32; 2]],
                      areas: &[f64],
-                     centroids: Option<Vec<DVec3>>|
+                     centroids: Option<Vec<DVec3>>,
+                     sibling: Option<std::result::Result<Box<dyn SpdSolver>, SolverError>>|
           -> Result<ScaleFactorSystem> {
-        let mut solver = backend.scale_solver()?;
+        let mut solver = match sibling {
+            Some(made) => made?,
+            None => backend.scale_solver()?,
+        };
         solver.set_system_kind(SystemKind::ScaleFactors);
         if let Some(columns) = newton_columns {
             solver.warm_up(SystemKind::ScaleFactors, &columns);
@@ -939,12 +950,13 @@ fn start_scale_system(p: &Problem, o: &Options, areas0: &[f64]) -> ScaleEarly {
     let c = centroids(&p.mesh);
     match std::thread::Builder::new()
         .name("scale factors' set-up".into())
-        .spawn(move || make(&face_pairs, &areas, c))
+        .spawn(move || make(&face_pairs, &areas, c, sibling))
     {
         Ok(handle) => ScaleEarly::Started(handle),
         Err(e) => {
+            // The sibling went with the thread's closure: the backend's own.
             log::debug!("no thread for the scale factors' set-up ({e}): made here");
-            ScaleEarly::Made(make(&p.topo.face_pairs, areas0, centroids(&p.mesh)))
+            ScaleEarly::Made(make(&p.topo.face_pairs, areas0, centroids(&p.mesh), None))
         }
     }
 }

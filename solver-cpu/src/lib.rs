@@ -412,6 +412,13 @@ pub trait SpdSolver: Send {
     fn wants_nested_dissection(&self) -> bool {
         true
     }
+    /// A solver of this backend for another system of the same run (the
+    /// scale factors' beside the shape systems'), sharing what this one has
+    /// opened: on a GPU its device, not a second one with its own driver
+    /// memory. `None` (the default) where there is nothing to share.
+    fn sibling(&self) -> Option<Result<Box<dyn SpdSolver>, SolverError>> {
+        None
+    }
     /// A Cholesky solver set up as this one's factor of the shape matrices'
     /// isotropic part `K` will be (fill ordering, precision), for that
     /// factor's symbolic analysis to run ahead, on another thread, while the

@@ -96,6 +96,26 @@ struct PassTimer {
     period_ns: f64,
 }
 
+impl PassTimer {
+    /// Two timestamp queries and their resolve buffer on `device`.
+    fn new(device: &wgpu::Device, queue: &wgpu::Queue) -> PassTimer {
+        PassTimer {
+            set: device.create_query_set(&wgpu::QuerySetDescriptor {
+                label: Some("pass timestamps"),
+                ty: wgpu::QueryType::Timestamp,
+                count: 2,
+            }),
+            resolved: device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("pass timestamps resolved"),
+                size: 16,
+                usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
+                mapped_at_creation: false,
+            }),
+            period_ns: queue.get_timestamp_period() as f64,
+        }
+    }
+}
+
 /// Running counts of what crosses between host and device: every write and
 /// read-back goes through [`Context::write_buffer`] and [`Context::read`], every wait through [`Context::wait`].
 #[derive(Default)]
@@ -394,20 +414,7 @@ impl Context {
             info.device_type,
             info.driver
         );
-        let timer = (!timestamps.is_empty()).then(|| PassTimer {
-            set: device.create_query_set(&wgpu::QuerySetDescriptor {
-                label: Some("pass timestamps"),
-                ty: wgpu::QueryType::Timestamp,
-                count: 2,
-            }),
-            resolved: device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some("pass timestamps resolved"),
-                size: 16,
-                usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
-                mapped_at_creation: false,
-            }),
-            period_ns: queue.get_timestamp_period() as f64,
-        });
+        let timer = (!timestamps.is_empty()).then(|| PassTimer::new(&device, &queue));
         Ok(Context {
             device,
             queue,
@@ -420,6 +427,31 @@ impl Context {
             timer,
             read_pool: Mutex::new(Vec::new()),
         })
+    }
+
+    /// Another context on this one's device and queue, with its own
+    /// counts of traffic, waits and kernels (from zero), its own pass
+    /// timer and read-back vectors; device errors and loss are reported to
+    /// both. For a second solver of the same run (the scale factors' beside
+    /// the shape systems'): one device, not two, each with its driver's
+    /// host memory. A wait on either waits for the queue's work, both
+    /// contexts' (as a wait beside the caller does already).
+    pub fn sibling(&self) -> Context {
+        Context {
+            device: self.device.clone(),
+            queue: self.queue.clone(),
+            info: self.info.clone(),
+            limits: self.limits.clone(),
+            shader_f64: self.shader_f64,
+            errors: self.errors.clone(),
+            lost: self.lost.clone(),
+            traffic: Traffic::default(),
+            timer: self
+                .timer
+                .as_ref()
+                .map(|_| PassTimer::new(&self.device, &self.queue)),
+            read_pool: Mutex::new(Vec::new()),
+        }
     }
 
     /// Host-device traffic and waits so far.
@@ -1355,6 +1387,47 @@ mod tests {
         assert_eq!((after.submits, after.waits), (before.submits, before.waits));
         let back: Vec<u8> = ctx.read(&b, 1000, &mut None, None).unwrap();
         assert_eq!(back, data);
+    }
+
+    /// A sibling context is on the same device (a buffer one writes, the
+    /// other reads back) and counts its own traffic, from zero.
+    #[test]
+    fn a_sibling_shares_the_device_and_counts_apart() {
+        let Some(s) = crate::test_solver() else {
+            return;
+        };
+        let sibling = s.sibling_solver().unwrap();
+        let (ctx, other) = (&s.ctx, &sibling.ctx);
+        assert!(ctx.device == other.device);
+        assert_eq!(other.traffic().to_device, 0);
+        let data: Vec<u8> = (0..4096u32).map(|i| (i * 11 % 251) as u8).collect();
+        let before = (ctx.traffic(), other.traffic());
+        let b = other.storage_init("test", &data).unwrap();
+        let back: Vec<u8> = ctx.read(&b, data.len(), &mut None, None).unwrap();
+        assert_eq!(back, data);
+        let after = (ctx.traffic(), other.traffic());
+        let n = data.len() as u64;
+        assert_eq!(after.1.to_device - before.1.to_device, n);
+        assert_eq!(after.0.to_device, before.0.to_device);
+        assert_eq!(after.0.from_device - before.0.from_device, n);
+        assert_eq!(after.1.from_device, before.1.from_device);
+        // Its solver solves on the shared device, counted apart too.
+        let mut sib = sibling;
+        let mut a = solver_cpu::SymCsc::from_pattern(3, [(0, 1), (1, 2)]);
+        for j in 0..3 {
+            for k in a.col_ptr[j]..a.col_ptr[j + 1] {
+                a.values[k] = if a.row_idx[k] == j { 4.0 } else { -1.0 };
+            }
+        }
+        let before = ctx.traffic();
+        solver_cpu::SpdSolver::prepare(&mut sib, &a).unwrap();
+        let mut x = vec![1.0, 2.0, 3.0];
+        solver_cpu::SpdSolver::solve_in_place(&mut sib, &mut x, 1).unwrap();
+        let mut ax = vec![0.0; 3];
+        a.mul_vec(&x, &mut ax);
+        assert!(ax.iter().zip([1.0, 2.0, 3.0]).all(|(p, q)| (p - q).abs() < 1e-6), "{ax:?}");
+        assert_eq!(ctx.traffic().to_device, before.to_device);
+        assert!(sib.ctx.traffic().to_device > n);
     }
 
     /// A read-back's bytes handed back are filled again by a later read of

@@ -69,6 +69,21 @@ pub fn open() -> Result<GpuSolver, GpuError> {
 pub fn open_with(opts: OpenOptions) -> Result<GpuSolver, GpuError> {
     let t = std::time::Instant::now();
     let ctx = Context::open(&opts)?;
+    on_context(ctx, t)
+}
+
+impl GpuSolver {
+    /// Another solver on this one's device ([`Context::sibling`]: its own
+    /// counts), with this one's tolerance: for a second system of the run.
+    pub fn sibling_solver(&self) -> Result<GpuSolver, GpuError> {
+        let mut s = on_context(self.ctx.sibling(), std::time::Instant::now())?;
+        s.tol = self.tol;
+        Ok(s)
+    }
+}
+
+/// A solver on `ctx`, opened from `t`: its kernels' shader modules made.
+fn on_context(ctx: Context, t: std::time::Instant) -> Result<GpuSolver, GpuError> {
     let device_seconds = t.elapsed().as_secs_f64();
     let kernels = Kernels {
         bsr: bsr_spmv::new(&ctx)?,
@@ -893,6 +908,14 @@ impl SpdSolver for GpuSolver {
     /// METIS's and 16 % fewer than minimum degree's).
     fn wants_nested_dissection(&self) -> bool {
         false
+    }
+
+    fn sibling(&self) -> Option<Result<Box<dyn SpdSolver>, SolverError>> {
+        let made = self.sibling_solver();
+        Some(
+            made.map(|s| Box::new(s) as Box<dyn SpdSolver>)
+                .map_err(SolverError::from),
+        )
     }
 
     fn set_system_kind(&mut self, kind: SystemKind) {
