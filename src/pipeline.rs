@@ -734,13 +734,26 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
             let t_shape = Instant::now();
             let shape_before = model.solver().counters();
             let affine = n >= AFFINE_SCALE_DRIVEN_MIN_VERTICES;
-            if let Some(ahead) = scale_driven_ahead.take() {
+            // The first matrix's terms are summed while its kind's factor
+            // made ahead may still be on its way (the factor is not read
+            // by them), then the factor is taken and the matrix handed
+            // over: at homer 1.2M on an H200's host the main thread waited
+            // 1.46 s for the factor, then assembled for 0.47 s.
+            let ahead = scale_driven_ahead.take();
+            if ahead.is_some() {
+                model.assemble(mesh, &x, &s, &c, &o.shape)?;
+            }
+            let assembled = ahead.is_some();
+            if let Some(ahead) = ahead {
                 adopt_factor_ahead(&mut model, ahead, SystemKind::ScaleDriven);
             }
             if let Some(analysis) = analysis_early.take() {
                 adopt_early_analysis(&mut model, analysis);
             }
-            model.assemble_with_positions(mesh, &x, &s, &c, &o.shape, affine)?;
+            match assembled {
+                true => model.hand_over_with_positions(&x, &o.shape, affine)?,
+                false => model.assemble_with_positions(mesh, &x, &s, &c, &o.shape, affine)?,
+            }
             if iterations == 0 && fine_tune_follows {
                 fine_tune_ahead = factor_ahead(
                     &mut model,

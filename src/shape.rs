@@ -232,6 +232,8 @@ pub struct ShapeModel {
     solver: Box<dyn SpdSolver>,
     /// Gradient of the energy at the reference point of the last assembly.
     grad: Vec<f64>,
+    /// Host seconds of the last assembly ([`Self::assemble`]).
+    assembly_seconds: f64,
 }
 
 /// Per vertex range (`bounds`, as [`vertex_ranges`] gives them), the rows
@@ -466,6 +468,7 @@ impl ShapeModel {
             handles,
             solver,
             grad: vec![0.0; 3 * n],
+            assembly_seconds: 0.0,
         })
     }
 
@@ -478,6 +481,23 @@ impl ShapeModel {
     /// for scale factors `s` (per face) and curvature targets `c` (per vertex),
     /// then factor the Hessian.
     pub fn assemble_and_factor(
+        &mut self,
+        mesh: &Mesh,
+        xc: &[DVec3],
+        s: &[f64],
+        c: &[f64],
+        w: &ShapeWeights,
+    ) -> Result<()> {
+        self.assemble(mesh, xc, s, c, w)?;
+        self.hand_over(w)
+    }
+
+    /// The first half of [`Self::assemble_and_factor`]: the Hessian's terms
+    /// and the gradient summed on the host and kept, for
+    /// [`Self::hand_over`] to give the solver. Between the two the solver's
+    /// state must not change what it reads apart (a factor made ahead may
+    /// be adopted: the kind's set-up is at the hand-over).
+    pub fn assemble(
         &mut self,
         mesh: &Mesh,
         xc: &[DVec3],
@@ -522,13 +542,25 @@ impl ShapeModel {
             },
         );
         self.grad = grad;
+        self.h = Some(h_owned);
+        self.assembly_seconds = t0.elapsed().as_secs_f64();
+        Ok(())
+    }
+
+    /// The matrix [`Self::assemble`] made, given to the solver (which
+    /// uploads or factors it): the second half of
+    /// [`Self::assemble_and_factor`].
+    pub fn hand_over(&mut self, w: &ShapeWeights) -> Result<()> {
         let t1 = std::time::Instant::now();
+        let h_owned = self.h.take().ok_or_else(|| {
+            Error::Internal("no assembled shape matrix to hand to the solver".into())
+        })?;
         let model = self.operator_model(w);
         self.solver.set_shape_model(model);
         self.h = self.solver.prepare_shape_owned(h_owned, &self.fixed)?;
         log::debug!(
             "shape system: assembly {:.3} s, {} {:.3} s",
-            (t1 - t0).as_secs_f64(),
+            self.assembly_seconds,
             self.solver.name(),
             t1.elapsed().as_secs_f64()
         );
@@ -908,11 +940,23 @@ impl ShapeModel {
         w: &ShapeWeights,
         affine: bool,
     ) -> Result<()> {
+        self.assemble(mesh, x, s, c, w)?;
+        self.hand_over_with_positions(x, w, affine)
+    }
+
+    /// [`Self::hand_over`] of the matrix [`Self::assemble`] made at `x`,
+    /// with the positions as [`Self::assemble_with_positions`] gives them.
+    pub fn hand_over_with_positions(
+        &mut self,
+        x: &[DVec3],
+        w: &ShapeWeights,
+        affine: bool,
+    ) -> Result<()> {
         if affine && self.solver.wants_vertex_positions() {
             let positions: Vec<[f64; 3]> = x.iter().map(|p| p.to_array()).collect();
             self.solver().set_vertex_positions(&positions);
         }
-        let done = self.assemble_and_factor(mesh, x, s, c, w);
+        let done = self.hand_over(w);
         self.solver().set_vertex_positions(&[]);
         done
     }
