@@ -79,6 +79,17 @@ impl SolverBackend {
         }
     }
 
+    /// Whether its shape solver wants METIS's ordering of the shape
+    /// factor ([`SpdSolver::wants_nested_dissection`]), known before the
+    /// solver is opened: the ordering starts while a GPU's device opens.
+    /// The opened solvers agree (tested).
+    pub fn wants_nested_dissection(self) -> bool {
+        match self {
+            SolverBackend::Cpu | SolverBackend::CpuDirect => true,
+            SolverBackend::Gpu => false,
+        }
+    }
+
     /// Relative residual the shape solves of the fine-tune reach (iterative
     /// backends; the direct one is exact).
     pub fn fine_tune_tolerance(self) -> f64 {
@@ -504,15 +515,34 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
         "deform: {nf} faces, resident {:.0} MiB at the start",
         crate::memory::resident_memory_mb()
     );
-    let mut shape_solver = o.backend.shape_solver()?;
     // The scale factors' set-up (its pattern, symbolic analysis and factor;
     // Eq. 3) needs the input alone: it starts now, beside the shape model's,
-    // with a solver on the shape solver's device where it has one.
-    let scale_early = (!p.constraints.is_empty())
-        .then(|| start_scale_system(p, o, &areas0, shape_solver.sibling()));
+    // and takes a solver on the shape solver's device where it has one.
+    let mut scale_early = (!p.constraints.is_empty()).then(|| start_scale_system(p, o, &areas0));
+    // The shape systems' fill ordering (`shape_fill_ordering`) and the
+    // symbolic analysis of their `K` need the faces alone: the pattern and
+    // its ordering start now on their own thread, while the solver (on a
+    // GPU, its device: 0.24 s on the H200) is opened; the analysis once the
+    // solver has said how it factors (`ShapeWork::hand`).
+    let shape_steps = !p.constraints.is_empty() || !p.handles.is_empty() || !p.curvature.is_empty();
+    let large = n >= NESTED_DISSECTION_FROM;
+    let nested = large && o.backend.wants_nested_dissection();
+    let ordering = if nested {
+        ShapeOrdering::Metis
+    } else if large {
+        ShapeOrdering::Coordinates
+    } else {
+        ShapeOrdering::Solvers
+    };
+    let shape_work = shape_steps
+        .then(|| start_shape_work(mesh, ordering))
+        .flatten();
+    let mut shape_solver = o.backend.shape_solver()?;
+    if let Some(early) = scale_early.as_mut() {
+        early.give_solver(shape_solver.sibling());
+    }
     shape_solver.set_system_kind(SystemKind::ScaleDriven);
     let fine_tune_follows = o.preview.is_none() && !p.constraints.is_empty();
-    let shape_steps = !p.constraints.is_empty() || !p.handles.is_empty() || !p.curvature.is_empty();
     // A GPU's pipelines for the shape solves, compiled on another thread
     // while the systems are set up: one column in the scale-driven phase;
     // the fine-tune's first step solves one more than its multipliers.
@@ -523,27 +553,21 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
         let m = multiplier_count(&groups, o.multipliers);
         shape_solver.warm_up(SystemKind::FineTune, &[m + 1, m]);
     }
-    // The shape systems' fill ordering (`shape_fill_ordering`) and the
-    // symbolic analysis of their `K` need the faces alone: they start now,
-    // on their own threads, beside the shape model's set-up.
-    let large = n >= NESTED_DISSECTION_FROM;
-    let nested = large && shape_solver.wants_nested_dissection();
-    let ordering = if nested {
-        ShapeOrdering::Metis
-    } else if large {
+    if ordering == ShapeOrdering::Coordinates {
         // Where no analysis is made ahead (no thread), the solver's own.
         shape_solver.set_fill_ordering(FillOrdering::Amd);
-        ShapeOrdering::Coordinates
-    } else {
-        ShapeOrdering::Solvers
-    };
-    let mut analysis_early = shape_steps
+    }
+    let analyser = shape_steps
         .then(|| shape_solver.isotropic_analyser())
-        .flatten()
-        .and_then(|analyser| start_shape_analysis(mesh, analyser, ordering));
-    let mut ordering_early = (nested && analysis_early.is_none())
-        .then(|| start_shape_ordering(mesh))
         .flatten();
+    let (mut analysis_early, ordering_early) = match shape_work {
+        Some(work) => work.hand(analyser, nested),
+        None => (None, None),
+    };
+    let mut ordering_early = match (nested && analysis_early.is_none(), ordering_early) {
+        (true, None) => start_shape_ordering(mesh),
+        (_, early) => early,
+    };
     let mut model = ShapeModel::with_solver(mesh, &p.topo, p.handles.clone(), shape_solver)?;
     if nested && analysis_early.is_none() {
         shape_fill_ordering(&mut model, ordering_early.take());
@@ -574,14 +598,7 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
     let mut scale_system_dropped = None;
     if !p.constraints.is_empty() || has_handles || has_curvature {
         let make_scale_system = || -> Result<Option<ScaleFactorSystem>> {
-            match scale_early {
-                None => Ok(None),
-                Some(ScaleEarly::Started(handle)) => match handle.join() {
-                    Ok(made) => made.map(Some),
-                    Err(panic) => std::panic::resume_unwind(panic),
-                },
-                Some(ScaleEarly::Made(made)) => made.map(Some),
-            }
+            scale_early.map(ScaleEarly::join).transpose()
         };
         // Where asked for, the scale-driven kind's factor of the input's
         // `K` starts as soon as `K`'s symbolic analysis is made, beside the
@@ -898,49 +915,79 @@ fn drop_beside<T: Send + 'static>(value: T) -> Option<std::thread::JoinHandle<()
         .ok()
 }
 
-/// The scale factors' system (Eq. 3) being set up on its own thread, or,
-/// where no thread could be made, set up already.
+/// A solver opened for another system of the run ([`SpdSolver::sibling`]).
+type SolverMade = std::result::Result<Box<dyn SpdSolver>, SolverError>;
+
+/// The scale factors' system (Eq. 3) being set up on its own thread, which
+/// waits for its solver ([`ScaleEarly::give_solver`]) once its host work is
+/// done; or, where no thread could be made, to be set up when joined.
 enum ScaleEarly {
-    Started(std::thread::JoinHandle<Result<ScaleFactorSystem>>),
-    Made(Result<ScaleFactorSystem>),
+    Started(
+        std::thread::JoinHandle<Result<ScaleFactorSystem>>,
+        std::sync::mpsc::Sender<Option<SolverMade>>,
+    ),
+    Later(std::sync::Arc<ScaleSetUp>, Option<Option<SolverMade>>),
 }
 
-/// The scale factors' solver made, analysed and factored on another thread
-/// (it depends on the input mesh and the options alone), beside the shape
-/// model's set-up and the shape pattern's symbolic analysis: at homer 1.2M
-/// they and it take 1.2-1.4 s and 2.2 s on the development machine, one
-/// after the other before.
-fn start_scale_system(
-    p: &Problem,
-    o: &Options,
-    areas0: &[f64],
-    sibling: Option<std::result::Result<Box<dyn SpdSolver>, SolverError>>,
-) -> ScaleEarly {
-    let (k_d, k_r, regulariser, backend) = (o.k_d, o.k_r, o.regulariser, o.backend);
-    // The Newton steps on a GPU take one column per constraint (per
-    // constraint multipliers only: the others step on the host); after the
-    // first step only the rows of degree above 1 change and are solved.
-    let newton_columns = (o.multipliers == Multipliers::PerConstraint).then(|| {
-        let changing = p.constraints.iter().filter(|c| c.degree() != 1).count();
-        [p.constraints.len(), changing.max(1)]
-    });
-    let make = move |face_pairs: &[[u32; 2]],
-                     areas: &[f64],
-                     centroids: Option<Vec<DVec3>>,
-                     sibling: Option<std::result::Result<Box<dyn SpdSolver>, SolverError>>|
-          -> Result<ScaleFactorSystem> {
-        let mut solver = match sibling {
-            Some(made) => made?,
-            None => backend.scale_solver()?,
-        };
-        solver.set_system_kind(SystemKind::ScaleFactors);
-        if let Some(columns) = newton_columns {
-            solver.warm_up(SystemKind::ScaleFactors, &columns);
+impl ScaleEarly {
+    /// The set-up's solver: `Some`, a sibling of the shape solver's;
+    /// `None`, the backend's own.
+    fn give_solver(&mut self, solver: Option<SolverMade>) {
+        match self {
+            // A set-up that failed before its solver came wants none.
+            ScaleEarly::Started(_, tx) => tx.send(solver).unwrap_or_default(),
+            ScaleEarly::Later(_, given) => *given = Some(solver),
         }
+    }
+
+    /// The system set up (joined, or made here).
+    fn join(self) -> Result<ScaleFactorSystem> {
+        match self {
+            ScaleEarly::Started(handle, tx) => {
+                drop(tx);
+                match handle.join() {
+                    Ok(made) => made,
+                    Err(panic) => std::panic::resume_unwind(panic),
+                }
+            }
+            ScaleEarly::Later(set_up, given) => {
+                let host = set_up.host_part();
+                set_up.finish(host, given.flatten())
+            }
+        }
+    }
+}
+
+/// What the scale factors' set-up needs, apart from its solver.
+struct ScaleSetUp {
+    face_pairs: Vec<[u32; 2]>,
+    areas: Vec<f64>,
+    centroids: Option<Vec<DVec3>>,
+    k_d: f64,
+    k_r: f64,
+    regulariser: Regulariser,
+    backend: SolverBackend,
+    newton_columns: Option<[usize; 2]>,
+}
+
+/// The set-up's host work: its fill ordering, its matrix, and on a GPU its
+/// factor with that matrix's analysis ([`factor_ahead_of_its_solver`]).
+struct ScaleHostPart {
+    fill: FillOrdering,
+    hessian: SymCsc,
+    factored: Option<(CholeskySolver, CholeskySolver)>,
+}
+
+impl ScaleSetUp {
+    /// Everything the solver is not needed for, on this thread: made while
+    /// the shape solver's device is opened.
+    fn host_part(&self) -> ScaleHostPart {
         // See shape_fill_ordering.
         let t = Instant::now();
-        let fill = centroids
-            .and_then(|c| coordinate_nested_dissection_of_pairs(&c, face_pairs))
+        let fill = self
+            .centroids
+            .as_ref()
+            .and_then(|c| coordinate_nested_dissection_of_pairs(c, &self.face_pairs))
             .map_or(FillOrdering::Amd, |forward| {
                 log::debug!(
                     "fill ordering of the faces (their centroids' nested dissection): {:.3} s",
@@ -948,28 +995,119 @@ fn start_scale_system(
                 );
                 FillOrdering::Given(forward.into())
             });
-        solver.set_fill_ordering(fill);
-        ScaleFactorSystem::with_solver(face_pairs, areas, k_d, k_r, regulariser, solver)
-    };
-    let centroids = |mesh: &Mesh| {
-        (mesh.faces.len() >= COORDINATE_ORDERING_FACES_FROM).then(|| {
-            mesh.faces
-                .iter()
-                .map(|f| f.iter().map(|&v| mesh.positions[v as usize]).sum::<DVec3>() / 3.0)
-                .collect::<Vec<DVec3>>()
-        })
-    };
-    let (face_pairs, areas) = (p.topo.face_pairs.clone(), areas0.to_vec());
-    let c = centroids(&p.mesh);
-    match std::thread::Builder::new()
+        let hessian = ScaleFactorSystem::hessian(
+            &self.face_pairs,
+            &self.areas,
+            self.k_d,
+            self.k_r,
+            self.regulariser,
+        );
+        let factored = (self.backend == SolverBackend::Gpu)
+            .then(|| factor_ahead_of_its_solver(&hessian, &fill))
+            .flatten();
+        ScaleHostPart {
+            fill,
+            hessian,
+            factored,
+        }
+    }
+
+    /// The system on `solver` (`None`: the backend's own), with the host
+    /// part's matrix, ordering and factor.
+    fn finish(&self, host: ScaleHostPart, solver: Option<SolverMade>) -> Result<ScaleFactorSystem> {
+        let mut solver = match solver {
+            Some(made) => made?,
+            None => self.backend.scale_solver()?,
+        };
+        solver.set_system_kind(SystemKind::ScaleFactors);
+        if let Some(columns) = self.newton_columns {
+            solver.warm_up(SystemKind::ScaleFactors, &columns);
+        }
+        solver.set_fill_ordering(host.fill);
+        if let Some((analysed, factored)) = host.factored {
+            solver.adopt_isotropic_analysis(analysed);
+            solver.adopt_isotropic_factor(SystemKind::ScaleFactors, factored);
+        }
+        ScaleFactorSystem::with_hessian(host.hessian, solver)
+    }
+}
+
+/// The scale factors' matrix analysed and factored on the host in f64 (a
+/// GPU's Cholesky preconditioner of the scale factors, made before its
+/// device is open; [`SpdSolver::adopt_isotropic_factor`] takes it where it
+/// is of the precision and pattern the solver's set-up wants, and the
+/// set-up factors again otherwise): the analysed solver and its factored
+/// numeric twin. `None` where either step fails (the set-up reports it).
+/// At homer 108k on the H200's host the factor took 0.146 s after a
+/// 0.24-s device open.
+fn factor_ahead_of_its_solver(
+    h: &SymCsc,
+    fill: &FillOrdering,
+) -> Option<(CholeskySolver, CholeskySolver)> {
+    let t = Instant::now();
+    let mut analysed = CholeskySolver::new();
+    analysed.supernodal = true;
+    analysed.set_fill_ordering(fill.clone());
+    analysed.analyse(h).ok()?;
+    let mut factored = analysed.numeric_twin(false)?;
+    factored.prepare(h).ok()?;
+    log::debug!(
+        "scale factors' factor made on the host before its solver: {:.3} s",
+        t.elapsed().as_secs_f64()
+    );
+    Some((analysed, factored))
+}
+
+/// The scale factors' solver made, analysed and factored on another thread
+/// (it depends on the input mesh and the options alone), beside the shape
+/// model's set-up and the shape pattern's symbolic analysis: at homer 1.2M
+/// they and it take 1.2-1.4 s and 2.2 s on the development machine, one
+/// after the other before. Its host work (ordering, matrix, and on a GPU
+/// the factor) runs while the shape solver's device is opened; it then
+/// waits for its solver ([`ScaleEarly::give_solver`]).
+fn start_scale_system(p: &Problem, o: &Options, areas0: &[f64]) -> ScaleEarly {
+    // The Newton steps on a GPU take one column per constraint (per
+    // constraint multipliers only: the others step on the host); after the
+    // first step only the rows of degree above 1 change and are solved.
+    let newton_columns = (o.multipliers == Multipliers::PerConstraint).then(|| {
+        let changing = p.constraints.iter().filter(|c| c.degree() != 1).count();
+        [p.constraints.len(), changing.max(1)]
+    });
+    let mesh = &p.mesh;
+    let centroids = (mesh.faces.len() >= COORDINATE_ORDERING_FACES_FROM).then(|| {
+        mesh.faces
+            .iter()
+            .map(|f| f.iter().map(|&v| mesh.positions[v as usize]).sum::<DVec3>() / 3.0)
+            .collect::<Vec<DVec3>>()
+    });
+    let set_up = std::sync::Arc::new(ScaleSetUp {
+        face_pairs: p.topo.face_pairs.clone(),
+        areas: areas0.to_vec(),
+        centroids,
+        k_d: o.k_d,
+        k_r: o.k_r,
+        regulariser: o.regulariser,
+        backend: o.backend,
+        newton_columns,
+    });
+    let (tx, rx) = std::sync::mpsc::channel::<Option<SolverMade>>();
+    let mine = set_up.clone();
+    let spawned = std::thread::Builder::new()
         .name("scale factors' set-up".into())
-        .spawn(move || make(&face_pairs, &areas, c, sibling))
-    {
-        Ok(handle) => ScaleEarly::Started(handle),
+        .spawn(move || {
+            let host = mine.host_part();
+            match rx.recv() {
+                Ok(solver) => mine.finish(host, solver),
+                Err(_) => Err(Error::Internal(
+                    "the run ended before the scale factors' solver was opened".into(),
+                )),
+            }
+        });
+    match spawned {
+        Ok(handle) => ScaleEarly::Started(handle, tx),
         Err(e) => {
-            // The sibling went with the thread's closure: the backend's own.
-            log::debug!("no thread for the scale factors' set-up ({e}): made here");
-            ScaleEarly::Made(make(&p.topo.face_pairs, areas0, centroids(&p.mesh), None))
+            log::debug!("no thread for the scale factors' set-up ({e}): made when joined");
+            ScaleEarly::Later(set_up, None)
         }
     }
 }
@@ -1221,25 +1359,34 @@ fn shape_fill_ordering(model: &mut ShapeModel, early: Option<EarlyOrdering>) {
     }
 }
 
+/// What the thread of the shape pattern's work ([`start_shape_work`],
+/// [`start_shape_ordering`]) ends with.
+enum ShapeWorkDone {
+    /// The solver's analyser, having analysed the pattern in its ordering.
+    Analysed(std::result::Result<Box<CholeskySolver>, SolverError>),
+    /// The pattern's ordering alone (`forward[new] = old`; `None`: none
+    /// was made, or METIS failed), where no analyser came.
+    Ordered(Option<Vec<usize>>),
+}
+
 /// The shape pattern's METIS nested dissection (`forward[new] = old`),
 /// being made on its own thread ([`start_shape_ordering`]).
-struct EarlyOrdering(std::thread::JoinHandle<Option<Vec<usize>>>);
+struct EarlyOrdering(std::thread::JoinHandle<ShapeWorkDone>);
 
 impl EarlyOrdering {
     /// Waits for the ordering: `None` where METIS failed.
     fn join(self) -> Option<Vec<usize>> {
         match self.0.join() {
-            Ok(forward) => forward,
+            Ok(ShapeWorkDone::Ordered(forward)) => forward,
+            Ok(ShapeWorkDone::Analysed(_)) => None,
             Err(panic) => std::panic::resume_unwind(panic),
         }
     }
 }
 
 /// The symbolic analysis of the shape systems' `K`, being made on its own
-/// thread ([`start_shape_analysis`]).
-struct EarlyAnalysis(
-    std::thread::JoinHandle<std::result::Result<CholeskySolver, solver_cpu::SolverError>>,
-);
+/// thread ([`start_shape_work`]).
+struct EarlyAnalysis(std::thread::JoinHandle<ShapeWorkDone>);
 
 impl EarlyAnalysis {
     /// Waits for the analysed solver: `None` where the analysis failed
@@ -1247,18 +1394,19 @@ impl EarlyAnalysis {
     fn join_logged(self) -> Option<CholeskySolver> {
         let t = Instant::now();
         match self.0.join() {
-            Ok(Ok(analysed)) => {
+            Ok(ShapeWorkDone::Analysed(Ok(analysed))) => {
                 log::debug!(
                     "symbolic analysis of the shape systems' K, made from the start on its own \
                      thread: waited {:.3} s",
                     t.elapsed().as_secs_f64()
                 );
-                Some(analysed)
+                Some(*analysed)
             }
-            Ok(Err(e)) => {
+            Ok(ShapeWorkDone::Analysed(Err(e))) => {
                 log::debug!("symbolic analysis of K ahead: {e}; left to the factorization");
                 None
             }
+            Ok(ShapeWorkDone::Ordered(_)) => None,
             Err(_) => {
                 log::debug!("symbolic analysis of K ahead panicked; left to the factorization");
                 None
@@ -1278,24 +1426,50 @@ fn adopt_early_analysis(model: &mut ShapeModel, analysis: EarlyAnalysis) {
     crate::memory::release_free_memory();
 }
 
-/// `analyser` ([`SpdSolver::isotropic_analyser`], in the solver's fill
-/// ordering) makes the symbolic analysis of the shape systems' `K` on its
-/// own thread from the start, on [`crate::shape::shape_pattern`] (the
-/// model's pattern, known from the faces), after the pattern's `ordering`
-/// ([`shape_fill_ordering`]): beside the shape model's set-up, not after it
+/// The shape pattern's work on its own thread ([`start_shape_work`]): it
+/// waits for the solver's analyser once the pattern is ordered.
+struct ShapeWork {
+    analyser: std::sync::mpsc::Sender<Option<CholeskySolver>>,
+    thread: std::thread::JoinHandle<ShapeWorkDone>,
+}
+
+impl ShapeWork {
+    /// Hands the thread `analyser` ([`SpdSolver::isotropic_analyser`]):
+    /// with one, the analysis being made; without, where `nested`, the METIS
+    /// ordering for [`shape_fill_ordering`] (else nothing: the thread ends
+    /// on its own).
+    fn hand(
+        self,
+        analyser: Option<CholeskySolver>,
+        nested: bool,
+    ) -> (Option<EarlyAnalysis>, Option<EarlyOrdering>) {
+        let analyses = analyser.is_some();
+        // A thread that ended (it panicked) is seen when joined.
+        self.analyser.send(analyser).unwrap_or_default();
+        match (analyses, nested) {
+            (true, _) => (Some(EarlyAnalysis(self.thread)), None),
+            (false, true) => (None, Some(EarlyOrdering(self.thread))),
+            (false, false) => (None, None),
+        }
+    }
+}
+
+/// On its own thread from the start, on [`crate::shape::shape_pattern`]
+/// (the model's pattern, known from the faces): the pattern's `ordering`
+/// ([`shape_fill_ordering`]), made while the shape solver is opened, then
+/// the symbolic analysis of the shape systems' `K` by the analyser the
+/// solver hands over ([`ShapeWork::hand`]; [`SpdSolver::isotropic_analyser`],
+/// in the ordering made), beside the shape model's set-up, not after it
 /// (homer 1.2M on the development machine: minimum degree's analysis 1.15
 /// s; METIS and its analysis 4.8 and 0.4 s; the vertices' nested
 /// dissection and its analysis 0.57 and 0.33 s). `None` where no thread could
 /// be had (the analysis is then made beside the scale factors' set-up).
-fn start_shape_analysis(
-    mesh: &Mesh,
-    mut analyser: CholeskySolver,
-    ordering: ShapeOrdering,
-) -> Option<EarlyAnalysis> {
+fn start_shape_work(mesh: &Mesh, ordering: ShapeOrdering) -> Option<ShapeWork> {
     let positions = (ordering == ShapeOrdering::Coordinates).then(|| mesh.positions.clone());
-    on_shape_pattern(
+    let (tx, rx) = std::sync::mpsc::channel::<Option<CholeskySolver>>();
+    let thread = on_shape_pattern(
         mesh,
-        "shape symbolic analysis",
+        "shape pattern's ordering and analysis",
         move |n, col_ptr, row_idx| {
             let forward = match (ordering, positions) {
                 (ShapeOrdering::Metis, _) => shape_nested_dissection(n, &col_ptr, &row_idx),
@@ -1311,6 +1485,9 @@ fn start_shape_analysis(
                 }
                 _ => None,
             };
+            let Ok(Some(mut analyser)) = rx.recv() else {
+                return ShapeWorkDone::Ordered(forward);
+            };
             if let Some(forward) = forward {
                 analyser.set_fill_ordering(FillOrdering::Given(forward.into()));
             }
@@ -1320,10 +1497,13 @@ fn start_shape_analysis(
                 row_idx,
                 values: Vec::new(),
             };
-            analyser.analyse(&pattern).map(|()| analyser)
+            ShapeWorkDone::Analysed(analyser.analyse(&pattern).map(|()| Box::new(analyser)))
         },
-    )
-    .map(EarlyAnalysis)
+    )?;
+    Some(ShapeWork {
+        analyser: tx,
+        thread,
+    })
 }
 
 /// Which fill ordering the shape systems' analysis ahead is made in
@@ -1346,7 +1526,7 @@ enum ShapeOrdering {
 /// be had (the caller orders on its own then).
 fn start_shape_ordering(mesh: &Mesh) -> Option<EarlyOrdering> {
     on_shape_pattern(mesh, "shape fill ordering", |n, col_ptr, row_idx| {
-        shape_nested_dissection(n, &col_ptr, &row_idx)
+        ShapeWorkDone::Ordered(shape_nested_dissection(n, &col_ptr, &row_idx))
     })
     .map(EarlyOrdering)
 }
@@ -1478,6 +1658,29 @@ mod tests {
             .zip(&y)
             .fold(0.0f64, |m, (p, q)| m.max((p - q).abs()));
         assert!(e < 1e-12, "{e}");
+    }
+
+    /// What a backend says of the shape factor's ordering before its
+    /// solver is opened is what the opened solver says (a GPU where one is
+    /// at hand).
+    #[test]
+    fn backends_want_the_ordering_their_solvers_want() {
+        for backend in [
+            SolverBackend::Cpu,
+            SolverBackend::CpuDirect,
+            SolverBackend::Gpu,
+        ] {
+            if backend == SolverBackend::Gpu && !solver_gpu::gpu_available() {
+                continue;
+            }
+            let solver = backend.shape_solver().unwrap();
+            assert_eq!(
+                backend.wants_nested_dissection(),
+                solver.wants_nested_dissection(),
+                "{}",
+                backend.name()
+            );
+        }
     }
 
     /// Unset, the overlap follows the calling thread's rayon pool: on from

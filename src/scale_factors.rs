@@ -137,8 +137,34 @@ impl ScaleFactorSystem {
         k_d: f64,
         k_r: f64,
         reg: Regulariser,
-        mut solver: Box<dyn SpdSolver>,
+        solver: Box<dyn SpdSolver>,
     ) -> Result<Self> {
+        Self::with_hessian(Self::hessian(face_pairs, areas, k_d, k_r, reg), solver)
+    }
+
+    /// The system of [`Self::hessian`]'s `h`, factored (or uploaded) by
+    /// `solver`.
+    pub fn with_hessian(h: SymCsc, mut solver: Box<dyn SpdSolver>) -> Result<Self> {
+        solver.prepare(&h)?;
+        Ok(ScaleFactorSystem {
+            n: h.n,
+            solver,
+            rows: Vec::new(),
+            ycols: Vec::new(),
+            spare_rows: Vec::new(),
+            spare_y: Vec::new(),
+        })
+    }
+
+    /// `2 k_d L_Q + 2 k_r diag(rho)`, the constant Hessian of Eq. 3 on the
+    /// faces' adjacency `face_pairs`.
+    pub fn hessian(
+        face_pairs: &[[u32; 2]],
+        areas: &[f64],
+        k_d: f64,
+        k_r: f64,
+        reg: Regulariser,
+    ) -> SymCsc {
         let n = areas.len();
         let mut h =
             SymCsc::from_pattern(n, face_pairs.iter().map(|p| (p[0] as usize, p[1] as usize)));
@@ -162,15 +188,7 @@ impl ScaleFactorSystem {
             let sab = h.slot(a, b).unwrap();
             h.values[sab] -= d;
         }
-        solver.prepare(&h)?;
-        Ok(ScaleFactorSystem {
-            n,
-            solver,
-            rows: Vec::new(),
-            ycols: Vec::new(),
-            spare_rows: Vec::new(),
-            spare_y: Vec::new(),
-        })
+        h
     }
 
     /// Make `ycols` the solutions `H^-1 r` of the Jacobian rows `next` (row j

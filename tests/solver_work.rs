@@ -153,7 +153,8 @@ fn gpu_compiles_the_pipelines_of_its_solves_ahead() {
 /// factor made after the scale factors' set-up: the same result to the
 /// bit. Either way each shape kind's set-up takes its factor made ahead
 /// (the solver keeps one such at a time: the fine-tune's must not be handed
-/// over before the scale-driven kind has taken its own).
+/// over before the scale-driven kind has taken its own), and so does the
+/// scale factors' (made on the host while the device was opened).
 #[test]
 fn gpu_shape_factors_made_at_once_give_the_result_made_one_after_the_other() {
     if !gpu_available() {
@@ -175,9 +176,11 @@ fn gpu_shape_factors_made_at_once_give_the_result_made_one_after_the_other() {
                 (
                     w.scale_driven.setups_from_factors_ahead,
                     w.fine_tune.setups_from_factors_ahead,
-                    w.fine_tune.preconditioner_setups
+                    w.fine_tune.preconditioner_setups,
+                    w.scale_factors.setups_from_factors_ahead,
+                    w.scale_factors.preconditioner_setups
                 ),
-                (1, 1, 1),
+                (1, 1, 1, 1, 1),
                 "at once: {at_once}; {w:?}"
             );
             out.positions

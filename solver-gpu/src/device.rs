@@ -1425,7 +1425,12 @@ mod tests {
         solver_cpu::SpdSolver::solve_in_place(&mut sib, &mut x, 1).unwrap();
         let mut ax = vec![0.0; 3];
         a.mul_vec(&x, &mut ax);
-        assert!(ax.iter().zip([1.0, 2.0, 3.0]).all(|(p, q)| (p - q).abs() < 1e-6), "{ax:?}");
+        assert!(
+            ax.iter()
+                .zip([1.0, 2.0, 3.0])
+                .all(|(p, q)| (p - q).abs() < 1e-6),
+            "{ax:?}"
+        );
         assert_eq!(ctx.traffic().to_device, before.to_device);
         assert!(sib.ctx.traffic().to_device > n);
     }

@@ -975,10 +975,9 @@ impl SpdSolver for GpuSolver {
     /// its own permutation and supernodes), or does not fit the device, is
     /// dropped: the
     /// kind's set-up factors again.
+    /// A shape kind's factor of `K`, or the scale factors' of their matrix
+    /// (made on the host while the device was opened).
     fn adopt_isotropic_factor(&mut self, kind: SystemKind, factored: solver_cpu::CholeskySolver) {
-        if kind == SystemKind::ScaleFactors {
-            return;
-        }
         if let Err(e) = self.upload_factor_ahead(kind, factored) {
             log::debug!("Cholesky factor made ahead ({kind:?} system) not taken: {e}");
         }

@@ -339,7 +339,7 @@ impl GpuSolver {
         Ok(())
     }
 
-    /// `factored`, a shape kind's factor of the host's analysed pattern made
+    /// `factored`, a kind's factor of the host's analysed pattern made
     /// ahead (on a twin of that analysis, or on its own ordering), sent up to
     /// the GPU beside the active factor, for that kind's set-up to take
     /// ([`Self::join_factor_upload`]). Where uploads go beside the caller
@@ -357,7 +357,7 @@ impl GpuSolver {
     ) -> Result<(), GpuError> {
         if !factored.is_factored_of_pattern_of(&self.chol_host) {
             return Err(GpuError::Backend(
-                "not a factor of the shape systems' pattern".into(),
+                "not a factor of the pattern the solver has analysed".into(),
             ));
         }
         let precision = match factored.is_single_precision() {
