@@ -1334,29 +1334,43 @@ mod tests {
         (s, vec![1.1; n], w)
     }
 
+    /// A varied job's `(s, c, w)` ([`varied_job`]).
+    type Job = (Vec<f64>, Vec<f64>, ShapeWeights);
+
+    /// spot with a varied job at perturbed positions, E_p weighted: the
+    /// mesh, its topology, the job and the positions.
+    fn handle_job() -> (Mesh, Topology, Job, Vec<DVec3>) {
+        let (mesh, _) = spot_model();
+        let topo = Topology::build(&mesh);
+        let (s, c, mut w) = varied_job(mesh.num_faces(), mesh.num_vertices());
+        w.k_p = 10.0;
+        let xc = perturbed(&mesh, 0.02);
+        (mesh, topo, (s, c, w), xc)
+    }
+
+    /// Three handles on spot, near their vertices (none unless `with`).
+    fn spot_handles(mesh: &Mesh, with: bool) -> Vec<HandleTarget> {
+        [5u32, 700, 1400]
+            .iter()
+            .filter(|_| with)
+            .map(|&v| HandleTarget {
+                vertex: v,
+                target: mesh.positions[v as usize] + DVec3::new(0.01, 0.0, -0.02),
+            })
+            .collect()
+    }
+
     /// `isotropic_part` is the `K` that an assembly at the same positions
     /// and weights gives a solver that reads `K` apart (the matrix its
     /// factor is made from), to the bit: every isotropic term, handles
     /// included, held rows identity.
     #[test]
     fn isotropic_part_is_the_assemblys_k_to_the_bit() {
-        let (mesh, _) = spot_model();
-        let topo = Topology::build(&mesh);
-        let n = mesh.num_vertices();
-        let (s, c, mut w) = varied_job(mesh.num_faces(), n);
-        w.k_p = 10.0;
-        let xc = perturbed(&mesh, 0.02);
+        let (mesh, topo, (s, c, w), xc) = handle_job();
         let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
         // With handles (E_p), and without (a held vertex).
         for with_handles in [true, false] {
-            let handles: Vec<HandleTarget> = [5u32, 700, 1400]
-                .iter()
-                .filter(|_| with_handles)
-                .map(|&v| HandleTarget {
-                    vertex: v,
-                    target: mesh.positions[v as usize] + DVec3::new(0.01, 0.0, -0.02),
-                })
-                .collect();
+            let handles = spot_handles(&mesh, with_handles);
             let solver = Box::new(solver_cpu::CholeskySolver::new());
             let mut model = ShapeModel::with_solver(&mesh, &topo, handles, solver).unwrap();
             assert_eq!(model.fixed.iter().any(|&f| f), !with_handles);
@@ -1379,21 +1393,10 @@ mod tests {
     /// it is not.
     #[test]
     fn energy_and_gradient_are_the_products_held_dofs_left_out() {
-        let (mesh, _) = spot_model();
-        let topo = Topology::build(&mesh);
+        let (mesh, topo, (s, c, w), xc) = handle_job();
         let n = mesh.num_vertices();
-        let (s, c, mut w) = varied_job(mesh.num_faces(), n);
-        w.k_p = 10.0;
-        let xc = perturbed(&mesh, 0.02);
         for with_handles in [true, false] {
-            let handles: Vec<HandleTarget> = [5u32, 700, 1400]
-                .iter()
-                .filter(|_| with_handles)
-                .map(|&v| HandleTarget {
-                    vertex: v,
-                    target: mesh.positions[v as usize] + DVec3::new(0.01, 0.0, -0.02),
-                })
-                .collect();
+            let handles = spot_handles(&mesh, with_handles);
             let mut model = ShapeModel::new(&mesh, &topo, handles).unwrap();
             model.assemble_and_factor(&mesh, &xc, &s, &c, &w).unwrap();
             let held = |i: usize| model.fixed[i / 3];

@@ -73,8 +73,9 @@ pub fn open_with(opts: OpenOptions) -> Result<GpuSolver, GpuError> {
 }
 
 impl GpuSolver {
-    /// Another solver on this one's device ([`Context::sibling`]: its own
-    /// counts), with this one's tolerance: for a second system of the run.
+    /// Another solver on this one's device (its own context on the same
+    /// device and queue, with its own counts), with this one's tolerance:
+    /// for a second system of the run.
     pub fn sibling_solver(&self) -> Result<GpuSolver, GpuError> {
         let mut s = on_context(self.ctx.sibling(), std::time::Instant::now())?;
         s.tol = self.tol;
