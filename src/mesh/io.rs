@@ -560,7 +560,9 @@ fn parse_stl(bytes: &[u8], path: &Path) -> Result<Mesh> {
     let tris = stl_triangles(bytes, path)?;
     let mut positions = Vec::new();
     let mut faces = Vec::with_capacity(tris.len());
-    let mut ids: HashMap<[u32; 3], u32> = HashMap::with_capacity(tris.len() / 2 + 16);
+    // Fx hashing, as Topology::build's: lookups only, no order decided.
+    let mut ids: rustc_hash::FxHashMap<[u32; 3], u32> =
+        rustc_hash::FxHashMap::with_capacity_and_hasher(tris.len() / 2 + 16, Default::default());
     for t in &tris {
         let mut face = [0u32; 3];
         for (k, p) in t.iter().enumerate() {
