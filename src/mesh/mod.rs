@@ -124,10 +124,11 @@ impl Mesh {
     /// `cotmatrix_entries` would give huge or infinite weights). A face whose corners
     /// are not all distinct counts too. Judged on the positions `x`.
     pub fn degenerate_faces(&self, x: &[DVec3]) -> Vec<bool> {
+        use rayon::prelude::*;
         let diag = self.bbox_diagonal(x);
         let tol = DEGENERATE_AREA * diag * diag;
         self.faces
-            .iter()
+            .par_iter()
             .map(|t| {
                 let [a, b, c] = *t;
                 if a == b || b == c || a == c {

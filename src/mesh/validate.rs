@@ -281,13 +281,14 @@ pub fn validate(mesh: &Mesh, topo: &Topology, file: &Path) -> Result<MeshCheck> 
 }
 
 /// Vertices whose incident faces form more than one fan (faces connected through edges
-/// incident to the vertex). Assumes no non-manifold edges.
+/// incident to the vertex). Assumes no non-manifold edges. Each vertex on
+/// rayon's threads, listed in vertex order.
 fn non_manifold_vertices(mesh: &Mesh, topo: &Topology) -> Vec<usize> {
-    let mut out = Vec::new();
-    for v in 0..mesh.positions.len() {
+    use rayon::prelude::*;
+    let more_than_one_fan = |v: usize| -> bool {
         let fs = topo.vertex_faces(v);
         if fs.len() < 2 {
-            continue;
+            return false;
         }
         // Union-find over the faces around v (indices into fs).
         let mut local = UnionFind::new(fs.len());
@@ -309,11 +310,12 @@ fn non_manifold_vertices(mesh: &Mesh, topo: &Topology) -> Vec<usize> {
             }
         }
         let root = local.find(0);
-        if (1..fs.len() as u32).any(|i| local.find(i) != root) {
-            out.push(v);
-        }
-    }
-    out
+        (1..fs.len() as u32).any(|i| local.find(i) != root)
+    };
+    (0..mesh.positions.len())
+        .into_par_iter()
+        .filter(|&v| more_than_one_fan(v))
+        .collect()
 }
 
 /// Fails unless the mesh is closed: `what` names the requirement, e.g.
