@@ -1002,7 +1002,11 @@ impl ScaleSetUp {
             self.k_r,
             self.regulariser,
         );
-        let factored = (self.backend == SolverBackend::Gpu)
+        // A GPU's scale factors are preconditioned by their factor unless
+        // another preconditioner is asked for.
+        let cholesky =
+            solver_gpu::Preconditioner::from_env() == solver_gpu::Preconditioner::Cholesky;
+        let factored = (self.backend == SolverBackend::Gpu && cholesky)
             .then(|| factor_ahead_of_its_solver(&hessian, &fill))
             .flatten();
         ScaleHostPart {
