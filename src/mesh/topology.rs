@@ -43,6 +43,73 @@ pub struct Topology {
     pub ignored: Vec<bool>,
 }
 
+/// The edges of `faces` (each face's sides `(t[k], t[k + 1])`, as the
+/// pair `(min, max)`), numbered in the order they first appear, face after
+/// face; and each face's three edge numbers. Where every corner is one of
+/// the `nv` vertices, each side is looked up among the sides already seen
+/// at its smaller end (a few each: a linear search in that vertex's slots),
+/// else in a hash map: the same numbering either way. At homer 1.2M the
+/// hash map (Fx) took 0.148 s of `Topology::build`'s 0.26 s on the
+/// development machine.
+fn number_edges(faces: &[[u32; 3]], nv: usize) -> (Vec<[u32; 2]>, Vec<[u32; 3]>) {
+    let sides = |t: &[u32; 3]| {
+        let t = *t;
+        (0..3).map(move |k| {
+            let (a, b) = (t[k], t[(k + 1) % 3]);
+            (a.min(b), a.max(b))
+        })
+    };
+    let mut edges = Vec::with_capacity(faces.len() * 3 / 2 + 16);
+    let mut face_edges = Vec::with_capacity(faces.len());
+    if faces.iter().flatten().any(|&v| v as usize >= nv) {
+        let mut map: FxHashMap<(u32, u32), u32> =
+            FxHashMap::with_capacity_and_hasher(faces.len() * 3 / 2 + 16, Default::default());
+        for t in faces {
+            let mut fe = [0u32; 3];
+            for (k, key) in sides(t).enumerate() {
+                fe[k] = *map.entry(key).or_insert_with(|| {
+                    edges.push([key.0, key.1]);
+                    (edges.len() - 1) as u32
+                });
+            }
+            face_edges.push(fe);
+        }
+        return (edges, face_edges);
+    }
+    // Each vertex's slots for the sides whose smaller end it is: the
+    // larger end and the edge's number.
+    let mut start = vec![0usize; nv + 1];
+    for t in faces {
+        for (lo, _) in sides(t) {
+            start[lo as usize + 1] += 1;
+        }
+    }
+    for v in 0..nv {
+        start[v + 1] += start[v];
+    }
+    let mut filled = start[..nv].to_vec();
+    let mut slots = vec![(0u32, 0u32); start[nv]];
+    for t in faces {
+        let mut fe = [0u32; 3];
+        for (k, (lo, hi)) in sides(t).enumerate() {
+            let v = lo as usize;
+            let seen = slots[start[v]..filled[v]].iter().find(|s| s.0 == hi);
+            fe[k] = match seen {
+                Some(&(_, e)) => e,
+                None => {
+                    let e = edges.len() as u32;
+                    edges.push([lo, hi]);
+                    slots[filled[v]] = (hi, e);
+                    filled[v] += 1;
+                    e
+                }
+            };
+        }
+        face_edges.push(fe);
+    }
+    (edges, face_edges)
+}
+
 impl Topology {
     pub fn build(mesh: &Mesh) -> Topology {
         let nf = mesh.faces.len();
@@ -77,24 +144,7 @@ impl Topology {
             }
         }
         drop(first);
-        let mut map: FxHashMap<(u32, u32), u32> =
-            FxHashMap::with_capacity_and_hasher(nf * 3 / 2 + 16, Default::default());
-        let mut edges = Vec::with_capacity(nf * 3 / 2 + 16);
-        let mut face_edges = Vec::with_capacity(nf);
-        for t in &mesh.faces {
-            let mut fe = [0u32; 3];
-            for k in 0..3 {
-                let (a, b) = (t[k], t[(k + 1) % 3]);
-                let key = (a.min(b), a.max(b));
-                let e = *map.entry(key).or_insert_with(|| {
-                    edges.push([key.0, key.1]);
-                    (edges.len() - 1) as u32
-                });
-                fe[k] = e;
-            }
-            face_edges.push(fe);
-        }
-        drop(map);
+        let (edges, face_edges) = number_edges(&mesh.faces, nv);
         let ne = edges.len();
         let (edge_face_start, edge_face_index) = compressed_rows(ne, |add| {
             for (f, fe) in face_edges.iter().enumerate() {
@@ -245,4 +295,35 @@ pub fn vertex_components(mesh: &Mesh) -> (Vec<u32>, usize) {
         out[v] = label[r];
     }
     (out, count)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The slots' numbering is the hash map's (taken where a corner is out
+    /// of range; here forced with no vertices), on spot and on spot with a
+    /// collapsed face, a repeated face and a face reversed added.
+    #[test]
+    fn edges_are_numbered_alike_by_slots_and_by_the_hash_map() {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("data/meshes/spot.obj");
+        let mut mesh = crate::mesh::io::read_mesh(&path).unwrap();
+        let nv = mesh.positions.len();
+        for extra in [
+            vec![],
+            vec![[3u32, 3, 7], [10, 11, 12], [12, 11, 10], [10, 11, 12]],
+        ] {
+            mesh.faces.extend(extra);
+            let (slots, by_map) = (number_edges(&mesh.faces, nv), number_edges(&mesh.faces, 0));
+            assert!(slots.0.len() > nv, "{} edges", slots.0.len());
+            assert_eq!(slots, by_map);
+            // Each face's edges are its sides.
+            for (t, fe) in mesh.faces.iter().zip(&slots.1) {
+                for k in 0..3 {
+                    let (a, b) = (t[k], t[(k + 1) % 3]);
+                    assert_eq!(slots.0[fe[k] as usize], [a.min(b), a.max(b)]);
+                }
+            }
+        }
+    }
 }
