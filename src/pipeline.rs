@@ -828,7 +828,7 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
         scale_factor_work = scale_system.as_ref().map(|s| s.counters());
         // Its solver (on a GPU, its device and buffers) is released while
         // the fine-tune runs.
-        scale_system_dropped = Some(drop_beside(scale_system));
+        scale_system_dropped = scale_system.map(drop_beside);
     }
     let t1 = Instant::now();
     summary.scale_driven = model.solver().counters();

@@ -125,13 +125,17 @@ impl Topology {
             key.sort_unstable();
             key
         };
-        let collapsed = |f: usize| {
-            let k = key(f);
-            k[0] == k[1] || k[1] == k[2]
-        };
+        // Faces with a repeated corner, sorted once (the lists and the loop
+        // below both ask).
+        let collapsed: Vec<bool> = (0..nf)
+            .map(|f| {
+                let k = key(f);
+                k[0] == k[1] || k[1] == k[2]
+            })
+            .collect();
         let smallest_edge = |f: usize| *face_edges[f].iter().min().unwrap() as usize;
         let (by_edge_start, by_edge) = compressed_rows(edges.len(), |add| {
-            for f in (0..nf).filter(|&f| !collapsed(f)) {
+            for f in (0..nf).filter(|&f| !collapsed[f]) {
                 add(smallest_edge(f), f as u32);
             }
         });
@@ -140,7 +144,7 @@ impl Topology {
         let mut collapsed_faces = Vec::new();
         let mut ignored = vec![false; nf];
         for f in 0..nf {
-            if collapsed(f) {
+            if collapsed[f] {
                 collapsed_faces.push(f as u32);
                 ignored[f] = true;
                 continue;
