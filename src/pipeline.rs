@@ -14,6 +14,7 @@ use crate::shape::{
 };
 use crate::{Error, Mesh, Result};
 use glam::DVec3;
+use rayon::iter::{IntoParallelIterator, ParallelIterator};
 use solver_cpu::cholesky::NESTED_DISSECTION_FROM;
 use solver_cpu::{
     coordinate_nested_dissection, coordinate_nested_dissection_of_pairs,
@@ -879,6 +880,7 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
     );
     log_work("scale factors (whole run)", &summary.scale_factors, None);
     let face_scale = (0..nf)
+        .into_par_iter()
         .map(|f| {
             let a = mesh.face_area(&x, f);
             if areas0[f] > 0.0 {

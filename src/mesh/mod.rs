@@ -84,9 +84,13 @@ impl Mesh {
         0.5 * (b - a).cross(c - a).length()
     }
 
-    /// Areas of all faces for positions `x`.
+    /// Areas of all faces for positions `x`, on rayon's threads (each face
+    /// apart: the same values on any thread count). Every outer iteration
+    /// reads them: 1.2M faces at homer 1.2M.
     pub fn face_areas(&self, x: &[DVec3]) -> Vec<f64> {
+        use rayon::prelude::*;
         (0..self.faces.len())
+            .into_par_iter()
             .map(|f| self.face_area(x, f))
             .collect()
     }
