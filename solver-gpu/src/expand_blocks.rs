@@ -958,6 +958,60 @@ mod tests {
         }
     }
 
+    /// A shape pattern's expansion is set up once in a run: the first
+    /// matrix's mixed-precision matrix is made before it (its low parts
+    /// expanded with the high ones), a new kind's factor makes new steps
+    /// only and a solve of more columns new vectors only, over the same
+    /// matrix. Every solve's residual is still the host-summed matrix's.
+    #[test]
+    fn a_shape_patterns_expansion_is_set_up_once() {
+        use solver_cpu::SystemKind::{FineTune, ScaleDriven};
+        let Some(mut s) = mixed_solver() else {
+            return;
+        };
+        let n = 60;
+        let mut fixed = vec![false; n];
+        fixed[7] = true;
+        let rings = crate::matrix::shape_strip(n, 0.0).rings;
+        let steps = [
+            (ScaleDriven, 0.0, 1),
+            (ScaleDriven, 0.25, 1),
+            (FineTune, 0.5, 4),
+            (FineTune, 0.75, 3),
+        ];
+        for (kind, seed, ncols) in steps {
+            s.set_system_kind(kind);
+            let mut a = crate::matrix::shape_strip(n, seed);
+            a.rings = rings.clone();
+            let mut want = HostMatrix::pattern(n, 3, &a.iso.col_ptr, &a.iso.row_idx).unwrap();
+            let slots =
+                crate::matrix::RingSlots::new(&a.rings, &a.iso.col_ptr, &a.iso.row_idx).unwrap();
+            want.fill_shape(&a, &slots, &fixed).unwrap();
+            assert!(s.prepare_shape_owned(a, &fixed).unwrap().is_none());
+            let b: Vec<f64> = (0..3 * n * ncols)
+                .map(|i| 1.0 + (i / (3 * n)) as f64 + 0.01 * (i % 7) as f64)
+                .collect();
+            let mut y = b.clone();
+            s.solve_in_place(&mut y, ncols).unwrap();
+            assert!(s.last_solve_mixed(), "{kind:?}, seed {seed}");
+            let mut r = vec![0.0; 3 * n * ncols];
+            want.residual(&b, &y, &mut r, ncols);
+            for c in 0..ncols {
+                let col = |v: &[f64]| {
+                    v[c * 3 * n..(c + 1) * 3 * n]
+                        .iter()
+                        .map(|v| v * v)
+                        .sum::<f64>()
+                };
+                let rel = (col(&r) / col(&b)).sqrt();
+                assert!(rel < 1e-9, "{kind:?}, seed {seed}, column {c}: {rel:e}");
+            }
+        }
+        assert_eq!(s.setups, 2, "one factor per kind");
+        assert_eq!(s.mixed_builds, 1, "one mixed-precision matrix");
+        assert_eq!(s.expansions, 1, "one expansion");
+    }
+
     /// Uploads go up beside the caller by default from
     /// `BESIDE_UPLOADS_FROM_THREADS` of rayon's threads on, not below (where
     /// the extra threads slowed the main thread's own work on two cores).
@@ -1029,7 +1083,7 @@ mod tests {
                 assert_eq!(up, (each + square_once) as u64, "seed {seed}");
             }
             assert_eq!(s.shape_sum.as_ref().unwrap().1.parts.len(), parts);
-            // (The first solve builds the mixed-precision matrix.)
+            // (The first matrix's upload made the mixed-precision matrix.)
             check_solve(&mut s, &want);
             assert!(s.last_solve_mixed());
             check_parts(&s, &want);

@@ -160,6 +160,11 @@ pub(crate) struct MixedData {
     pub(crate) ws: Workspace,
     /// The refinement's vectors ([`crate::refine`]).
     pub(super) refine: refine::Refinement,
+    /// Whether `ws`'s preconditioner steps are of the solver's current
+    /// preconditioner: a new one (a kind's factor) leaves the matrix, its
+    /// expansion and the vectors as they are, and only the steps are made
+    /// again ([`GpuSolver::drop_preconditioner_steps`]).
+    pub(super) steps_current: bool,
 }
 
 impl GpuSolver {
@@ -171,18 +176,32 @@ impl GpuSolver {
     }
 
     /// The mixed-precision matrix and workspace for at least `ncols` columns.
+    /// A matrix of the uploaded pattern is kept: more columns make new
+    /// vectors over it, and a new preconditioner new steps; neither sets up
+    /// its expansion again (the map and the values sent up once more).
     pub(crate) fn mixed_workspace(&mut self, ncols: usize) -> Result<(), GpuError> {
         let stamp = (self.pattern_uploads, self.value_uploads);
         let want = ncols.min(CMAX);
         let block = self.host.as_ref().is_some_and(|h| h.bs == 3);
         if let Some(m) = self.mixed.as_mut() {
-            if m.stamp.0 == stamp.0 && m.ws.cmax >= want && (block || m.stamp.1 == stamp.1) {
+            if m.stamp.0 == stamp.0 && (block || m.stamp.1 == stamp.1) {
                 if m.stamp.1 != stamp.1 {
                     // Same pattern, new values: rewrite them in place (the
                     // high parts are the f32 matrix's, already written).
                     let h = self.host.as_ref().unwrap();
                     m.matrix.write_values(&self.ctx, h, Some(&[]));
                     m.stamp = stamp;
+                }
+                if m.ws.cmax < want {
+                    let mut m = self.mixed.take().unwrap();
+                    let (ws, refine) = self.mixed_vectors(&m.matrix, want)?;
+                    (m.ws, m.refine, m.steps_current) = (ws, refine, true);
+                    self.mixed = Some(m);
+                } else if !m.steps_current {
+                    let mut m = self.mixed.take().unwrap();
+                    self.mixed_steps(&mut m.ws)?;
+                    m.steps_current = true;
+                    self.mixed = Some(m);
                 }
                 return Ok(());
             }
@@ -225,62 +244,85 @@ impl GpuSolver {
         unwritten: bool,
     ) -> Result<(), GpuError> {
         self.mixed_kernels()?;
-        let k = self.mixed_kernels.as_ref().unwrap();
         let h = self.host.as_ref().unwrap();
         let matrix = match h.bs {
             1 => GpuMatrix::upload_scalar(&self.ctx, h, precision::Precision::F64)?,
             _ => GpuMatrix::upload_split_f64(&self.ctx, h, self.gpu.as_ref().unwrap(), !unwritten)?,
         };
-        let spmv = k.spmv(h.bs);
-        let mut ws = k.pcg.workspace(&self.ctx, &spmv, &matrix, h.n(), 1, want)?;
-        let refine = refine::Refinement::new(&self.ctx, &k.refine, &spmv, &matrix, &ws)?;
-        // An f64 factor's solves read and write the f64 vectors in place.
-        ws.chol = self.cholesky_steps(precision::Precision::F64, &ws.r, &ws.z, h.bs, ws.cmax)?;
-        // Else the f32 factor, squared Laplacian or V-cycle on f32 copies.
-        if ws.chol.is_none() {
-            let narrow = pcg::Narrow::new(&self.ctx, &k.convert, &ws)?;
-            let f32_chol = self.cholesky_steps(
-                precision::Precision::F32,
-                &narrow.r32,
-                &narrow.z32,
-                h.bs,
-                ws.cmax,
-            )?;
-            match (f32_chol, &self.squared) {
-                (Some(steps), _) => ws.chol = Some(steps),
-                (None, Some((_, mt))) => {
-                    let g = self.amg_gpu.as_ref().unwrap();
-                    ws.squared = Some(amg_gpu::SquaredSteps::new(
-                        &self.ctx,
-                        &self.k.amg,
-                        g,
-                        mt,
-                        &narrow.r32,
-                        &narrow.z32,
-                        ws.cmax,
-                    )?)
-                }
-                (None, None) => {
-                    let g = self.amg_gpu.as_ref().unwrap();
-                    ws.amg = Some(amg_gpu::VcycleWorkspace::new(
-                        &self.ctx,
-                        &self.k.amg,
-                        g,
-                        &narrow.r32,
-                        &narrow.z32,
-                        ws.cmax,
-                    )?)
-                }
-            }
-            ws.narrow = Some(narrow);
-        }
+        let (ws, refine) = self.mixed_vectors(&matrix, want)?;
         self.mixed = Some(MixedData {
             stamp,
             matrix,
             ws,
             refine,
+            steps_current: true,
         });
         self.mixed_builds += 1;
+        Ok(())
+    }
+
+    /// The workspace of `want` columns over the mixed-precision `matrix`,
+    /// with the current preconditioner's steps, and the refinement's vectors.
+    fn mixed_vectors(
+        &self,
+        matrix: &GpuMatrix,
+        want: usize,
+    ) -> Result<(Workspace, refine::Refinement), GpuError> {
+        let k = self.mixed_kernels.as_ref().unwrap();
+        let h = self.host.as_ref().unwrap();
+        let spmv = k.spmv(h.bs);
+        let mut ws = k.pcg.workspace(&self.ctx, &spmv, matrix, h.n(), 1, want)?;
+        let refine = refine::Refinement::new(&self.ctx, &k.refine, &spmv, matrix, &ws)?;
+        self.mixed_steps(&mut ws)?;
+        Ok((ws, refine))
+    }
+
+    /// `ws`'s steps of the current preconditioner: an f64 factor's solves
+    /// on the f64 vectors in place, else the f32 factor, squared Laplacian
+    /// or V-cycle on f32 copies of them.
+    fn mixed_steps(&self, ws: &mut Workspace) -> Result<(), GpuError> {
+        let k = self.mixed_kernels.as_ref().unwrap();
+        let bs = self.host.as_ref().unwrap().bs;
+        (ws.chol, ws.squared, ws.amg, ws.narrow) = (None, None, None, None);
+        ws.chol = self.cholesky_steps(precision::Precision::F64, &ws.r, &ws.z, bs, ws.cmax)?;
+        if ws.chol.is_some() {
+            return Ok(());
+        }
+        let narrow = pcg::Narrow::new(&self.ctx, &k.convert, ws)?;
+        let f32_chol = self.cholesky_steps(
+            precision::Precision::F32,
+            &narrow.r32,
+            &narrow.z32,
+            bs,
+            ws.cmax,
+        )?;
+        match (f32_chol, &self.squared) {
+            (Some(steps), _) => ws.chol = Some(steps),
+            (None, Some((_, mt))) => {
+                let g = self.amg_gpu.as_ref().unwrap();
+                ws.squared = Some(amg_gpu::SquaredSteps::new(
+                    &self.ctx,
+                    &self.k.amg,
+                    g,
+                    mt,
+                    &narrow.r32,
+                    &narrow.z32,
+                    ws.cmax,
+                )?)
+            }
+            (None, None) => {
+                let g = self.amg_gpu.as_ref().unwrap();
+                ws.amg = Some(amg_gpu::VcycleWorkspace::new(
+                    &self.ctx,
+                    &self.k.amg,
+                    g,
+                    &narrow.r32,
+                    &narrow.z32,
+                    ws.cmax,
+                )?)
+            }
+        }
+        ws.narrow = Some(narrow);
         Ok(())
     }
 

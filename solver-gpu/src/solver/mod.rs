@@ -239,7 +239,7 @@ pub struct GpuSolver {
     amg_kind: Option<SystemKind>,
     /// Preconditioner set-ups (AMG hierarchy builds, block-Jacobi
     /// inverses when AMG is off or failed).
-    setups: usize,
+    pub(crate) setups: usize,
     /// Of `setups`, those that took a factor made ahead (`chol_ahead`).
     setups_ahead: usize,
     /// Solves and iterations.
@@ -298,7 +298,7 @@ pub struct GpuSolver {
     expand: Option<expand_blocks::ExpandBlocks>,
     pub(crate) expansion: Option<(expand_blocks::Expansion, usize, Option<usize>, Vec<bool>)>,
     /// Mixed-precision matrices built (each has its own low-part buffers).
-    mixed_builds: usize,
+    pub(crate) mixed_builds: usize,
     /// Residuals `b - A x` formed on the host (the f32 refinement's; the
     /// mixed-precision solve forms them on the GPU).
     pub(crate) host_residuals: usize,
@@ -310,7 +310,7 @@ pub struct GpuSolver {
     matrices: usize,
     lower_of: Option<usize>,
     /// Expansions made (each with its own block map).
-    expansions: usize,
+    pub(crate) expansions: usize,
     /// The Cholesky preconditioner's factor on the GPU
     /// ([`Preconditioner::Cholesky`]), the kind it was made for, its kernels,
     /// and the host factorization (its symbolic analysis serves every kind of
@@ -407,9 +407,23 @@ impl GpuSolver {
         self.stats.mixed
     }
 
+    /// Every workspace, the mixed-precision matrix's too: a new pattern.
     fn drop_workspaces(&mut self) {
         self.ws = None;
         self.mixed = None;
+    }
+
+    /// The workspaces' preconditioner steps, for a new preconditioner (a
+    /// kind's factor, a hierarchy): the f32 workspace is dropped, and the
+    /// mixed-precision one keeps its matrix (with its expansion) and
+    /// vectors, its steps made again at its next solve.
+    fn drop_preconditioner_steps(&mut self) {
+        self.ws = None;
+        if let Some(m) = self.mixed.as_mut() {
+            let ws = &mut m.ws;
+            (ws.chol, ws.squared, ws.amg, ws.narrow) = (None, None, None, None);
+            m.steps_current = false;
+        }
     }
 }
 
@@ -490,6 +504,20 @@ impl GpuSolver {
         Ok(())
     }
 
+    /// Whether this kind's solves start in mixed precision, by the policy.
+    fn starts_mixed(&self) -> bool {
+        // The scale factors' factor is of their matrix itself.
+        let own_factor = self.kind == SystemKind::ScaleFactors && self.chol.is_some();
+        self.mixed_precision
+            .starts_mixed_with(self.kind, own_factor)
+    }
+
+    /// Whether the next solve of this kind runs in mixed precision from its
+    /// start: the policy asks it and the solver can.
+    pub(super) fn mixed_from_the_first_solve(&self) -> bool {
+        self.starts_mixed() && self.mixed_available()
+    }
+
     /// Solve up to CMAX columns: `x` holds the start on entry.
     fn solve_batch(&mut self, b: &[f64], x: &mut [f64], ncols: usize) -> Result<(), GpuError> {
         let n = self.host.as_ref().unwrap().n();
@@ -499,12 +527,7 @@ impl GpuSolver {
                 x[c * n..(c + 1) * n].fill(0.0);
             }
         }
-        // The scale factors' factor is of their matrix itself.
-        let own_factor = self.kind == SystemKind::ScaleFactors && self.chol.is_some();
-        let start_mixed = self
-            .mixed_precision
-            .starts_mixed_with(self.kind, own_factor)
-            || self.mixed_sticky;
+        let start_mixed = self.starts_mixed() || self.mixed_sticky;
         if start_mixed && self.mixed_available() {
             return self.solve_batch_mixed(b, &bnorm, x, ncols, 0);
         }

@@ -215,7 +215,7 @@ impl GpuSolver {
         if self.chol.is_some() {
             self.chol = None;
             self.chol_kind = None;
-            self.drop_workspaces();
+            self.drop_preconditioner_steps();
         }
     }
 
@@ -273,7 +273,7 @@ impl GpuSolver {
                 None
             }
         };
-        self.drop_workspaces();
+        self.drop_preconditioner_steps();
         self.amg_host = None;
         self.amg_gpu = None;
         self.squared = None;

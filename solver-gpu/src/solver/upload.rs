@@ -25,7 +25,7 @@ impl GpuSolver {
 
     /// Upload a prepared host matrix (pattern if new, else values only: a
     /// block matrix's as its lower triangle, see [`Self::expand_values`]).
-    pub(super) fn upload(&mut self, h: HostMatrix, same: bool) -> Result<(), GpuError> {
+    pub(super) fn upload(&mut self, mut h: HostMatrix, same: bool) -> Result<(), GpuError> {
         self.matrices += 1;
         let mut minv = std::mem::take(&mut self.minv_scratch);
         // The inverse diagonal blocks are read by the block-Jacobi and AMG
@@ -58,11 +58,27 @@ impl GpuSolver {
                 let shape = h.shape_form().is_some();
                 self.gpu = Some(GpuMatrix::upload(&self.ctx, &h, &minv, !shape)?);
                 self.pattern_uploads += 1;
+                // A kind whose solves start in mixed precision has its
+                // mixed-precision matrix made now, before the expansion, so
+                // that one expansion writes its low parts too: made at the
+                // first solve, it set the expansion up a second time (the
+                // map and the values sent up again).
+                let early = shape && self.mixed_from_the_first_solve();
+                if early {
+                    let stamp = (self.pattern_uploads, self.value_uploads);
+                    self.host = Some(h);
+                    let built = self.build_mixed(1, stamp, true);
+                    h = self.host.take().unwrap();
+                    built?;
+                }
                 if shape && !self.expand_on_gpu(&h)? {
                     self.gpu
                         .as_ref()
                         .unwrap()
                         .write_values(&self.ctx, &h, Some(&minv));
+                    if let Some(m) = self.mixed.as_ref().filter(|_| early) {
+                        m.matrix.write_values(&self.ctx, &h, Some(&[]));
+                    }
                 }
                 self.mixed_sticky = false;
                 self.hints.clear();
