@@ -3,7 +3,7 @@
 //! sizes, read-back, turning device errors into [`GpuError`]).
 
 use crate::GpuError;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicU64, AtomicU8, Ordering};
 use std::sync::{Arc, Mutex, OnceLock};
 
 /// Uniform parameters shared by every shader (each declares the same struct).
@@ -269,22 +269,36 @@ pub struct TrafficCounts {
     pub beside_to_device: u64,
 }
 
-/// The mapped staging buffer of [`Context::storage_from_pieces`],
-/// kept for the windows of the uploads it serves (none before the first).
+/// The mapped staging buffers of [`Context::storage_from_pieces`], kept
+/// for the windows of the uploads it serves (none before the first): two,
+/// filled in turn, so that one is filled while the GPU copies the other
+/// out, and each is asked to be mapped again as soon as its copy is
+/// submitted.
 #[derive(Default)]
 pub(crate) struct Staging {
-    buffer: Option<wgpu::Buffer>,
-    /// Whether `buffer` is mapped for writing (else its last window may
-    /// still be being copied out).
-    mapped: bool,
+    buffers: [Option<StagingBuffer>; 2],
+    /// The buffer the next window fills.
+    next: usize,
 }
 
-/// Most bytes of host staging memory one upload through
-/// [`Context::storage_from_pieces`] fills before it is handed to the queue
-/// and waited for. The staging memory is the host's on a discrete GPU, and
-/// fresh pages cost their faults (2.2 GB/s on the development machine,
-/// against 19 GB/s into pages already touched): 64 MiB, not the 256 it was,
-/// is a quarter of both for 4x the windows, a wait each (about 15 per GB).
+/// One of [`Staging`]'s buffers and the state of its mapping.
+struct StagingBuffer {
+    buffer: wgpu::Buffer,
+    /// [`MAPPED`], [`MAPPING`] (its copy submitted, the map asked for) or
+    /// [`MAP_FAILED`], set by the map's callback.
+    state: Arc<AtomicU8>,
+}
+
+const MAPPED: u8 = 0;
+const MAPPING: u8 = 1;
+const MAP_FAILED: u8 = 2;
+
+/// Most bytes of one window of [`Context::storage_from_pieces`]: each of
+/// [`Staging`]'s two buffers holds one. The staging memory is the host's on
+/// a discrete GPU, and fresh pages cost their faults (2.2 GB/s on the
+/// development machine, against 19 GB/s into pages already touched): two
+/// of 64 MiB are half the one of 256 MiB before, and a window waits only
+/// where its buffer's last copy is still under way.
 pub(crate) const STAGING_WINDOW: u64 = 64 << 20;
 
 /// Vulkan (Linux, Windows), Metal (macOS) and DX12 (Windows): the backends
@@ -730,13 +744,13 @@ impl Context {
     }
 
     /// A storage buffer holding the concatenation of `pieces` (`bytes` in
-    /// all, a multiple of 4), copied straight into a mapped staging buffer in
+    /// all, a multiple of 4), copied straight into mapped staging buffers in
     /// windows of at most [`STAGING_WINDOW`] bytes, each filled by rayon's
-    /// threads at once ([`fill_window`]): no host copy of the whole
-    /// is made, and the host holds one window of staging (each is copied
-    /// to the buffer by its own submission, and waited for before the next
-    /// one is filled: a factor of 3.5 GB would otherwise double the host's
-    /// peak). `staging`'s one buffer serves every window, of this upload and
+    /// threads at once ([`fill_window`]): no host copy of the whole is
+    /// made, and the host holds two windows of staging (each copied to the
+    /// buffer by its own submission; a buffer is filled again once its
+    /// copy is done: a factor of 3.5 GB would otherwise double the host's
+    /// peak). `staging`'s two buffers serve every window, of this upload and
     /// of the others it is passed to (a Cholesky factor's index sections
     /// and value chunks): a fresh one per window (wgpu's
     /// `write_buffer_with`, before) was fresh memory to fault in each time,
@@ -789,19 +803,28 @@ impl Context {
                 rest = &rest[take..];
                 need -= take;
             }
+            let st = self.staging_window(staging, len)?;
             {
-                let mut view = self
-                    .staging_window(staging, len)?
+                let mut view = st
+                    .buffer
                     .get_mapped_range_mut(0..len)
                     .map_err(|e| GpuError::Backend(format!("{what}: staging: {e}")))?;
                 fill_window(view.slice(..), &segments);
             }
-            let st = staging.buffer.as_ref().unwrap();
-            st.unmap();
-            staging.mapped = false;
+            st.buffer.unmap();
             let mut enc = self.encoder("upload");
-            enc.copy_buffer_to_buffer(st, 0, &b, at, len);
+            enc.copy_buffer_to_buffer(&st.buffer, 0, &b, at, len);
             self.submit(Some(enc));
+            // Mapped again once the copy is done: by the time the buffer's
+            // turn comes back, most often without a wait.
+            st.state.store(MAPPING, Ordering::Release);
+            let state = st.state.clone();
+            st.buffer.map_async(wgpu::MapMode::Write, .., move |r| {
+                state.store(
+                    if r.is_ok() { MAPPED } else { MAP_FAILED },
+                    Ordering::Release,
+                );
+            });
             self.count_to_device(len);
             at += len;
         }
@@ -813,42 +836,42 @@ impl Context {
         Ok(b)
     }
 
-    /// `staging`'s buffer, mapped and of at least `len` bytes: made (mapped)
-    /// where it has none or a smaller one, else mapped again once the GPU
-    /// has copied its last window out (one host wait).
+    /// `staging`'s next buffer, mapped and of at least `len` bytes: made
+    /// (mapped) where it has none or a smaller one. One whose last window's
+    /// copy is still under way is waited for (one host wait), after a poll
+    /// that does not block has let a finished copy's mapping complete.
     fn staging_window<'s>(
         &self,
         staging: &'s mut Staging,
         len: u64,
-    ) -> Result<&'s wgpu::Buffer, GpuError> {
-        if staging.buffer.as_ref().is_none_or(|b| b.size() < len) {
-            staging.buffer = Some(self.create(&wgpu::BufferDescriptor {
+    ) -> Result<&'s StagingBuffer, GpuError> {
+        let i = staging.next;
+        staging.next = 1 - i;
+        let slot = &mut staging.buffers[i];
+        if slot.as_ref().is_none_or(|b| b.buffer.size() < len) {
+            *slot = None;
+            let buffer = self.create(&wgpu::BufferDescriptor {
                 label: Some("upload staging"),
                 size: len,
                 usage: wgpu::BufferUsages::MAP_WRITE | wgpu::BufferUsages::COPY_SRC,
                 mapped_at_creation: true,
-            })?);
-            staging.mapped = true;
+            })?;
+            *slot = Some(StagingBuffer {
+                buffer,
+                state: Arc::new(AtomicU8::new(MAPPED)),
+            });
         }
-        let st = staging.buffer.as_ref().unwrap();
-        if !staging.mapped {
-            self.map_for_writing(st)?;
-            staging.mapped = true;
+        let st = slot.as_ref().unwrap();
+        if st.state.load(Ordering::Acquire) == MAPPING {
+            let _ = self.device.poll(wgpu::PollType::Poll);
         }
-        Ok(st)
-    }
-
-    /// Maps `staging` (`MAP_WRITE`) again once the GPU is done with it: one
-    /// host wait.
-    fn map_for_writing(&self, staging: &wgpu::Buffer) -> Result<(), GpuError> {
-        let (tx, rx) = std::sync::mpsc::channel();
-        staging.map_async(wgpu::MapMode::Write, .., move |r| {
-            let _ = tx.send(r);
-        });
-        self.wait()?;
-        rx.recv()
-            .map_err(|_| GpuError::Backend("buffer map callback dropped".into()))?
-            .map_err(|e| GpuError::Backend(format!("map upload staging: {e}")))
+        if st.state.load(Ordering::Acquire) == MAPPING {
+            self.wait()?;
+        }
+        match st.state.load(Ordering::Acquire) {
+            MAPPED => Ok(st),
+            _ => Err(GpuError::Backend("map upload staging: not mapped".into())),
+        }
     }
 
     pub fn uniform(&self, what: &str, p: &Params) -> Result<wgpu::Buffer, GpuError> {
@@ -1351,8 +1374,9 @@ pub(crate) fn dispatch(
 #[cfg(test)]
 mod tests {
     /// Pieces of odd lengths, across windows far smaller than the buffer,
-    /// land in order; a window is waited for before the next is filled; too
-    /// few or too many bytes are errors, not a short buffer.
+    /// land in order; the two staging buffers are filled in turn, the
+    /// first two windows with no wait and each later one with at most one;
+    /// too few or too many bytes are errors, not a short buffer.
     #[test]
     fn storage_from_pieces_writes_across_windows() {
         let Some(s) = crate::test_solver() else {
@@ -1367,18 +1391,29 @@ mod tests {
         let b = ctx
             .storage_from_pieces_in(&mut staging, "test", 4000, pieces.iter().copied(), 64)
             .unwrap();
-        // 63 windows of 64 bytes: a wait between each two.
-        assert_eq!(ctx.traffic().waits - waits, 4000u64.div_ceil(64) - 1);
+        // 63 windows of 64 bytes.
+        let windows = 4000u64.div_ceil(64);
+        let waited = ctx.traffic().waits - waits;
+        assert!(
+            waited <= windows - 2,
+            "{waited} waits for {windows} windows"
+        );
         let back: Vec<u8> = ctx.read(&b, 4000, &mut None, None).unwrap();
         assert_eq!(back, data);
-        // The same staging buffer serves a second upload: the same bytes.
-        let first = staging.buffer.clone();
+        // The same staging buffers serve a second upload: the same bytes.
+        let buffers = |st: &super::Staging| -> Vec<Option<wgpu::Buffer>> {
+            st.buffers
+                .iter()
+                .map(|b| b.as_ref().map(|b| b.buffer.clone()))
+                .collect()
+        };
+        let first = buffers(&staging);
         let again = ctx
             .storage_from_pieces_in(&mut staging, "test", 4000, pieces.iter().copied(), 64)
             .unwrap();
         assert!(
-            first.is_some() && staging.buffer == first,
-            "the same buffer"
+            first.iter().all(Option::is_some) && buffers(&staging) == first,
+            "the same buffers"
         );
         let back: Vec<u8> = ctx.read(&again, 4000, &mut None, None).unwrap();
         assert_eq!(back, data);
@@ -1442,10 +1477,10 @@ mod tests {
     }
 
     /// The same upload on a thread beside the caller
-    /// (`Context::beside_the_caller`): its submissions, waits (one per
-    /// window after the first, the staging buffer mapped again) and bytes
-    /// are counted beside, the caller's counts left as they were; the
-    /// bytes land all the same.
+    /// (`Context::beside_the_caller`): its submissions, waits (at most one
+    /// per window after the first two, a staging buffer mapped again) and
+    /// bytes are counted beside, the caller's counts left as they were;
+    /// the bytes land all the same.
     #[test]
     fn an_upload_beside_the_caller_is_counted_apart() {
         let Some(s) = crate::test_solver() else {
@@ -1474,7 +1509,7 @@ mod tests {
         let after = ctx.traffic();
         let windows = 1000u64.div_ceil(128);
         assert_eq!(after.beside_submits - before.beside_submits, windows);
-        assert_eq!(after.beside_waits - before.beside_waits, windows - 1);
+        assert!(after.beside_waits - before.beside_waits <= windows - 2);
         assert_eq!(after.beside_to_device - before.beside_to_device, 1000);
         assert_eq!(after.to_device - before.to_device, 1000);
         assert_eq!((after.submits, after.waits), (before.submits, before.waits));
