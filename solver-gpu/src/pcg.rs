@@ -274,6 +274,12 @@ impl Narrow {
 }
 
 impl Workspace {
+    /// Drops the preconditioner's steps (`amg`, `squared`, `chol` and the
+    /// f32 copies they read), for a new preconditioner's; the vectors stay.
+    pub fn drop_preconditioner_steps(&mut self) {
+        (self.chol, self.squared, self.amg, self.narrow) = (None, None, None, None);
+    }
+
     pub fn n(&self) -> usize {
         self.rows * self.bs
     }

@@ -283,7 +283,7 @@ impl GpuSolver {
     fn mixed_steps(&self, ws: &mut Workspace) -> Result<(), GpuError> {
         let k = self.mixed_kernels.as_ref().unwrap();
         let bs = self.host.as_ref().unwrap().bs;
-        (ws.chol, ws.squared, ws.amg, ws.narrow) = (None, None, None, None);
+        ws.drop_preconditioner_steps();
         ws.chol = self.cholesky_steps(precision::Precision::F64, &ws.r, &ws.z, bs, ws.cmax)?;
         if ws.chol.is_some() {
             return Ok(());

@@ -420,8 +420,7 @@ impl GpuSolver {
     fn drop_preconditioner_steps(&mut self) {
         self.ws = None;
         if let Some(m) = self.mixed.as_mut() {
-            let ws = &mut m.ws;
-            (ws.chol, ws.squared, ws.amg, ws.narrow) = (None, None, None, None);
+            m.ws.drop_preconditioner_steps();
             m.steps_current = false;
         }
     }
