@@ -38,8 +38,10 @@ pub(crate) struct HostMatrix {
     /// The pattern's row index, for products in the isotropic-plus-ring form.
     shape_rows: OnceLock<BlockRows>,
     /// Block matrices: per block of the full pattern, its lower source, see
-    /// [`Self::map`]; made for the held vertices `map_fixed`.
-    map: Vec<u32>,
+    /// [`Self::map`]; made for the held vertices `map_fixed` when first
+    /// asked for, and dropped once the GPU's expansion holds it
+    /// ([`Self::release_map`]).
+    map: OnceLock<Vec<u32>>,
     map_fixed: Vec<bool>,
     /// Full position of each row's diagonal block.
     pub diag: Vec<u32>,
@@ -286,7 +288,7 @@ impl HostMatrix {
             lower: Vec::new(),
             shape: None,
             shape_rows: OnceLock::new(),
-            map: Vec::new(),
+            map: OnceLock::new(),
             map_fixed: Vec::new(),
             diag,
             key: solver_cpu::PatternKey::of(col_ptr, row_idx),
@@ -468,11 +470,11 @@ impl HostMatrix {
         self.set_fixed(fixed);
     }
 
-    /// The map for the held vertices `fixed`, made again only when they
-    /// change.
+    /// The held vertices `fixed`: the map made for others is dropped (made
+    /// again when asked for).
     fn set_fixed(&mut self, fixed: &[bool]) {
-        if self.map.is_empty() || self.map_fixed != fixed {
-            self.map = self.block_map(fixed);
+        if self.map_fixed != fixed {
+            self.map = OnceLock::new();
             self.map_fixed.clear();
             self.map_fixed.extend_from_slice(fixed);
         }
@@ -537,7 +539,22 @@ impl HostMatrix {
     /// Per block of the full pattern, where its values come from (for
     /// `expand_blocks.wgsl`): see [`Self::block_map`].
     pub fn map(&self) -> &[u32] {
-        &self.map
+        self.map.get_or_init(|| self.block_map(&self.map_fixed))
+    }
+
+    /// Drops the host's copy of [`Self::map`] (4 bytes a full block: 46 MB
+    /// at homer 1.2M faces, 165 MB at 4.3M), for a matrix whose expansion
+    /// on the GPU holds it: nothing on the host reads it then. A host path
+    /// that asks for it (block values, the fallbacks' uploads) makes it
+    /// again.
+    pub fn release_map(&mut self) {
+        self.map = OnceLock::new();
+    }
+
+    /// Whether the host holds [`Self::map`] now.
+    #[cfg(test)]
+    pub fn map_held(&self) -> bool {
+        self.map.get().is_some()
     }
 
     /// The lower-triangle blocks of a block matrix, in input order (a shape
@@ -576,7 +593,7 @@ impl HostMatrix {
             + b(&self.col_idx)
             + b(&self.vals)
             + b(&self.lower)
-            + b(&self.map)
+            + self.map.get().map_or(0, b)
             + b(&self.map_fixed)
             + b(&self.diag)
             + b(&self.lower_col_ptr);
@@ -612,7 +629,7 @@ impl HostMatrix {
             v[0] = self.vals[k];
             return v;
         }
-        match self.map[k] {
+        match self.map()[k] {
             ZERO => [0.0; 9],
             IDENTITY => [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
             m if m & TRANSPOSE != 0 => {
@@ -1183,6 +1200,34 @@ mod shape_fill_tests {
                 }
             }
         }
+    }
+
+    /// A released map costs the host nothing until asked for, and is then
+    /// made again the same, for the held vertices of the last fill: new
+    /// held vertices give another.
+    #[test]
+    fn a_released_map_is_made_again_when_asked_for() {
+        let a = strip(11);
+        let (col_ptr, row_idx) = (&a.iso.col_ptr, &a.iso.row_idx);
+        let blocks = a.to_blocks();
+        let mut h = HostMatrix::pattern(11, 3, col_ptr, row_idx).unwrap();
+        let mut fixed = vec![false; 11];
+        fixed[3] = true;
+        h.fill_blocks(&blocks, &fixed);
+        let map = h.map().to_vec();
+        let values: Vec<[f64; 9]> = (0..h.nnz_blocks()).map(|k| h.block_values(k)).collect();
+        let held = h.host_bytes();
+        h.release_map();
+        assert!(!h.map_held());
+        assert_eq!(held - h.host_bytes(), 4 * map.len());
+        assert_eq!(h.map(), &map[..]);
+        h.release_map();
+        let again: Vec<[f64; 9]> = (0..h.nnz_blocks()).map(|k| h.block_values(k)).collect();
+        assert_eq!(again, values);
+        fixed[3] = false;
+        fixed[8] = true;
+        h.fill_blocks(&blocks, &fixed);
+        assert_ne!(h.map(), &map[..], "the map of other held vertices");
     }
 
     /// A scalar matrix's every stored value, on both triangles, is its lower

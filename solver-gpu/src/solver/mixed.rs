@@ -212,8 +212,11 @@ impl GpuSolver {
         let on_gpu = self.host.as_ref().is_some_and(|h| h.shape_form().is_some());
         self.build_mixed(want, stamp, on_gpu)?;
         if on_gpu {
-            let h = self.host.take().unwrap();
+            let mut h = self.host.take().unwrap();
             let done = self.expand_on_gpu(&h);
+            if matches!(done, Ok(true)) {
+                h.release_map();
+            }
             if matches!(done, Ok(false)) {
                 self.mixed
                     .as_ref()

@@ -284,8 +284,9 @@ pub struct GpuSolver {
     /// either way).
     pub(crate) beside_uploads: bool,
     /// The f32 inverse diagonal blocks of the last matrix uploaded, kept
-    /// for the next one's (`block_jacobi::inverse_diagonal`).
-    minv_scratch: Vec<f32>,
+    /// for the next one's (`block_jacobi::inverse_diagonal`); not kept where
+    /// a Cholesky factor preconditions the kind ([`Self::upload`]).
+    pub(crate) minv_scratch: Vec<f32>,
     /// Whether the GPU's inverse diagonal blocks (and the host's in
     /// `minv_scratch`) are the uploaded matrix's: not where the kind's
     /// Cholesky factor preconditions it ([`Self::upload`]).
