@@ -62,6 +62,7 @@ pub(crate) fn inverse_diagonal(h: &HostMatrix, out: &mut Vec<f32>) -> Result<(),
     let bb = bs * bs;
     out.clear();
     out.resize(h.rows * bb, 0.0);
+    h.make_diagonal();
     let ok = out.par_chunks_mut(bb).enumerate().all(|(row, dst)| {
         let block = h.diag_block(row);
         let d = &block[..bb];

@@ -1001,6 +1001,10 @@ mod tests {
                 "{kind:?}, seed {seed}"
             );
             assert_eq!(s.minv_scratch.capacity(), 0, "{kind:?}, seed {seed}");
+            // Nor the diagonal blocks, which only the inverse diagonal of
+            // the pattern's first matrix read.
+            let h = s.host.as_ref().unwrap();
+            assert!(!h.diagonal_held(), "{kind:?}, seed {seed}");
             let mut r = vec![0.0; 3 * n * ncols];
             want.residual(&b, &y, &mut r, ncols);
             for c in 0..ncols {

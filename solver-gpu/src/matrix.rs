@@ -55,19 +55,23 @@ pub(crate) struct HostMatrix {
     lower_col_ptr: Vec<u32>,
     /// [`Self::norm_inf`] of the current values (reset by every fill).
     norm: OnceLock<f64>,
-    /// The diagonal blocks and the rings' norm part of the shape form last
-    /// taken back ([`Self::take_shape`]), refilled by the next
-    /// [`Self::set_shape`]: 80 bytes a block row (48 MB at 1.2M faces),
-    /// which fresh vectors would fault in page by page for every matrix.
-    spare: (Vec<[f64; 9]>, Vec<f64>),
+    /// The rings' norm part of the shape form last taken back
+    /// ([`Self::take_shape`]), refilled by the next [`Self::set_shape`]: 8
+    /// bytes a block row (4.8 MB at 1.2M faces), which a fresh vector would
+    /// fault in page by page for every matrix.
+    spare: Vec<f64>,
 }
 
 /// A shape matrix `K (x) I3 + sum_i R_i^T C_i R_i` kept in that form.
 struct ShapeForm {
     a: IsoRingSym3,
     slots: Arc<RingSlots>,
-    /// Its diagonal blocks (held vertices' too, as summed).
-    diag: Vec<[f64; 9]>,
+    /// Its diagonal blocks (held vertices' too, as summed), made when first
+    /// asked for ([`shape_diagonal`]): only the inverse diagonals read
+    /// them, which a kind preconditioned by its Cholesky factor makes for
+    /// its pattern's first matrix only (72 bytes a block row: 43 MB at
+    /// homer 1.2M faces).
+    diag: OnceLock<Vec<[f64; 9]>>,
     /// Its lower blocks, summed on the host only where something needs them
     /// (the host's fallbacks: no `SHADER_F64`, a binding too small, AMG).
     lower: OnceLock<Vec<[f64; 9]>>,
@@ -76,6 +80,14 @@ struct ShapeForm {
     /// Per row `p`, the rings' part of [`shape_norm_bound`]: the sum over
     /// the rings `i` holding `p` of `|R_ip| ||C_i||_inf sum_q |R_iq|`.
     ring_abs: Vec<f64>,
+}
+
+impl ShapeForm {
+    /// Its diagonal blocks, made at the first call.
+    fn diagonal(&self) -> &[[f64; 9]] {
+        self.diag
+            .get_or_init(|| shape_diagonal(&self.a, &self.slots, self.square.as_deref()))
+    }
 }
 
 /// What the host keeps of a constant term `S Mt^-1 S (x) I3`
@@ -190,6 +202,7 @@ impl HostMatrix {
         let mut col_idx = Vec::with_capacity(entries);
         let mut vals = Vec::with_capacity(entries);
         let mut dinv = Vec::with_capacity(h.rows * bs);
+        h.make_diagonal();
         row_ptr.push(0u32);
         for i in 0..h.rows {
             let blocks = h.row_ptr[i] as usize..h.row_ptr[i + 1] as usize;
@@ -294,7 +307,7 @@ impl HostMatrix {
             key: solver_cpu::PatternKey::of(col_ptr, row_idx),
             lower_col_ptr: col_ptr.iter().map(|&c| c as u32).collect(),
             norm: OnceLock::new(),
-            spare: (Vec::new(), Vec::new()),
+            spare: Vec::new(),
         })
     }
 
@@ -357,73 +370,23 @@ impl HostMatrix {
         );
         self.norm = OnceLock::new();
         self.lower = Vec::new();
-        let (mut diag, mut ring_abs) = std::mem::take(&mut self.spare);
-        (0..a.n())
-            .into_par_iter()
-            .map(|v| {
-                // K's value, plus the constant term's as the GPU adds it.
-                let mut k = a.iso.values[a.diagonal_slot(v)];
-                if let Some(q) = &square {
-                    k += q.diag[v];
-                }
-                [k, 0.0, 0.0, 0.0, k, 0.0, 0.0, 0.0, k]
-            })
-            .collect_into_vec(&mut diag);
-        // The diagonal pairs (p, p) of each ring, in ring order: the sums of
-        // `sum_lower` for the diagonal slots, to the bit. In the same pass,
-        // the rings' part of the norm bound (`shape_norm_bound`).
+        // The rings' part of the norm bound (`shape_norm_bound`), per row.
+        let mut ring_abs = std::mem::take(&mut self.spare);
         ring_abs.clear();
         ring_abs.resize(a.n(), 0.0);
         if slots.symmetric {
-            // Per block row `p`, on rayon's threads: the rows `i` that hold
-            // `p` (its own neighbours and itself), in ascending order, as
-            // the loop over the rings below adds them.
-            let rings = &*a.rings;
-            diag.par_iter_mut()
-                .zip(ring_abs.par_iter_mut())
-                .enumerate()
-                .for_each(|(p, (d, abs))| {
-                    let nb = &rings.idx[rings.start[p]..rings.start[p + 1]];
-                    let below = nb.partition_point(|&i| (i as usize) < p);
-                    let rows = nb[..below]
-                        .iter()
-                        .map(|&i| i as usize)
-                        .chain(std::iter::once(p))
-                        .chain(nb[below..].iter().map(|&i| i as usize));
-                    for i in rows {
-                        let c = &a.ring_c[i];
-                        if *c == [0.0; 6] {
-                            continue;
-                        }
-                        let w = if i == p {
-                            rings.diag[p]
-                        } else {
-                            let row = &rings.idx[rings.start[i]..rings.start[i + 1]];
-                            match row.binary_search(&(p as u32)) {
-                                Ok(k) => -rings.w[rings.start[i] + k],
-                                Err(_) => continue,
-                            }
-                        };
-                        let m = sym3_block(c);
-                        let f = w * w;
-                        for (o, me) in d.iter_mut().zip(&m) {
-                            *o += f * me;
-                        }
-                        *abs += w.abs() * (sym3_norm_inf(c) * slots.abs_sum[i]);
-                    }
+            ring_abs.par_iter_mut().enumerate().for_each(|(p, abs)| {
+                rings_holding(&a, p, |i, w| {
+                    *abs += w.abs() * (sym3_norm_inf(&a.ring_c[i]) * slots.abs_sum[i]);
                 });
+            });
         } else {
             for (i, c) in a.ring_c.iter().enumerate() {
                 if *c == [0.0; 6] {
                     continue;
                 }
-                let m = sym3_block(c);
                 let cs = sym3_norm_inf(c) * slots.abs_sum[i];
                 for (p, w) in a.rings.row(i) {
-                    let f = w * w;
-                    for (o, me) in diag[p].iter_mut().zip(&m) {
-                        *o += f * me;
-                    }
                     ring_abs[p] += w.abs() * cs;
                 }
             }
@@ -431,12 +394,30 @@ impl HostMatrix {
         self.shape = Some(ShapeForm {
             a,
             slots,
-            diag,
+            diag: OnceLock::new(),
             lower: OnceLock::new(),
             square,
             ring_abs,
         });
         self.set_fixed(fixed);
+    }
+
+    /// Makes a shape form's diagonal blocks where they are not made yet.
+    /// Call it before [`Self::diag_block`] is read on rayon's threads: made
+    /// at a row's first read inside such a loop, their making's own tasks
+    /// could let a thread of the loop take up another row's read, which
+    /// would wait on the making it is part of.
+    pub fn make_diagonal(&self) {
+        if let Some(f) = &self.shape {
+            f.diagonal();
+        }
+    }
+
+    /// Drops a shape form's diagonal blocks (made again when asked for).
+    pub fn release_diagonal(&mut self) {
+        if let Some(f) = &mut self.shape {
+            f.diag = OnceLock::new();
+        }
     }
 
     /// The shape matrix kept by [`Self::set_shape`].
@@ -448,7 +429,7 @@ impl HostMatrix {
     /// has no values until the next fill ([`Self::is_filled`]).
     pub fn take_shape(&mut self) -> Option<IsoRingSym3> {
         self.shape.take().map(|f| {
-            self.spare = (f.diag, f.ring_abs);
+            self.spare = f.ring_abs;
             f.a
         })
     }
@@ -557,6 +538,12 @@ impl HostMatrix {
         self.map.get().is_some()
     }
 
+    /// Whether a shape form's diagonal blocks are made.
+    #[cfg(test)]
+    pub fn diagonal_held(&self) -> bool {
+        self.shape.as_ref().is_some_and(|f| f.diag.get().is_some())
+    }
+
     /// The lower-triangle blocks of a block matrix, in input order (a shape
     /// matrix's summed on the host when first asked for).
     pub fn lower_blocks(&self) -> &[[f64; 9]] {
@@ -598,7 +585,7 @@ impl HostMatrix {
             + b(&self.diag)
             + b(&self.lower_col_ptr);
         if let Some(f) = &self.shape {
-            n += b(&f.diag) + f.lower.get().map_or(0, b);
+            n += f.diag.get().map_or(0, b) + f.lower.get().map_or(0, b);
         }
         if let Some(r) = self.shape_rows.get() {
             n += b(&r.row_ptr) + b(&r.entries);
@@ -616,7 +603,7 @@ impl HostMatrix {
     pub fn diag_block(&self, row: usize) -> [f64; 9] {
         match &self.shape {
             Some(_) if self.map_fixed[row] => [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
-            Some(f) => f.diag[row],
+            Some(f) => f.diagonal()[row],
             None => self.block_values(self.diag[row] as usize),
         }
     }
@@ -805,11 +792,86 @@ fn sum_lower(a: &IsoRingSym3, slots: &RingSlots, square: Option<&[f64]>, out: &m
     }
 }
 
+/// `f(i, w)` for each row `i` of the rings that holds column `p` with
+/// weight `w` (its own row's diagonal weight for `i == p`), rows whose
+/// `C_i` is zero left out, in ascending `i`: for symmetric rings
+/// (`RingSlots::symmetric`: `p`'s neighbours are the rows that hold it),
+/// in the order in which `sum_lower` sums the rings' terms into `p`'s
+/// diagonal slot.
+fn rings_holding(a: &IsoRingSym3, p: usize, mut f: impl FnMut(usize, f64)) {
+    let rings = &*a.rings;
+    let nb = &rings.idx[rings.start[p]..rings.start[p + 1]];
+    let below = nb.partition_point(|&i| (i as usize) < p);
+    let rows = nb[..below]
+        .iter()
+        .map(|&i| i as usize)
+        .chain(std::iter::once(p))
+        .chain(nb[below..].iter().map(|&i| i as usize));
+    for i in rows {
+        if a.ring_c[i] == [0.0; 6] {
+            continue;
+        }
+        let w = if i == p {
+            rings.diag[p]
+        } else {
+            let row = &rings.idx[rings.start[i]..rings.start[i + 1]];
+            match row.binary_search(&(p as u32)) {
+                Ok(k) => -rings.w[rings.start[i] + k],
+                Err(_) => continue,
+            }
+        };
+        f(i, w);
+    }
+}
+
+/// The diagonal blocks of the shape matrix `a` (held vertices' too): `K`'s
+/// value, plus the constant term's (`square`) as the GPU adds it, plus the
+/// rings' `w^2 C_i`, in the order `sum_lower` sums the diagonal slots (the
+/// same bits).
+fn shape_diagonal(
+    a: &IsoRingSym3,
+    slots: &RingSlots,
+    square: Option<&SquareParts>,
+) -> Vec<[f64; 9]> {
+    let mut diag: Vec<[f64; 9]> = (0..a.n())
+        .into_par_iter()
+        .map(|v| {
+            let mut k = a.iso.values[a.diagonal_slot(v)];
+            if let Some(q) = square {
+                k += q.diag[v];
+            }
+            [k, 0.0, 0.0, 0.0, k, 0.0, 0.0, 0.0, k]
+        })
+        .collect();
+    let add = |d: &mut [f64; 9], c: &[f64; 6], w: f64| {
+        let m = sym3_block(c);
+        let f = w * w;
+        for (o, me) in d.iter_mut().zip(&m) {
+            *o += f * me;
+        }
+    };
+    if slots.symmetric {
+        diag.par_iter_mut()
+            .enumerate()
+            .for_each(|(p, d)| rings_holding(a, p, |i, w| add(d, &a.ring_c[i], w)));
+    } else {
+        for (i, c) in a.ring_c.iter().enumerate() {
+            if *c == [0.0; 6] {
+                continue;
+            }
+            for (p, w) in a.rings.row(i) {
+                add(&mut diag[p], c, w);
+            }
+        }
+    }
+    diag
+}
+
 /// An upper bound of `||A||_inf` for a shape matrix `a` with the held
 /// vertices `fixed` (rows of the identity), without its blocks: per row `p`,
 /// `sum_j |K_pj|`, plus the rings' part `ring_abs[p]` (the sum over the
-/// rings `i` holding `p` of `|R_ip| ||C_i||_inf sum_q |R_iq|`, found with
-/// the diagonal blocks by [`HostMatrix::set_shape`]), plus the absolute row
+/// rings `i` holding `p` of `|R_ip| ||C_i||_inf sum_q |R_iq|`, found by
+/// [`HostMatrix::set_shape`]), plus the absolute row
 /// sums `square` of a Laplacian square term it names (the triangle
 /// inequality on every block's sum). Used for the rounding floor of the
 /// residual target only.
@@ -1753,6 +1815,7 @@ fn split_inverse_diagonal(h: &HostMatrix) -> Vec<f64> {
 
 /// The values of [`split_inverse_diagonal`], in order.
 fn split_inverse_values(h: &HostMatrix) -> impl Iterator<Item = f64> + '_ {
+    h.make_diagonal();
     (0..3 * h.rows).map(|r| 1.0 / h.diag_block(r / 3)[4 * (r % 3)])
 }
 
