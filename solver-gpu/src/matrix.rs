@@ -402,14 +402,28 @@ impl HostMatrix {
         self.set_fixed(fixed);
     }
 
-    /// Makes a shape form's diagonal blocks where they are not made yet.
-    /// Call it before [`Self::diag_block`] is read on rayon's threads: made
-    /// at a row's first read inside such a loop, their making's own tasks
-    /// could let a thread of the loop take up another row's read, which
-    /// would wait on the making it is part of.
+    /// Makes what [`Self::diag_block`] reads where it is made only when
+    /// first asked for: a shape form's diagonal blocks, or the block map.
+    /// Call it before diagonal blocks are read on rayon's threads: made at a
+    /// row's first read inside such a loop, their making's own parallel
+    /// tasks could let a thread of the loop take up another row's read,
+    /// which would wait on the making it is part of.
     pub fn make_diagonal(&self) {
-        if let Some(f) = &self.shape {
-            f.diagonal();
+        match &self.shape {
+            Some(f) => {
+                f.diagonal();
+            }
+            None => self.make_block_parts(),
+        }
+    }
+
+    /// Makes what [`Self::block_values`] reads where it is made only when
+    /// first asked for (the block map, a shape form's lower blocks), before
+    /// block values are read on rayon's threads (as [`Self::make_diagonal`]).
+    pub fn make_block_parts(&self) {
+        if self.bs == 3 {
+            self.map();
+            self.lower_blocks();
         }
     }
 
@@ -651,6 +665,7 @@ impl HostMatrix {
             out.par_extend(self.vals[blocks].par_iter().map(|&v| part(v)));
             return;
         }
+        self.make_block_parts();
         out.par_extend(
             blocks
                 .into_par_iter()
@@ -682,6 +697,7 @@ impl HostMatrix {
             return shape_norm_bound(&f.a, square, &f.ring_abs, &self.map_fixed);
         }
         let bs = self.bs;
+        self.make_block_parts();
         (0..self.rows)
             .into_par_iter()
             .map(|row| {
@@ -727,6 +743,7 @@ impl HostMatrix {
             }
             return;
         }
+        self.make_block_parts();
         for c in 0..ncols {
             let (bc, xc) = (&b[c * n..(c + 1) * n], &x[c * n..(c + 1) * n]);
             r[c * n..(c + 1) * n]
@@ -1286,6 +1303,18 @@ mod shape_fill_tests {
         h.release_map();
         let again: Vec<[f64; 9]> = (0..h.nnz_blocks()).map(|k| h.block_values(k)).collect();
         assert_eq!(again, values);
+        // Read on rayon's threads right after a release: made first, once.
+        let (full, norm) = (h.full_values(), h.norm_inf());
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(4)
+            .build()
+            .unwrap();
+        for _ in 0..3 {
+            h.release_map();
+            h.norm = OnceLock::new();
+            let read = pool.install(|| (h.full_values(), h.norm_inf()));
+            assert_eq!(read, (full.clone(), norm));
+        }
         fixed[3] = false;
         fixed[8] = true;
         h.fill_blocks(&blocks, &fixed);
