@@ -31,7 +31,9 @@ use crate::mesh::{triangle_area_gradient, Mesh, COT_CAP};
 use crate::{Error, Result};
 use glam::DVec3;
 use rayon::prelude::*;
-use solver_cpu::{BlockPcgSolver, IsoRingSym3, ShapeOperatorModel, SparseRows, SpdSolver, SymCsc};
+use solver_cpu::{
+    BlockPcgSolver, IsoRingSym3, ShapeOperatorModel, SparseRows, SpdSolver, SymCsc, NO_TRIPLET,
+};
 use std::sync::Arc;
 
 /// Faces per thread from which the assembly's sums into `K` and the
@@ -89,8 +91,7 @@ pub fn cotangent_laplacian(mesh: &Mesh, x: &[DVec3]) -> Laplacian {
 /// `[-COT_CAP, COT_CAP]` (libigl's `cot = (l1^2 + l2^2 - l0^2) / (4 area)` is
 /// unbounded on needles).
 pub fn cotangent_laplacian_masked(mesh: &Mesh, x: &[DVec3], skip: &[bool]) -> Laplacian {
-    let mut t = Vec::with_capacity(mesh.faces.len() * 6);
-    for (fi, f) in mesh.faces.iter().enumerate() {
+    let t = face_triplets(mesh, |fi, f, out| {
         let skipped = skip.get(fi).copied().unwrap_or(false);
         for k in 0..3 {
             let (a, b, c) = (f[k], f[(k + 1) % 3], f[(k + 2) % 3]);
@@ -109,11 +110,31 @@ pub fn cotangent_laplacian_masked(mesh: &Mesh, x: &[DVec3], skip: &[bool]) -> La
                     0.0
                 }
             };
-            t.push((a, b, 0.5 * cot));
-            t.push((b, a, 0.5 * cot));
+            out[2 * k] = (a, b, 0.5 * cot);
+            out[2 * k + 1] = (b, a, 0.5 * cot);
         }
-    }
+    });
     Laplacian::from_triplets(x.len(), t, false)
+}
+
+/// The triplets of a Laplacian on `mesh`'s faces, six a face (placeholders
+/// [`NO_TRIPLET`] where `per_face` writes fewer), each face's made by
+/// `per_face(face, corners, its six)` on rayon's threads: the same list on
+/// any thread count.
+fn face_triplets(
+    mesh: &Mesh,
+    per_face: impl Fn(usize, [u32; 3], &mut [(u32, u32, f64); 6]) + Sync,
+) -> Vec<(u32, u32, f64)> {
+    mesh.faces
+        .par_iter()
+        .enumerate()
+        .map(|(fi, &f)| {
+            let mut out = [NO_TRIPLET; 6];
+            per_face(fi, f, &mut out);
+            out
+        })
+        .collect::<Vec<_>>()
+        .into_flattened()
 }
 
 /// Mean-value Laplacian (Floater), rows normalised to sum 1. Zero-area, needle and
@@ -125,17 +146,16 @@ pub fn mean_value_laplacian(mesh: &Mesh, x: &[DVec3]) -> Laplacian {
 /// [`mean_value_laplacian`] with the faces flagged in `skip` contributing zero
 /// weights (their vertex pairs stay in the pattern).
 pub fn mean_value_laplacian_masked(mesh: &Mesh, x: &[DVec3], skip: &[bool]) -> Laplacian {
-    let mut t = Vec::with_capacity(mesh.faces.len() * 6);
-    for (fi, f) in mesh.faces.iter().enumerate() {
+    let t = face_triplets(mesh, |fi, f, out| {
         let skipped = skip.get(fi).copied().unwrap_or(false);
         for k in 0..3 {
             let (a, b, c) = (f[k], f[(k + 1) % 3], f[(k + 2) % 3]);
             if skipped {
                 if a != b {
-                    t.push((a, b, 0.0));
+                    out[2 * k] = (a, b, 0.0);
                 }
                 if a != c {
-                    t.push((a, c, 0.0));
+                    out[2 * k + 1] = (a, c, 0.0);
                 }
                 continue;
             }
@@ -149,22 +169,28 @@ pub fn mean_value_laplacian_masked(mesh: &Mesh, x: &[DVec3], skip: &[bool]) -> L
                 1e6
             };
             if l1 > 0.0 {
-                t.push((a, b, tan_half / l1));
+                out[2 * k] = (a, b, tan_half / l1);
             }
             if l2 > 0.0 {
-                t.push((a, c, tan_half / l2));
+                out[2 * k + 1] = (a, c, tan_half / l2);
             }
         }
-    }
+    });
     Laplacian::from_triplets(x.len(), t, true)
 }
 
 /// Barycentric vertex areas.
 pub fn vertex_areas(mesh: &Mesh, x: &[DVec3]) -> Vec<f64> {
-    let mut a = vec![0.0; x.len()];
-    for f in 0..mesh.faces.len() {
-        let ar = mesh.face_area(x, f) / 3.0;
-        for &v in &mesh.faces[f] {
+    vertex_areas_of(mesh, x.len(), &mesh.face_areas(x))
+}
+
+/// Barycentric vertex areas of `n` vertices, from the face areas `areas`
+/// (computed on rayon's threads; the sums in face order, as ever).
+fn vertex_areas_of(mesh: &Mesh, n: usize, areas: &[f64]) -> Vec<f64> {
+    let mut a = vec![0.0; n];
+    for (f, &area) in mesh.faces.iter().zip(areas) {
+        let ar = area / 3.0;
+        for &v in f {
             a[v as usize] += ar;
         }
     }
@@ -332,6 +358,7 @@ impl ShapeModel {
     ) -> Result<Self> {
         let x = &mesh.positions;
         let n = x.len();
+        let t_setup = std::time::Instant::now();
         let mut no_weight = mesh.degenerate_faces(x);
         for &(f, _) in &topo.duplicate_faces {
             no_weight[f as usize] = true;
@@ -340,8 +367,9 @@ impl ShapeModel {
             || Arc::new(cotangent_laplacian_masked(mesh, x, &no_weight)),
             || Arc::new(mean_value_laplacian_masked(mesh, x, &no_weight)),
         );
-        let vertex_area = vertex_areas(mesh, x);
+        let laplacians_seconds = t_setup.elapsed().as_secs_f64();
         let areas = mesh.face_areas(x);
+        let vertex_area = vertex_areas_of(mesh, n, &areas);
         let total_area: f64 = areas.iter().sum();
         let face_weight: Vec<f64> = areas
             .iter()
@@ -351,14 +379,16 @@ impl ShapeModel {
         let mean_edge = if topo.edges.is_empty() {
             1.0
         } else {
+            // The lengths on rayon's threads, their sum in edge order.
             topo.edges
-                .iter()
+                .par_iter()
                 .map(|e| (x[e[0] as usize] - x[e[1] as usize]).length())
+                .collect::<Vec<f64>>()
+                .iter()
                 .sum::<f64>()
                 / topo.edges.len() as f64
         };
 
-        let t_setup = std::time::Instant::now();
         let (col_ptr, row_idx) = two_ring_pattern(&cot.start, &cot.idx);
         let h = IsoRingSym3::new(n, col_ptr, row_idx, mv.clone());
         // E_m's Hessian is isotropic ((c c^T) (x) I3): one scalar per block slot.
@@ -375,7 +405,7 @@ impl ShapeModel {
         };
         let face_slots: Vec<[u32; 6]> = mesh
             .faces
-            .iter()
+            .par_iter()
             .map(|t| {
                 [
                     slot(t[0], t[0]),
@@ -413,10 +443,12 @@ impl ShapeModel {
             });
         }
         log::debug!(
-            "shape model: {} vertices, {} blocks, set up in {:.3} s, resident {:.0} MiB",
+            "shape model: {} vertices, {} blocks, set up in {:.3} s (its Laplacians {:.3} s), \
+             resident {:.0} MiB",
             n,
             h.iso.row_idx.len(),
             t_setup.elapsed().as_secs_f64(),
+            laplacians_seconds,
             crate::memory::resident_memory_mb()
         );
 

@@ -28,6 +28,27 @@ use glam::DVec3;
 use rayon::prelude::*;
 use std::sync::Arc;
 
+/// A placeholder among [`SparseRows::from_triplets`]' triplets, left out:
+/// where a builder that makes a fixed number per face has fewer.
+pub const NO_TRIPLET: (u32, u32, f64) = (u32::MAX, u32::MAX, 0.0);
+
+/// Rows a task of [`SparseRows::from_triplets`] compresses at once.
+const TRIPLET_ROWS: usize = 4096;
+
+/// The distinct pairs of sorted triplets, each with its duplicates' sum,
+/// `((v0 + v1) + v2) ...` in their order.
+fn distinct(entries: &[(u32, u32, f64)]) -> impl Iterator<Item = (u32, u32, f64)> + '_ {
+    entries
+        .chunk_by(|a, b| (a.0, a.1) == (b.0, b.1))
+        .map(|run| {
+            (
+                run[0].0,
+                run[0].1,
+                run[1..].iter().fold(run[0].2, |s, e| s + e.2),
+            )
+        })
+}
+
 /// Sparse rows in a graph Laplacian's layout:
 /// `(R y)_i = diag_i y_i - sum_k w_k y_{idx_k}` over `k` in `start[i]..start[i + 1]`
 /// (column indices sorted within a row, the diagonal kept apart).
@@ -44,43 +65,67 @@ impl SparseRows {
     /// given by `diag`). With `normalise`, each row's weights are scaled to sum 1
     /// and its diagonal is 1 (0 for an empty row); otherwise the diagonal is the
     /// row's weight sum (a Laplacian: rows sum to zero).
+    /// Triplets whose row is `n` or more (such as a builder's placeholder
+    /// [`NO_TRIPLET`]) are left out.
     pub fn from_triplets(n: usize, mut t: Vec<(u32, u32, f64)>, normalise: bool) -> SparseRows {
         // On rayon's threads; the values in the key make the order of a
         // pair's duplicates, and so their sum, the same on every run.
         use rayon::slice::ParallelSliceMut;
         t.par_sort_unstable_by(|a, b| (a.0, a.1).cmp(&(b.0, b.1)).then(a.2.total_cmp(&b.2)));
+        // The sorted triplets cut at row starts, a group of rows each: each
+        // group's distinct pairs counted, then summed into their places, on
+        // rayon's threads, each pair's duplicates in the sorted order (the
+        // same sums as one pass over them all).
+        let at = |r: usize| t.partition_point(|e| (e.0 as usize) < r);
+        let groups: Vec<_> = (0..n)
+            .step_by(TRIPLET_ROWS)
+            .map(|r| {
+                let rows = r..(r + TRIPLET_ROWS).min(n);
+                let entries = &t[at(rows.start)..at(rows.end)];
+                (rows, entries)
+            })
+            .collect();
         let mut start = vec![0usize; n + 1];
-        let mut idx = Vec::with_capacity(t.len());
-        let mut w: Vec<f64> = Vec::with_capacity(t.len());
-        let mut last: Option<(u32, u32)> = None;
-        for (i, j, v) in t {
-            if last == Some((i, j)) {
-                *w.last_mut().unwrap() += v;
-            } else {
-                idx.push(j);
-                w.push(v);
-                start[i as usize + 1] += 1;
-                last = Some((i, j));
-            }
-        }
+        start[1..]
+            .par_chunks_mut(TRIPLET_ROWS)
+            .zip(&groups)
+            .for_each(|(counts, (rows, entries))| {
+                for (i, _, _) in distinct(entries) {
+                    counts[i as usize - rows.start] += 1;
+                }
+            });
         for i in 0..n {
             start[i + 1] += start[i];
         }
+        let mut idx = vec![0u32; start[n]];
+        let mut w = vec![0.0f64; start[n]];
         let mut diag = vec![0.0; n];
-        for i in 0..n {
-            let r = start[i]..start[i + 1];
-            let sum: f64 = w[r.clone()].iter().sum();
-            if normalise {
-                if sum > 0.0 {
-                    w[r].iter_mut().for_each(|v| *v /= sum);
-                    diag[i] = 1.0;
+        let idx_groups = crate::row_groups_mut(&mut idx, n, |i| start[i], TRIPLET_ROWS);
+        let w_groups = crate::row_groups_mut(&mut w, n, |i| start[i], TRIPLET_ROWS);
+        idx_groups
+            .into_par_iter()
+            .zip(w_groups)
+            .zip(diag.par_chunks_mut(TRIPLET_ROWS))
+            .zip(&groups)
+            .for_each(|((((rows, idx), (_, w)), diag), (_, entries))| {
+                for (k, (_, j, v)) in distinct(entries).enumerate() {
+                    idx[k] = j;
+                    w[k] = v;
                 }
-            } else {
-                diag[i] = sum;
-            }
-        }
-        idx.shrink_to_fit();
-        w.shrink_to_fit();
+                let base = start[rows.start];
+                for (i, d) in rows.zip(diag) {
+                    let w = &mut w[start[i] - base..start[i + 1] - base];
+                    let sum: f64 = w.iter().sum();
+                    if normalise {
+                        if sum > 0.0 {
+                            w.iter_mut().for_each(|v| *v /= sum);
+                            *d = 1.0;
+                        }
+                    } else {
+                        *d = sum;
+                    }
+                }
+            });
         SparseRows {
             start,
             idx,
@@ -536,6 +581,108 @@ mod tests {
             self.iso.values = other.iso.values.clone();
             self.ring_c = other.ring_c.clone();
             self
+        }
+    }
+
+    /// [`SparseRows::from_triplets`] as one pass over the sorted triplets
+    /// (the form it had before its groups of rows on rayon's threads).
+    fn from_triplets_in_one_pass(
+        n: usize,
+        mut t: Vec<(u32, u32, f64)>,
+        normalise: bool,
+    ) -> SparseRows {
+        t.retain(|e| (e.0 as usize) < n);
+        t.sort_unstable_by(|a, b| (a.0, a.1).cmp(&(b.0, b.1)).then(a.2.total_cmp(&b.2)));
+        let mut start = vec![0usize; n + 1];
+        let (mut idx, mut w) = (Vec::new(), Vec::<f64>::new());
+        let mut last = None;
+        for (i, j, v) in t {
+            if last == Some((i, j)) {
+                *w.last_mut().unwrap() += v;
+            } else {
+                idx.push(j);
+                w.push(v);
+                start[i as usize + 1] += 1;
+                last = Some((i, j));
+            }
+        }
+        for i in 0..n {
+            start[i + 1] += start[i];
+        }
+        let mut diag = vec![0.0; n];
+        for i in 0..n {
+            let r = start[i]..start[i + 1];
+            let sum: f64 = w[r.clone()].iter().sum();
+            if !normalise {
+                diag[i] = sum;
+            } else if sum > 0.0 {
+                w[r].iter_mut().for_each(|v| *v /= sum);
+                diag[i] = 1.0;
+            }
+        }
+        SparseRows {
+            start,
+            idx,
+            w,
+            diag,
+        }
+    }
+
+    /// Rows in several groups of [`TRIPLET_ROWS`], with duplicates (up to
+    /// three of a pair, in scrambled order), empty rows, a zero-sum row and
+    /// placeholders: the same rows, to the bit, as one pass over them all,
+    /// on one thread and on four.
+    #[test]
+    fn triplets_give_the_rows_of_one_pass_on_any_thread_count() {
+        let n = 3 * TRIPLET_ROWS + 17;
+        let mut t = Vec::new();
+        for i in 0..n {
+            if i % 7 == 3 {
+                continue; // an empty row
+            }
+            for d in 1..=(i % 4 + 1) {
+                let j = ((i * 31 + d * 977) % n) as u32;
+                let v = ((i * d) as f64 * 0.37).sin();
+                t.push((i as u32, j, v));
+                if d % 2 == 0 {
+                    t.push((i as u32, j, 0.1 * v + 1e-3));
+                }
+            }
+            if i % 11 == 0 {
+                t.push(NO_TRIPLET);
+            }
+            if i % 5 == 0 {
+                // Three terms whose sum depends on their order: (1e-16 +
+                // 1e-16) + 1 is above 1, (1 + 1e-16) + 1e-16 is 1.
+                let j = ((i + 1) % n) as u32;
+                t.extend([1.0, 1e-16, 1e-16].map(|v| (i as u32, j, v)));
+            }
+        }
+        t.push((5, 9, 1.0));
+        t.push((5, 10, -1.0)); // row 5 may sum to zero
+                               // Scrambled: the order of a pair's duplicates is the sort's.
+        let len = t.len();
+        for k in 0..len {
+            t.swap(k, (k * 7919 + 13) % len);
+        }
+        for normalise in [false, true] {
+            let want = from_triplets_in_one_pass(n, t.clone(), normalise);
+            for threads in [1, 4] {
+                let pool = rayon::ThreadPoolBuilder::new()
+                    .num_threads(threads)
+                    .build()
+                    .unwrap();
+                let got = pool.install(|| SparseRows::from_triplets(n, t.clone(), normalise));
+                assert_eq!(got.start, want.start, "{threads} threads");
+                assert_eq!(got.idx, want.idx);
+                let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+                assert_eq!(
+                    bits(&got.w),
+                    bits(&want.w),
+                    "{threads} threads, {normalise}"
+                );
+                assert_eq!(bits(&got.diag), bits(&want.diag));
+            }
         }
     }
 

@@ -19,7 +19,7 @@ pub use cholesky::{
     thread_priority, CholeskySolver, FactorAhead, FactorPlan, FillOrdering, PatternKey,
     SupernodalFactor, PATTERN_KEY_RUN,
 };
-pub use iso_ring::{sym3_block, IsoRingSym3, SparseRows};
+pub use iso_ring::{sym3_block, IsoRingSym3, SparseRows, NO_TRIPLET};
 pub use ordering::{coordinate_nested_dissection, coordinate_nested_dissection_of_pairs};
 pub use pcg::{BlockPcgParams, BlockPcgSolver};
 
