@@ -76,13 +76,18 @@ impl SparseRows {
         // group's distinct pairs counted, then summed into their places, on
         // rayon's threads, each pair's duplicates in the sorted order (the
         // same sums as one pass over them all).
-        let at = |r: usize| t.partition_point(|e| (e.0 as usize) < r);
-        let groups: Vec<_> = (0..n)
-            .step_by(TRIPLET_ROWS)
-            .map(|r| {
-                let rows = r..(r + TRIPLET_ROWS).min(n);
-                let entries = &t[at(rows.start)..at(rows.end)];
-                (rows, entries)
+        let at: Vec<usize> = (0..n.div_ceil(TRIPLET_ROWS) + 1)
+            .map(|g| {
+                let r = (g * TRIPLET_ROWS).min(n);
+                t.partition_point(|e| (e.0 as usize) < r)
+            })
+            .collect();
+        let groups: Vec<_> = at
+            .windows(2)
+            .enumerate()
+            .map(|(g, w)| {
+                let rows = g * TRIPLET_ROWS..((g + 1) * TRIPLET_ROWS).min(n);
+                (rows, &t[w[0]..w[1]])
             })
             .collect();
         let mut start = vec![0usize; n + 1];
