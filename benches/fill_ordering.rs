@@ -81,6 +81,7 @@ fn row(
 }
 
 fn main() {
+    let _ = env_logger::try_init();
     let (cuts, homer) = common::homer_cuts(&[3, 6, 10]);
     let w = metricdeform::pipeline::Options::default().shape;
     println!(

@@ -11,14 +11,12 @@
 //! preconditioner, not a solver: its solves carry f32 rounding amplified by the
 //! condition number, so it is used inside the f64 PCG of [`crate::BlockPcgSolver`].
 
+use crate::symbolic::{analyse_pattern, SymbolicFactor};
 use crate::tree_factor::{factor_numeric_tree, factor_permuted, permute_lower};
 use crate::{BlockSym3, SolveInfo, SolverError, SpdSolver, SymCsc, WorkCounters};
-use faer::dyn_stack::{MemBuffer, MemStack};
-use faer::sparse::linalg::cholesky::{
-    factorize_symbolic_cholesky, LltRef, SymbolicCholesky, SymbolicCholeskyRaw, SymmetricOrdering,
-};
+use faer::get_global_parallelism;
+use faer::sparse::linalg::cholesky::{SymbolicCholeskyRaw, SymmetricOrdering};
 use faer::sparse::{SparseColMatRef, SymbolicSparseColMatRef};
-use faer::{get_global_parallelism, Conj, MatMut, Side};
 use rayon::prelude::*;
 use std::sync::Arc;
 
@@ -442,7 +440,7 @@ pub struct CholeskySolver {
     /// Fingerprint of the analysed pattern (see [`PatternKey`]).
     pattern: Option<PatternKey>,
     /// Shared with the solver's numeric twins ([`CholeskySolver::numeric_twin`]).
-    symbolic: Option<Arc<SymbolicCholesky<u32>>>,
+    symbolic: Option<Arc<SymbolicFactor>>,
     numeric: Vec<f64>,
     /// The factor in f32 when `single` (then `numeric` stays empty).
     numeric32: Vec<f32>,
@@ -899,10 +897,7 @@ impl CholeskySolver {
         }
         let sym = self.symbolic.as_ref().filter(|_| self.factored)?;
         let n = self.n;
-        let perm = match sym.perm() {
-            Some(p) => p.arrays().0.to_vec(),
-            None => (0..n as u32).collect(),
-        };
+        let perm = sym.forward().to_vec();
         let mut f = SupernodalFactor {
             perm,
             ..Default::default()
@@ -989,54 +984,33 @@ fn pattern_u32(a: &SymCsc) -> Result<(Vec<u32>, Vec<u32>), SolverError> {
 }
 
 /// Numeric LL^T factorization of the lower triangle `(pattern, values)` into
-/// `out`; false when the matrix is not positive definite (in precision `T`).
+/// `out` by faer, one supernode or column after the other: false when the
+/// matrix is not positive definite (in precision `T`).
 fn factor_numeric<T: faer::traits::RealField + Copy>(
-    sym: &SymbolicCholesky<u32>,
+    sym: &SymbolicFactor,
     out: &mut [T],
     pattern: SymbolicSparseColMatRef<'_, u32>,
     values: &[T],
     par: faer::Par,
-    stack: &mut MemStack,
-) -> bool {
-    sym.factorize_numeric_llt::<T>(
-        out,
-        SparseColMatRef::new(pattern, values),
-        Side::Lower,
-        Default::default(),
-        par,
-        stack,
-        Default::default(),
-    )
-    .is_ok()
+) -> Result<bool, SolverError> {
+    sym.factorize_numeric_llt(out, SparseColMatRef::new(pattern, values), par)
+        .ok_or(SolverError::OutOfMemory)
 }
 
 /// Sequential triangular solves `L L^T X = B` in place for the columns of `chunk`.
-fn solve_columns<T: faer::traits::ComplexField<Real = T> + Copy>(
-    sym: &SymbolicCholesky<u32>,
+fn solve_columns<T: faer::traits::RealField + Copy>(
+    sym: &SymbolicFactor,
     numeric: &[T],
     chunk: &mut [T],
-    n: usize,
 ) -> bool {
-    let cols = chunk.len() / n;
-    let par = faer::Par::Seq;
-    let Ok(mut buf) = MemBuffer::try_new(sym.solve_in_place_scratch::<T>(cols, par)) else {
-        return false;
-    };
-    let m = MatMut::from_column_major_slice_mut(chunk, n, cols);
-    LltRef::<'_, u32, T>::new(sym, numeric).solve_in_place_with_conj(
-        Conj::No,
-        m,
-        par,
-        MemStack::new(&mut buf),
-    );
-    true
+    sym.solve_in_place(numeric, chunk, faer::Par::Seq)
 }
 
 /// Solves the columns of `rhs` with the columns split among rayon threads, each
 /// solve sequential: the triangular solves are memory-bound, and faer's own
 /// parallel split is slower here. False when scratch memory was not available.
-fn solve_split<T: faer::traits::ComplexField<Real = T> + Copy + Send + Sync>(
-    sym: &SymbolicCholesky<u32>,
+fn solve_split<T: faer::traits::RealField + Copy + Send + Sync>(
+    sym: &SymbolicFactor,
     numeric: &[T],
     rhs: &mut [T],
     n: usize,
@@ -1049,7 +1023,7 @@ fn solve_split<T: faer::traits::ComplexField<Real = T> + Copy + Send + Sync>(
         for chunk in rhs.chunks_mut(n * per) {
             let failed = &failed;
             scope.spawn(move |_| {
-                if !solve_columns(sym, numeric, chunk, n) {
+                if !solve_columns(sym, numeric, chunk) {
                     failed.store(true, std::sync::atomic::Ordering::Relaxed);
                 }
             });
@@ -1126,8 +1100,8 @@ impl CholeskySolver {
                 },
                 ..Default::default()
             };
-            let sym = factorize_symbolic_cholesky(sym_ref, Side::Lower, ordering, symbolic_params)
-                .map_err(|e| {
+            let (sym, parts) =
+                analyse_pattern(sym_ref, ordering, symbolic_params).map_err(|e| {
                     SolverError::Backend(format!(
                         "symbolic Cholesky of {} unknowns: {e:?} (the factor's entries must be \
                              indexable by 32-bit integers)",
@@ -1140,11 +1114,13 @@ impl CholeskySolver {
             self.numeric = Vec::new();
             self.numeric32 = Vec::new();
             let nnz_l = sym.len_val();
+            let sym_kind = matches!(sym.raw(), SymbolicCholeskyRaw::Supernodal(_));
             self.symbolic = Some(Arc::new(sym));
             self.pattern = Some(key);
             self.symbolic_count += 1;
             log::debug!(
-                "Cholesky symbolic analysis: n {}, nnz(A) {}, nnz(L) {} ({}, {}), {:.3} s (ordering {:.3} s)",
+                "Cholesky symbolic analysis: n {}, nnz(A) {}, nnz(L) {} ({}, {}), {:.3} s (ordering {:.3} s, \
+                 elimination tree and column counts {:.3} s, {} {:.3} s)",
                 a.n,
                 a.row_idx.len(),
                 nnz_l,
@@ -1155,7 +1131,13 @@ impl CholeskySolver {
                     (_, Some(_)) => "nested dissection",
                 },
                 t0.elapsed().as_secs_f64(),
-                ordering_seconds
+                ordering_seconds,
+                parts.tree_and_counts,
+                match sym_kind {
+                    true => "supernodes",
+                    false => "simplicial structure",
+                },
+                parts.structure
             );
             // A given ordering has served (the symbolic factor keeps its own copy
             // of the permutation): release it, 8 bytes per unknown; a later
@@ -1278,23 +1260,13 @@ impl SpdSolver for CholeskySolver {
         };
         let factored = match tree {
             Some(factored) => factored,
-            None => {
-                // Scratch for this factorization only: at a million faces it
-                // is tens of MiB that would otherwise stay resident beside
-                // the factor.
-                let req = if self.single {
-                    sym.factorize_numeric_llt_scratch::<f32>(par, Default::default())
-                } else {
-                    sym.factorize_numeric_llt_scratch::<f64>(par, Default::default())
-                };
-                let mut scratch = MemBuffer::try_new(req).map_err(|_| SolverError::OutOfMemory)?;
-                let stack = MemStack::new(&mut scratch);
-                if self.single {
-                    factor_numeric(sym, &mut self.numeric32, sym_ref, &values32, par, stack)
-                } else {
-                    factor_numeric(sym, &mut self.numeric, sym_ref, &a.values, par, stack)
-                }
+            // Its scratch is for this factorization only: at a million
+            // faces it is tens of MiB that would otherwise stay resident
+            // beside the factor.
+            None if self.single => {
+                factor_numeric(sym, &mut self.numeric32, sym_ref, &values32, par)?
             }
+            None => factor_numeric(sym, &mut self.numeric, sym_ref, &a.values, par)?,
         };
         drop(values32);
         self.numeric_done(factored, a.n, t_numeric)

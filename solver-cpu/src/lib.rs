@@ -11,6 +11,7 @@ pub mod cholesky;
 pub mod iso_ring;
 pub mod ordering;
 pub mod pcg;
+mod symbolic;
 pub mod tree_factor;
 
 pub use block::{row_groups_mut, BlockRows, BlockSym3};

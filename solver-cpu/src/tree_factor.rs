@@ -20,10 +20,11 @@
 //! schedule, so the factor is the same on every run and for every thread
 //! count.
 
+use crate::symbolic::SymbolicFactor;
 use faer::dyn_stack::{MemBuffer, MemStack, StackReq};
 use faer::linalg::cholesky::llt::factor::{cholesky_in_place, cholesky_in_place_scratch, LltError};
 use faer::sparse::linalg::cholesky::supernodal::SymbolicSupernodalCholesky;
-use faer::sparse::linalg::cholesky::{SymbolicCholesky, SymbolicCholeskyRaw};
+use faer::sparse::linalg::cholesky::SymbolicCholeskyRaw;
 use faer::sparse::{SparseColMatRef, SymbolicSparseColMatRef};
 use faer::traits::RealField;
 use faer::{Accum, MatMut, MatRef, Par, Side};
@@ -541,40 +542,16 @@ pub(crate) struct PermutedLower<T> {
 /// `P A P^T`'s lower triangle for `sym`'s permutation `P`, from the lower
 /// triangle `(pattern, values)` of `A`.
 pub(crate) fn permute_lower<T: RealField + Copy>(
-    sym: &SymbolicCholesky<u32>,
+    sym: &SymbolicFactor,
     pattern: SymbolicSparseColMatRef<'_, u32>,
     values: &[T],
 ) -> PermutedLower<T> {
-    let n = pattern.nrows();
-    let a = SparseColMatRef::new(pattern, values);
-    let mut col_ptr = vec![0u32; n + 1];
-    let mut row_idx = vec![0u32; values.len()];
-    let mut new_values = vec![T::zero_impl(); values.len()];
-    match sym.perm() {
-        Some(perm) => {
-            let mut buf =
-                MemBuffer::new(faer::sparse::utils::permute_self_adjoint_scratch::<u32>(n));
-            faer::sparse::utils::permute_self_adjoint_to_unsorted(
-                &mut new_values,
-                &mut col_ptr,
-                &mut row_idx,
-                a,
-                perm,
-                Side::Lower,
-                Side::Lower,
-                MemStack::new(&mut buf),
-            );
-        }
-        None => {
-            col_ptr.copy_from_slice(pattern.col_ptr());
-            row_idx.copy_from_slice(pattern.row_idx());
-            new_values.copy_from_slice(values);
-        }
-    }
+    let (col_ptr, row_idx, values) =
+        sym.permute(SparseColMatRef::new(pattern, values), Side::Lower);
     PermutedLower {
         col_ptr,
         row_idx,
-        values: new_values,
+        values,
     }
 }
 
@@ -583,7 +560,7 @@ pub(crate) fn permute_lower<T: RealField + Copy>(
 /// (the caller factors it with faer), else whether the matrix is positive
 /// definite in precision `T`.
 pub(crate) fn factor_permuted<T: RealField + Copy + Send + Sync>(
-    sym: &SymbolicCholesky<u32>,
+    sym: &SymbolicFactor,
     out: &mut [T],
     a: &PermutedLower<T>,
     par: Par,
@@ -617,7 +594,7 @@ pub(crate) fn factor_permuted<T: RealField + Copy + Send + Sync>(
 
 /// [`permute_lower`], then [`factor_permuted`].
 pub(crate) fn factor_numeric_tree<T: RealField + Copy + Send + Sync>(
-    sym: &SymbolicCholesky<u32>,
+    sym: &SymbolicFactor,
     out: &mut [T],
     pattern: SymbolicSparseColMatRef<'_, u32>,
     values: &[T],
@@ -662,25 +639,25 @@ mod tests {
         (col_ptr, row_idx, values)
     }
 
-    fn symbolic(n: usize, col_ptr: &[u32], row_idx: &[u32]) -> SymbolicCholesky<u32> {
-        let pattern = SymbolicSparseColMatRef::new_checked(n, n, col_ptr, None, row_idx);
-        factorize_symbolic_cholesky(
-            pattern,
-            Side::Lower,
-            SymmetricOrdering::Amd,
-            CholeskySymbolicParams {
-                supernodal_flop_ratio_threshold: SupernodalThreshold::FORCE_SUPERNODAL,
-                ..Default::default()
-            },
-        )
-        .unwrap()
+    fn params() -> CholeskySymbolicParams<'static> {
+        CholeskySymbolicParams {
+            supernodal_flop_ratio_threshold: SupernodalThreshold::FORCE_SUPERNODAL,
+            ..Default::default()
+        }
     }
 
-    fn faer_factor(
-        sym: &SymbolicCholesky<u32>,
-        pattern: SymbolicSparseColMatRef<'_, u32>,
-        values: &[f64],
-    ) -> Vec<f64> {
+    fn symbolic(n: usize, col_ptr: &[u32], row_idx: &[u32]) -> SymbolicFactor {
+        let pattern = SymbolicSparseColMatRef::new_checked(n, n, col_ptr, None, row_idx);
+        crate::symbolic::analyse_pattern(pattern, SymmetricOrdering::Amd, params())
+            .unwrap()
+            .0
+    }
+
+    /// faer's factor, on faer's own symbolic analysis.
+    fn faer_factor(pattern: SymbolicSparseColMatRef<'_, u32>, values: &[f64]) -> Vec<f64> {
+        let sym =
+            factorize_symbolic_cholesky(pattern, Side::Lower, SymmetricOrdering::Amd, params())
+                .unwrap();
         let mut out = vec![0.0; sym.len_val()];
         let par = Par::Seq;
         let mut buf =
@@ -700,7 +677,7 @@ mod tests {
 
     fn tree_factor_on(
         threads: usize,
-        sym: &SymbolicCholesky<u32>,
+        sym: &SymbolicFactor,
         pattern: SymbolicSparseColMatRef<'_, u32>,
         values: &[f64],
     ) -> Option<Vec<f64>> {
@@ -737,7 +714,7 @@ mod tests {
             TreeSchedule::new(snodal, 4).tasks() > 8,
             "the cut makes tasks to share"
         );
-        let reference = faer_factor(&sym, pattern, &values);
+        let reference = faer_factor(pattern, &values);
         let largest = reference.iter().fold(0.0f64, |m, v| m.max(v.abs()));
         let one = tree_factor_on(1, &sym, pattern, &values).unwrap();
         let worst = one
