@@ -263,9 +263,9 @@ pub(crate) fn analyse_pattern(
         };
         (upper, parent, lower)
     });
-    let post = postorder(&parent);
-    let counts = column_counts(&parent, &post, &lower_ptr, &lower_rows);
-    drop((lower_ptr, lower_rows, post));
+    let order = postorder(&parent);
+    let counts = column_counts(&parent, &order, &lower_ptr, &lower_rows);
+    drop((lower_ptr, lower_rows, order));
     // faer's limit for u32 indices: the factor's values indexable by i32.
     let l_nnz: u64 = counts.iter().map(|&c| c as u64).sum();
     if l_nnz > i32::MAX as u64 {
@@ -399,35 +399,56 @@ fn elimination_tree(ptr: &[u32], rows: &[u32]) -> Vec<u32> {
     parent
 }
 
-/// A postorder of the forest `parent` (each node after its descendants,
-/// children in ascending order): `post[k]` is the `k`-th node.
-fn postorder(parent: &[u32]) -> Vec<u32> {
+/// A postorder of a forest: each node after its descendants, children in
+/// ascending order.
+struct Postorder {
+    /// `post[k]`: the `k`-th node.
+    post: Vec<u32>,
+    /// `first[j]`: the place in `post` of `j`'s first descendant (its own
+    /// where `j` is a leaf): `j`'s subtree is `post[first[j]..=place of j]`.
+    first: Vec<u32>,
+}
+
+/// The postorder of the forest `parent`, in which a parent's index is larger
+/// than its children's (an elimination tree): the subtrees' sizes summed up
+/// in ascending order, then each node's range placed inside its parent's in
+/// descending order, the larger children's to the right. Three passes over
+/// the nodes in index order, no search.
+fn postorder(parent: &[u32]) -> Postorder {
     let n = parent.len();
-    let mut first_child = vec![NONE; n];
-    let mut next_sibling = vec![NONE; n];
+    let mut size = vec![1u32; n];
+    for j in 0..n {
+        if parent[j] != NONE {
+            size[parent[j] as usize] += size[j];
+        }
+    }
+    // place[j]: j's place, the last of its subtree's range; free[j]: the
+    // end of the part of that range no child has taken yet.
+    let mut place = vec![0u32; n];
+    let mut free = vec![0u32; n];
+    let mut roots = 0u32;
+    for j in 0..n {
+        if parent[j] == NONE {
+            roots += size[j];
+            place[j] = roots - 1;
+        }
+    }
     for j in (0..n).rev() {
         let p = parent[j];
         if p != NONE {
-            next_sibling[j] = first_child[p as usize];
-            first_child[p as usize] = j as u32;
+            let end = free[p as usize];
+            place[j] = end - 1;
+            free[p as usize] = end - size[j];
         }
+        free[j] = place[j];
     }
-    let mut post = Vec::with_capacity(n);
-    let mut stack = Vec::new();
-    for root in (0..n).filter(|&j| parent[j] == NONE) {
-        stack.push(root as u32);
-        while let Some(&p) = stack.last() {
-            let c = first_child[p as usize];
-            if c == NONE {
-                stack.pop();
-                post.push(p);
-            } else {
-                first_child[p as usize] = next_sibling[c as usize];
-                stack.push(c);
-            }
-        }
+    let mut post = vec![0u32; n];
+    let mut first = vec![0u32; n];
+    for j in 0..n {
+        post[place[j] as usize] = j as u32;
+        first[j] = place[j] + 1 - size[j];
     }
-    post
+    Postorder { post, first }
 }
 
 /// The column counts of `L` (diagonal included) from the elimination tree
@@ -439,24 +460,18 @@ fn postorder(parent: &[u32]) -> Vec<u32> {
 /// subtree's previous leaf (which the subtree already counts), and each
 /// child's count is taken off its parent; the counts are then the sums of
 /// `delta` over each subtree.
-fn column_counts(parent: &[u32], post: &[u32], ptr: &[u32], rows: &[u32]) -> Vec<u32> {
+fn column_counts(parent: &[u32], order: &Postorder, ptr: &[u32], rows: &[u32]) -> Vec<u32> {
     let n = parent.len();
-    // first[j]: the postorder index of j's first descendant.
-    let mut first = vec![NONE; n];
+    let Postorder { post, first } = order;
+    // A leaf of the tree starts with its own column's diagonal.
     let mut delta = vec![0i32; n];
-    for (k, &p) in post.iter().enumerate() {
-        let mut j = p;
-        // A leaf of the tree: its own column's diagonal.
-        delta[j as usize] = i32::from(first[j as usize] == NONE);
-        while j != NONE && first[j as usize] == NONE {
-            first[j as usize] = k as u32;
-            j = parent[j as usize];
-        }
+    for (k, &j) in post.iter().enumerate() {
+        delta[j as usize] = i32::from(first[j as usize] == k as u32);
     }
     let mut ancestor: Vec<u32> = (0..n as u32).collect();
     let mut max_first = vec![NONE; n];
     let mut prev_leaf = vec![NONE; n];
-    for &j in post {
+    for &j in post.iter() {
         let j = j as usize;
         if parent[j] != NONE {
             delta[parent[j] as usize] -= 1;
@@ -610,15 +625,37 @@ mod tests {
             let a = SymbolicSparseColMatRef::new_checked(n, n, &ptr, None, &rows);
             let (up, ur) = permuted_triangle(a, &reversed(n).1, Side::Upper);
             let parent = elimination_tree(&up, &ur);
-            let post = postorder(&parent);
+            let Postorder { post, first } = postorder(&parent);
             let mut at = vec![usize::MAX; n];
             for (k, &j) in post.iter().enumerate() {
                 assert_eq!(at[j as usize], usize::MAX, "node {j} twice");
                 at[j as usize] = k;
             }
+            let is_under = |mut i: u32, j: u32| loop {
+                if i == j {
+                    break true;
+                }
+                if i == NONE {
+                    break false;
+                }
+                i = parent[i as usize];
+            };
             for j in 0..n {
                 if parent[j] != NONE {
                     assert!(at[j] < at[parent[j] as usize]);
+                }
+                // j's subtree is the range ending at j, from first[j].
+                let subtree = (0..n as u32).filter(|&i| is_under(i, j as u32)).count();
+                assert_eq!(at[j] + 1 - first[j] as usize, subtree, "subtree of {j}");
+                for &i in &post[first[j] as usize..=at[j]] {
+                    assert!(is_under(i, j as u32), "{i} in the range of {j}");
+                }
+            }
+            // Children in ascending order.
+            for w in post.windows(2) {
+                let (a, b) = (w[0] as usize, w[1] as usize);
+                if parent[a] != NONE && parent[a] == parent[b] {
+                    assert!(a < b);
                 }
             }
         }
