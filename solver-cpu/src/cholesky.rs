@@ -1114,7 +1114,10 @@ impl CholeskySolver {
             self.numeric = Vec::new();
             self.numeric32 = Vec::new();
             let nnz_l = sym.len_val();
-            let sym_kind = matches!(sym.raw(), SymbolicCholeskyRaw::Supernodal(_));
+            let structure = match sym.raw() {
+                SymbolicCholeskyRaw::Supernodal(_) => "supernodes",
+                SymbolicCholeskyRaw::Simplicial(_) => "simplicial structure",
+            };
             self.symbolic = Some(Arc::new(sym));
             self.pattern = Some(key);
             self.symbolic_count += 1;
@@ -1133,10 +1136,7 @@ impl CholeskySolver {
                 t0.elapsed().as_secs_f64(),
                 ordering_seconds,
                 parts.tree_and_counts,
-                match sym_kind {
-                    true => "supernodes",
-                    false => "simplicial structure",
-                },
+                structure,
                 parts.structure
             );
             // A given ordering has served (the symbolic factor keeps its own copy
