@@ -242,7 +242,7 @@ pub struct ShapeModel {
     /// Block slots of the pairs (p >= q) of each mean-value Laplacian row, in the
     /// order the E_l assembly visits them.
     mv_slot_ptr: Vec<usize>,
-    mv_slots: Vec<u32>,
+    mv_slots: Arc<[u32]>,
     /// For the vertex ranges last asked of [`Self::add_ring_pairs`] (their
     /// bounds), each range's rows of `mv` (ascending) with an entry in it:
     /// the cotangent rows have the same entries wherever `mv_slots` serve
@@ -390,7 +390,7 @@ impl ShapeModel {
         };
 
         let (col_ptr, row_idx) = two_ring_pattern(&cot.start, &cot.idx);
-        let h = IsoRingSym3::new(n, col_ptr, row_idx, mv.clone());
+        let mut h = IsoRingSym3::new(n, col_ptr, row_idx, mv.clone());
         // E_m's Hessian is isotropic ((c c^T) (x) I3): one scalar per block slot.
         let same_rings = cot.start == mv.start && cot.idx == mv.idx;
         let hm = if same_rings {
@@ -442,6 +442,9 @@ impl ShapeModel {
                 }
             });
         }
+        // The same slots serve a solver that adds the rings' pairs itself.
+        let mv_slots: Arc<[u32]> = mv_slots.into();
+        h.ring_slots = Some(mv_slots.clone());
         log::debug!(
             "shape model: {} vertices, {} blocks, set up in {:.3} s (its Laplacians {:.3} s), \
              resident {:.0} MiB",
@@ -1271,6 +1274,26 @@ mod tests {
         let topo = Topology::build(&mesh);
         let model = ShapeModel::new(&mesh, &topo, Vec::new()).unwrap();
         (mesh, model)
+    }
+
+    /// The matrix hands a solver the slot of each ring pair in its pattern,
+    /// in the rings' pair order: each pair's entry, as a search finds it.
+    #[test]
+    fn the_matrix_carries_its_ring_pairs_slots() {
+        let (_, model) = spot_model();
+        let h = model.matrix();
+        let slots = h.ring_slots.as_ref().expect("the model's slots");
+        let (col_ptr, row_idx) = (&h.iso.col_ptr, &h.iso.row_idx);
+        let searched: Vec<u32> = (0..h.rings.len())
+            .flat_map(|i| {
+                h.rings.pairs(i).map(|(p, q, _)| {
+                    (col_ptr[q]..col_ptr[q + 1])
+                        .find(|&k| row_idx[k] == p)
+                        .expect("pair in the pattern") as u32
+                })
+            })
+            .collect();
+        assert_eq!(&**slots, &searched[..]);
     }
 
     /// The assembly's sums into `K`, the rings' `C_i` and the gradient are

@@ -985,7 +985,8 @@ mod tests {
             a.rings = rings.clone();
             let mut want = HostMatrix::pattern(n, 3, &a.iso.col_ptr, &a.iso.row_idx).unwrap();
             let slots =
-                crate::matrix::RingSlots::new(&a.rings, &a.iso.col_ptr, &a.iso.row_idx).unwrap();
+                crate::matrix::RingSlots::new(&a.rings, &a.iso.col_ptr, &a.iso.row_idx, None)
+                    .unwrap();
             want.fill_shape(&a, &slots, &fixed).unwrap();
             assert!(s.prepare_shape_owned(a, &fixed).unwrap().is_none());
             let b: Vec<f64> = (0..3 * n * ncols)
@@ -1060,7 +1061,8 @@ mod tests {
             let up0 = s.ctx.traffic().to_device;
             let mut want = HostMatrix::pattern(n, 3, &a.iso.col_ptr, &a.iso.row_idx).unwrap();
             let slots =
-                crate::matrix::RingSlots::new(&a.rings, &a.iso.col_ptr, &a.iso.row_idx).unwrap();
+                crate::matrix::RingSlots::new(&a.rings, &a.iso.col_ptr, &a.iso.row_idx, None)
+                    .unwrap();
             want.fill_shape(&a, &slots, &fixed).unwrap();
             // K is read apart (factored) for the kind's first matrix only.
             assert_eq!(s.wants_isotropic_part(), seed == 0.0, "seed {seed}");

@@ -950,7 +950,7 @@ pub(crate) struct RingSlots {
     rings: Arc<SparseRows>,
     /// Per row `i`, its pairs' slots are `slot[start[i]..start[i + 1]]`.
     start: Vec<u32>,
-    slot: Vec<u32>,
+    slot: Arc<[u32]>,
     /// Per row `i`, `sum_q |R_iq|` (for [`shape_norm_bound`]'s rings' part).
     abs_sum: Vec<f64>,
     /// The pairs per part of the lower blocks, for the parts' size it was
@@ -972,10 +972,18 @@ impl RingSlots {
     /// host (inferred from the log's gap around it, not timed apart there);
     /// 0.20 s at 1.2M on the development machine, 0.11 s on its 2 threads.
     /// The same slots on any number of threads.
+    ///
+    /// Where `given` holds slots in that order (the matrix's own,
+    /// [`IsoRingSym3::ring_slots`]), they are checked instead, a pass of
+    /// two reads a pair (its column holds the slot, the slot holds its row),
+    /// and shared where every one holds: the shape model's, so the host
+    /// keeps one copy (67 MB at homer 1.2M). Slots that fail the check are
+    /// searched for as above.
     pub fn new(
         rings: &Arc<SparseRows>,
         col_ptr: &[usize],
         row_idx: &[usize],
+        given: Option<&Arc<[u32]>>,
     ) -> Result<RingSlots, SolverError> {
         let n = col_ptr.len().saturating_sub(1);
         // A row of d entries (its own included) has d (d + 1) / 2 pairs.
@@ -990,6 +998,33 @@ impl RingSlots {
             return Err(SolverError::DimensionMismatch(format!(
                 "{total} ring pairs: more than 32-bit offsets hold"
             )));
+        }
+        let start_u32: Vec<u32> = start.iter().map(|&v| v as u32).collect();
+        let abs_sum = || {
+            (0..rings.len())
+                .into_par_iter()
+                .map(|i| rings.row(i).map(|(_, w)| w.abs()).sum())
+                .collect()
+        };
+        if let Some(given) = given.filter(|g| g.len() == total) {
+            let holds = |i: usize| {
+                let mine = &given[start[i]..start[i + 1]];
+                rings.pairs(i).zip(mine).all(|((p, q, _), &k)| {
+                    let k = k as usize;
+                    q < n && (col_ptr[q]..col_ptr[q + 1]).contains(&k) && row_idx[k] == p
+                })
+            };
+            if (0..rings.len()).into_par_iter().all(holds) {
+                return Ok(RingSlots {
+                    rings: rings.clone(),
+                    start: start_u32,
+                    slot: given.clone(),
+                    abs_sum: abs_sum(),
+                    part_pairs: Default::default(),
+                    symmetric: rings.pattern_is_symmetric(),
+                });
+            }
+            log::warn!("the matrix's ring pair slots do not hold in its pattern: searched for");
         }
         let mut slot = vec![0u32; total];
         let groups =
@@ -1030,18 +1065,19 @@ impl RingSlots {
         };
         let filled: Vec<Result<(), SolverError>> = groups.into_par_iter().map(fill).collect();
         filled.into_iter().collect::<Result<(), SolverError>>()?;
-        let start = start.into_iter().map(|v| v as u32).collect();
-        let abs_sum = (0..rings.len())
-            .map(|i| rings.row(i).map(|(_, w)| w.abs()).sum())
-            .collect();
         Ok(RingSlots {
             rings: rings.clone(),
-            start,
-            slot,
-            abs_sum,
+            start: start_u32,
+            slot: slot.into(),
+            abs_sum: abs_sum(),
             part_pairs: Default::default(),
             symmetric: rings.pattern_is_symmetric(),
         })
+    }
+
+    /// Whether these slots are `given`'s (shared, not copied).
+    pub fn shares(&self, given: &Arc<[u32]>) -> bool {
+        Arc::ptr_eq(&self.slot, given)
     }
 
     /// Whether these are the slots of `rings` (the same rows, by identity).
@@ -1061,7 +1097,7 @@ impl RingSlots {
     pub fn pairs_per_part(&self, part_blocks: usize, parts: usize) -> Vec<usize> {
         let count = || {
             let mut n = vec![0; parts];
-            for &s in &self.slot {
+            for &s in self.slot.iter() {
                 n[(s as usize / part_blocks.max(1)).min(parts - 1)] += 1;
             }
             n
@@ -1083,7 +1119,7 @@ impl RingSlots {
     /// order [`HostMatrix::fill_shape`] adds them in).
     pub fn by_block(&self, rings: &SparseRows, slots: usize) -> (Vec<u32>, Vec<u32>, Vec<f64>) {
         let mut start = vec![0u32; slots + 1];
-        for &s in &self.slot {
+        for &s in self.slot.iter() {
             start[s as usize + 1] += 1;
         }
         for s in 0..slots {
@@ -1203,7 +1239,7 @@ mod shape_fill_tests {
         let (col_ptr, row_idx) = (&a.iso.col_ptr, &a.iso.row_idx);
         let mut want = HostMatrix::pattern(11, 3, col_ptr, row_idx).unwrap();
         want.fill_blocks(&a.to_blocks(), &fixed);
-        let slots = RingSlots::new(&a.rings, col_ptr, row_idx).unwrap();
+        let slots = RingSlots::new(&a.rings, col_ptr, row_idx, None).unwrap();
         assert!(slots.of(&a.rings));
         let mut got = HostMatrix::pattern(11, 3, col_ptr, row_idx).unwrap();
         got.fill_shape(&a, &slots, &fixed).unwrap();
@@ -1217,7 +1253,7 @@ mod shape_fill_tests {
         got.fill_shape(&b, &slots, &fixed).unwrap();
         assert_eq!(got.full_values(), want.full_values());
         // Different rings (equal values, another allocation) are not these.
-        let other = RingSlots::new(&Arc::new((*a.rings).clone()), col_ptr, row_idx).unwrap();
+        let other = RingSlots::new(&Arc::new((*a.rings).clone()), col_ptr, row_idx, None).unwrap();
         assert!(!slots.of(&other.rings));
         // A Laplacian square term the matrix names: summed as `to_blocks`
         // sums it, and its values are the same through the ring slots and
@@ -1421,7 +1457,7 @@ mod shape_fill_tests {
         let mut named = plain.clone();
         named.laplacian_square = Some(square_model(&plain));
         let (col_ptr, row_idx) = (&plain.iso.col_ptr, &plain.iso.row_idx);
-        let slots = Arc::new(RingSlots::new(&plain.rings, col_ptr, row_idx).unwrap());
+        let slots = Arc::new(RingSlots::new(&plain.rings, col_ptr, row_idx, None).unwrap());
         let cases = [vec![], vec![4usize, 11]]
             .into_iter()
             .flat_map(|held| [(held.clone(), &plain), (held, &named)]);
@@ -1487,7 +1523,7 @@ mod shape_fill_tests {
         let n = 17;
         let a = shape_strip(n, 0.0);
         let (col_ptr, row_idx) = (&a.iso.col_ptr, &a.iso.row_idx);
-        let slots = RingSlots::new(&a.rings, col_ptr, row_idx).unwrap();
+        let slots = RingSlots::new(&a.rings, col_ptr, row_idx, None).unwrap();
         let nnz = row_idx.len();
         let (start, ring, f) = slots.by_block(&a.rings, nnz);
         assert_eq!(start.len(), nnz + 1);
@@ -1537,14 +1573,42 @@ mod shape_fill_tests {
                 .num_threads(threads)
                 .build()
                 .unwrap();
-            let slots = pool.install(|| RingSlots::new(&a.rings, col_ptr, row_idx).unwrap());
-            assert_eq!(slots.slot, want, "{threads} threads");
+            let slots = pool.install(|| RingSlots::new(&a.rings, col_ptr, row_idx, None).unwrap());
+            assert_eq!(&*slots.slot, &want[..], "{threads} threads");
             assert_eq!(slots.start.len(), n + 1);
             for i in 0..n {
                 let pairs = a.rings.pairs(i).count() as u32;
                 assert_eq!(slots.start[i + 1] - slots.start[i], pairs, "row {i}");
             }
         }
+    }
+
+    /// Slots the matrix brings are shared where each holds, and searched for
+    /// where one does not or their count is wrong.
+    #[test]
+    fn given_ring_slots_are_taken_where_they_hold() {
+        let n = 2 * RINGS_PER_TASK + 17;
+        let a = strip_pattern(n);
+        let (col_ptr, row_idx) = (&a.iso.col_ptr, &a.iso.row_idx);
+        let searched = RingSlots::new(&a.rings, col_ptr, row_idx, None).unwrap();
+        let given: Arc<[u32]> = searched.slot.to_vec().into();
+        let taken = RingSlots::new(&a.rings, col_ptr, row_idx, Some(&given)).unwrap();
+        assert!(taken.shares(&given));
+        assert_eq!(taken.start, searched.start);
+        assert_eq!(taken.abs_sum, searched.abs_sum);
+        // One slot moved to its column's next entry (still inside the
+        // pattern, the wrong row), in a late task: searched for.
+        let mut wrong = searched.slot.to_vec();
+        let k = searched.start[n - 3] as usize + 1;
+        wrong[k] += 1;
+        let wrong: Arc<[u32]> = wrong.into();
+        let fixed = RingSlots::new(&a.rings, col_ptr, row_idx, Some(&wrong)).unwrap();
+        assert!(!fixed.shares(&wrong));
+        assert_eq!(&*fixed.slot, &*searched.slot);
+        let short: Arc<[u32]> = searched.slot[1..].to_vec().into();
+        let fixed = RingSlots::new(&a.rings, col_ptr, row_idx, Some(&short)).unwrap();
+        assert!(!fixed.shares(&short));
+        assert_eq!(&*fixed.slot, &*searched.slot);
     }
 
     /// Of several rows with pairs outside the pattern, in different tasks,
@@ -1559,7 +1623,7 @@ mod shape_fill_tests {
         let pairs = (0..n).flat_map(|i| [(i, (i + 1) % n), (i, (i + 2) % n)]);
         let kept = pairs.filter(|&(i, j)| !(drop.contains(&i) && j == (i + 2) % n));
         let pat = SymCsc::from_pattern(n, kept);
-        let e = RingSlots::new(&a.rings, &pat.col_ptr, &pat.row_idx).err();
+        let e = RingSlots::new(&a.rings, &pat.col_ptr, &pat.row_idx, None).err();
         let Some(SolverError::DimensionMismatch(m)) = e else {
             panic!("{e:?}");
         };
@@ -1572,7 +1636,7 @@ mod shape_fill_tests {
         // The pattern of K without its second off-diagonals: (i, i+2) pairs
         // of the rings fall outside.
         let pat = SymCsc::from_pattern(9, (0..9).map(|i| (i, (i + 1) % 9)));
-        let e = RingSlots::new(&a.rings, &pat.col_ptr, &pat.row_idx).err();
+        let e = RingSlots::new(&a.rings, &pat.col_ptr, &pat.row_idx, None).err();
         assert!(
             matches!(&e, Some(SolverError::DimensionMismatch(m)) if m.contains("outside the matrix pattern")),
             "{e:?}"

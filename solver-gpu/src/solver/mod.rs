@@ -813,9 +813,14 @@ impl SpdSolver for GpuSolver {
         let same = self.same_pattern(3, col_ptr, row_idx);
         if !(same && self.ring_slots.as_ref().is_some_and(|r| r.of(&a.rings))) {
             let t = std::time::Instant::now();
-            let slots = Arc::new(RingSlots::new(&a.rings, col_ptr, row_idx)?);
+            let given = a.ring_slots.as_ref();
+            let slots = Arc::new(RingSlots::new(&a.rings, col_ptr, row_idx, given)?);
             log::debug!(
-                "ring pairs' slots found in {:.3} s",
+                "ring pairs' slots {} in {:.3} s",
+                match given.is_some_and(|g| slots.shares(g)) {
+                    true => "taken from the matrix, checked,",
+                    false => "found",
+                },
                 t.elapsed().as_secs_f64()
             );
             self.start_pairs_ahead(&a, &slots);
