@@ -675,13 +675,23 @@ mod tests {
                     supernodal_flop_ratio_threshold: threshold,
                     ..Default::default()
                 };
-                let orderings = || {
+                // The identity against faer's as a given permutation: faer's
+                // `Identity` analyses the upper triangle it is handed, the
+                // diagonal alone of a lower one.
+                let identity: Vec<u32> = (0..n as u32).collect();
+                let orderings = |ours: bool| {
                     [
                         SymmetricOrdering::Amd,
                         SymmetricOrdering::Custom(PermRef::new_checked(&fwd, &inv, n)),
+                        match ours {
+                            true => SymmetricOrdering::Identity,
+                            false => SymmetricOrdering::Custom(PermRef::new_checked(
+                                &identity, &identity, n,
+                            )),
+                        },
                     ]
                 };
-                for (ours, theirs) in orderings().into_iter().zip(orderings()) {
+                for (ours, theirs) in orderings(true).into_iter().zip(orderings(false)) {
                     let (ours, _) = analyse_pattern(a, ours, params()).unwrap();
                     let theirs =
                         factorize_symbolic_cholesky(a, Side::Lower, theirs, params()).unwrap();
