@@ -7,7 +7,9 @@
 //! (`solver_cpu::coordinate_nested_dissection`, every thread): the
 //! ordering's and the analysis's seconds, the factor's values and flops, one
 //! numeric factorization's seconds, its supernodes and the levels a GPU
-//! solves them in.
+//! solves them in; then, per factor, what its numeric factorization on a
+//! GPU (`solver_gpu::factorize`) would take, counted from its structure:
+//! dispatches, the chain of dependent steps through them, modelled bytes.
 //!
 //! `cargo bench --bench fill_ordering` (`-- --quick`: 108k only; `-- --1m`:
 //! 1.2M only).
@@ -78,7 +80,21 @@ fn row(
         c.factor_flops() / 1e9,
         f.len(),
     );
+    // What factoring it on a GPU would take (solver_gpu::factorize),
+    // counted from its structure.
+    if let Some(w) = solver_gpu::factorize::factorization_work(&f, a.row_idx.len()) {
+        let widest = (0..f.len()).map(|s| f.shape(s).0).max().unwrap_or(0);
+        GPU_ROWS.lock().unwrap().push(format!(
+            "| {pattern} | {faces} | {name} | {} | {:.2}M | {:.1} | {widest} |",
+            w.dispatches,
+            w.serial_steps as f64 / 1e6,
+            w.bytes as f64 / 1e9,
+        ));
+    }
 }
+
+/// The second table's rows: each factor's GPU factorization, counted.
+static GPU_ROWS: std::sync::Mutex<Vec<String>> = std::sync::Mutex::new(Vec::new());
 
 fn main() {
     let _ = env_logger::try_init();
@@ -131,5 +147,13 @@ fn main() {
                 coordinate_nested_dissection_of_pairs(&centroids, pairs)
             });
         }
+    }
+    println!();
+    println!(
+        "| pattern | faces | ordering | GPU factorization: dispatches | serial steps | modelled GB | widest supernode |"
+    );
+    println!("|---|---|---|---|---|---|---|");
+    for r in GPU_ROWS.lock().unwrap().iter() {
+        println!("{r}");
     }
 }

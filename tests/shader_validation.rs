@@ -6,8 +6,9 @@ use solver_gpu::naga;
 /// Shaders that also compile in f64 (solver_gpu::precision).
 const F64_VARIANTS: [&str; 2] = ["pcg.wgsl", "csr_spmv.wgsl"];
 /// Shaders written with f64 (they need SHADER_F64, naga's FLOAT64).
-const F64_ONLY: [&str; 7] = [
+const F64_ONLY: [&str; 8] = [
     "convert.wgsl",
+    "supernodal_factor.wgsl",
     "power_sum_newton.wgsl",
     "bsr_spmv_f64.wgsl",
     "expand_blocks.wgsl",
@@ -79,6 +80,7 @@ fn every_shader_parses_and_validates() {
         "expand_blocks.wgsl",
         "sum_shape_blocks.wgsl",
         "supernodal.wgsl",
+        "supernodal_factor.wgsl",
         "refine.wgsl",
         "refine_product.wgsl",
         "power_sum_newton.wgsl",

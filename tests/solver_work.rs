@@ -284,6 +284,7 @@ fn squared_laplacian_on(kind: solver_cpu::SystemKind, w: metricdeform::shape::Sh
                 setups - before.preconditioner_setups,
                 setups,
                 after.since(&before),
+                after.bytes_to_device,
             ));
         }
         out
@@ -295,6 +296,11 @@ fn squared_laplacian_on(kind: solver_cpu::SystemKind, w: metricdeform::shape::Sh
     };
     let cpu = solve(Box::new(solver_cpu::BlockPcgSolver::new()));
     let chol = solve(gpu(Preconditioner::Cholesky));
+    let chol_on_gpu = solve({
+        let mut g = solver_gpu::open().unwrap();
+        g.set_factorization(solver_gpu::Factorization::Gpu);
+        Box::new(g)
+    });
     let squared = solve(gpu(Preconditioner::SquaredLaplacian));
     let affine = solve(gpu(Preconditioner::AffineAmg));
     let rel = |a: &[f64], b: &[f64]| {
@@ -322,6 +328,32 @@ fn squared_laplacian_on(kind: solver_cpu::SystemKind, w: metricdeform::shape::Sh
             "{kind:?} system {k}: {} iterations against the CPU's {}",
             chol[k].1,
             cpu[k].1
+        );
+    }
+    // The factor made on the GPU from K's values: the host's factor to
+    // rounding, so the same solves in as many iterations (one more at
+    // most); K's values go up instead of the factor.
+    for k in 0..2 {
+        let e = close_to_cpu("Cholesky factored on the GPU", &chol_on_gpu[k].0, k);
+        eprintln!(
+            "{kind:?} system {k}: factored on the GPU {} iterations, on the host {}, GPU - CPU \
+             {e:.1e}; {} bytes up against {}",
+            chol_on_gpu[k].1, chol[k].1, chol_on_gpu[k].5, chol[k].5
+        );
+        assert!(chol_on_gpu[k].1.abs_diff(chol[k].1) <= 1);
+    }
+    assert_eq!(chol_on_gpu[0].3, 1, "one set-up for the first matrix");
+    assert_eq!(
+        chol_on_gpu[1].2, 0,
+        "the second matrix of the kind keeps it"
+    );
+    if solver_gpu::default_adapter().is_ok_and(|a| a.shader_f64) {
+        // Spot x4: a factor of 1.4M values (11.4 MB) against K's 0.1M.
+        assert!(
+            10 * chol_on_gpu[0].5 < 6 * chol[0].5,
+            "{} bytes up against {} with the host's factor",
+            chol_on_gpu[0].5,
+            chol[0].5
         );
     }
     assert_eq!(chol[0].3, 1, "one Cholesky set-up for the first matrix");

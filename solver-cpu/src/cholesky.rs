@@ -895,9 +895,25 @@ impl CholeskySolver {
             self.factored = false;
             return Some(f);
         }
-        let sym = self.symbolic.as_ref().filter(|_| self.factored)?;
-        let n = self.n;
+        if !self.factored {
+            return None;
+        }
+        let mut f = self.supernodal_structure()?;
+        f.values = std::mem::take(&mut self.numeric32);
+        f.values64 = std::mem::take(&mut self.numeric);
+        self.factored = false;
+        Some(f)
+    }
+
+    /// The factor's structure by supernodes, as
+    /// [`CholeskySolver::take_supernodal_factor`] lays it out, without
+    /// values (for a numeric factorization elsewhere: the GPU's); `None`
+    /// before the symbolic analysis.
+    pub fn supernodal_structure(&self) -> Option<SupernodalFactor> {
+        let sym = self.symbolic.as_ref()?;
+        // The analysed pattern's order (`self.n` is the last factored one's).
         let perm = sym.forward().to_vec();
+        let n = perm.len();
         let mut f = SupernodalFactor {
             perm,
             ..Default::default()
@@ -938,9 +954,6 @@ impl CholeskySolver {
                 }
             }
         }
-        f.values = std::mem::take(&mut self.numeric32);
-        f.values64 = std::mem::take(&mut self.numeric);
-        self.factored = false;
         Some(f)
     }
 

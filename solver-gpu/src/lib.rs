@@ -161,6 +161,7 @@ pub mod csr_spmv;
 mod device;
 pub mod dot;
 mod expand_blocks;
+pub mod factorize;
 pub mod kernels;
 mod matrix;
 pub mod pcg;
@@ -183,6 +184,7 @@ mod shader_layout_tests;
 mod solver;
 
 pub use error::GpuError;
+pub use factorize::Factorization;
 pub use precision::MixedPrecision;
 pub use preconditioner::{squared_laplacian_vcycles, Preconditioner, SQUARED_LAPLACIAN_SWEEPS};
 pub use solver::{gpu_available, open, open_with, GpuSolver, SolveStats};

@@ -33,8 +33,11 @@ macro_rules! host {
 
 /// Structs that live on the device only (packed from `u32` arrays on the
 /// host), per shader.
-const DEVICE_ONLY: [(&str, &str); 2] =
-    [("supernodal.wgsl", "Super"), ("supernodal.wgsl", "OwnRow")];
+const DEVICE_ONLY: [(&str, &str); 3] = [
+    ("supernodal.wgsl", "Super"),
+    ("supernodal.wgsl", "OwnRow"),
+    ("supernodal_factor.wgsl", "Super"),
+];
 
 /// A struct as a shader declares it: name, size, and (member, offset).
 type Declared = (String, u32, Vec<(String, u32)>);
@@ -223,6 +226,34 @@ fn every_shader_struct_has_its_host_twins_layout() {
                 update0,
                 update1,
                 first
+            )],
+        ),
+        (
+            "supernodal_factor.wgsl",
+            crate::factorize::SOURCE.into(),
+            vec![host!(
+                "FParams",
+                crate::factorize::FactorParams,
+                sn0,
+                n_sn,
+                v0,
+                nval,
+                n,
+                nnz_k,
+                slots,
+                o_sn,
+                o_rows,
+                o_tptr,
+                o_tpos,
+                o_owner,
+                o_slot_owner,
+                o_order,
+                o_map,
+                o_task,
+                task0,
+                n_task,
+                kb,
+                o_xo
             )],
         ),
     ];

@@ -114,17 +114,17 @@ impl SupernodalKernels {
 
 /// A supernodal factor on the GPU, with its level schedule.
 pub(crate) struct GpuFactor {
-    idx: wgpu::Buffer,
+    pub(crate) idx: wgpu::Buffer,
     /// The values, in chunks of at most one storage binding each, split at
     /// supernode boundaries (a supernode's `vo` is its offset in its chunk).
-    vals: Vec<wgpu::Buffer>,
+    pub(crate) vals: Vec<wgpu::Buffer>,
     /// Offsets of the sections of `idx` (as in `SnParams::offsets`).
-    offsets: [u32; 8],
+    pub(crate) offsets: [u32; 8],
     /// Slots of `rows` (one update per slot and column in `contrib`).
-    slots: usize,
+    pub(crate) slots: usize,
     /// Per level, leaves first, its segments (one dispatch per segment and
     /// kernel).
-    levels: Vec<Vec<Segment>>,
+    pub(crate) levels: Vec<Vec<Segment>>,
     /// Each supernode's columns and slots below its diagonal block, the
     /// supernodes in level order ([`Segment::sn`]): where the updates may be
     /// cut.
@@ -142,21 +142,29 @@ pub(crate) struct GpuFactor {
     bytes: u64,
 }
 
+/// Where [`GpuFactor::upload`] put each supernode's values.
+pub(crate) struct Placement {
+    /// The supernodes in level order (leaves first).
+    pub order: Vec<usize>,
+    /// Each supernode's first value in its chunk.
+    pub vo: Vec<u32>,
+}
+
 /// Supernodes of one level whose values are in one chunk, consecutive in the
 /// level order: `[own, own + n_own)` their columns in the `cols` section,
 /// `[below, below + n_below)` their slots in the slots' level order (the
 /// `rows` section, and an update's position in `contrib`), and `[sn, sn +
 /// n_sn)` the supernodes themselves in that order.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
-struct Segment {
+pub(crate) struct Segment {
     own: u32,
     n_own: u32,
     below: u32,
     n_below: u32,
     /// The chunk of the values.
-    chunk: u32,
-    sn: u32,
-    n_sn: u32,
+    pub(crate) chunk: u32,
+    pub(crate) sn: u32,
+    pub(crate) n_sn: u32,
 }
 
 impl GpuFactor {
@@ -172,11 +180,34 @@ impl GpuFactor {
     /// factor larger than a binding (homer 4.3M's f64 factor, 3.5 GB, against
     /// the H100's 2 GiB) costs a few dispatches more, not the preconditioner.
     pub fn upload(ctx: &Context, f: &SupernodalFactor, limit: u64) -> Result<GpuFactor, GpuError> {
+        if !f.inverted {
+            return Err(GpuError::Backend(
+                "supernodal factor: diagonal blocks not inverted".into(),
+            ));
+        }
+        Ok(GpuFactor::build(ctx, f, limit, true)?.0)
+    }
+
+    /// The factor of `f`'s structure (its values, if any, ignored) in f64,
+    /// its values zero, laid out as [`GpuFactor::upload`] lays them out, for
+    /// a numeric factorization on the GPU ([`crate::factorize`]); and where
+    /// each supernode's values start.
+    pub fn allocate(
+        ctx: &Context,
+        f: &SupernodalFactor,
+        limit: u64,
+    ) -> Result<(GpuFactor, Placement), GpuError> {
+        GpuFactor::build(ctx, f, limit, false)
+    }
+
+    fn build(
+        ctx: &Context,
+        f: &SupernodalFactor,
+        limit: u64,
+        fill: bool,
+    ) -> Result<(GpuFactor, Placement), GpuError> {
         let ns = f.len();
         let bad = |what: &str| GpuError::Backend(format!("supernodal factor: {what}"));
-        if !f.inverted {
-            return Err(bad("diagonal blocks not inverted"));
-        }
         let level = f
             .levels()
             .ok_or_else(|| bad("supernodes out of topological order"))?;
@@ -191,10 +222,14 @@ impl GpuFactor {
                 limit: u32::MAX as u64,
             });
         }
-        let precision = match f.values64.is_empty() {
+        let precision = match f.values64.is_empty() && fill {
             true => Precision::F32,
             false => Precision::F64,
         };
+        let nvals = f.val_ptr.last().copied().unwrap_or(0) as usize;
+        if fill && nvals != f.nnz() {
+            return Err(bad("values and structure differ in length"));
+        }
         let b = precision.bytes();
         let depth = level.iter().max().map_or(0, |&l| l as usize + 1);
         // Supernodes by level, leaves first (by index within a level).
@@ -332,7 +367,7 @@ impl GpuFactor {
         )?;
         // The host's copies are dropped before the values go up.
         drop((header, rows, tptr, tpos, cols, owner, slot_owner));
-        let bytes = b * f.nnz() as u64 + 8 * nrows as u64;
+        let bytes = b * nvals as u64 + 8 * nrows as u64;
         let piece = |s: usize| -> &[u8] {
             let r = f.val_ptr[s] as usize..f.val_ptr[s + 1] as usize;
             match precision {
@@ -342,18 +377,22 @@ impl GpuFactor {
         };
         let vals = (0..chunk_len.len())
             .map(|k| {
-                ctx.storage_from_pieces(
-                    &mut staging,
-                    &format!("Cholesky values ({precision:?}, chunk {k})"),
-                    chunk_len[k] as u64 * b,
-                    order
-                        .iter()
-                        .filter(|&&s| chunk[s] as usize == k)
-                        .map(|&s| piece(s)),
-                )
+                let label = format!("Cholesky values ({precision:?}, chunk {k})");
+                match fill {
+                    true => ctx.storage_from_pieces(
+                        &mut staging,
+                        &label,
+                        chunk_len[k] as u64 * b,
+                        order
+                            .iter()
+                            .filter(|&&s| chunk[s] as usize == k)
+                            .map(|&s| piece(s)),
+                    ),
+                    false => ctx.storage(&label, chunk_len[k] as u64 * b),
+                }
             })
             .collect::<Result<Vec<_>, _>>()?;
-        Ok(GpuFactor {
+        let g = GpuFactor {
             idx: idx_buf,
             vals,
             offsets,
@@ -362,10 +401,11 @@ impl GpuFactor {
             sizes,
             pulls,
             nv: n,
-            nnz: f.nnz(),
+            nnz: nvals,
             precision,
             bytes,
-        })
+        };
+        Ok((g, Placement { order, vo }))
     }
 
     /// Most PCG columns (up to [`crate::CMAX`], at least 1) whose work vectors

@@ -159,6 +159,8 @@ fn on_context(ctx: Context, t: std::time::Instant) -> Result<GpuSolver, GpuError
         chol: None,
         chol_kind: None,
         chol_kernels: None,
+        factorization: crate::Factorization::from_env(),
+        factor_kernels: None,
         chol_host: {
             let mut c = solver_cpu::CholeskySolver::single_precision();
             c.supernodal = true;
@@ -319,6 +321,10 @@ pub struct GpuSolver {
     pub(crate) chol: Option<supernodal::GpuFactor>,
     chol_kind: Option<SystemKind>,
     chol_kernels: Option<std::sync::Arc<supernodal::SupernodalKernels>>,
+    /// Where the shape systems' factor is made, and the GPU
+    /// factorization's kernels once made.
+    factorization: crate::Factorization,
+    factor_kernels: Option<std::sync::Arc<crate::factorize::FactorKernels>>,
     pub(crate) chol_host: solver_cpu::CholeskySolver,
     /// The factor could not be made or kept on this device, for the shape
     /// systems (index 0) or the scale factors (index 1): the squared Laplacian or AMG
@@ -396,6 +402,22 @@ impl GpuSolver {
             self.setup_amg()?;
         }
         Ok(())
+    }
+
+    /// Where the shape systems' Cholesky factor is made (default
+    /// [`crate::Factorization::Host`], or `METRICDEFORM_GPU_FACTORIZATION`);
+    /// from the next set-up of a kind on.
+    pub fn set_factorization(&mut self, f: crate::Factorization) {
+        self.factorization = f;
+    }
+
+    /// Whether `kind`'s factor is made on the GPU: asked for, a shape
+    /// system, its factor in f64 (the factorization's kernels are f64).
+    pub(crate) fn factors_on_gpu(&self, kind: SystemKind) -> bool {
+        self.factorization == crate::Factorization::Gpu
+            && kind != SystemKind::ScaleFactors
+            && self.ctx.shader_f64
+            && self.factor_precision(kind) == precision::Precision::F64
     }
 
     /// When to switch to the mixed-precision solve (default: as a fallback).
@@ -991,13 +1013,14 @@ impl SpdSolver for GpuSolver {
     fn isotropic_factor_plan(&self, kind: SystemKind) -> Option<solver_cpu::FactorPlan> {
         (kind != SystemKind::ScaleFactors
             && self.preconditioner == Preconditioner::Cholesky
-            && !self.chol_unavailable[0])
-            .then(|| solver_cpu::FactorPlan {
-                single: self.factor_precision(kind) == precision::Precision::F32,
-                largest_supernode_bytes: matrix::binding_limit(&self.ctx),
-                // Its solves apply the inverted form: made on the factoring thread.
-                inverted: true,
-            })
+            && !self.chol_unavailable[0]
+            && !self.factors_on_gpu(kind))
+        .then(|| solver_cpu::FactorPlan {
+            single: self.factor_precision(kind) == precision::Precision::F32,
+            largest_supernode_bytes: matrix::binding_limit(&self.ctx),
+            // Its solves apply the inverted form: made on the factoring thread.
+            inverted: true,
+        })
     }
 
     /// Uploaded now (its diagonal blocks inverted), beside the active

@@ -284,13 +284,29 @@ impl GpuSolver {
                 (g, "made ahead".to_string())
             }
             None => {
-                let f = self.factor_here(k(), precision)?;
-                let factor_seconds = t.elapsed().as_secs_f64();
-                let (g, inverse_seconds) = self.upload_factor(f)?;
-                let made = format!(
-                    "factor {factor_seconds:.3} s, its inverted form {inverse_seconds:.3} s"
-                );
-                (g, made)
+                let k = k();
+                let on_gpu = match self.factors_on_gpu(self.kind) {
+                    true => self
+                        .factor_on_gpu(&k)
+                        .inspect_err(|e| {
+                            log::debug!("Cholesky factor on the GPU: {e}; made on the host")
+                        })
+                        .ok(),
+                    false => None,
+                };
+                match on_gpu {
+                    Some(made) => made,
+                    None => {
+                        let t = std::time::Instant::now();
+                        let f = self.factor_here(k, precision)?;
+                        let factor_seconds = t.elapsed().as_secs_f64();
+                        let (g, inverse_seconds) = self.upload_factor(f)?;
+                        let made = format!(
+                            "factor {factor_seconds:.3} s, its inverted form {inverse_seconds:.3} s"
+                        );
+                        (g, made)
+                    }
+                }
             }
         };
         log::debug!(
@@ -309,6 +325,62 @@ impl GpuSolver {
         self.chol_kind = Some(self.kind);
         self.amg_setup_seconds = t.elapsed().as_secs_f64();
         Ok(())
+    }
+
+    /// The f64 factor of `k` made on the GPU from its values
+    /// ([`crate::factorize`]), on the host's symbolic analysis of its pattern
+    /// (made here unless made before), and how it was made.
+    fn factor_on_gpu(&mut self, k: &SymCsc) -> Result<(supernodal::GpuFactor, String), GpuError> {
+        let t = std::time::Instant::now();
+        self.host_factor_precision(precision::Precision::F64);
+        let backend = |e: SolverError| GpuError::Backend(format!("Cholesky analysis: {e}"));
+        if !self.chol_host.has_analysed(&k.col_ptr, &k.row_idx) {
+            self.chol_host.analyse(k).map_err(backend)?;
+        }
+        let f = self
+            .chol_host
+            .supernodal_structure()
+            .ok_or_else(|| GpuError::Backend("no supernodal structure".into()))?;
+        let analysed = t.elapsed().as_secs_f64();
+        let (g, place) =
+            supernodal::GpuFactor::allocate(&self.ctx, &f, matrix::binding_limit(&self.ctx))?;
+        let kernels = match &self.factor_kernels {
+            Some(k) => k.clone(),
+            None => {
+                let made = crate::factorize::FactorKernels::new(&self.ctx)?;
+                self.factor_kernels = Some(made.clone());
+                made
+            }
+        };
+        let fac = crate::factorize::GpuFactorization::new(&self.ctx, &kernels, &g, &place, &f, k)?;
+        drop(f);
+        let recorded = t.elapsed().as_secs_f64() - analysed;
+        fac.run(&self.ctx, &k.values)?;
+        let work = fac.work();
+        drop(fac);
+        self.supernodal_kernels(precision::Precision::F64)?;
+        let made = format!(
+            "factored on the GPU: analysis {analysed:.3} s, recorded in {recorded:.3} s, run \
+             {:.3} s ({} dispatches, {} serial steps, {:.1} MB modelled)",
+            t.elapsed().as_secs_f64() - analysed - recorded,
+            work.dispatches,
+            work.serial_steps,
+            work.bytes as f64 / 1e6
+        );
+        Ok((g, made))
+    }
+
+    /// The host's solver in `precision`, its fill ordering kept.
+    fn host_factor_precision(&mut self, precision: precision::Precision) {
+        if self.chol_host.is_single_precision() != (precision == precision::Precision::F32) {
+            let ordering = std::mem::take(&mut self.chol_host.ordering);
+            self.chol_host = match precision {
+                precision::Precision::F32 => solver_cpu::CholeskySolver::single_precision(),
+                precision::Precision::F64 => solver_cpu::CholeskySolver::new(),
+            };
+            self.chol_host.supernodal = true;
+            self.chol_host.ordering = ordering;
+        }
     }
 
     /// `f` with its diagonal blocks inverted, uploaded, and the kernels of
@@ -460,15 +532,7 @@ impl GpuSolver {
         k: SymCsc,
         precision: precision::Precision,
     ) -> Result<solver_cpu::SupernodalFactor, GpuError> {
-        if self.chol_host.is_single_precision() != (precision == precision::Precision::F32) {
-            let ordering = std::mem::take(&mut self.chol_host.ordering);
-            self.chol_host = match precision {
-                precision::Precision::F32 => solver_cpu::CholeskySolver::single_precision(),
-                precision::Precision::F64 => solver_cpu::CholeskySolver::new(),
-            };
-            self.chol_host.supernodal = true;
-            self.chol_host.ordering = ordering;
-        }
+        self.host_factor_precision(precision);
         let backend = |e: SolverError| GpuError::Backend(format!("Cholesky factor: {e}"));
         // The factor's sizes are known from the symbolic analysis: one that
         // would not fit the device's storage bindings is refused before the

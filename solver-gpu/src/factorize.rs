@@ -1,0 +1,861 @@
+//! Drives `shaders/supernodal_factor.wgsl`: the numeric Cholesky
+//! factorization `P K P^T = L L^T` on the GPU, on the host's symbolic
+//! analysis (the supernodes, their rows and the ordering `P`), straight into
+//! the inverted form that [`crate::supernodal`]'s solves read: `L_ss^-1` in
+//! each diagonal block, `B_s = L_rs L_ss^-1` below it
+//! ([`solver_cpu::SupernodalFactor::invert_diagonal_blocks`] on the host).
+//!
+//! Left-looking, level by level of the supernodal elimination tree (leaves
+//! first; a level's supernodes are independent, their descendants final):
+//! - `update`: `A_s -= sum_d L_d[rows of s] L_d[columns of s]^T` over the
+//!   descendants `d`, one dot product per value of the level;
+//! - then the dense Cholesky of each supernode's `(m + q) x m` block, in
+//!   block columns of [`BLOCK`], the level's supernodes at once: `diag`
+//!   factors each block's diagonal tile in one workgroup's memory, `below`
+//!   solves the rows under the tile (a row each), and `trailing` updates
+//!   the columns right of the block (an entry each, the whole GPU).
+//!
+//! Then three passes over all supernodes invert the diagonal blocks and
+//! form `B`. What goes up is `K`'s stored values (f64) once per
+//! factorization, what comes back is one word (the first column whose pivot
+//! was not positive); the factor itself never crosses the bus, where the
+//! host's factorization sends all of it (985 MB at homer 1.2M). The
+//! dispatches are planned from the structure alone
+//! ([`FactorizationPlan`]), so their work is counted for any mesh without a
+//! device.
+//!
+//! f64 only (the shape `K` is not positive definite in f32 at 1.2M faces),
+//! and one value buffer: a factor over one storage binding is factored on
+//! the host ([`GpuFactorization::new`] says so).
+//!
+//! Bindings (group 0), as documented in the shader: 0 `P` uniform
+//! ([`FactorParams`], one per dispatch), 1 `idx` (the factor's index
+//! sections, [`GpuFactor`]), 2 `fidx` (the supernodes in level order,
+//! `K`'s map and the block columns' tasks), 3 `vals` (read-write), 4 `kv`
+//! (`K`'s values), 5 `flag` (read-write).
+
+use crate::device::{dispatch, Bind, Context, Kernel, KernelWork, Shader, FLAT_WG};
+use crate::supernodal::{GpuFactor, Placement};
+use crate::GpuError;
+use solver_cpu::{SupernodalFactor, SymCsc};
+use std::sync::Arc;
+
+pub(crate) const SOURCE: &str = include_str!("../../shaders/supernodal_factor.wgsl");
+
+const BINDINGS: [(u32, Bind); 7] = [
+    (0, Bind::Uniform),
+    (1, Bind::Read),
+    (2, Bind::Read),
+    (3, Bind::ReadWrite),
+    (4, Bind::Read),
+    (5, Bind::ReadWrite),
+    (6, Bind::ReadWrite),
+];
+
+/// Parameters, as `FParams` in `supernodal_factor.wgsl`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub(crate) struct FactorParams {
+    pub(crate) sn0: u32,
+    pub(crate) n_sn: u32,
+    pub(crate) v0: u32,
+    pub(crate) nval: u32,
+    pub(crate) n: u32,
+    pub(crate) nnz_k: u32,
+    pub(crate) slots: u32,
+    pub(crate) o_sn: u32,
+    pub(crate) o_rows: u32,
+    pub(crate) o_tptr: u32,
+    pub(crate) o_tpos: u32,
+    pub(crate) o_owner: u32,
+    pub(crate) o_slot_owner: u32,
+    pub(crate) o_order: u32,
+    pub(crate) o_map: u32,
+    pub(crate) o_task: u32,
+    pub(crate) task0: u32,
+    pub(crate) n_task: u32,
+    pub(crate) kb: u32,
+    pub(crate) o_xo: u32,
+}
+
+/// Where the GPU backend makes the shape systems' Cholesky factor
+/// (`METRICDEFORM_GPU_FACTORIZATION=host|gpu`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Factorization {
+    /// faer on the host (made ahead on other threads where the pipeline
+    /// asks), its inverted form uploaded.
+    #[default]
+    Host,
+    /// On the GPU from `K`'s values ([`GpuFactorization`]), the symbolic
+    /// analysis on the host; where the device has `SHADER_F64` and the
+    /// factor fits one storage binding, else on the host.
+    Gpu,
+}
+
+impl Factorization {
+    /// From `METRICDEFORM_GPU_FACTORIZATION` (`host` or `gpu`), else the
+    /// default.
+    pub fn from_env() -> Factorization {
+        let v = std::env::var("METRICDEFORM_GPU_FACTORIZATION").unwrap_or_default();
+        match v.to_lowercase().as_str() {
+            "" => Factorization::default(),
+            "host" => Factorization::Host,
+            "gpu" => Factorization::Gpu,
+            other => {
+                let d = Factorization::default();
+                log::warn!(
+                    "METRICDEFORM_GPU_FACTORIZATION={other} is not a factorization \
+                     (host or gpu); using {d:?}"
+                );
+                d
+            }
+        }
+    }
+}
+
+/// The entry points, in the order of [`Stage`].
+const ENTRIES: [(&str, &str); 9] = [
+    ("factor scatter", "scatter"),
+    ("factor update", "update"),
+    ("factor diagonal tile", "diag"),
+    ("factor below the tile", "below"),
+    ("factor trailing update", "trailing"),
+    ("factor inverse tiles", "inv_tile"),
+    ("factor inverse off the diagonal", "inv_offdiag"),
+    ("factor inverse below", "inv_below"),
+    ("factor inverse copy", "inv_copy"),
+];
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Stage {
+    Scatter = 0,
+    Update = 1,
+    Diag = 2,
+    Below = 3,
+    Trailing = 4,
+    InvTile = 5,
+    InvOffdiag = 6,
+    InvBelow = 7,
+    InvCopy = 8,
+}
+
+/// Columns of a supernode's block column (`W` in the shader): its diagonal
+/// tile is factored in one workgroup's memory, the rest of the supernode by
+/// all of the GPU.
+pub(crate) const BLOCK: usize = 32;
+
+/// The factorization's kernels (f64; the device must have `SHADER_F64`).
+pub(crate) struct FactorKernels {
+    shader: Shader,
+    kernels: [Kernel; 9],
+}
+
+impl FactorKernels {
+    pub fn new(ctx: &Context) -> Result<Arc<Self>, GpuError> {
+        if !ctx.shader_f64 {
+            return Err(GpuError::Backend(
+                "a Cholesky factorization on the GPU needs SHADER_F64".into(),
+            ));
+        }
+        let shader = Shader::new(ctx, "supernodal_factor.wgsl", SOURCE, &BINDINGS)?;
+        let kernels = ENTRIES.map(|(label, entry)| Kernel::new(&shader, label, entry));
+        Ok(Arc::new(FactorKernels { shader, kernels }))
+    }
+
+    /// Its kernels: a factorization runs all of them.
+    pub fn kernels(&self) -> &[Kernel; 9] {
+        &self.kernels
+    }
+}
+
+/// One dispatch of a factorization as planned on the host: its stage, its
+/// own parameters (the index offsets are the recording's), its items
+/// (workgroups for `diag`, invocations otherwise) and the longest loop of
+/// one invocation (an upper bound for `update`).
+#[derive(Clone, Copy, Debug)]
+struct Planned {
+    stage: Stage,
+    params: FactorParams,
+    items: u64,
+    serial: u64,
+}
+
+/// A factorization's dispatches, planned from the factor's structure alone
+/// (no device: its work can be counted for any mesh).
+pub(crate) struct FactorizationPlan {
+    steps: Vec<Planned>,
+    /// Per block column of a level, the supernodes taking part, three u32
+    /// each: the supernode, and the items (rows below their tiles, entries
+    /// of their trailing updates) of the tasks before it in its dispatch.
+    tasks: Vec<u32>,
+    /// Each supernode's inverse diagonal block in the scratch (`m x m`,
+    /// column-major), and the scratch's values.
+    xo: Vec<u32>,
+    x_len: u64,
+    /// Modelled device bytes.
+    bytes: u64,
+}
+
+/// Where the values of `f` go when they all fit one buffer: the supernodes
+/// by level, leaves first, each block after the last ([`GpuFactor`]'s
+/// placement of a factor in one chunk). `None` where `f` is not in
+/// topological order or its values overflow 32-bit offsets.
+pub(crate) fn one_chunk_placement(f: &SupernodalFactor) -> Option<Placement> {
+    let level = f.levels()?;
+    let mut order: Vec<usize> = (0..f.len()).collect();
+    order.sort_by_key(|&s| (level[s], s));
+    let mut vo = vec![0u32; f.len()];
+    let mut at = 0u64;
+    for &s in &order {
+        vo[s] = u32::try_from(at).ok()?;
+        at += f.val_ptr[s + 1] - f.val_ptr[s];
+    }
+    Some(Placement { order, vo })
+}
+
+/// The modelled work of factoring a matrix of `nnz_k` stored entries into
+/// `f`'s structure on the GPU ([`FactorizationPlan`]), its values in one
+/// buffer: counted from the structure alone, no device needed. `None` where
+/// `f` is not in topological order or overflows 32-bit offsets.
+pub fn factorization_work(f: &SupernodalFactor, nnz_k: usize) -> Option<KernelWork> {
+    let place = one_chunk_placement(f)?;
+    Some(FactorizationPlan::new(f, &place, nnz_k)?.work())
+}
+
+/// Serial steps of `diag` on a tile of `w` columns: the tile's load and
+/// store, and per column its pivot, then the scaling and the update over
+/// the tile's entries, a few per lane.
+fn diag_steps(w: usize) -> u64 {
+    let per_lane = (w * w).div_ceil(FLAT_WG as usize) as u64;
+    2 * per_lane + w as u64 * (1 + 2 * per_lane)
+}
+
+impl FactorizationPlan {
+    /// The dispatches factoring a matrix of `nnz_k` stored entries into
+    /// `f`'s structure placed by `place` (one buffer). `None` where `f` is
+    /// not in topological order or a dispatch's items overflow 32 bits.
+    pub fn new(f: &SupernodalFactor, place: &Placement, nnz_k: usize) -> Option<FactorizationPlan> {
+        let ns = f.len();
+        let n = f.perm.len();
+        let level = f.levels()?;
+        let slots = f.rows.len();
+        let mut steps = Vec::new();
+        let mut tasks: Vec<u32> = Vec::new();
+        let base = FactorParams {
+            n: u32::try_from(n).ok()?,
+            nnz_k: u32::try_from(nnz_k).ok()?,
+            slots: u32::try_from(slots).ok()?,
+            ..Default::default()
+        };
+        let mut add = |stage, params, items, serial| {
+            if items > 0 {
+                steps.push(Planned {
+                    stage,
+                    params,
+                    items,
+                    serial,
+                })
+            }
+        };
+        add(Stage::Scatter, base, nnz_k as u64, 1);
+        // Per column: slots holding it and the descendants' columns behind
+        // them (an update's merge and its products).
+        let mut held = vec![0u64; n];
+        let mut terms = vec![0u64; n];
+        for s in 0..ns {
+            let (m, _) = f.shape(s);
+            for &r in &f.rows[f.row_ptr[s] as usize..f.row_ptr[s + 1] as usize] {
+                held[r as usize] += 1;
+                terms[r as usize] += m as u64;
+            }
+        }
+        let size = |s: usize| f.val_ptr[s + 1] - f.val_ptr[s];
+        let mut sn0 = 0;
+        while sn0 < ns {
+            let lv = level[place.order[sn0]];
+            let mut sn1 = sn0;
+            while sn1 < ns && level[place.order[sn1]] == lv {
+                sn1 += 1;
+            }
+            let sns = &place.order[sn0..sn1];
+            let nval: u64 = sns.iter().map(|&s| size(s)).sum();
+            let p = FactorParams {
+                sn0: sn0 as u32,
+                n_sn: (sn1 - sn0) as u32,
+                v0: place.vo[sns[0]],
+                nval: u32::try_from(nval).ok()?,
+                ..base
+            };
+            // The longest merge and products of one value: a column's list
+            // (the longest of the supernode's) and a row's.
+            let update = sns
+                .iter()
+                .map(|&s| {
+                    let own = f.begin[s] as usize..f.begin[s + 1] as usize;
+                    let col = own.clone().map(|c| held[c] + terms[c]).max().unwrap_or(0);
+                    let below = &f.rows[f.row_ptr[s] as usize..f.row_ptr[s + 1] as usize];
+                    let row = own
+                        .map(|c| held[c])
+                        .chain(below.iter().map(|&r| held[r as usize]))
+                        .max()
+                        .unwrap_or(0);
+                    col + row
+                })
+                .max()
+                .unwrap_or(0);
+            add(Stage::Update, p, nval, update);
+            // Block columns, the level's supernodes at once.
+            let widest = sns.iter().map(|&s| f.shape(s).0).max().unwrap_or(0);
+            for kb in (0..widest).step_by(BLOCK) {
+                let task0 = tasks.len() / 3;
+                let (mut below, mut trailing, mut w_most) = (0u64, 0u64, 0usize);
+                for &s in sns {
+                    let (m, q) = f.shape(s);
+                    if m <= kb {
+                        continue;
+                    }
+                    let w = BLOCK.min(m - kb);
+                    w_most = w_most.max(w);
+                    let j0 = kb + w;
+                    tasks.extend([
+                        s as u32,
+                        u32::try_from(below).ok()?,
+                        u32::try_from(trailing).ok()?,
+                    ]);
+                    below += (m + q - j0) as u64;
+                    trailing += ((m + q - j0) * (m - j0)) as u64;
+                }
+                let q = FactorParams {
+                    task0: task0 as u32,
+                    n_task: (tasks.len() / 3 - task0) as u32,
+                    kb: kb as u32,
+                    ..base
+                };
+                let w = w_most as u64;
+                let items = |v: u64| u32::try_from(v).ok();
+                add(Stage::Diag, q, q.n_task as u64, diag_steps(w_most));
+                let p = FactorParams {
+                    nval: items(below)?,
+                    ..q
+                };
+                add(Stage::Below, p, below, w * w / 2);
+                let p = FactorParams {
+                    nval: items(trailing)?,
+                    ..q
+                };
+                add(Stage::Trailing, p, trailing, w);
+            }
+            sn0 = sn1;
+        }
+        // The inversion in tiles: each diagonal tile, then X's tile rows
+        // one after the other, then B's tile columns, then X over L_ss.
+        let mut xo = vec![0u32; ns];
+        let mut x_len = 0u64;
+        let mut tiles = Vec::new();
+        for (s, o) in xo.iter_mut().enumerate() {
+            let (m, _) = f.shape(s);
+            *o = u32::try_from(x_len).ok()?;
+            x_len += (m * m) as u64;
+            for i in 0..m.div_ceil(BLOCK) {
+                tiles.extend([s as u32, i as u32, 0]);
+            }
+        }
+        let widest = (0..ns).map(|s| f.shape(s).0).max().unwrap_or(0);
+        let task0 = tasks.len() / 3;
+        tasks.extend(tiles);
+        let q = FactorParams {
+            task0: task0 as u32,
+            n_task: (tasks.len() / 3 - task0) as u32,
+            ..base
+        };
+        let w = BLOCK.min(widest) as u64;
+        add(Stage::InvTile, q, q.n_task as u64, 4 + w * w / 2);
+        for i in 1..widest.div_ceil(BLOCK) {
+            let kb = i * BLOCK;
+            let task0 = tasks.len() / 3;
+            for s in (0..ns).filter(|&s| f.shape(s).0 > kb) {
+                tasks.extend([s as u32, 0, 0]);
+            }
+            let n_task = tasks.len() / 3 - task0;
+            let q = FactorParams {
+                task0: task0 as u32,
+                n_task: n_task as u32,
+                kb: kb as u32,
+                ..base
+            };
+            add(
+                Stage::InvOffdiag,
+                q,
+                (n_task * kb / 8) as u64,
+                (kb + BLOCK) as u64,
+            );
+        }
+        for j in 0..widest.div_ceil(BLOCK) {
+            let kb = j * BLOCK;
+            let task0 = tasks.len() / 3;
+            let mut groups = 0u64;
+            for s in 0..ns {
+                let (m, q) = f.shape(s);
+                if m > kb && q > 0 {
+                    tasks.extend([s as u32, u32::try_from(groups).ok()?, 0]);
+                    groups += q.div_ceil(8) as u64;
+                }
+            }
+            let q = FactorParams {
+                task0: task0 as u32,
+                n_task: (tasks.len() / 3 - task0) as u32,
+                kb: kb as u32,
+                nval: u32::try_from(groups).ok()?,
+                ..base
+            };
+            add(Stage::InvBelow, q, groups, (widest - kb) as u64);
+        }
+        add(Stage::InvCopy, base, n as u64, widest as u64);
+        // Bytes: K in; the updates read two values a term (the column
+        // counts squared, halved, summed); the inversions read and write
+        // the values.
+        let counts: f64 = (0..ns)
+            .map(|s| {
+                let (m, q) = f.shape(s);
+                (0..m).map(|i| ((m - i + q) as f64).powi(2)).sum::<f64>()
+            })
+            .sum();
+        let nvals = f.val_ptr.last().copied().unwrap_or(0);
+        let bytes = 20 * nnz_k as u64 + 8 * counts as u64 + 3 * 16 * nvals + 3 * 8 * x_len;
+        Some(FactorizationPlan {
+            steps,
+            tasks,
+            xo,
+            x_len,
+            bytes,
+        })
+    }
+
+    /// Modelled work of one factorization: its dispatches, the chain of
+    /// dependent steps through them, and its device bytes.
+    pub fn work(&self) -> KernelWork {
+        KernelWork {
+            dispatches: self.steps.len() as u64,
+            bytes: self.bytes,
+            minimal: 0,
+            serial_steps: self.steps.iter().map(|s| s.serial).sum(),
+        }
+    }
+}
+
+/// One recorded dispatch.
+struct Step {
+    stage: Stage,
+    bg: wgpu::BindGroup,
+    dims: (u32, u32),
+}
+
+/// A numeric factorization of one pattern of `K` into a [`GpuFactor`]'s
+/// values, recorded once (per pattern and run) and run once per set of
+/// values ([`GpuFactorization::run`]).
+pub(crate) struct GpuFactorization {
+    kernels: Arc<FactorKernels>,
+    steps: Vec<Step>,
+    /// `K`'s stored values, in `SymCsc` order.
+    kv: wgpu::Buffer,
+    flag: wgpu::Buffer,
+    /// The inverse diagonal blocks' scratch.
+    xs: wgpu::Buffer,
+    vals: wgpu::Buffer,
+    nnz_k: usize,
+    /// Kept alive for the bind groups.
+    #[allow(dead_code)]
+    fidx: wgpu::Buffer,
+    #[allow(dead_code)]
+    params: Vec<wgpu::Buffer>,
+    work: KernelWork,
+}
+
+/// Each stored entry of `k` (lower triangle, `SymCsc` order): its place in
+/// the values of `f`'s factor as placed by `place` (`P K P^T`'s lower
+/// triangle, supernode by supernode). `None` where `k` is not the pattern
+/// `f` was analysed for (an entry outside the factor's structure).
+pub(crate) fn value_map(f: &SupernodalFactor, place: &Placement, k: &SymCsc) -> Option<Vec<u32>> {
+    let n = f.perm.len();
+    if k.n != n || k.col_ptr.len() != n + 1 {
+        return None;
+    }
+    let mut inv = vec![0u32; n];
+    for (new, &old) in f.perm.iter().enumerate() {
+        *inv.get_mut(old as usize)? = new as u32;
+    }
+    let mut owner = vec![0u32; n];
+    for s in 0..f.len() {
+        for c in f.begin[s]..f.begin[s + 1] {
+            *owner.get_mut(c as usize)? = s as u32;
+        }
+    }
+    let mut map = Vec::with_capacity(k.row_idx.len());
+    for j in 0..n {
+        for &i in k.row_idx.get(k.col_ptr[j]..k.col_ptr[j + 1])? {
+            let (a, b) = (*inv.get(i)?, inv[j]);
+            let (r, c) = (a.max(b), a.min(b));
+            let s = owner[c as usize] as usize;
+            let (m, q) = f.shape(s);
+            let c0 = f.begin[s];
+            let row = match r < c0 + m as u32 {
+                true => (r - c0) as usize,
+                false => {
+                    let rows = &f.rows[f.row_ptr[s] as usize..f.row_ptr[s + 1] as usize];
+                    m + rows.binary_search(&r).ok()?
+                }
+            };
+            let at = place.vo[s] as usize + (c - c0) as usize * (m + q) + row;
+            map.push(u32::try_from(at).ok()?);
+        }
+    }
+    Some(map)
+}
+
+impl GpuFactorization {
+    /// Records the factorization of `k`'s pattern into `g` (made by
+    /// [`GpuFactor::allocate`] from `f`'s structure, placed as `place`
+    /// says). Refused where `g`'s values span several buffers, or `k` is not
+    /// the pattern `f` was analysed for.
+    pub fn new(
+        ctx: &Context,
+        kernels: &Arc<FactorKernels>,
+        g: &GpuFactor,
+        place: &Placement,
+        f: &SupernodalFactor,
+        k: &SymCsc,
+    ) -> Result<GpuFactorization, GpuError> {
+        if g.vals.len() != 1 || g.precision != crate::precision::Precision::F64 {
+            return Err(GpuError::LimitExceeded {
+                what: format!(
+                    "a Cholesky factor factored on the GPU ({} values in {} buffers)",
+                    g.nnz,
+                    g.vals.len()
+                ),
+                limit_name: "max_storage_buffer_binding_size",
+                needed: 8 * g.nnz as u64,
+                limit: g.vals.first().map_or(0, |b| b.size()),
+            });
+        }
+        let map = value_map(f, place, k).ok_or_else(|| {
+            GpuError::Backend("the matrix is not the pattern of the factor's analysis".into())
+        })?;
+        let nnz_k = map.len();
+        let plan = FactorizationPlan::new(f, place, nnz_k)
+            .ok_or_else(|| GpuError::Backend("a factor's structure over 32-bit offsets".into()))?;
+        let ns = f.len();
+        let (o_map, o_task) = (ns, ns + nnz_k);
+        let o_xo = o_task + plan.tasks.len();
+        let fidx_data: Vec<u32> = place
+            .order
+            .iter()
+            .map(|&s| s as u32)
+            .chain(map)
+            .chain(plan.tasks.iter().copied())
+            .chain(plan.xo.iter().copied())
+            .collect();
+        if fidx_data.len() > u32::MAX as usize {
+            return Err(GpuError::Backend(
+                "a factorization's index over 32-bit offsets".into(),
+            ));
+        }
+        let fidx = ctx.storage_init("factorization index", &fidx_data)?;
+        drop(fidx_data);
+        let kv = ctx.storage("K values for the GPU factorization", 8 * nnz_k as u64)?;
+        let flag = ctx.storage("factorization flag", 4)?;
+        let xs = ctx.storage("inverse diagonal blocks (scratch)", 8 * plan.x_len)?;
+        let vals = g.vals[0].clone();
+        let o = g.offsets;
+        let mut params = Vec::with_capacity(plan.steps.len());
+        let mut steps = Vec::with_capacity(plan.steps.len());
+        for st in &plan.steps {
+            let p = FactorParams {
+                o_sn: o[0],
+                o_rows: o[1],
+                o_tptr: o[3],
+                o_tpos: o[4],
+                o_owner: o[6],
+                o_slot_owner: o[7],
+                o_order: 0,
+                o_map: o_map as u32,
+                o_task: o_task as u32,
+                o_xo: o_xo as u32,
+                ..st.params
+            };
+            let buf = ctx.uniform_of("factorization params", &p)?;
+            let bg = kernels.shader.bind(
+                ctx,
+                &[
+                    (0, &buf),
+                    (1, &g.idx),
+                    (2, &fidx),
+                    (3, &vals),
+                    (4, &kv),
+                    (5, &flag),
+                    (6, &xs),
+                ],
+            )?;
+            let groups = match st.stage {
+                Stage::Diag | Stage::InvTile | Stage::InvOffdiag | Stage::InvBelow => st.items,
+                _ => st.items.div_ceil(FLAT_WG as u64),
+            };
+            let dims = ctx.dims(ENTRIES[st.stage as usize].0, groups)?;
+            params.push(buf);
+            steps.push(Step {
+                stage: st.stage,
+                bg,
+                dims,
+            });
+        }
+        Ok(GpuFactorization {
+            kernels: kernels.clone(),
+            steps,
+            kv,
+            flag,
+            xs,
+            vals,
+            nnz_k,
+            fidx,
+            params,
+            work: plan.work(),
+        })
+    }
+
+    /// Modelled work of one factorization ([`FactorizationPlan::work`]).
+    pub fn work(&self) -> KernelWork {
+        self.work
+    }
+
+    /// Factor `values` (the stored values of the pattern it was recorded
+    /// for, in `SymCsc` order) into the factor's buffer: `K`'s values go up,
+    /// every dispatch is recorded in one pass and submitted, and the pivot
+    /// flag comes back (one wait). [`GpuError::NotPositiveDefinite`] where a
+    /// pivot was not positive.
+    pub fn run(&self, ctx: &Context, values: &[f64]) -> Result<(), GpuError> {
+        if values.len() != self.nnz_k {
+            return Err(GpuError::Backend(format!(
+                "{} values for a pattern of {} entries",
+                values.len(),
+                self.nnz_k
+            )));
+        }
+        ctx.write_buffer(&self.kv, 0, bytemuck::cast_slice(values));
+        ctx.write_buffer(&self.flag, 0, bytemuck::bytes_of(&u32::MAX));
+        let pipelines = self
+            .kernels
+            .kernels()
+            .iter()
+            .map(|k| k.pipeline(ctx, 1))
+            .collect::<Result<Vec<_>, _>>()?;
+        let mut enc = ctx.encoder("Cholesky factorization");
+        enc.clear_buffer(&self.vals, 0, None);
+        enc.clear_buffer(&self.xs, 0, None);
+        {
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("Cholesky factorization"),
+                timestamp_writes: ctx.pass_timestamps(),
+            });
+            for s in &self.steps {
+                dispatch(&mut pass, &pipelines[s.stage as usize], &s.bg, s.dims);
+            }
+        }
+        ctx.resolve_pass_time(&mut enc);
+        ctx.count_kernels(self.work());
+        let mut parts: Vec<(&wgpu::Buffer, u64)> = vec![(&self.flag, 4)];
+        parts.extend(ctx.pass_time_buffer());
+        let mut read = ctx.read_parts(&parts, &mut None, Some(enc))?;
+        if ctx.pass_time_buffer().is_some() {
+            let times = read.pop().unwrap_or_default();
+            ctx.count_pass_time(&times);
+            ctx.recycle(times);
+        }
+        let bytes = read.into_iter().next().unwrap_or_default();
+        let flag: Option<u32> = bytes.get(..4).map(bytemuck::pod_read_unaligned);
+        ctx.recycle(bytes);
+        match flag {
+            Some(u32::MAX) => Ok(()),
+            Some(c) => {
+                log::debug!("GPU Cholesky factorization: pivot of column {c} not positive");
+                Err(GpuError::NotPositiveDefinite)
+            }
+            None => Err(GpuError::Backend("factorization flag not read".into())),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use solver_cpu::{CholeskySolver, FillOrdering, SpdSolver};
+
+    /// A grid's second neighbourhood (the pattern of a squared Laplacian, as
+    /// the shape `K`'s two rings), diagonally dominant: `nx x ny` unknowns.
+    fn two_ring_grid(nx: usize, ny: usize) -> SymCsc {
+        let id = |i: usize, j: usize| i * ny + j;
+        let mut pairs = Vec::new();
+        for i in 0..nx {
+            for j in 0..ny {
+                for (di, dj) in [(0, 0), (0, 1), (0, 2), (1, -1), (1, 0), (1, 1), (2, 0)] {
+                    let (a, b) = (i as i64 + di, j as i64 + dj);
+                    if a < nx as i64 && b >= 0 && b < ny as i64 {
+                        pairs.push((id(a as usize, b as usize), id(i, j)));
+                    }
+                }
+            }
+        }
+        let mut k = SymCsc::from_pattern(nx * ny, pairs);
+        let mut diag = vec![0.5; k.n];
+        for j in 0..k.n {
+            for s in k.col_ptr[j]..k.col_ptr[j + 1] {
+                let r = k.row_idx[s];
+                if r != j {
+                    let v = -1.0 / (1.0 + ((r * 31 + j * 17) % 5) as f64);
+                    k.values[s] = v;
+                    diag[r] -= v;
+                    diag[j] -= v;
+                }
+            }
+        }
+        for (j, d) in diag.into_iter().enumerate() {
+            k.values[k.col_ptr[j]] = d;
+        }
+        k
+    }
+
+    /// A dense, diagonally dominant matrix: one supernode of `n` columns,
+    /// wider than a workgroup.
+    fn dense(n: usize) -> SymCsc {
+        let mut k = SymCsc::from_pattern(n, (0..n).flat_map(|j| (j..n).map(move |i| (i, j))));
+        for j in 0..n {
+            for p in k.col_ptr[j]..k.col_ptr[j + 1] {
+                let i = k.row_idx[p];
+                k.values[p] = match i == j {
+                    true => n as f64,
+                    false => 1.0 / (1.0 + ((i * 7 + j) % 5) as f64),
+                };
+            }
+        }
+        k
+    }
+
+    /// The host's factor of `k` (supernodal or simplicial), its diagonal
+    /// blocks inverted.
+    fn host(k: &SymCsc, supernodal: bool) -> SupernodalFactor {
+        let mut c = CholeskySolver::new();
+        c.supernodal = supernodal;
+        c.set_fill_ordering(FillOrdering::NestedDissection);
+        c.prepare(k).unwrap();
+        let mut f = c.take_supernodal_factor().unwrap();
+        f.invert_diagonal_blocks();
+        f
+    }
+
+    /// The GPU's factor of `k` on `f`'s structure, its values in `f`'s
+    /// order; and the factorization's recorded work.
+    fn gpu(ctx: &Context, f: &SupernodalFactor, k: &SymCsc) -> (Vec<f64>, KernelWork) {
+        let kernels = FactorKernels::new(ctx).unwrap();
+        let (g, place) = GpuFactor::allocate(ctx, f, crate::matrix::binding_limit(ctx)).unwrap();
+        let fac = GpuFactorization::new(ctx, &kernels, &g, &place, f, k).unwrap();
+        fac.run(ctx, &k.values).unwrap();
+        let got: Vec<f64> = ctx.read(&g.vals[0], g.nnz, &mut None, None).unwrap();
+        let mut out = vec![0.0; g.nnz];
+        for s in 0..f.len() {
+            let (a, b) = (f.val_ptr[s] as usize, f.val_ptr[s + 1] as usize);
+            let vo = place.vo[s] as usize;
+            out[a..b].copy_from_slice(&got[vo..vo + b - a]);
+        }
+        (out, fac.work())
+    }
+
+    /// The GPU factors and inverts as the host does (faer's factor, then
+    /// `invert_diagonal_blocks`), to rounding, on supernodal and simplicial
+    /// structures; the work recorded is the plan's, made from
+    /// the structure alone.
+    #[test]
+    fn gpu_factor_is_the_hosts() {
+        let Some(s) = crate::test_solver() else {
+            return;
+        };
+        let ctx = &s.ctx;
+        if !ctx.shader_f64 {
+            return;
+        }
+        let cases = [(1, 1), (3, 2), (40, 30), (90, 70), (0, 300), (0, 600)];
+        for (nx, ny) in cases {
+            let k = match nx {
+                0 => dense(ny),
+                _ => two_ring_grid(nx, ny),
+            };
+            for supernodal in [true, false] {
+                let f = host(&k, supernodal);
+                let (got, work) = gpu(ctx, &f, &k);
+                let scale = f.values64.iter().map(|v| v.abs()).fold(0.0, f64::max);
+                // The diagonal blocks' upper triangles are not the factor's
+                // (the host leaves them as they were, the GPU clears them).
+                let mut err = 0.0f64;
+                for b in 0..f.len() {
+                    let (m, q) = f.shape(b);
+                    let v = f.val_ptr[b] as usize;
+                    for j in 0..m {
+                        for i in j..m + q {
+                            let at = v + j * (m + q) + i;
+                            err = err.max((got[at] - f.values64[at]).abs());
+                        }
+                        for i in 0..j {
+                            assert_eq!(got[v + j * (m + q) + i], 0.0);
+                        }
+                    }
+                }
+                assert!(
+                    err <= 1e-11 * scale,
+                    "{nx} x {ny}, supernodal {supernodal}: {err:e} against {scale:e}"
+                );
+                assert_eq!(Some(work), factorization_work(&f, k.row_idx.len()));
+                let levels = f.levels().unwrap().iter().max().map_or(0, |&l| l + 1);
+                if nx * ny > 100 {
+                    assert!(f.len() > 1 && levels > 1, "{} supernodes", f.len());
+                }
+                if nx == 0 && supernodal {
+                    assert_eq!(f.len(), 1);
+                }
+            }
+        }
+    }
+
+    /// A pivot that is not positive is an error naming none of the values
+    /// written; the same recording then factors good values.
+    #[test]
+    fn a_pivot_not_positive_is_refused() {
+        let Some(s) = crate::test_solver() else {
+            return;
+        };
+        let ctx = &s.ctx;
+        if !ctx.shader_f64 {
+            return;
+        }
+        let k = two_ring_grid(20, 15);
+        let f = host(&k, true);
+        let kernels = FactorKernels::new(ctx).unwrap();
+        let (g, place) = GpuFactor::allocate(ctx, &f, crate::matrix::binding_limit(ctx)).unwrap();
+        let fac = GpuFactorization::new(ctx, &kernels, &g, &place, &f, &k).unwrap();
+        let mut bad = k.values.clone();
+        bad[k.col_ptr[k.n / 2]] = -1.0;
+        assert_eq!(fac.run(ctx, &bad), Err(GpuError::NotPositiveDefinite));
+        assert!(fac.run(ctx, &k.values).is_ok());
+        assert!(matches!(
+            fac.run(ctx, &k.values[1..]),
+            Err(GpuError::Backend(_))
+        ));
+        // A matrix of another pattern is refused.
+        let other = two_ring_grid(15, 20);
+        assert!(GpuFactorization::new(ctx, &kernels, &g, &place, &f, &other).is_err());
+    }
+
+    #[test]
+    fn diag_steps_count_the_tile() {
+        // One column: load, pivot, scale, update, store.
+        assert_eq!(diag_steps(1), 2 + 3);
+        // A full tile: four entries a lane.
+        assert_eq!(diag_steps(32), 8 + 32 * 9);
+    }
+}
