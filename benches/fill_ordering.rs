@@ -82,7 +82,7 @@ fn row(
     );
     // What factoring it on a GPU would take (solver_gpu::factorize),
     // counted from its structure.
-    if let Some(w) = solver_gpu::factorize::factorization_work(&f, a.row_idx.len()) {
+    if let Some(w) = solver_gpu::factorization_work(&f, a.row_idx.len()) {
         let widest = (0..f.len()).map(|s| f.shape(s).0).max().unwrap_or(0);
         GPU_ROWS.lock().unwrap().push(format!(
             "| {pattern} | {faces} | {name} | {} | {:.2}M | {:.1} | {widest} |",

@@ -4,10 +4,12 @@
 // B = L_rs L_ss^-1 in the rows below it. f64 throughout (needs SHADER_F64).
 //
 // Driven by solver-gpu/src/factorize.rs. The values live where
-// supernodal.wgsl reads them (GpuFactor: level by level, leaves first;
-// supernode s's dense column-major (m + q) x m block at vals[vo], entry (i, k)
-// at vals[vo + k (m + q) + i], the first m rows its diagonal block, the q
-// below its rows rows[ro ..][..q]). One factorization:
+// supernodal.wgsl reads them (GpuFactor: level by level, leaves first, in
+// one or two buffers cut at a supernode boundary; here a global index, the
+// second buffer's from c1 on: supernode s's dense column-major (m + q) x m
+// block at value gvo(s), entry (i, k) at gvo + k (m + q) + i, the first m
+// rows its diagonal block, the q below its rows rows[ro ..][..q]). One
+// factorization:
 //   scatter   (K's stored entries)  the buffer cleared, then every entry of
 //                                   K's lower triangle to its place in L
 //   per level, leaves first:
@@ -57,12 +59,17 @@
 //                     K's stored entries (o_map); per block column, its
 //                     tasks, three u32 each (o_task): the supernode, and the
 //                     rows below the tile and the trailing entries of the
-//                     tasks before it.
-//   3  vals  rw       the factor's values (f64; one buffer: a factor over one
-//                     binding is factored on the host).
+//                     tasks before it; each supernode's inverse diagonal
+//                     block in xs (o_xo); each supernode's first value, a
+//                     global index (o_gvo).
+//   3  vals  rw       the factor's values (f64) below c1 (a factor over two
+//                     bindings is factored on the host).
 //   4  kv    read     K's stored values (f64), in the order of the map.
 //   5  flag  rw       [0]: the least column whose pivot was not positive
 //                     (u32::MAX, as the host sets it: none).
+//   6  xs    rw       scratch: each supernode's L_ss^-1, m x m column-major.
+//   7  vals1 rw       the factor's values from c1 on (a 16-byte stand-in
+//                     where they fit one buffer).
 // 256 invocations per workgroup; diag a workgroup per task (wid.x + wid.y *
 // nwg.x), the others 2-D (linear index gid.x + gid.y * nwg.x * 256).
 
@@ -87,6 +94,10 @@ struct FParams {
     n_task: u32,
     kb: u32,
     o_xo: u32,
+    o_gvo: u32,
+    c1: u32,
+    pad0: u32,
+    pad1: u32,
 }
 
 const FWG: u32 = 256u;
@@ -100,6 +111,23 @@ override NCOLS: u32 = 1u;
 @group(0) @binding(4) var<storage, read> kv: array<f64>;
 @group(0) @binding(5) var<storage, read_write> flag: array<atomic<u32>>;
 @group(0) @binding(6) var<storage, read_write> xs: array<f64>;
+@group(0) @binding(7) var<storage, read_write> vals1: array<f64>;
+
+// Value i of the factor (a global index): in vals below c1, else in vals1.
+fn ld(i: u32) -> f64 {
+    if i < P.c1 {
+        return vals[i];
+    }
+    return vals1[i - P.c1];
+}
+
+fn st(i: u32, v: f64) {
+    if i < P.c1 {
+        vals[i] = v;
+    } else {
+        vals1[i - P.c1] = v;
+    }
+}
 
 struct Super {
     c0: u32,
@@ -109,9 +137,10 @@ struct Super {
     vo: u32,
 }
 
+// Supernode s's header, its values' offset global (fidx), not its chunk's.
 fn supernode(s: u32) -> Super {
     let a = P.o_sn + 5u * s;
-    return Super(idx[a], idx[a + 1u], idx[a + 2u], idx[a + 3u], idx[a + 4u]);
+    return Super(idx[a], idx[a + 1u], idx[a + 2u], idx[a + 3u], fidx[P.o_gvo + s]);
 }
 
 fn linear(gid: vec3<u32>, nwg: vec3<u32>) -> u32 {
@@ -129,7 +158,7 @@ fn scatter(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroup
     if t >= P.nnz_k {
         return;
     }
-    vals[fidx[P.o_map + t]] = kv[t];
+    st(fidx[P.o_map + t], kv[t]);
 }
 
 // The supernode (in level order, within [sn0, sn0 + n_sn)) whose block holds
@@ -182,7 +211,7 @@ fn update(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
             let ra = d.vo + d.m + pa - d.ro;
             let rb = d.vo + d.m + pb - d.ro;
             for (var k = 0u; k < d.m; k++) {
-                acc += vals[ra + k * nd] * vals[rb + k * nd];
+                acc += ld(ra + k * nd) * ld(rb + k * nd);
             }
             a++;
             b++;
@@ -192,7 +221,7 @@ fn update(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
             b++;
         }
     }
-    vals[v] -= acc;
+    st(v, ld(v) - acc);
 }
 
 // The supernode of task `t` of this dispatch (fidx[o_task + 3 (task0 + t)]:
@@ -256,7 +285,7 @@ fn diag(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: v
         let r = e % bw;
         let c = e / bw;
         if r >= c {
-            tile[e] = vals[at + c * nr + r];
+            tile[e] = ld(at + c * nr + r);
         }
     }
     workgroupBarrier();
@@ -290,7 +319,7 @@ fn diag(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: v
         let r = e % bw;
         let c = e / bw;
         if r >= c {
-            vals[at + c * nr + r] = tile[e];
+            st(at + c * nr + r, tile[e]);
         }
     }
 }
@@ -312,11 +341,11 @@ fn below(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups)
     let row = s.vo + P.kb * nr + i;
     let bb = s.vo + P.kb * nr + P.kb;
     for (var j = 0u; j < bw; j++) {
-        var acc = vals[row + j * nr];
+        var acc = ld(row + j * nr);
         for (var k = 0u; k < j; k++) {
-            acc -= vals[row + k * nr] * vals[bb + k * nr + j];
+            acc -= ld(row + k * nr) * ld(bb + k * nr + j);
         }
-        vals[row + j * nr] = acc / vals[bb + j * nr + j];
+        st(row + j * nr, acc / ld(bb + j * nr + j));
     }
 }
 
@@ -344,9 +373,9 @@ fn trailing(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgrou
     let col = s.vo + P.kb * nr;
     var acc = f64(0.0);
     for (var k = 0u; k < bw; k++) {
-        acc += vals[col + k * nr + i] * vals[col + k * nr + j];
+        acc += ld(col + k * nr + i) * ld(col + k * nr + j);
     }
-    vals[s.vo + j * nr + i] -= acc;
+    st(s.vo + j * nr + i, ld(s.vo + j * nr + i) - acc);
 }
 
 // The inversion, in tiles of W: X = L_ss^-1 into the scratch xs (supernode
@@ -389,7 +418,7 @@ fn inv_tile(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wi
         let r = e % w;
         let c = e / w;
         if r >= c {
-            tile[e] = vals[at + c * nr + r];
+            tile[e] = ld(at + c * nr + r);
         }
     }
     workgroupBarrier();
@@ -440,7 +469,7 @@ fn inv_offdiag(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id)
     if t < w {
         let i = P.kb + t;
         for (var k = j; k < P.kb; k++) {
-            acc += vals[vo + k * nr + i] * xs[xo + j * m + k];
+            acc += ld(vo + k * nr + i) * xs[xo + j * m + k];
         }
     }
     sums[lid] = acc;
@@ -480,7 +509,7 @@ fn inv_below(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) w
             let j = P.kb + t;
             let row = s.vo + s.m + r;
             for (var k = j; k < s.m; k++) {
-                acc += vals[row + k * nr] * xs[xo + j * s.m + k];
+                acc += ld(row + k * nr) * xs[xo + j * s.m + k];
             }
             at = row + j * nr;
             live = true;
@@ -488,7 +517,7 @@ fn inv_below(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) w
     }
     workgroupBarrier();
     if live {
-        vals[at] = acc;
+        st(at, acc);
     }
 }
 
@@ -506,6 +535,6 @@ fn inv_copy(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgrou
     let j = c - s.c0;
     let xo = fidx[P.o_xo + sn];
     for (var i = 0u; i < s.m; i++) {
-        vals[s.vo + j * nr + i] = xs[xo + j * s.m + i];
+        st(s.vo + j * nr + i, xs[xo + j * s.m + i]);
     }
 }

@@ -25,14 +25,17 @@
 //! device.
 //!
 //! f64 only (the shape `K` is not positive definite in f32 at 1.2M faces),
-//! and one value buffer: a factor over one storage binding is factored on
-//! the host ([`GpuFactorization::new`] says so).
+//! and at most two value buffers (two storage bindings: homer 4.3M's 3.5 GB
+//! on an H100's 2 GiB bindings); a larger factor is factored on the host
+//! ([`GpuFactorization::new`] says so).
 //!
 //! Bindings (group 0), as documented in the shader: 0 `P` uniform
 //! ([`FactorParams`], one per dispatch), 1 `idx` (the factor's index
 //! sections, [`GpuFactor`]), 2 `fidx` (the supernodes in level order,
-//! `K`'s map and the block columns' tasks), 3 `vals` (read-write), 4 `kv`
-//! (`K`'s values), 5 `flag` (read-write).
+//! `K`'s map, the block columns' tasks, the scratch's and the values'
+//! offsets), 3 `vals` (read-write), 4 `kv` (`K`'s values), 5 `flag`
+//! (read-write), 6 `xs` (the scratch, read-write), 7 `vals1` (the second
+//! value buffer, read-write).
 
 use crate::device::{dispatch, Bind, Context, Kernel, KernelWork, Shader, FLAT_WG};
 use crate::supernodal::{GpuFactor, Placement};
@@ -42,7 +45,7 @@ use std::sync::Arc;
 
 pub(crate) const SOURCE: &str = include_str!("../../shaders/supernodal_factor.wgsl");
 
-const BINDINGS: [(u32, Bind); 7] = [
+const BINDINGS: [(u32, Bind); 8] = [
     (0, Bind::Uniform),
     (1, Bind::Read),
     (2, Bind::Read),
@@ -50,6 +53,7 @@ const BINDINGS: [(u32, Bind); 7] = [
     (4, Bind::Read),
     (5, Bind::ReadWrite),
     (6, Bind::ReadWrite),
+    (7, Bind::ReadWrite),
 ];
 
 /// Parameters, as `FParams` in `supernodal_factor.wgsl`.
@@ -76,6 +80,9 @@ pub(crate) struct FactorParams {
     pub(crate) n_task: u32,
     pub(crate) kb: u32,
     pub(crate) o_xo: u32,
+    pub(crate) o_gvo: u32,
+    pub(crate) c1: u32,
+    pub(crate) pad: [u32; 2],
 }
 
 /// Where the GPU backend makes the shape systems' Cholesky factor
@@ -86,7 +93,7 @@ pub enum Factorization {
     /// asks), its inverted form uploaded.
     #[default]
     Host,
-    /// On the GPU from `K`'s values ([`GpuFactorization`]), the symbolic
+    /// On the GPU from `K`'s values (`shaders/supernodal_factor.wgsl`), the symbolic
     /// analysis on the host; where the device has `SHADER_F64` and the
     /// factor fits one storage binding, else on the host.
     Gpu,
@@ -188,6 +195,8 @@ pub(crate) struct FactorizationPlan {
     /// each: the supernode, and the items (rows below their tiles, entries
     /// of their trailing updates) of the tasks before it in its dispatch.
     tasks: Vec<u32>,
+    /// Each supernode's first value, counting every buffer's.
+    gvo: Vec<u32>,
     /// Each supernode's inverse diagonal block in the scratch (`m x m`,
     /// column-major), and the scratch's values.
     xo: Vec<u32>,
@@ -210,16 +219,23 @@ pub(crate) fn one_chunk_placement(f: &SupernodalFactor) -> Option<Placement> {
         vo[s] = u32::try_from(at).ok()?;
         at += f.val_ptr[s + 1] - f.val_ptr[s];
     }
-    Some(Placement { order, vo })
+    Some(Placement {
+        order,
+        vo,
+        chunk: vec![0; f.len()],
+        starts: vec![0],
+    })
 }
 
 /// The modelled work of factoring a matrix of `nnz_k` stored entries into
-/// `f`'s structure on the GPU ([`FactorizationPlan`]), its values in one
+/// `f`'s structure on the GPU (its planned dispatches), its values in one
 /// buffer: counted from the structure alone, no device needed. `None` where
 /// `f` is not in topological order or overflows 32-bit offsets.
 pub fn factorization_work(f: &SupernodalFactor, nnz_k: usize) -> Option<KernelWork> {
     let place = one_chunk_placement(f)?;
-    Some(FactorizationPlan::new(f, &place, nnz_k)?.work())
+    let plan = FactorizationPlan::new(f, &place, nnz_k)?;
+    log::debug!("GPU factorization planned: {}", plan.describe());
+    Some(plan.work())
 }
 
 /// Serial steps of `diag` on a tile of `w` columns: the tile's load and
@@ -232,10 +248,11 @@ fn diag_steps(w: usize) -> u64 {
 
 impl FactorizationPlan {
     /// The dispatches factoring a matrix of `nnz_k` stored entries into
-    /// `f`'s structure placed by `place` (one buffer). `None` where `f` is
+    /// `f`'s structure placed by `place`. `None` where `f` is
     /// not in topological order or a dispatch's items overflow 32 bits.
     pub fn new(f: &SupernodalFactor, place: &Placement, nnz_k: usize) -> Option<FactorizationPlan> {
         let ns = f.len();
+        let gvo = place.global_vo()?;
         let n = f.perm.len();
         let level = f.levels()?;
         let slots = f.rows.len();
@@ -282,7 +299,7 @@ impl FactorizationPlan {
             let p = FactorParams {
                 sn0: sn0 as u32,
                 n_sn: (sn1 - sn0) as u32,
-                v0: place.vo[sns[0]],
+                v0: gvo[sns[0]],
                 nval: u32::try_from(nval).ok()?,
                 ..base
             };
@@ -425,10 +442,32 @@ impl FactorizationPlan {
         Some(FactorizationPlan {
             steps,
             tasks,
+            gvo,
             xo,
             x_len,
             bytes,
         })
+    }
+
+    /// Per stage (in [`ENTRIES`]' order): dispatches and serial steps.
+    pub fn stages(&self) -> [(u64, u64); 9] {
+        let mut out = [(0, 0); 9];
+        for s in &self.steps {
+            out[s.stage as usize].0 += 1;
+            out[s.stage as usize].1 += s.serial;
+        }
+        out
+    }
+
+    /// The stages' dispatches and serial steps, in words.
+    pub fn describe(&self) -> String {
+        self.stages()
+            .iter()
+            .zip(ENTRIES)
+            .filter(|(w, _)| w.0 > 0)
+            .map(|((d, s), (_, entry))| format!("{entry} {d} x, {s} steps"))
+            .collect::<Vec<_>>()
+            .join("; ")
     }
 
     /// Modelled work of one factorization: its dispatches, the chain of
@@ -462,6 +501,7 @@ pub(crate) struct GpuFactorization {
     /// The inverse diagonal blocks' scratch.
     xs: wgpu::Buffer,
     vals: wgpu::Buffer,
+    vals1: wgpu::Buffer,
     nnz_k: usize,
     /// Kept alive for the bind groups.
     #[allow(dead_code)]
@@ -490,6 +530,7 @@ pub(crate) fn value_map(f: &SupernodalFactor, place: &Placement, k: &SymCsc) -> 
             *owner.get_mut(c as usize)? = s as u32;
         }
     }
+    let gvo = place.global_vo()?;
     let mut map = Vec::with_capacity(k.row_idx.len());
     for j in 0..n {
         for &i in k.row_idx.get(k.col_ptr[j]..k.col_ptr[j + 1])? {
@@ -505,7 +546,7 @@ pub(crate) fn value_map(f: &SupernodalFactor, place: &Placement, k: &SymCsc) -> 
                     m + rows.binary_search(&r).ok()?
                 }
             };
-            let at = place.vo[s] as usize + (c - c0) as usize * (m + q) + row;
+            let at = gvo[s] as usize + (c - c0) as usize * (m + q) + row;
             map.push(u32::try_from(at).ok()?);
         }
     }
@@ -515,7 +556,7 @@ pub(crate) fn value_map(f: &SupernodalFactor, place: &Placement, k: &SymCsc) -> 
 impl GpuFactorization {
     /// Records the factorization of `k`'s pattern into `g` (made by
     /// [`GpuFactor::allocate`] from `f`'s structure, placed as `place`
-    /// says). Refused where `g`'s values span several buffers, or `k` is not
+    /// says). Refused where `g`'s values span over two buffers, or `k` is not
     /// the pattern `f` was analysed for.
     pub fn new(
         ctx: &Context,
@@ -525,7 +566,7 @@ impl GpuFactorization {
         f: &SupernodalFactor,
         k: &SymCsc,
     ) -> Result<GpuFactorization, GpuError> {
-        if g.vals.len() != 1 || g.precision != crate::precision::Precision::F64 {
+        if g.vals.len() > 2 || g.precision != crate::precision::Precision::F64 {
             return Err(GpuError::LimitExceeded {
                 what: format!(
                     "a Cholesky factor factored on the GPU ({} values in {} buffers)",
@@ -543,9 +584,11 @@ impl GpuFactorization {
         let nnz_k = map.len();
         let plan = FactorizationPlan::new(f, place, nnz_k)
             .ok_or_else(|| GpuError::Backend("a factor's structure over 32-bit offsets".into()))?;
+        log::debug!("GPU factorization planned: {}", plan.describe());
         let ns = f.len();
         let (o_map, o_task) = (ns, ns + nnz_k);
         let o_xo = o_task + plan.tasks.len();
+        let o_gvo = o_xo + plan.xo.len();
         let fidx_data: Vec<u32> = place
             .order
             .iter()
@@ -553,6 +596,7 @@ impl GpuFactorization {
             .chain(map)
             .chain(plan.tasks.iter().copied())
             .chain(plan.xo.iter().copied())
+            .chain(plan.gvo.iter().copied())
             .collect();
         if fidx_data.len() > u32::MAX as usize {
             return Err(GpuError::Backend(
@@ -565,6 +609,14 @@ impl GpuFactorization {
         let flag = ctx.storage("factorization flag", 4)?;
         let xs = ctx.storage("inverse diagonal blocks (scratch)", 8 * plan.x_len)?;
         let vals = g.vals[0].clone();
+        // The second buffer's values from c1 on, where there is one.
+        let (vals1, c1) = match (g.vals.get(1), place.starts.get(1)) {
+            (Some(b), Some(&c1)) => (b.clone(), c1 as u32),
+            _ => (
+                ctx.storage("factorization's second values (none)", 16)?,
+                u32::MAX,
+            ),
+        };
         let o = g.offsets;
         let mut params = Vec::with_capacity(plan.steps.len());
         let mut steps = Vec::with_capacity(plan.steps.len());
@@ -580,6 +632,8 @@ impl GpuFactorization {
                 o_map: o_map as u32,
                 o_task: o_task as u32,
                 o_xo: o_xo as u32,
+                o_gvo: o_gvo as u32,
+                c1,
                 ..st.params
             };
             let buf = ctx.uniform_of("factorization params", &p)?;
@@ -593,6 +647,7 @@ impl GpuFactorization {
                     (4, &kv),
                     (5, &flag),
                     (6, &xs),
+                    (7, &vals1),
                 ],
             )?;
             let groups = match st.stage {
@@ -614,6 +669,7 @@ impl GpuFactorization {
             flag,
             xs,
             vals,
+            vals1,
             nnz_k,
             fidx,
             params,
@@ -649,6 +705,7 @@ impl GpuFactorization {
             .collect::<Result<Vec<_>, _>>()?;
         let mut enc = ctx.encoder("Cholesky factorization");
         enc.clear_buffer(&self.vals, 0, None);
+        enc.clear_buffer(&self.vals1, 0, None);
         enc.clear_buffer(&self.xs, 0, None);
         {
             let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
@@ -822,6 +879,46 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// A factor whose values are cut over two buffers (a binding of a third
+    /// of them) factors as in one, to the bit; over three it is refused.
+    #[test]
+    fn values_over_two_buffers_factor_as_one() {
+        let Some(s) = crate::test_solver() else {
+            return;
+        };
+        let ctx = &s.ctx;
+        if !ctx.shader_f64 {
+            return;
+        }
+        let k = two_ring_grid(60, 50);
+        let f = host(&k, true);
+        let kernels = FactorKernels::new(ctx).unwrap();
+        let bytes = 8 * f.nnz() as u64;
+        let mut out = Vec::new();
+        for limit in [crate::matrix::binding_limit(ctx), bytes * 3 / 5] {
+            let (g, place) = GpuFactor::allocate(ctx, &f, limit).unwrap();
+            let fac = GpuFactorization::new(ctx, &kernels, &g, &place, &f, &k).unwrap();
+            fac.run(ctx, &k.values).unwrap();
+            let mut got = Vec::new();
+            for b in &g.vals {
+                got.extend(
+                    ctx.read::<f64>(b, b.size() as usize / 8, &mut None, None)
+                        .unwrap(),
+                );
+            }
+            got.truncate(f.nnz());
+            out.push((g.vals.len(), got));
+        }
+        assert_eq!((out[0].0, out[1].0), (1, 2));
+        assert!(out[0].1 == out[1].1, "two buffers differ from one");
+        let (g, place) = GpuFactor::allocate(ctx, &f, bytes / 4).unwrap();
+        assert!(g.vals.len() > 2);
+        assert!(matches!(
+            GpuFactorization::new(ctx, &kernels, &g, &place, &f, &k),
+            Err(GpuError::LimitExceeded { .. })
+        ));
     }
 
     /// A pivot that is not positive is an error naming none of the values

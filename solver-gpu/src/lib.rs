@@ -81,7 +81,13 @@
 //!
 //! (`supernodal`, `shaders/supernodal.wgsl`; the values, and the updates its
 //! solves pass up the tree, split over several storage bindings at supernode
-//! boundaries where they exceed one). The
+//! boundaries where they exceed one). With [`Factorization::Gpu`]
+//! ([`GpuSolver::set_factorization`], `METRICDEFORM_GPU_FACTORIZATION=gpu`;
+//! not yet the default: unmeasured on a discrete GPU) the first three lines
+//! run on the GPU instead, from `K`'s values on the host's symbolic analysis
+//! (`factorize`, `shaders/supernodal_factor.wgsl`; its work counted from the
+//! structure alone: [`factorization_work`]), where the factor is f64
+//! and fits one storage binding. The
 //! **scale-factor system** (Eq. 3, scalar, its Hessian constant for the run)
 //! has its own factor, in f64 where the adapter has `SHADER_F64`: the scale
 //! factors' **Newton steps run on the GPU** with it as a direct solve
@@ -161,7 +167,7 @@ pub mod csr_spmv;
 mod device;
 pub mod dot;
 mod expand_blocks;
-pub mod factorize;
+mod factorize;
 pub mod kernels;
 mod matrix;
 pub mod pcg;
@@ -184,7 +190,7 @@ mod shader_layout_tests;
 mod solver;
 
 pub use error::GpuError;
-pub use factorize::Factorization;
+pub use factorize::{factorization_work, Factorization};
 pub use precision::MixedPrecision;
 pub use preconditioner::{squared_laplacian_vcycles, Preconditioner, SQUARED_LAPLACIAN_SWEEPS};
 pub use solver::{gpu_available, open, open_with, GpuSolver, SolveStats};

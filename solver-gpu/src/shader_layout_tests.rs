@@ -253,7 +253,9 @@ fn every_shader_struct_has_its_host_twins_layout() {
                 task0,
                 n_task,
                 kb,
-                o_xo
+                o_xo,
+                o_gvo,
+                c1
             )],
         ),
     ];

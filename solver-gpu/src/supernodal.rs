@@ -148,6 +148,22 @@ pub(crate) struct Placement {
     pub order: Vec<usize>,
     /// Each supernode's first value in its chunk.
     pub vo: Vec<u32>,
+    /// Each supernode's chunk.
+    pub chunk: Vec<u32>,
+    /// Each chunk's first value, counting the values before it.
+    pub starts: Vec<u64>,
+}
+
+impl Placement {
+    /// Each supernode's first value counting every chunk's (`None` past
+    /// 32 bits).
+    pub fn global_vo(&self) -> Option<Vec<u32>> {
+        self.vo
+            .iter()
+            .zip(&self.chunk)
+            .map(|(&v, &c)| u32::try_from(self.starts[c as usize] + v as u64).ok())
+            .collect()
+    }
 }
 
 /// Supernodes of one level whose values are in one chunk, consecutive in the
@@ -405,7 +421,23 @@ impl GpuFactor {
             precision,
             bytes,
         };
-        Ok((g, Placement { order, vo }))
+        let starts = chunk_len
+            .iter()
+            .scan(0u64, |at, &len| {
+                let start = *at;
+                *at += len as u64;
+                Some(start)
+            })
+            .collect();
+        Ok((
+            g,
+            Placement {
+                order,
+                vo,
+                chunk,
+                starts,
+            },
+        ))
     }
 
     /// Most PCG columns (up to [`crate::CMAX`], at least 1) whose work vectors

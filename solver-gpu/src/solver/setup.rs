@@ -344,14 +344,7 @@ impl GpuSolver {
         let analysed = t.elapsed().as_secs_f64();
         let (g, place) =
             supernodal::GpuFactor::allocate(&self.ctx, &f, matrix::binding_limit(&self.ctx))?;
-        let kernels = match &self.factor_kernels {
-            Some(k) => k.clone(),
-            None => {
-                let made = crate::factorize::FactorKernels::new(&self.ctx)?;
-                self.factor_kernels = Some(made.clone());
-                made
-            }
-        };
+        let kernels = self.factor_kernels()?;
         let fac = crate::factorize::GpuFactorization::new(&self.ctx, &kernels, &g, &place, &f, k)?;
         drop(f);
         let recorded = t.elapsed().as_secs_f64() - analysed;
@@ -368,6 +361,16 @@ impl GpuSolver {
             work.bytes as f64 / 1e6
         );
         Ok((g, made))
+    }
+
+    /// The GPU factorization's kernels, made once.
+    pub(super) fn factor_kernels(
+        &mut self,
+    ) -> Result<std::sync::Arc<crate::factorize::FactorKernels>, GpuError> {
+        if self.factor_kernels.is_none() {
+            self.factor_kernels = Some(crate::factorize::FactorKernels::new(&self.ctx)?);
+        }
+        Ok(self.factor_kernels.clone().unwrap())
     }
 
     /// The host's solver in `precision`, its fill ordering kept.

@@ -74,6 +74,12 @@ impl GpuSolver {
                 }
                 each(&self.mixed_kernels()?.block_solve_kernels(), &columns);
                 each(&chol.kernels().each_ref(), &columns);
+                // The factorization's kernels, where the kind's factor is
+                // made on the GPU (the scale-driven kind's: the fine-tune's
+                // are the same pipelines).
+                if kind == SystemKind::ScaleDriven && self.factors_on_gpu(kind) {
+                    each(&self.factor_kernels()?.kernels().each_ref(), &[1]);
+                }
             }
         }
         let count = work.len();
