@@ -146,6 +146,11 @@ enum Stage {
     InvCopy = 8,
 }
 
+/// Loop iterations llvmpipe runs in one invocation, all loops together,
+/// before it ends them (Mesa's `LP_MAX_TGSI_LOOP_ITERATIONS`, 65,535), less
+/// a margin for the loops the plan's counts leave out (binary searches).
+const CPU_LOOP_LIMIT: u64 = 60_000;
+
 /// Columns of a supernode's block column (`W` in the shader): its diagonal
 /// tile is factored in one workgroup's memory, the rest of the supernode by
 /// all of the GPU.
@@ -585,6 +590,17 @@ impl GpuFactorization {
         let plan = FactorizationPlan::new(f, place, nnz_k)
             .ok_or_else(|| GpuError::Backend("a factor's structure over 32-bit offsets".into()))?;
         log::debug!("GPU factorization planned: {}", plan.describe());
+        // llvmpipe (lavapipe) ends an invocation's loops after 65,535
+        // iterations in all: a longer one would leave a wrong factor.
+        let longest = plan.steps.iter().map(|s| s.serial).max().unwrap_or(0);
+        if ctx.info.device_type == wgpu::DeviceType::Cpu && longest >= CPU_LOOP_LIMIT {
+            return Err(GpuError::LimitExceeded {
+                what: "a GPU factorization's longest loop on a CPU adapter".into(),
+                limit_name: "llvmpipe's loop iterations per invocation",
+                needed: longest,
+                limit: CPU_LOOP_LIMIT,
+            });
+        }
         let ns = f.len();
         let (o_map, o_task) = (ns, ns + nnz_k);
         let o_xo = o_task + plan.tasks.len();
