@@ -646,6 +646,25 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
                 None,
             )
         });
+        // A solver that makes the factor on its device from `K`'s values
+        // (the GPU backend's `METRICDEFORM_GPU_FACTORIZATION=gpu`) gets the
+        // input's `K` now: the device factors while the host estimates the
+        // first scale factors and assembles the first shape matrix.
+        if scale_driven_ahead.is_none()
+            && model
+                .solver()
+                .factors_isotropic_on_device(SystemKind::ScaleDriven)
+        {
+            // Its factor is of the analysis made from the start (the
+            // positions' ordering), waited for here.
+            if let Some(analysis) = analysis_early.take() {
+                adopt_early_analysis(&mut model, analysis);
+            }
+            let k = isotropic_part_logged(&model, mesh, &x, &o.shape, SystemKind::ScaleDriven);
+            model
+                .solver()
+                .factor_isotropic_on_device(SystemKind::ScaleDriven, &k);
+        }
         stop_reason = "iteration cap".into();
         // The constraints in scale-factor form; their coefficients are
         // refilled at every iteration.

@@ -1463,3 +1463,72 @@ fn readme_json_job_example_runs() {
     let (_, r) = measure_reported(dir.path(), "job.json");
     assert_eq!(r["constraints"].as_array().unwrap().len(), 3);
 }
+
+/// `METRICDEFORM_GPU_FACTORIZATION=gpu`: the shape systems' factors are made
+/// on the GPU (the scale-driven kind's submitted ahead, while the host
+/// estimates the first scale factors), and the result is the host-made
+/// factors' within the parity bound (1e-3 % of the bbox diagonal), with
+/// fewer bytes moved (the factors stay on the device).
+#[test]
+fn gpu_factorization_gives_the_host_factors_result() {
+    if !solver_gpu::gpu_available() {
+        assert!(
+            std::env::var("REQUIRE_GPU").map_or(true, |v| v != "1"),
+            "REQUIRE_GPU=1 but no GPU adapter is available"
+        );
+        return;
+    }
+    let f64_adapter = solver_gpu::default_adapter().is_ok_and(|a| a.shader_f64);
+    let job = "mesh = \"spot.obj\"\noutput = \"out.obj\"\n[[constraint]]\nkind = \"volume\"\nscale = 1.2\n";
+    let run = |factorization: &str| {
+        let (out, dir) = deform_job_env(
+            "spot.obj",
+            job,
+            &["--backend", "gpu", "--report", "r.json"],
+            &[
+                ("METRICDEFORM_GPU_FACTORIZATION", factorization),
+                ("RUST_LOG", "solver_gpu=debug"),
+            ],
+        );
+        let err = String::from_utf8_lossy(&out.stderr).into_owned();
+        assert_eq!(out.status.code(), Some(0), "{factorization}: {err}");
+        let mesh = metricdeform::mesh::io::read_mesh(&dir.path().join("out.obj")).unwrap();
+        let moved = read_json(dir.path(), "r.json")["solver"]["transfer_bytes"]
+            .as_u64()
+            .unwrap();
+        (mesh.positions, moved, err)
+    };
+    let (host, host_moved, _) = run("host");
+    let (gpu, gpu_moved, log) = run("gpu");
+    if f64_adapter {
+        let line = |kind: &str, how: &str| {
+            log.lines()
+                .any(|l| l.contains(kind) && l.contains("factored on the GPU") && l.contains(how))
+        };
+        assert!(
+            line("(ScaleDriven system, F64)", "submitted ahead"),
+            "{log}"
+        );
+        assert!(line("(FineTune system, F64)", "setup"), "{log}");
+        assert!(
+            gpu_moved < host_moved,
+            "{gpu_moved} bytes against {host_moved}"
+        );
+    }
+    let (lo, hi) = host.iter().fold(
+        (glam::DVec3::splat(f64::MAX), glam::DVec3::splat(f64::MIN)),
+        |(lo, hi), p| (lo.min(*p), hi.max(*p)),
+    );
+    let diagonal = (hi - lo).length();
+    let worst = host
+        .iter()
+        .zip(&gpu)
+        .map(|(a, b)| (*a - *b).length())
+        .fold(0.0, f64::max);
+    assert_eq!(host.len(), gpu.len());
+    assert!(
+        worst <= 1e-5 * diagonal,
+        "GPU-made factors' result {:.2e} % of the bbox diagonal from the host-made's",
+        100.0 * worst / diagonal
+    );
+}

@@ -703,7 +703,17 @@ impl GpuFactorization {
     /// every dispatch is recorded in one pass and submitted, and the pivot
     /// flag comes back (one wait). [`GpuError::NotPositiveDefinite`] where a
     /// pivot was not positive.
+    #[cfg(test)]
     pub fn run(&self, ctx: &Context, values: &[f64]) -> Result<(), GpuError> {
+        self.submit(ctx, values, true)?;
+        self.finish(ctx, true)
+    }
+
+    /// [`GpuFactorization::run`]'s submission alone: the host goes on at
+    /// once, [`GpuFactorization::finish`] waits. `timed`: its pass is timed
+    /// (read back by `finish`; a pass submitted ahead is not, another timed
+    /// pass in between would overwrite its times).
+    pub fn submit(&self, ctx: &Context, values: &[f64], timed: bool) -> Result<(), GpuError> {
         if values.len() != self.nnz_k {
             return Err(GpuError::Backend(format!(
                 "{} values for a pattern of {} entries",
@@ -726,7 +736,7 @@ impl GpuFactorization {
         {
             let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
                 label: Some("Cholesky factorization"),
-                timestamp_writes: ctx.pass_timestamps(),
+                timestamp_writes: if timed { ctx.pass_timestamps() } else { None },
             });
             for s in &self.steps {
                 dispatch(&mut pass, &pipelines[s.stage as usize], &s.bg, s.dims);
@@ -735,11 +745,24 @@ impl GpuFactorization {
         // Its work is a set-up's, logged with it (`GpuSolver`'s set-up
         // line), not counted with the PCG iterations' kernels; its pass
         // time counts with the run's GPU seconds.
-        ctx.resolve_pass_time(&mut enc);
+        if timed {
+            ctx.resolve_pass_time(&mut enc);
+        }
+        ctx.submit(Some(enc));
+        Ok(())
+    }
+
+    /// Waits for the submitted factorization and reads its pivot flag (and
+    /// its pass's times where `timed`): one wait.
+    /// [`GpuError::NotPositiveDefinite`] where a pivot was not positive.
+    pub fn finish(&self, ctx: &Context, timed: bool) -> Result<(), GpuError> {
         let mut parts: Vec<(&wgpu::Buffer, u64)> = vec![(&self.flag, 4)];
-        parts.extend(ctx.pass_time_buffer());
-        let mut read = ctx.read_parts(&parts, &mut None, Some(enc))?;
-        if ctx.pass_time_buffer().is_some() {
+        let timed = timed && ctx.pass_time_buffer().is_some();
+        if timed {
+            parts.extend(ctx.pass_time_buffer());
+        }
+        let mut read = ctx.read_parts(&parts, &mut None, None)?;
+        if timed {
             let times = read.pop().unwrap_or_default();
             ctx.count_pass_time(&times);
             ctx.recycle(times);

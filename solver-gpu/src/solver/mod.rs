@@ -161,6 +161,7 @@ fn on_context(ctx: Context, t: std::time::Instant) -> Result<GpuSolver, GpuError
         chol_kernels: None,
         factorization: crate::Factorization::from_env(),
         factor_kernels: None,
+        gpu_factor_ahead: None,
         chol_host: {
             let mut c = solver_cpu::CholeskySolver::single_precision();
             c.supernodal = true;
@@ -325,6 +326,8 @@ pub struct GpuSolver {
     /// factorization's kernels once made.
     factorization: crate::Factorization,
     factor_kernels: Option<std::sync::Arc<crate::factorize::FactorKernels>>,
+    /// A kind's factor submitted to the GPU ahead of its set-up.
+    gpu_factor_ahead: Option<(SystemKind, setup::GpuMade)>,
     pub(crate) chol_host: solver_cpu::CholeskySolver,
     /// The factor could not be made or kept on this device, for the shape
     /// systems (index 0) or the scale factors (index 1): the squared Laplacian or AMG
@@ -1036,6 +1039,28 @@ impl SpdSolver for GpuSolver {
     fn adopt_isotropic_factor(&mut self, kind: SystemKind, factored: solver_cpu::CholeskySolver) {
         if let Err(e) = self.upload_factor_ahead(kind, factored) {
             log::debug!("Cholesky factor made ahead ({kind:?} system) not taken: {e}");
+        }
+    }
+
+    fn factors_isotropic_on_device(&self, kind: SystemKind) -> bool {
+        self.preconditioner == Preconditioner::Cholesky
+            && !self.chol_unavailable[0]
+            && self.factors_on_gpu(kind)
+    }
+
+    /// Submitted now (the host goes on), kept for `kind`'s Cholesky set-up,
+    /// which waits for it and takes it where it is of that `K`'s pattern.
+    /// One already kept for another kind is dropped (its set-up factors).
+    fn factor_isotropic_on_device(&mut self, kind: SystemKind, k: &SymCsc) {
+        if !self.factors_isotropic_on_device(kind) {
+            return;
+        }
+        match self.start_factor_on_gpu(k, false) {
+            Ok(made) => {
+                log::debug!("{kind:?} system's factor of K submitted to the GPU ahead");
+                self.gpu_factor_ahead = Some((kind, made));
+            }
+            Err(e) => log::debug!("{kind:?} system's factor of K on the GPU ahead: {e}"),
         }
     }
 

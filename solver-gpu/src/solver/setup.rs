@@ -254,6 +254,25 @@ impl GpuSolver {
         // This kind's factor, made ahead on another thread from another `K`
         // of the kind and uploaded already (`adopt_isotropic_factor`):
         // taken in place of this one's factorization where it fits.
+        // This kind's factor submitted to the GPU ahead
+        // (`factor_isotropic_on_device`), of this pattern.
+        let on_gpu_ahead = match self.gpu_factor_ahead.take() {
+            Some((kind, made)) if kind == self.kind => {
+                match self.chol_host.has_analysed(col_ptr, row_idx) {
+                    true => Some(made),
+                    false => None,
+                }
+            }
+            other => {
+                self.gpu_factor_ahead = other;
+                None
+            }
+        };
+        let on_gpu_ahead = on_gpu_ahead.and_then(|made| {
+            self.finish_factor_on_gpu(made, false)
+                .inspect_err(|e| log::debug!("Cholesky factor on the GPU ahead: {e}"))
+                .ok()
+        });
         let ahead = match self.chol_ahead.take() {
             Some((kind, up)) if kind == self.kind => {
                 let fits =
@@ -278,12 +297,16 @@ impl GpuSolver {
         self.amg_gpu = None;
         self.squared = None;
         self.amg_kind = None;
-        let (g, made) = match ahead {
-            Some(g) => {
+        let (g, made) = match (ahead, on_gpu_ahead) {
+            (_, Some((g, text))) => {
+                self.setups_ahead += 1;
+                (g, format!("{text}, submitted ahead"))
+            }
+            (Some(g), None) => {
                 self.setups_ahead += 1;
                 (g, "made ahead".to_string())
             }
-            None => {
+            (None, None) => {
                 let k = k();
                 let on_gpu = match self.factors_on_gpu(self.kind) {
                     true => self
@@ -331,6 +354,17 @@ impl GpuSolver {
     /// ([`crate::factorize`]), on the host's symbolic analysis of its pattern
     /// (made here unless made before), and how it was made.
     fn factor_on_gpu(&mut self, k: &SymCsc) -> Result<(supernodal::GpuFactor, String), GpuError> {
+        let made = self.start_factor_on_gpu(k, true)?;
+        self.finish_factor_on_gpu(made, true)
+    }
+
+    /// [`Self::factor_on_gpu`] up to its submission: the host goes on at
+    /// once (`timed`: its pass timed, for a factorization waited for next).
+    pub(super) fn start_factor_on_gpu(
+        &mut self,
+        k: &SymCsc,
+        timed: bool,
+    ) -> Result<GpuMade, GpuError> {
         let t = std::time::Instant::now();
         self.host_factor_precision(precision::Precision::F64);
         let backend = |e: SolverError| GpuError::Backend(format!("Cholesky analysis: {e}"));
@@ -348,19 +382,43 @@ impl GpuSolver {
         let fac = crate::factorize::GpuFactorization::new(&self.ctx, &kernels, &g, &place, &f, k)?;
         drop(f);
         let recorded = t.elapsed().as_secs_f64() - analysed;
-        fac.run(&self.ctx, &k.values)?;
-        let work = fac.work();
-        drop(fac);
+        fac.submit(&self.ctx, &k.values, timed)?;
+        Ok(GpuMade {
+            g,
+            fac,
+            host: [
+                analysed,
+                recorded,
+                t.elapsed().as_secs_f64() - analysed - recorded,
+            ],
+            submitted: std::time::Instant::now(),
+        })
+    }
+
+    /// The factor of `made` once the GPU has made it (waited for), with the
+    /// kernels that solve with it, and how it was made.
+    pub(super) fn finish_factor_on_gpu(
+        &mut self,
+        made: GpuMade,
+        timed: bool,
+    ) -> Result<(supernodal::GpuFactor, String), GpuError> {
+        let since = made.submitted.elapsed().as_secs_f64();
+        let t = std::time::Instant::now();
+        made.fac.finish(&self.ctx, timed)?;
+        let waited = t.elapsed().as_secs_f64();
+        let work = made.fac.work();
+        drop(made.fac);
         self.supernodal_kernels(precision::Precision::F64)?;
-        let made = format!(
-            "factored on the GPU: analysis {analysed:.3} s, recorded in {recorded:.3} s, run \
-             {:.3} s ({} dispatches, {} serial steps, {:.1} MB modelled)",
-            t.elapsed().as_secs_f64() - analysed - recorded,
+        let [analysed, recorded, submitted] = made.host;
+        let text = format!(
+            "factored on the GPU: analysis {analysed:.3} s, recorded in {recorded:.3} s, \
+             submitted in {submitted:.3} s, waited for {waited:.3} s ({since:.3} s after its \
+             submission; {} dispatches, {} serial steps, {:.1} MB modelled)",
             work.dispatches,
             work.serial_steps,
             work.bytes as f64 / 1e6
         );
-        Ok((g, made))
+        Ok((made.g, text))
     }
 
     /// The GPU factorization's kernels, made once.
@@ -601,4 +659,14 @@ impl GpuSolver {
         self.finish_setup("squared-Laplacian AMG", hier, t);
         Ok(())
     }
+}
+
+/// A factorization submitted to the GPU ([`GpuSolver::start_factor_on_gpu`]):
+/// its factor, its recording (whose pivot flag is read when it is taken),
+/// the host's seconds (analysis, recording, submission) and when it went.
+pub(super) struct GpuMade {
+    g: supernodal::GpuFactor,
+    fac: crate::factorize::GpuFactorization,
+    host: [f64; 3],
+    submitted: std::time::Instant,
 }
