@@ -615,13 +615,22 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
         // The fine-tune's `K` of the input (its factor's, made ahead from
         // the first outer iteration on) is assembled while the scale
         // factors' set-up is waited for.
+        // A solver that factors on its device takes the fine-tune's `K` of
+        // the input at the second outer iteration, where its GPU idles while
+        // the host assembles the shape matrix.
+        let fine_tune_on_device = fine_tune_follows
+            && model
+                .solver()
+                .factors_isotropic_on_device(SystemKind::FineTune);
         let fine_tune_k = |model: &ShapeModel| {
-            (fine_tune_follows && factors_ahead)
+            (fine_tune_follows && (factors_ahead || fine_tune_on_device))
                 .then(|| isotropic_part_logged(model, mesh, x0, &o.fine_tune, SystemKind::FineTune))
         };
         let (mut scale_system, early, mut fine_tune_k) =
             if analysis_early.is_some() && !factors_ahead {
-                (make_scale_system()?, None, None)
+                // Assembled while the scale factors' set-up runs on.
+                let k = fine_tune_k(&model);
+                (make_scale_system()?, None, k)
             } else {
                 let analysis = analysis_early.take();
                 scale_system_beside_analysis(
@@ -768,6 +777,13 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
             // Eq. 7 / 19. On large meshes an iterative backend's AMG takes the
             // vertices' affine motions as near-null space here too (see
             // AFFINE_SCALE_DRIVEN_MIN_VERTICES).
+            if fine_tune_on_device && iterations >= 1 {
+                if let Some(k) = fine_tune_k.take() {
+                    model
+                        .solver()
+                        .factor_isotropic_on_device(SystemKind::FineTune, &k);
+                }
+            }
             let t_shape = Instant::now();
             let shape_before = model.solver().counters();
             let affine = n >= AFFINE_SCALE_DRIVEN_MIN_VERTICES;
@@ -791,7 +807,7 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
                 true => model.hand_over_with_positions(&x, &o.shape, affine)?,
                 false => model.assemble_with_positions(mesh, &x, &s, &c, &o.shape, affine)?,
             }
-            if iterations == 0 && fine_tune_follows {
+            if iterations == 0 && fine_tune_follows && !fine_tune_on_device {
                 fine_tune_ahead = factor_ahead(
                     &mut model,
                     (mesh, &x),
