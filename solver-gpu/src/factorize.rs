@@ -210,26 +210,13 @@ pub(crate) struct FactorizationPlan {
     bytes: u64,
 }
 
-/// Where the values of `f` go when they all fit one buffer: the supernodes
-/// by level, leaves first, each block after the last ([`GpuFactor`]'s
-/// placement of a factor in one chunk). `None` where `f` is not in
-/// topological order or its values overflow 32-bit offsets.
+/// Where the values of `f` go when they all fit one buffer
+/// ([`Placement::new`] with no cut). `None` where `f` is not in topological
+/// order or its values overflow 32-bit offsets.
 pub(crate) fn one_chunk_placement(f: &SupernodalFactor) -> Option<Placement> {
-    let level = f.levels()?;
-    let mut order: Vec<usize> = (0..f.len()).collect();
-    order.sort_by_key(|&s| (level[s], s));
-    let mut vo = vec![0u32; f.len()];
-    let mut at = 0u64;
-    for &s in &order {
-        vo[s] = u32::try_from(at).ok()?;
-        at += f.val_ptr[s + 1] - f.val_ptr[s];
-    }
-    Some(Placement {
-        order,
-        vo,
-        chunk: vec![0; f.len()],
-        starts: vec![0],
-    })
+    let cap = u32::MAX as usize;
+    let (place, chunks) = Placement::new(f, &f.levels()?, cap).ok()?;
+    (chunks.len() == 1).then_some(place)
 }
 
 /// The modelled work of factoring a matrix of `nnz_k` stored entries into
@@ -786,6 +773,12 @@ mod tests {
     use super::*;
     use solver_cpu::{CholeskySolver, FillOrdering, SpdSolver};
 
+    /// A test solver whose device has `SHADER_F64` (the factorization's
+    /// kernels are f64); `None` skips the test.
+    fn f64_solver() -> Option<crate::GpuSolver> {
+        crate::test_solver().filter(|s| s.ctx.shader_f64)
+    }
+
     /// A grid's second neighbourhood (the pattern of a squared Laplacian, as
     /// the shape `K`'s two rings), diagonally dominant: `nx x ny` unknowns.
     fn two_ring_grid(nx: usize, ny: usize) -> SymCsc {
@@ -871,13 +864,10 @@ mod tests {
     /// the structure alone.
     #[test]
     fn gpu_factor_is_the_hosts() {
-        let Some(s) = crate::test_solver() else {
+        let Some(s) = f64_solver() else {
             return;
         };
         let ctx = &s.ctx;
-        if !ctx.shader_f64 {
-            return;
-        }
         let cases = [(1, 1), (3, 2), (40, 30), (90, 70), (0, 300), (0, 600)];
         for (nx, ny) in cases {
             let k = match nx {
@@ -924,13 +914,10 @@ mod tests {
     /// of them) factors as in one, to the bit; over three it is refused.
     #[test]
     fn values_over_two_buffers_factor_as_one() {
-        let Some(s) = crate::test_solver() else {
+        let Some(s) = f64_solver() else {
             return;
         };
         let ctx = &s.ctx;
-        if !ctx.shader_f64 {
-            return;
-        }
         let k = two_ring_grid(60, 50);
         let f = host(&k, true);
         let kernels = FactorKernels::new(ctx).unwrap();
@@ -964,13 +951,10 @@ mod tests {
     /// written; the same recording then factors good values.
     #[test]
     fn a_pivot_not_positive_is_refused() {
-        let Some(s) = crate::test_solver() else {
+        let Some(s) = f64_solver() else {
             return;
         };
         let ctx = &s.ctx;
-        if !ctx.shader_f64 {
-            return;
-        }
         let k = two_ring_grid(20, 15);
         let f = host(&k, true);
         let kernels = FactorKernels::new(ctx).unwrap();

@@ -155,6 +155,49 @@ pub(crate) struct Placement {
 }
 
 impl Placement {
+    /// `f`'s supernodes by `level`, leaves first (by index within a level),
+    /// their values cut into chunks of at most `cap` at supernode
+    /// boundaries; and each chunk's values. `Err(s)` where supernode `s`
+    /// alone exceeds `cap`.
+    pub fn new(
+        f: &SupernodalFactor,
+        level: &[u32],
+        cap: usize,
+    ) -> Result<(Placement, Vec<usize>), usize> {
+        let ns = f.len();
+        let mut order: Vec<usize> = (0..ns).collect();
+        order.sort_by_key(|&s| (level[s], s));
+        let size = |s: usize| (f.val_ptr[s + 1] - f.val_ptr[s]) as usize;
+        let runs = pack(order.iter().map(|&s| size(s)), cap).map_err(|i| order[i])?;
+        let mut chunk = vec![0u32; ns];
+        let mut vo = vec![0u32; ns];
+        let mut chunk_len = vec![0usize];
+        for (&s, &k) in order.iter().zip(&runs) {
+            let k = k as usize;
+            if k == chunk_len.len() {
+                chunk_len.push(0);
+            }
+            chunk[s] = k as u32;
+            vo[s] = chunk_len[k] as u32;
+            chunk_len[k] += size(s);
+        }
+        let starts = chunk_len
+            .iter()
+            .scan(0u64, |at, &len| {
+                let start = *at;
+                *at += len as u64;
+                Some(start)
+            })
+            .collect();
+        let place = Placement {
+            order,
+            vo,
+            chunk,
+            starts,
+        };
+        Ok((place, chunk_len))
+    }
+
     /// Each supernode's first value counting every chunk's (`None` past
     /// 32 bits).
     pub fn global_vo(&self) -> Option<Vec<u32>> {
@@ -248,15 +291,12 @@ impl GpuFactor {
         }
         let b = precision.bytes();
         let depth = level.iter().max().map_or(0, |&l| l as usize + 1);
-        // Supernodes by level, leaves first (by index within a level).
-        let mut order: Vec<usize> = (0..ns).collect();
-        order.sort_by_key(|&s| (level[s], s));
-        // Chunks of at most `cap` values, in that order.
+        // Supernodes by level, leaves first, in chunks of at most `cap`
+        // values.
         let cap = (limit / b).min(u32::MAX as u64) as usize;
         let size = |s: usize| (f.val_ptr[s + 1] - f.val_ptr[s]) as usize;
-        let runs = pack(order.iter().map(|&s| size(s)), cap).map_err(|i| {
-            let s = order[i];
-            GpuError::LimitExceeded {
+        let (place, chunk_len) =
+            Placement::new(f, &level, cap).map_err(|s| GpuError::LimitExceeded {
                 what: format!(
                     "one supernode of a Cholesky factor ({} x {} values)",
                     f.shape(s).0 + f.shape(s).1,
@@ -265,20 +305,10 @@ impl GpuFactor {
                 limit_name: "max_storage_buffer_binding_size",
                 needed: size(s) as u64 * b,
                 limit,
-            }
-        })?;
-        let mut chunk = vec![0u32; ns];
-        let mut vo = vec![0u32; ns];
-        let mut chunk_len = vec![0usize];
-        for (&s, &k) in order.iter().zip(&runs) {
-            let k = k as usize;
-            if k == chunk_len.len() {
-                chunk_len.push(0);
-            }
-            chunk[s] = k as u32;
-            vo[s] = chunk_len[k] as u32;
-            chunk_len[k] += size(s);
-        }
+            })?;
+        let Placement {
+            order, vo, chunk, ..
+        } = &place;
         // The columns and slots in that order, and each level's segments.
         let mut levels: Vec<Vec<Segment>> = vec![Vec::new(); depth];
         let mut cols = Vec::with_capacity(n);
@@ -289,7 +319,7 @@ impl GpuFactor {
         let mut slot_owner = Vec::with_capacity(nrows);
         let mut po = vec![0u32; ns];
         let mut sizes = Vec::with_capacity(ns);
-        for &s in &order {
+        for &s in order {
             let (m, q) = f.shape(s);
             let segments = &mut levels[level[s] as usize];
             match segments.last_mut() {
@@ -421,23 +451,7 @@ impl GpuFactor {
             precision,
             bytes,
         };
-        let starts = chunk_len
-            .iter()
-            .scan(0u64, |at, &len| {
-                let start = *at;
-                *at += len as u64;
-                Some(start)
-            })
-            .collect();
-        Ok((
-            g,
-            Placement {
-                order,
-                vo,
-                chunk,
-                starts,
-            },
-        ))
+        Ok((g, place))
     }
 
     /// Most PCG columns (up to [`crate::CMAX`], at least 1) whose work vectors

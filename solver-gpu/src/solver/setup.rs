@@ -251,18 +251,13 @@ impl GpuSolver {
         self.setups += 1;
         self.drop_cholesky();
         let precision = self.factor_precision(self.kind);
-        // This kind's factor, made ahead on another thread from another `K`
-        // of the kind and uploaded already (`adopt_isotropic_factor`):
-        // taken in place of this one's factorization where it fits.
         // This kind's factor submitted to the GPU ahead
-        // (`factor_isotropic_on_device`), of this pattern.
+        // (`factor_isotropic_on_device`), where it is of this pattern.
         let on_gpu_ahead = match self.gpu_factor_ahead.take() {
-            Some((kind, made)) if kind == self.kind => {
-                match self.chol_host.has_analysed(col_ptr, row_idx) {
-                    true => Some(made),
-                    false => None,
-                }
-            }
+            Some((kind, made)) if kind == self.kind => self
+                .chol_host
+                .has_analysed(col_ptr, row_idx)
+                .then_some(made),
             other => {
                 self.gpu_factor_ahead = other;
                 None
@@ -273,6 +268,9 @@ impl GpuSolver {
                 .inspect_err(|e| log::debug!("Cholesky factor on the GPU ahead: {e}"))
                 .ok()
         });
+        // This kind's factor, made ahead on another thread from another `K`
+        // of the kind and uploaded already (`adopt_isotropic_factor`):
+        // taken in place of this one's factorization where it fits.
         let ahead = match self.chol_ahead.take() {
             Some((kind, up)) if kind == self.kind => {
                 let fits =
