@@ -460,17 +460,18 @@ pub trait SpdSolver: Send {
     /// from another matrix of the kind, it changes the iterations, not the
     /// solution's tolerance). Ignored (the default) where it does not fit.
     fn adopt_isotropic_factor(&mut self, _kind: SystemKind, _factored: CholeskySolver) {}
-    /// Whether this solver makes `kind`'s factor of `K` on its device from
-    /// `K`'s values ([`SpdSolver::factor_isotropic_on_device`]); `false`
-    /// (the default) where it makes it on the host or makes none.
+    /// Whether this solver makes `kind`'s factor of `K` (the scale
+    /// factors': of their matrix) on its device from its values
+    /// ([`SpdSolver::factor_isotropic_on_device`]); `false` (the default)
+    /// where it makes it on the host or makes none.
     fn factors_isotropic_on_device(&self, _kind: SystemKind) -> bool {
         false
     }
-    /// Starts `kind`'s factor of `k` (a `K` of the kind, of the analysed
-    /// pattern) on the device and returns at once, for that kind's set-up
-    /// to take instead of factoring its first matrix's `K` (as
-    /// [`SpdSolver::adopt_isotropic_factor`]'s). Ignored (the default)
-    /// where it does not apply.
+    /// Starts `kind`'s factor of `k` (a `K` of the kind, or the scale
+    /// factors' matrix, of the analysed pattern) on the device and returns
+    /// at once, for that kind's set-up to take instead of factoring its
+    /// first matrix (as [`SpdSolver::adopt_isotropic_factor`]'s). Ignored
+    /// (the default) where it does not apply.
     fn factor_isotropic_on_device(&mut self, _kind: SystemKind, _k: &SymCsc) {}
     /// The model of the next shape matrices (`None`: no model), for backends
     /// whose preconditioner builds on it; ignored by the others.

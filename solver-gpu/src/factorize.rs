@@ -40,6 +40,7 @@
 use crate::device::{dispatch, Bind, Context, Kernel, KernelWork, Shader, FLAT_WG};
 use crate::supernodal::{GpuFactor, Placement};
 use crate::GpuError;
+use rayon::prelude::*;
 use solver_cpu::{SupernodalFactor, SymCsc};
 use std::sync::Arc;
 
@@ -85,7 +86,12 @@ pub(crate) struct FactorParams {
     pub(crate) pad: [u32; 2],
 }
 
-/// Where the GPU backend makes the shape systems' Cholesky factor
+/// The most storage buffers a factor made on the GPU may hold its values in
+/// (bindings 3 and 7 of the shader).
+pub(crate) const VALUE_BUFFERS: usize = 2;
+
+/// Where the GPU backend makes its Cholesky factors, the shape systems' of
+/// `K` and the scale factors' of their matrix
 /// (`METRICDEFORM_GPU_FACTORIZATION=host|gpu`).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum Factorization {
@@ -93,9 +99,9 @@ pub enum Factorization {
     /// asks), its inverted form uploaded.
     #[default]
     Host,
-    /// On the GPU from `K`'s values (`shaders/supernodal_factor.wgsl`), the symbolic
-    /// analysis on the host; where the device has `SHADER_F64` and the
-    /// factor fits one storage binding, else on the host.
+    /// On the GPU from the matrix's values (`shaders/supernodal_factor.wgsl`),
+    /// the symbolic analysis on the host; where the device has `SHADER_F64`
+    /// and the factor fits two storage bindings, else on the host.
     Gpu,
 }
 
@@ -523,26 +529,32 @@ pub(crate) fn value_map(f: &SupernodalFactor, place: &Placement, k: &SymCsc) -> 
         }
     }
     let gvo = place.global_vo()?;
-    let mut map = Vec::with_capacity(k.row_idx.len());
-    for j in 0..n {
-        for &i in k.row_idx.get(k.col_ptr[j]..k.col_ptr[j + 1])? {
-            let (a, b) = (*inv.get(i)?, inv[j]);
-            let (r, c) = (a.max(b), a.min(b));
-            let s = owner[c as usize] as usize;
-            let (m, q) = f.shape(s);
-            let c0 = f.begin[s];
-            let row = match r < c0 + m as u32 {
-                true => (r - c0) as usize,
-                false => {
-                    let rows = &f.rows[f.row_ptr[s] as usize..f.row_ptr[s + 1] as usize];
-                    m + rows.binary_search(&r).ok()?
-                }
-            };
-            let at = gvo[s] as usize + (c - c0) as usize * (m + q) + row;
-            map.push(u32::try_from(at).ok()?);
-        }
-    }
-    Some(map)
+    // A column's entries, each found by a search in its supernode's rows:
+    // the columns on rayon's threads, the map in `k`'s order.
+    let (inv, owner, gvo) = (&inv, &owner, &gvo);
+    (0..n)
+        .into_par_iter()
+        .flat_map_iter(|j| {
+            let entries = k.row_idx.get(k.col_ptr[j]..k.col_ptr[j + 1]);
+            entries.into_iter().flatten().map(move |&i| {
+                let (a, b) = (*inv.get(i)?, inv[j]);
+                let (r, c) = (a.max(b), a.min(b));
+                let s = owner[c as usize] as usize;
+                let (m, q) = f.shape(s);
+                let c0 = f.begin[s];
+                let row = match r < c0 + m as u32 {
+                    true => (r - c0) as usize,
+                    false => {
+                        let rows = &f.rows[f.row_ptr[s] as usize..f.row_ptr[s + 1] as usize];
+                        m + rows.binary_search(&r).ok()?
+                    }
+                };
+                let at = gvo[s] as usize + (c - c0) as usize * (m + q) + row;
+                u32::try_from(at).ok()
+            })
+        })
+        .collect::<Option<Vec<u32>>>()
+        .filter(|map| map.len() == k.row_idx.len())
 }
 
 impl GpuFactorization {
@@ -558,7 +570,7 @@ impl GpuFactorization {
         f: &SupernodalFactor,
         k: &SymCsc,
     ) -> Result<GpuFactorization, GpuError> {
-        if g.vals.len() > 2 || g.precision != crate::precision::Precision::F64 {
+        if g.vals.len() > VALUE_BUFFERS || g.precision != crate::precision::Precision::F64 {
             return Err(GpuError::LimitExceeded {
                 what: format!(
                     "a Cholesky factor factored on the GPU ({} values in {} buffers)",
@@ -771,7 +783,7 @@ impl GpuFactorization {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use solver_cpu::{CholeskySolver, FillOrdering, SpdSolver};
+    use solver_cpu::{CholeskySolver, FillOrdering, SpdSolver, SystemKind};
 
     /// A test solver whose device has `SHADER_F64` (the factorization's
     /// kernels are f64); `None` skips the test.
@@ -939,10 +951,9 @@ mod tests {
         }
         assert_eq!((out[0].0, out[1].0), (1, 2));
         assert!(out[0].1 == out[1].1, "two buffers differ from one");
-        let (g, place) = GpuFactor::allocate(ctx, &f, bytes / 4).unwrap();
-        assert!(g.vals.len() > 2);
+        // Over two, refused before any buffer is made.
         assert!(matches!(
-            GpuFactorization::new(ctx, &kernels, &g, &place, &f, &k),
+            GpuFactor::allocate(ctx, &f, bytes / 4),
             Err(GpuError::LimitExceeded { .. })
         ));
     }
@@ -971,6 +982,63 @@ mod tests {
         // A matrix of another pattern is refused.
         let other = two_ring_grid(15, 20);
         assert!(GpuFactorization::new(ctx, &kernels, &g, &place, &f, &other).is_err());
+    }
+
+    /// The scale factors' own factor (of the scalar matrix a solver
+    /// prepares) is made on the GPU where asked for. Where the device
+    /// refuses it (its values over two buffers) the host makes it, and the
+    /// GPU is not asked again for that kind; the solves are the same.
+    #[test]
+    fn a_refused_factorization_is_made_on_the_host_once() {
+        let Some(s) = f64_solver() else {
+            return;
+        };
+        let k = two_ring_grid(60, 50);
+        let bytes = 8 * host(&k, true).nnz() as u64;
+        drop(s);
+        let b: Vec<f64> = (0..k.n).map(|i| ((i * 13) % 7) as f64 - 3.0).collect();
+        let mut solutions = Vec::new();
+        for (limit, refused) in [(None, false), (Some(bytes * 2 / 5), true)] {
+            let mut s = crate::open_with(crate::OpenOptions {
+                adjust_limits: limit.map(|l| -> crate::device::LimitsHook {
+                    Box::new(move |lim: &mut wgpu::Limits| lim.max_storage_buffer_binding_size = l)
+                }),
+                ..Default::default()
+            })
+            .unwrap();
+            s.set_factorization(Factorization::Gpu);
+            s.set_system_kind(SystemKind::ScaleFactors);
+            assert!(s.factors_on_gpu(SystemKind::ScaleFactors));
+            let up = s.ctx.traffic().to_device;
+            s.prepare(&k).unwrap();
+            let up = s.ctx.traffic().to_device - up;
+            assert!(s.chol.is_some(), "limit {limit:?}");
+            assert_eq!(s.gpu_factor_refused, [false, refused], "limit {limit:?}");
+            assert_eq!(s.factors_on_gpu(SystemKind::ScaleFactors), !refused);
+            // Made on the host, the factor's values went up; made on the
+            // GPU, the matrix's values (and its index) only.
+            assert_eq!(up >= bytes, refused, "{up} bytes up, the factor {bytes}");
+            let mut x = b.clone();
+            s.solve_in_place(&mut x, 1).unwrap();
+            solutions.push(x);
+        }
+        let mut r = vec![0.0; k.n];
+        k.mul_vec(&solutions[1], &mut r);
+        let residual = r
+            .iter()
+            .zip(&b)
+            .map(|(a, c)| (a - c).abs())
+            .fold(0.0, f64::max);
+        assert!(residual < 1e-8, "residual {residual:e}");
+        let apart = solutions[0]
+            .iter()
+            .zip(&solutions[1])
+            .map(|(a, c)| (a - c).abs())
+            .fold(0.0, f64::max);
+        assert!(
+            apart < 1e-8,
+            "GPU-made and host-made factors' solves {apart:e} apart"
+        );
     }
 
     #[test]

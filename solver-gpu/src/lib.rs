@@ -87,7 +87,7 @@
 //! run on the GPU instead, from `K`'s values on the host's symbolic analysis
 //! (`factorize`, `shaders/supernodal_factor.wgsl`; its work counted from the
 //! structure alone: [`factorization_work`]), where the factor is f64
-//! and fits one storage binding. The
+//! and fits two storage bindings; the scale factors' factor (below) too. The
 //! **scale-factor system** (Eq. 3, scalar, its Hessian constant for the run)
 //! has its own factor, in f64 where the adapter has `SHADER_F64`: the scale
 //! factors' **Newton steps run on the GPU** with it as a direct solve

@@ -250,7 +250,9 @@ impl GpuFactor {
     /// The factor of `f`'s structure (its values, if any, ignored) in f64,
     /// its values zero, laid out as [`GpuFactor::upload`] lays them out, for
     /// a numeric factorization on the GPU ([`crate::factorize`]); and where
-    /// each supernode's values start.
+    /// each supernode's values start. Refused, before any buffer is made,
+    /// where the values would take more than that factorization's
+    /// [`crate::factorize::VALUE_BUFFERS`].
     pub fn allocate(
         ctx: &Context,
         f: &SupernodalFactor,
@@ -306,6 +308,17 @@ impl GpuFactor {
                 needed: size(s) as u64 * b,
                 limit,
             })?;
+        if !fill && chunk_len.len() > crate::factorize::VALUE_BUFFERS {
+            return Err(GpuError::LimitExceeded {
+                what: format!(
+                    "a Cholesky factor factored on the GPU ({nvals} values in {} buffers)",
+                    chunk_len.len()
+                ),
+                limit_name: "max_storage_buffer_binding_size",
+                needed: nvals as u64 * b,
+                limit,
+            });
+        }
         let Placement {
             order, vo, chunk, ..
         } = &place;

@@ -11,7 +11,7 @@ use solver_cpu::{
     BlockSym3, IsoRingSym3, ShapeOperatorModel, SolveInfo, SolverError, SpdSolver, SymCsc,
     SystemKind, WorkCounters,
 };
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 
 use crate::precision::{MixedPrecision, RoundWatch};
 use crate::{
@@ -79,6 +79,7 @@ impl GpuSolver {
     pub fn sibling_solver(&self) -> Result<GpuSolver, GpuError> {
         let mut s = on_context(self.ctx.sibling(), std::time::Instant::now())?;
         s.tol = self.tol;
+        s.factor_kernels = self.factor_kernels.clone();
         Ok(s)
     }
 }
@@ -160,7 +161,7 @@ fn on_context(ctx: Context, t: std::time::Instant) -> Result<GpuSolver, GpuError
         chol_kind: None,
         chol_kernels: None,
         factorization: crate::Factorization::from_env(),
-        factor_kernels: None,
+        factor_kernels: Default::default(),
         gpu_factor_ahead: None,
         chol_host: {
             let mut c = solver_cpu::CholeskySolver::single_precision();
@@ -168,6 +169,7 @@ fn on_context(ctx: Context, t: std::time::Instant) -> Result<GpuSolver, GpuError
             c
         },
         chol_unavailable: [false; 2],
+        gpu_factor_refused: [false; 2],
         chol_ahead: None,
         newton_kernels: None,
         warming: Vec::new(),
@@ -322,10 +324,11 @@ pub struct GpuSolver {
     pub(crate) chol: Option<supernodal::GpuFactor>,
     chol_kind: Option<SystemKind>,
     chol_kernels: Option<std::sync::Arc<supernodal::SupernodalKernels>>,
-    /// Where the shape systems' factor is made, and the GPU
-    /// factorization's kernels once made.
+    /// Where the factors are made, and the GPU factorization's kernels once
+    /// made: shared with the solvers' siblings on the device, so that each
+    /// pipeline is compiled once a run.
     factorization: crate::Factorization,
-    factor_kernels: Option<std::sync::Arc<crate::factorize::FactorKernels>>,
+    factor_kernels: Arc<Mutex<Option<Arc<crate::factorize::FactorKernels>>>>,
     /// A kind's factor submitted to the GPU ahead of its set-up.
     gpu_factor_ahead: Option<(SystemKind, setup::GpuMade)>,
     pub(crate) chol_host: solver_cpu::CholeskySolver,
@@ -333,6 +336,10 @@ pub struct GpuSolver {
     /// systems (index 0) or the scale factors (index 1): the squared Laplacian or AMG
     /// serves instead for the rest of the run.
     chol_unavailable: [bool; 2],
+    /// The GPU refused to make the factor (over its value buffers, or a CPU
+    /// adapter's loop limit), for the shape systems (index 0) or the scale
+    /// factors (index 1): the host makes it for the rest of the run.
+    pub(crate) gpu_factor_refused: [bool; 2],
     /// A shape kind's factor of `K` made ahead on another thread and
     /// uploaded on its own ([`SpdSolver::adopt_isotropic_factor`]), for that
     /// kind's set-up.
@@ -407,18 +414,19 @@ impl GpuSolver {
         Ok(())
     }
 
-    /// Where the shape systems' Cholesky factor is made (default
+    /// Where the Cholesky factors (the shape systems' of `K`, the scale
+    /// factors' of their matrix) are made (default
     /// [`crate::Factorization::Host`], or `METRICDEFORM_GPU_FACTORIZATION`);
     /// from the next set-up of a kind on.
     pub fn set_factorization(&mut self, f: crate::Factorization) {
         self.factorization = f;
     }
 
-    /// Whether `kind`'s factor is made on the GPU: asked for, a shape
-    /// system, its factor in f64 (the factorization's kernels are f64).
+    /// Whether `kind`'s factor is made on the GPU: asked for, its factor in
+    /// f64 (the factorization's kernels are f64), and not refused before.
     pub(crate) fn factors_on_gpu(&self, kind: SystemKind) -> bool {
         self.factorization == crate::Factorization::Gpu
-            && kind != SystemKind::ScaleFactors
+            && !self.gpu_factor_refused[self.chol_group_of(kind)]
             && self.ctx.shader_f64
             && self.factor_precision(kind) == precision::Precision::F64
     }
@@ -1044,7 +1052,7 @@ impl SpdSolver for GpuSolver {
 
     fn factors_isotropic_on_device(&self, kind: SystemKind) -> bool {
         self.preconditioner == Preconditioner::Cholesky
-            && !self.chol_unavailable[0]
+            && !self.chol_unavailable[self.chol_group_of(kind)]
             && self.factors_on_gpu(kind)
     }
 
@@ -1055,12 +1063,12 @@ impl SpdSolver for GpuSolver {
         if !self.factors_isotropic_on_device(kind) {
             return;
         }
-        match self.start_factor_on_gpu(k, false) {
+        match self.start_factor_on_gpu(kind, k, false) {
             Ok(made) => {
-                log::debug!("{kind:?} system's factor of K submitted to the GPU ahead");
+                log::debug!("{kind:?} system's factor submitted to the GPU ahead");
                 self.gpu_factor_ahead = Some((kind, made));
             }
-            Err(e) => log::debug!("{kind:?} system's factor of K on the GPU ahead: {e}"),
+            Err(e) => log::debug!("{kind:?} system's factor on the GPU ahead: {e}"),
         }
     }
 

@@ -174,7 +174,12 @@ impl GpuSolver {
     /// systems share one (their factors are of the same size), the scale
     /// factors have their own.
     pub(super) fn chol_group(&self) -> usize {
-        usize::from(self.kind == SystemKind::ScaleFactors)
+        self.chol_group_of(self.kind)
+    }
+
+    /// The index of `kind` in [`Self::chol_unavailable`] and the like.
+    pub(super) fn chol_group_of(&self, kind: SystemKind) -> usize {
+        usize::from(kind == SystemKind::ScaleFactors)
     }
 
     /// Keep the Cholesky preconditioner of this kind (`current`: it was made
@@ -352,14 +357,16 @@ impl GpuSolver {
     /// ([`crate::factorize`]), on the host's symbolic analysis of its pattern
     /// (made here unless made before), and how it was made.
     fn factor_on_gpu(&mut self, k: &SymCsc) -> Result<(supernodal::GpuFactor, String), GpuError> {
-        let made = self.start_factor_on_gpu(k, true)?;
+        let made = self.start_factor_on_gpu(self.kind, k, true)?;
         self.finish_factor_on_gpu(made, true)
     }
 
-    /// [`Self::factor_on_gpu`] up to its submission: the host goes on at
-    /// once (`timed`: its pass timed, for a factorization waited for next).
+    /// [`Self::factor_on_gpu`] of `kind`'s matrix up to its submission: the
+    /// host goes on at once (`timed`: its pass timed, for a factorization
+    /// waited for next).
     pub(super) fn start_factor_on_gpu(
         &mut self,
+        kind: SystemKind,
         k: &SymCsc,
         timed: bool,
     ) -> Result<GpuMade, GpuError> {
@@ -374,10 +381,20 @@ impl GpuSolver {
             .supernodal_structure()
             .ok_or_else(|| GpuError::Backend("no supernodal structure".into()))?;
         let analysed = t.elapsed().as_secs_f64();
-        let (g, place) =
-            supernodal::GpuFactor::allocate(&self.ctx, &f, matrix::binding_limit(&self.ctx))?;
         let kernels = self.factor_kernels()?;
-        let fac = crate::factorize::GpuFactorization::new(&self.ctx, &kernels, &g, &place, &f, k)?;
+        let recorded =
+            supernodal::GpuFactor::allocate(&self.ctx, &f, matrix::binding_limit(&self.ctx))
+                .and_then(|(g, place)| {
+                    let fac = crate::factorize::GpuFactorization::new(
+                        &self.ctx, &kernels, &g, &place, &f, k,
+                    )?;
+                    Ok((g, fac))
+                });
+        // Over the device's limits for this pattern: not asked again.
+        if let Err(GpuError::LimitExceeded { .. }) = recorded {
+            self.gpu_factor_refused[self.chol_group_of(kind)] = true;
+        }
+        let (g, fac) = recorded?;
         drop(f);
         let recorded = t.elapsed().as_secs_f64() - analysed;
         fac.submit(&self.ctx, &k.values, timed)?;
@@ -419,14 +436,19 @@ impl GpuSolver {
         Ok((made.g, text))
     }
 
-    /// The GPU factorization's kernels, made once.
+    /// The GPU factorization's kernels, made once for the solver and its
+    /// siblings.
     pub(super) fn factor_kernels(
         &mut self,
     ) -> Result<std::sync::Arc<crate::factorize::FactorKernels>, GpuError> {
-        if self.factor_kernels.is_none() {
-            self.factor_kernels = Some(crate::factorize::FactorKernels::new(&self.ctx)?);
+        let mut shared = self
+            .factor_kernels
+            .lock()
+            .unwrap_or_else(|e| e.into_inner());
+        if shared.is_none() {
+            *shared = Some(crate::factorize::FactorKernels::new(&self.ctx)?);
         }
-        Ok(self.factor_kernels.clone().unwrap())
+        Ok(shared.clone().unwrap())
     }
 
     /// The host's solver in `precision`, its fill ordering kept.

@@ -63,6 +63,11 @@ impl GpuSolver {
                 let all = columns.last().copied().unwrap_or(1);
                 each(&newton.kernels(), &[all]);
                 each(&chol.kernels().each_ref(), &columns);
+                // Its own factor's, where it is made on the GPU (another
+                // solver's on the device than the shape systems').
+                if self.factors_on_gpu(kind) {
+                    each(&self.factor_kernels()?.kernels().each_ref(), &[1]);
+                }
             }
             SystemKind::ScaleDriven | SystemKind::FineTune => {
                 if kind == SystemKind::ScaleDriven {
