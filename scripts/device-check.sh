@@ -6,9 +6,10 @@
 #      the Cholesky bench too with CHOLESKY=1), with debug logs;
 #   1b. the 100k rows again, GPU then CPU: the driver's shader cache is
 #      warm by then (step 1's GPU rows ran on a fresh machine);
-#   1c. the 1.2M and 100k GPU rows with the shape systems' factor made on
-#      the GPU (METRICDEFORM_GPU_FACTORIZATION=gpu, solver_gpu::factorize),
-#      against step 1's host-made factor;
+#   1c. the 1.2M and 100k GPU rows with every factor (the shape systems'
+#      and the scale factors') made on the GPU
+#      (METRICDEFORM_GPU_FACTORIZATION=gpu, solver_gpu::factorize), against
+#      step 1's host-made factors;
 #   2. the host's Cholesky factorization of K at 1.2M faces, faer's loop
 #      against the elimination tree's subtrees at once, on 1 thread and
 #      on all (benches/cholesky_factor.rs), and the fill orderings at
@@ -58,7 +59,7 @@ for b in gpu cpu; do
   grep -h '^| girths\|proxies' "$L/100k.$b.warm"
 done
 pack
-echo "== the shape factor made on the GPU, 1.2M and 100k (t=$(el))"
+echo "== the factors made on the GPU, 1.2M and 100k (t=$(el))"
 for r in 1m 100k; do
   METRICDEFORM_GPU_FACTORIZATION=gpu CAP=120 bounded "$B/pipeline-bench" --row girths-homer-$r \
     per_constraint --backend gpu --gpu-only > "$L/$r.gpu.gpufactor" 2> "$L/$r.gpu.gpufactor.err"

@@ -626,10 +626,24 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
             (fine_tune_follows && (factors_ahead || fine_tune_on_device))
                 .then(|| isotropic_part_logged(model, mesh, x0, &o.fine_tune, SystemKind::FineTune))
         };
+        // A solver that makes the factor on its device from `K`'s values
+        // (the GPU backend's `METRICDEFORM_GPU_FACTORIZATION=gpu`) gets the
+        // input's `K` once the first scale factors are estimated (the device
+        // runs its work in the order given, and the estimation waits for
+        // its own): the device factors while the host assembles the first
+        // shape matrix. It is assembled while the scale factors' set-up
+        // runs on.
+        let scale_driven_on_device = model
+            .solver()
+            .factors_isotropic_on_device(SystemKind::ScaleDriven);
+        let mut scale_driven_k = None;
         let (mut scale_system, early, mut fine_tune_k) =
             if analysis_early.is_some() && !factors_ahead {
                 // Assembled while the scale factors' set-up runs on.
                 let k = fine_tune_k(&model);
+                scale_driven_k = scale_driven_on_device.then(|| {
+                    isotropic_part_logged(&model, mesh, &x, &o.shape, SystemKind::ScaleDriven)
+                });
                 (make_scale_system()?, None, k)
             } else {
                 let analysis = analysis_early.take();
@@ -655,24 +669,23 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
                 None,
             )
         });
-        // A solver that makes the factor on its device from `K`'s values
-        // (the GPU backend's `METRICDEFORM_GPU_FACTORIZATION=gpu`) gets the
-        // input's `K` now: the device factors while the host estimates the
-        // first scale factors and assembles the first shape matrix.
-        if scale_driven_ahead.is_none()
-            && model
-                .solver()
-                .factors_isotropic_on_device(SystemKind::ScaleDriven)
-        {
+        if scale_driven_ahead.is_none() && scale_driven_on_device {
             // Its factor is of the analysis made from the start (the
             // positions' ordering), waited for here.
             if let Some(analysis) = analysis_early.take() {
                 adopt_early_analysis(&mut model, analysis);
             }
-            let k = isotropic_part_logged(&model, mesh, &x, &o.shape, SystemKind::ScaleDriven);
-            model
-                .solver()
-                .factor_isotropic_on_device(SystemKind::ScaleDriven, &k);
+            if scale_driven_k.is_none() {
+                scale_driven_k = Some(isotropic_part_logged(
+                    &model,
+                    mesh,
+                    &x,
+                    &o.shape,
+                    SystemKind::ScaleDriven,
+                ));
+            }
+        } else {
+            scale_driven_k = None;
         }
         stop_reason = "iteration cap".into();
         // The constraints in scale-factor form; their coefficients are
@@ -777,6 +790,11 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
             // Eq. 7 / 19. On large meshes an iterative backend's AMG takes the
             // vertices' affine motions as near-null space here too (see
             // AFFINE_SCALE_DRIVEN_MIN_VERTICES).
+            if let Some(k) = scale_driven_k.take() {
+                model
+                    .solver()
+                    .factor_isotropic_on_device(SystemKind::ScaleDriven, &k);
+            }
             if fine_tune_on_device && iterations >= 1 {
                 if let Some(k) = fine_tune_k.take() {
                     model
@@ -807,7 +825,14 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
                 true => model.hand_over_with_positions(&x, &o.shape, affine)?,
                 false => model.assemble_with_positions(mesh, &x, &s, &c, &o.shape, affine)?,
             }
-            if iterations == 0 && fine_tune_follows && !fine_tune_on_device {
+            // Also where the device refused the scale-driven kind's factor
+            // (the same pattern): the host makes the fine-tune's ahead.
+            if iterations == 0
+                && fine_tune_follows
+                && !model
+                    .solver()
+                    .factors_isotropic_on_device(SystemKind::FineTune)
+            {
                 fine_tune_ahead = factor_ahead(
                     &mut model,
                     (mesh, &x),
@@ -1007,12 +1032,14 @@ struct ScaleSetUp {
     newton_columns: Option<[usize; 2]>,
 }
 
-/// The set-up's host work: its fill ordering, its matrix, and on a GPU its
-/// factor with that matrix's analysis ([`factor_ahead_of_its_solver`]).
+/// The set-up's host work: its fill ordering, its matrix, and on a GPU that
+/// matrix's analysis with its factor ([`factor_ahead_of_its_solver`]), or
+/// without, where the GPU is asked to make it
+/// (`METRICDEFORM_GPU_FACTORIZATION=gpu`).
 struct ScaleHostPart {
     fill: FillOrdering,
     hessian: SymCsc,
-    factored: Option<(CholeskySolver, CholeskySolver)>,
+    factored: Option<(CholeskySolver, Option<CholeskySolver>)>,
 }
 
 impl ScaleSetUp {
@@ -1043,8 +1070,9 @@ impl ScaleSetUp {
         // another preconditioner is asked for.
         let cholesky =
             solver_gpu::Preconditioner::from_env() == solver_gpu::Preconditioner::Cholesky;
+        let on_device = solver_gpu::Factorization::from_env() == solver_gpu::Factorization::Gpu;
         let factored = (self.backend == SolverBackend::Gpu && cholesky)
-            .then(|| factor_ahead_of_its_solver(&hessian, &fill))
+            .then(|| factor_ahead_of_its_solver(&hessian, &fill, !on_device))
             .flatten();
         ScaleHostPart {
             fill,
@@ -1067,36 +1095,50 @@ impl ScaleSetUp {
         solver.set_fill_ordering(host.fill);
         if let Some((analysed, factored)) = host.factored {
             solver.adopt_isotropic_analysis(analysed);
-            solver.adopt_isotropic_factor(SystemKind::ScaleFactors, factored);
+            match factored {
+                Some(factored) => solver.adopt_isotropic_factor(SystemKind::ScaleFactors, factored),
+                // Submitted to the device, which factors while this thread
+                // hands the system over; its set-up waits for it. Where the
+                // device makes no factor, the set-up makes it on the host.
+                None => solver.factor_isotropic_on_device(SystemKind::ScaleFactors, &host.hessian),
+            }
         }
         ScaleFactorSystem::with_hessian(host.hessian, solver)
     }
 }
 
-/// The scale factors' matrix analysed and factored on the host in f64 (a
-/// GPU's Cholesky preconditioner of the scale factors, made before its
-/// device is open; [`SpdSolver::adopt_isotropic_factor`] takes it where it
-/// is of the precision and pattern the solver's set-up wants, and the
-/// set-up factors again otherwise): the analysed solver and its factored
-/// numeric twin. `None` where either step fails (the set-up reports it).
-/// At homer 108k on the H200's host the factor took 0.146 s after a
-/// 0.24-s device open.
+/// The scale factors' matrix analysed and (`numeric`) factored on the host
+/// in f64 (a GPU's Cholesky preconditioner of the scale factors, made
+/// before its device is open; [`SpdSolver::adopt_isotropic_factor`] takes
+/// it where it is of the precision and pattern the solver's set-up wants,
+/// and the set-up factors again otherwise): the analysed solver and its
+/// factored numeric twin. `None` where either step fails (the set-up
+/// reports it). At homer 108k on the H200's host the factor took 0.146 s
+/// after a 0.24-s device open.
 fn factor_ahead_of_its_solver(
     h: &SymCsc,
     fill: &FillOrdering,
-) -> Option<(CholeskySolver, CholeskySolver)> {
+    numeric: bool,
+) -> Option<(CholeskySolver, Option<CholeskySolver>)> {
     let t = Instant::now();
     let mut analysed = CholeskySolver::new();
     analysed.supernodal = true;
     analysed.set_fill_ordering(fill.clone());
     analysed.analyse(h).ok()?;
+    if !numeric {
+        log::debug!(
+            "scale factors' matrix analysed on the host before its solver: {:.3} s",
+            t.elapsed().as_secs_f64()
+        );
+        return Some((analysed, None));
+    }
     let mut factored = analysed.numeric_twin(false)?;
     factored.prepare(h).ok()?;
     log::debug!(
         "scale factors' factor made on the host before its solver: {:.3} s",
         t.elapsed().as_secs_f64()
     );
-    Some((analysed, factored))
+    Some((analysed, Some(factored)))
 }
 
 /// The scale factors' solver made, analysed and factored on another thread

@@ -1464,10 +1464,11 @@ fn readme_json_job_example_runs() {
     assert_eq!(r["constraints"].as_array().unwrap().len(), 3);
 }
 
-/// `METRICDEFORM_GPU_FACTORIZATION=gpu`: the shape systems' factors are made
-/// on the GPU, submitted ahead (the scale-driven kind's while the host
-/// estimates the first scale factors, the fine-tune's at the second outer
-/// iteration), and the result is the host-made
+/// `METRICDEFORM_GPU_FACTORIZATION=gpu`: every Cholesky factor is made on
+/// the GPU, submitted ahead (the scale factors' by their set-up, the
+/// scale-driven kind's while the host estimates the first scale factors,
+/// the fine-tune's at the second outer iteration), and the result is the
+/// host-made
 /// factors' within the parity bound (1e-3 % of the bbox diagonal), with
 /// fewer bytes moved (the factors stay on the device).
 #[test]
@@ -1517,6 +1518,11 @@ fn gpu_factorization_gives_the_host_factors_result() {
             "{log}"
         );
         assert!(line("(FineTune system, F64)", "submitted ahead"), "{log}");
+        // The scale factors' own factor too, submitted by their set-up.
+        assert!(
+            line("(ScaleFactors system, F64)", "submitted ahead"),
+            "{log}"
+        );
         assert!(
             gpu_moved < host_moved,
             "{gpu_moved} bytes against {host_moved}"
