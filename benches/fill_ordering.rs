@@ -84,11 +84,16 @@ fn row(
     // counted from its structure.
     if let Some(w) = solver_gpu::factorization_work(&f, a.row_idx.len()) {
         let widest = (0..f.len()).map(|s| f.shape(s).0).max().unwrap_or(0);
+        // The device memory it takes beside the factor: the inverse
+        // diagonal blocks' scratch (one f64 a diagonal block's entry).
+        let scratch: usize = (0..f.len()).map(|s| f.shape(s).0.pow(2)).sum();
         GPU_ROWS.lock().unwrap().push(format!(
-            "| {pattern} | {faces} | {name} | {} | {:.2}M | {:.1} | {widest} |",
+            "| {pattern} | {faces} | {name} | {} | {:.2}M | {:.1} | {widest} | {:.0} | {:.0} |",
             w.dispatches,
             w.serial_steps as f64 / 1e6,
             w.bytes as f64 / 1e9,
+            8.0 * f.nnz() as f64 / 1e6,
+            8.0 * scratch as f64 / 1e6,
         ));
     }
 }
@@ -150,9 +155,9 @@ fn main() {
     }
     println!();
     println!(
-        "| pattern | faces | ordering | GPU factorization: dispatches | serial steps | modelled GB | widest supernode |"
+        "| pattern | faces | ordering | GPU factorization: dispatches | serial steps | modelled GB | widest supernode | factor MB | scratch MB |"
     );
-    println!("|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|---|");
     for r in GPU_ROWS.lock().unwrap().iter() {
         println!("{r}");
     }
