@@ -10,21 +10,22 @@
 #      and the scale factors') made on the GPU
 #      (METRICDEFORM_GPU_FACTORIZATION=gpu, solver_gpu::factorize), against
 #      step 1's host-made factors;
-#   2. the host's Cholesky factorization of K at 1.2M faces, faer's loop
-#      against the elimination tree's subtrees at once, on 1 thread and
-#      on all (benches/cholesky_factor.rs), and the fill orderings at
-#      1.2M: minimum degree, METIS and the positions' nested dissection,
-#      which runs on every thread (benches/fill_ordering.rs);
-#   3. the 1.2M GPU row again with the scale-driven kind's factor started
-#      after the scale factors' set-up (`--factors-at-once off`), against
-#      step 1's default on a host of 8 threads or more (from the symbolic
-#      analysis on, beside that set-up): time and peak;
-#   4. the kernels test binary three times at 16 threads, each under a
+#   2. the kernels test binary three times at 16 threads, each under a
 #      watchdog that dumps the threads' wait channels where it hangs (it
 #      hung in 4 of 10 such runs on an H200), and the conformance suite
 #      (the 1.2M parity test skipped: step 1 is that check);
-#   5. the 4.3M rows, GPU then CPU, while time is left (the CPU row took
-#      over 200 s on the H100's host).
+#   3. the 4.3M rows while time is left: GPU, GPU with every factor made
+#      on the GPU (its host peak against the CPU path's: the factors never
+#      on the host), then CPU (over 150 s on the H200's host);
+#   4. the 1.2M GPU row again with the scale-driven kind's factor started
+#      after the scale factors' set-up (`--factors-at-once off`), against
+#      step 1's default on a host of 8 threads or more (from the symbolic
+#      analysis on, beside that set-up): time and peak;
+#   5. the host's Cholesky factorization of K at 1.2M faces, faer's loop
+#      against the elimination tree's subtrees at once, on 1 thread and
+#      on all (benches/cholesky_factor.rs), and the fill orderings at
+#      1.2M: minimum degree, METIS and the positions' nested dissection,
+#      which runs on every thread (benches/fill_ordering.rs).
 # END (seconds, default 540) bounds the whole; logs go to $OUT/logs.tgz and
 # the table to $OUT/table.md.
 set -u
@@ -67,15 +68,6 @@ for r in 1m 100k; do
   grep -h '^| girths\|proxies\|factored on the GPU' "$L/$r.gpu.gpufactor" "$L/$r.gpu.gpufactor.err"
 done
 pack
-echo "== host Cholesky factorization at 1.2M (t=$(el))"
-REPEAT=1 CAP=100 bounded "$B/factor-bench" --1m 2> "$L/factor.err" | tee "$L/factor.md"
-CAP=60 bounded "$B/ordering-bench" --1m 2> "$L/ordering.err" | tee "$L/ordering.md"
-pack
-echo "== 1m gpu, the scale-driven factor after the scale factors' set-up (t=$(el))"
-bounded "$B/pipeline-bench" --row girths-homer-1m per_constraint --backend gpu --gpu-only \
-  --factors-at-once off > "$L/1m.gpu.off" 2> "$L/1m.gpu.off.err"; echo "rc $?"
-grep -h '^| girths' "$L/1m.gpu.off"
-pack
 # Runs "$@" (a test binary) in the background, its output in $1. Still
 # running after $WATCH seconds (a whole run takes under 10 s on an H200),
 # it is stopped, and each thread's name, state, kernel wait channel,
@@ -111,12 +103,22 @@ echo "== conformance (t=$(el))"
 CAP=90 bounded "$B/conformance" --skip gpu_parity_at_a_million_faces_on_hardware > "$L/conformance-tests.txt" 2>&1
 echo "rc $?"; tail -2 "$L/conformance-tests.txt"
 pack
-for b in gpu cpu; do
+for b in gpu gpufactor cpu; do
   echo "== 4m $b (t=$(el), left $(left))"
   [ "$(left)" -gt 60 ] || break
-  bounded "$B/pipeline-bench" --row girths-homer-4m per_constraint --backend $b --gpu-only \
-    > "$L/4m.$b" 2> "$L/4m.$b.err"; echo "rc $?"
-  grep -h '^| girths\|proxies' "$L/4m.$b"
+  f=host; [ $b = gpufactor ] && f=gpu
+  METRICDEFORM_GPU_FACTORIZATION=$f bounded "$B/pipeline-bench" --row girths-homer-4m \
+    per_constraint --backend ${b%factor} --gpu-only > "$L/4m.$b" 2> "$L/4m.$b.err"; echo "rc $?"
+  grep -h '^| girths\|proxies\|factored on the GPU' "$L/4m.$b" "$L/4m.$b.err"
   pack
 done
+echo "== 1m gpu, the scale-driven factor after the scale factors' set-up (t=$(el))"
+bounded "$B/pipeline-bench" --row girths-homer-1m per_constraint --backend gpu --gpu-only \
+  --factors-at-once off > "$L/1m.gpu.off" 2> "$L/1m.gpu.off.err"; echo "rc $?"
+grep -h '^| girths' "$L/1m.gpu.off"
+pack
+echo "== host Cholesky factorization at 1.2M (t=$(el))"
+REPEAT=1 CAP=100 bounded "$B/factor-bench" --1m 2> "$L/factor.err" | tee "$L/factor.md"
+CAP=60 bounded "$B/ordering-bench" --1m 2> "$L/ordering.err" | tee "$L/ordering.md"
+pack
 echo "== done t=$(el)"
