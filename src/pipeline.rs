@@ -728,12 +728,16 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
                 scale_system.as_ref().map(|s| s.counters()),
             );
             let areas = mesh.face_areas(&x);
+            // The host's parts of the iteration, for the debug line at its
+            // end: areas and coefficients, estimation, curvature targets.
+            let mut parts = [0.0f64; 3];
             // Eq. 3: scale factors on the current mesh.
             let (s, max_ds) = match scale_system.as_mut() {
                 Some(sys) => {
                     for (sc, c) in cons.iter_mut().zip(&p.constraints) {
                         c.face_coefficients_into(mesh, &x, &areas, o.volume_share, &mut sc.coeffs);
                     }
+                    parts[0] = t_iter.elapsed().as_secs_f64();
                     let waited = sys.counters().device_seconds;
                     let (s, info) = sys.estimate(&cons, o.multipliers)?;
                     let waited = sys.counters().device_seconds - waited;
@@ -746,6 +750,7 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
                         crate::memory::resident_memory_mb()
                     );
                     let m = s.iter().fold(0.0f64, |m, v| m.max((v - 1.0).abs()));
+                    parts[1] = t_iter.elapsed().as_secs_f64() - parts[0];
                     (s, m)
                 }
                 None => (vec![1.0; nf], 0.0),
@@ -780,6 +785,7 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
             }
             history.push(max_ds);
             // c_i of Eq. 21; the curvature regions' factors in the first step only.
+            let t_curvature = Instant::now();
             let c = curvature_targets(
                 mesh,
                 &areas,
@@ -787,6 +793,7 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
                 o.curvature_target,
                 (iterations == 0 && has_curvature).then_some(&curvature_factor[..]),
             );
+            parts[2] = t_curvature.elapsed().as_secs_f64();
             // Eq. 7 / 19. On large meshes an iterative backend's AMG takes the
             // vertices' affine motions as near-null space here too (see
             // AFFINE_SCALE_DRIVEN_MIN_VERTICES).
@@ -843,6 +850,7 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
             }
             let t_solve = Instant::now();
             let g = model.solve_unconstrained(&x)?;
+            let solved = t_solve.elapsed().as_secs_f64();
             // The first step of a curvature job has its own targets (Eq. 21 factors
             // applied once): accelerate from the second step on.
             x = if iterations == 0 {
@@ -880,11 +888,23 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
                 crate::memory::resident_memory_mb(),
                 crate::memory::peak_memory_mb()
             );
+            let t_metrics = Instant::now();
             let e = max_error(p, &x);
             err_at_x = e;
             if e < best.0 || has_handles || has_curvature {
                 best = (e, x.clone());
             }
+            log::debug!(
+                "outer iteration {iterations}, its parts: areas and coefficients {:.3} s, \
+                 estimation {:.3} s, curvature targets {:.3} s, shape matrix {:.3} s, solve \
+                 {solved:.3} s, Anderson {:.3} s, metrics {:.3} s",
+                parts[0],
+                parts[1],
+                parts[2],
+                (t_solve - t_shape).as_secs_f64(),
+                (t_metrics - t_solve).as_secs_f64() - solved,
+                t_metrics.elapsed().as_secs_f64()
+            );
         }
         scale_factor_work = scale_system.as_ref().map(|s| s.counters());
         // Its solver (on a GPU, its device and buffers) is released while
