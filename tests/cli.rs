@@ -1518,6 +1518,15 @@ fn gpu_factorization_gives_the_host_factors_result() {
             "{log}"
         );
         assert!(line("(FineTune system, F64)", "submitted ahead"), "{log}");
+        // The fine-tune's factorization is the scale-driven kind's
+        // recording, bound to its own values.
+        assert!(
+            line(
+                "(FineTune system, F64)",
+                "the scale-driven kind's recording"
+            ),
+            "{log}"
+        );
         // The scale factors' own factor too, submitted by their set-up.
         assert!(
             line("(ScaleFactors system, F64)", "submitted ahead"),

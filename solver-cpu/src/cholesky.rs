@@ -431,6 +431,22 @@ fn inverse_permutation(forward: &[usize], n: usize) -> Option<Vec<usize>> {
     Some(inverse)
 }
 
+/// A solver's symbolic analysis ([`CholeskySolver::analysis_id`]), held:
+/// the same analysis (shared by a solver and its numeric twins) or not,
+/// whatever the patterns and orderings compared would say.
+#[derive(Clone, Debug)]
+pub struct AnalysisId(Arc<SymbolicFactor>);
+
+impl AnalysisId {
+    /// Whether `solver` holds this very analysis.
+    pub fn is_of(&self, solver: &CholeskySolver) -> bool {
+        solver
+            .symbolic
+            .as_ref()
+            .is_some_and(|s| Arc::ptr_eq(s, &self.0))
+    }
+}
+
 /// faer sparse Cholesky with the symbolic factorization reused across matrices
 /// of the same pattern.
 #[derive(Default)]
@@ -544,6 +560,12 @@ impl CholeskySolver {
             && other.symbolic.is_some()
             && self.pattern.is_some()
             && self.pattern == other.pattern
+    }
+
+    /// This solver's symbolic analysis, as a handle compared by identity
+    /// ([`AnalysisId::is_of`]); `None` before the analysis.
+    pub fn analysis_id(&self) -> Option<AnalysisId> {
+        self.symbolic.clone().map(AnalysisId)
     }
 
     /// Whether this solver's symbolic analysis is of the pattern

@@ -17,7 +17,7 @@ pub mod tree_factor;
 pub use block::{row_groups_mut, BlockRows, BlockSym3};
 pub use cholesky::{
     analyse_beside, analyse_beside_then, background_pool, nested_dissection_of_pattern,
-    thread_priority, CholeskySolver, FactorAhead, FactorPlan, FillOrdering, PatternKey,
+    thread_priority, AnalysisId, CholeskySolver, FactorAhead, FactorPlan, FillOrdering, PatternKey,
     SupernodalFactor, PATTERN_KEY_RUN,
 };
 pub use iso_ring::{sym3_block, IsoRingSym3, SparseRows, NO_TRIPLET};

@@ -480,11 +480,23 @@ impl FactorizationPlan {
     }
 }
 
-/// One recorded dispatch.
-struct Step {
-    stage: Stage,
-    bg: wgpu::BindGroup,
-    dims: (u32, u32),
+/// What a factorization's recording holds apart from the factor it is
+/// bound to: shared by the factorizations of one structure
+/// ([`GpuFactorization::for_factor`]).
+struct Recorded {
+    /// The factorization's index (order, `K`'s map, tasks, offsets).
+    fidx: wgpu::Buffer,
+    /// `K`'s stored values, in `SymCsc` order.
+    kv: wgpu::Buffer,
+    flag: wgpu::Buffer,
+    /// The inverse diagonal blocks' scratch.
+    xs: wgpu::Buffer,
+    /// Each dispatch's parameters.
+    params: Vec<wgpu::Buffer>,
+    /// Each dispatch's stage and workgroups.
+    steps: Vec<(Stage, (u32, u32))>,
+    nnz_k: usize,
+    work: KernelWork,
 }
 
 /// A numeric factorization of one pattern of `K` into a [`GpuFactor`]'s
@@ -492,21 +504,15 @@ struct Step {
 /// values ([`GpuFactorization::run`]).
 pub(crate) struct GpuFactorization {
     kernels: Arc<FactorKernels>,
-    steps: Vec<Step>,
-    /// `K`'s stored values, in `SymCsc` order.
-    kv: wgpu::Buffer,
-    flag: wgpu::Buffer,
-    /// The inverse diagonal blocks' scratch.
-    xs: wgpu::Buffer,
-    vals: wgpu::Buffer,
-    vals1: wgpu::Buffer,
-    nnz_k: usize,
-    /// Kept alive for the bind groups.
+    /// Each dispatch's bindings (the recording's, and the factor's).
+    bgs: Vec<wgpu::BindGroup>,
+    /// The factor's values (one or two buffers).
+    vals: Vec<wgpu::Buffer>,
+    /// Bound at 7: the second values, or a 16-byte stand-in; kept with the
+    /// bind groups that name it.
     #[allow(dead_code)]
-    fidx: wgpu::Buffer,
-    #[allow(dead_code)]
-    params: Vec<wgpu::Buffer>,
-    work: KernelWork,
+    second: wgpu::Buffer,
+    recorded: Recorded,
 }
 
 /// Each stored entry of `k` (lower triangle, `SymCsc` order): its place in
@@ -623,14 +629,10 @@ impl GpuFactorization {
         let kv = ctx.storage("K values for the GPU factorization", 8 * nnz_k as u64)?;
         let flag = ctx.storage("factorization flag", 4)?;
         let xs = ctx.storage("inverse diagonal blocks (scratch)", 8 * plan.x_len)?;
-        let vals = g.vals[0].clone();
         // The second buffer's values from c1 on, where there is one.
-        let (vals1, c1) = match (g.vals.get(1), place.starts.get(1)) {
-            (Some(b), Some(&c1)) => (b.clone(), c1 as u32),
-            _ => (
-                ctx.storage("factorization's second values (none)", 16)?,
-                u32::MAX,
-            ),
+        let c1 = match (g.vals.get(1), place.starts.get(1)) {
+            (Some(_), Some(&c1)) => c1 as u32,
+            _ => u32::MAX,
         };
         let o = g.offsets;
         let mut params = Vec::with_capacity(plan.steps.len());
@@ -651,50 +653,110 @@ impl GpuFactorization {
                 c1,
                 ..st.params
             };
-            let buf = ctx.uniform_of("factorization params", &p)?;
-            let bg = kernels.shader.bind(
-                ctx,
-                &[
-                    (0, &buf),
-                    (1, &g.idx),
-                    (2, &fidx),
-                    (3, &vals),
-                    (4, &kv),
-                    (5, &flag),
-                    (6, &xs),
-                    (7, &vals1),
-                ],
-            )?;
+            params.push(ctx.uniform_of("factorization params", &p)?);
             let groups = match st.stage {
                 Stage::Diag | Stage::InvTile | Stage::InvOffdiag | Stage::InvBelow => st.items,
                 _ => st.items.div_ceil(FLAT_WG as u64),
             };
-            let dims = ctx.dims(ENTRIES[st.stage as usize].0, groups)?;
-            params.push(buf);
-            steps.push(Step {
-                stage: st.stage,
-                bg,
-                dims,
-            });
+            steps.push((st.stage, ctx.dims(ENTRIES[st.stage as usize].0, groups)?));
         }
+        GpuFactorization::bound(
+            ctx,
+            kernels,
+            Recorded {
+                fidx,
+                kv,
+                flag,
+                xs,
+                params,
+                steps,
+                nnz_k,
+                work: plan.work(),
+            },
+            g,
+        )
+    }
+
+    /// This recording for `g`, a factor of the same structure (made by
+    /// [`GpuFactor::twin`] from the one it was recorded for): its buffers
+    /// and dispatches shared, its bind groups made again for `g`'s values.
+    /// No index, map or plan is made or sent again, and `K`'s values, the
+    /// flag and the scratch are this recording's (a factorization of `g`
+    /// runs after this one's has finished: one queue).
+    pub fn for_factor(&self, ctx: &Context, g: &GpuFactor) -> Result<GpuFactorization, GpuError> {
+        if g.vals.len() != self.vals.len()
+            || g.vals
+                .iter()
+                .zip(&self.vals)
+                .any(|(a, b)| a.size() != b.size())
+        {
+            return Err(GpuError::Backend(
+                "a factorization recorded for a factor of another structure".into(),
+            ));
+        }
+        let r = &self.recorded;
+        let recorded = Recorded {
+            fidx: r.fidx.clone(),
+            kv: r.kv.clone(),
+            flag: r.flag.clone(),
+            xs: r.xs.clone(),
+            params: r.params.clone(),
+            steps: r.steps.clone(),
+            nnz_k: r.nnz_k,
+            work: r.work,
+        };
+        GpuFactorization::bound(ctx, &self.kernels, recorded, g)
+    }
+
+    /// `recorded`'s dispatches bound to `g`'s index and values.
+    fn bound(
+        ctx: &Context,
+        kernels: &Arc<FactorKernels>,
+        recorded: Recorded,
+        g: &GpuFactor,
+    ) -> Result<GpuFactorization, GpuError> {
+        let vals = g.vals.clone();
+        let one = match vals.get(1) {
+            Some(b) => b.clone(),
+            None => ctx.storage("factorization's second values (none)", 16)?,
+        };
+        let r = &recorded;
+        let bgs = r
+            .params
+            .iter()
+            .map(|buf| {
+                kernels.shader.bind(
+                    ctx,
+                    &[
+                        (0, buf),
+                        (1, &g.idx),
+                        (2, &r.fidx),
+                        (3, &vals[0]),
+                        (4, &r.kv),
+                        (5, &r.flag),
+                        (6, &r.xs),
+                        (7, &one),
+                    ],
+                )
+            })
+            .collect::<Result<Vec<_>, _>>()?;
         Ok(GpuFactorization {
             kernels: kernels.clone(),
-            steps,
-            kv,
-            flag,
-            xs,
+            bgs,
             vals,
-            vals1,
-            nnz_k,
-            fidx,
-            params,
-            work: plan.work(),
+            second: one,
+            recorded,
         })
     }
 
     /// Modelled work of one factorization ([`FactorizationPlan::work`]).
     pub fn work(&self) -> KernelWork {
-        self.work
+        self.recorded.work
+    }
+
+    /// Stored entries of the matrices it factors.
+    pub fn nnz_k(&self) -> usize {
+        self.recorded.nnz_k
     }
 
     /// Factor `values` (the stored values of the pattern it was recorded
@@ -713,15 +775,16 @@ impl GpuFactorization {
     /// (read back by `finish`; a pass submitted ahead is not, another timed
     /// pass in between would overwrite its times).
     pub fn submit(&self, ctx: &Context, values: &[f64], timed: bool) -> Result<(), GpuError> {
-        if values.len() != self.nnz_k {
+        let r = &self.recorded;
+        if values.len() != r.nnz_k {
             return Err(GpuError::Backend(format!(
                 "{} values for a pattern of {} entries",
                 values.len(),
-                self.nnz_k
+                r.nnz_k
             )));
         }
-        ctx.write_buffer(&self.kv, 0, bytemuck::cast_slice(values));
-        ctx.write_buffer(&self.flag, 0, bytemuck::bytes_of(&u32::MAX));
+        ctx.write_buffer(&r.kv, 0, bytemuck::cast_slice(values));
+        ctx.write_buffer(&r.flag, 0, bytemuck::bytes_of(&u32::MAX));
         let pipelines = self
             .kernels
             .kernels()
@@ -729,16 +792,17 @@ impl GpuFactorization {
             .map(|k| k.pipeline(ctx, 1))
             .collect::<Result<Vec<_>, _>>()?;
         let mut enc = ctx.encoder("Cholesky factorization");
-        enc.clear_buffer(&self.vals, 0, None);
-        enc.clear_buffer(&self.vals1, 0, None);
-        enc.clear_buffer(&self.xs, 0, None);
+        for b in &self.vals {
+            enc.clear_buffer(b, 0, None);
+        }
+        enc.clear_buffer(&r.xs, 0, None);
         {
             let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
                 label: Some("Cholesky factorization"),
                 timestamp_writes: if timed { ctx.pass_timestamps() } else { None },
             });
-            for s in &self.steps {
-                dispatch(&mut pass, &pipelines[s.stage as usize], &s.bg, s.dims);
+            for ((stage, dims), bg) in r.steps.iter().zip(&self.bgs) {
+                dispatch(&mut pass, &pipelines[*stage as usize], bg, *dims);
             }
         }
         // Its work is a set-up's, logged with it (`GpuSolver`'s set-up
@@ -755,7 +819,7 @@ impl GpuFactorization {
     /// its pass's times where `timed`): one wait.
     /// [`GpuError::NotPositiveDefinite`] where a pivot was not positive.
     pub fn finish(&self, ctx: &Context, timed: bool) -> Result<(), GpuError> {
-        let mut parts: Vec<(&wgpu::Buffer, u64)> = vec![(&self.flag, 4)];
+        let mut parts: Vec<(&wgpu::Buffer, u64)> = vec![(&self.recorded.flag, 4)];
         let timed = timed && ctx.pass_time_buffer().is_some();
         if timed {
             parts.extend(ctx.pass_time_buffer());
@@ -956,6 +1020,49 @@ mod tests {
             GpuFactor::allocate(ctx, &f, bytes / 4),
             Err(GpuError::LimitExceeded { .. })
         ));
+    }
+
+    /// A recording bound to a twin of its factor (the index shared, the
+    /// values new) factors another matrix of the pattern as a recording
+    /// made for it does, to the bit, and leaves the first factor as it was.
+    #[test]
+    fn a_recording_bound_to_a_twin_factors_as_a_new_one() {
+        let Some(s) = f64_solver() else {
+            return;
+        };
+        let ctx = &s.ctx;
+        let k = two_ring_grid(40, 30);
+        let mut k2 = k.clone();
+        for j in 0..k2.n {
+            k2.values[k2.col_ptr[j]] *= 1.5;
+        }
+        let f = host(&k, true);
+        let kernels = FactorKernels::new(ctx).unwrap();
+        let limit = crate::matrix::binding_limit(ctx);
+        let read =
+            |g: &GpuFactor| -> Vec<f64> { ctx.read(&g.vals[0], g.nnz, &mut None, None).unwrap() };
+        let (g, place) = GpuFactor::allocate(ctx, &f, limit).unwrap();
+        let fac = GpuFactorization::new(ctx, &kernels, &g, &place, &f, &k).unwrap();
+        fac.run(ctx, &k.values).unwrap();
+        let first = read(&g);
+        let twin = g.twin(ctx).unwrap();
+        fac.for_factor(ctx, &twin)
+            .unwrap()
+            .run(ctx, &k2.values)
+            .unwrap();
+        let (fresh, place) = GpuFactor::allocate(ctx, &f, limit).unwrap();
+        GpuFactorization::new(ctx, &kernels, &fresh, &place, &f, &k2)
+            .unwrap()
+            .run(ctx, &k2.values)
+            .unwrap();
+        let (a, b) = (read(&twin), read(&fresh));
+        assert!(a == b, "the twin's factor differs from a new recording's");
+        assert!(a != first, "the second matrix's factor is the first's");
+        assert!(read(&g) == first, "the first factor changed");
+        // A factor of another structure is refused.
+        let other = host(&two_ring_grid(20, 20), true);
+        let (h, _) = GpuFactor::allocate(ctx, &other, limit).unwrap();
+        assert!(fac.for_factor(ctx, &h).is_err());
     }
 
     /// A pivot that is not positive is an error naming none of the values

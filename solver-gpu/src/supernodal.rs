@@ -467,6 +467,53 @@ impl GpuFactor {
         Ok((g, place))
     }
 
+    /// This factor's handles (its buffers shared, not copied): a skeleton
+    /// for [`GpuFactor::twin`] that outlives no buffer it names.
+    pub fn handles(&self) -> GpuFactor {
+        GpuFactor {
+            idx: self.idx.clone(),
+            vals: self.vals.clone(),
+            offsets: self.offsets,
+            slots: self.slots,
+            levels: self.levels.clone(),
+            sizes: self.sizes.clone(),
+            pulls: self.pulls.clone(),
+            nv: self.nv,
+            nnz: self.nnz,
+            precision: self.precision,
+            bytes: self.bytes,
+        }
+    }
+
+    /// A factor of the same structure on the same device, sharing this one's
+    /// index sections (one buffer, not made or sent again), its values new
+    /// (zero): for another factorization of the same pattern on the GPU
+    /// ([`crate::factorize::GpuFactorization::for_factor`]).
+    pub fn twin(&self, ctx: &Context) -> Result<GpuFactor, GpuError> {
+        let vals = self
+            .vals
+            .iter()
+            .enumerate()
+            .map(|(k, b)| {
+                let label = format!("Cholesky values ({:?}, chunk {k})", self.precision);
+                ctx.storage(&label, b.size())
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        Ok(GpuFactor {
+            idx: self.idx.clone(),
+            vals,
+            offsets: self.offsets,
+            slots: self.slots,
+            levels: self.levels.clone(),
+            sizes: self.sizes.clone(),
+            pulls: self.pulls.clone(),
+            nv: self.nv,
+            nnz: self.nnz,
+            precision: self.precision,
+            bytes: self.bytes,
+        })
+    }
+
     /// Most PCG columns (up to [`crate::CMAX`], at least 1) whose work vectors
     /// and updates fit `limit` bytes a binding, for block rows of `bs`.
     pub fn max_columns(&self, limit: u64, bs: usize) -> usize {

@@ -170,6 +170,7 @@ fn on_context(ctx: Context, t: std::time::Instant) -> Result<GpuSolver, GpuError
         },
         chol_unavailable: [false; 2],
         gpu_factor_refused: [false; 2],
+        factor_recording: None,
         chol_ahead: None,
         newton_kernels: None,
         warming: Vec::new(),
@@ -331,6 +332,9 @@ pub struct GpuSolver {
     factor_kernels: Arc<Mutex<Option<Arc<crate::factorize::FactorKernels>>>>,
     /// A kind's factor submitted to the GPU ahead of its set-up.
     gpu_factor_ahead: Option<(SystemKind, setup::GpuMade)>,
+    /// The scale-driven kind's factorization on the GPU, kept for the
+    /// fine-tune's.
+    factor_recording: Option<setup::FactorRecording>,
     pub(crate) chol_host: solver_cpu::CholeskySolver,
     /// The factor could not be made or kept on this device, for the shape
     /// systems (index 0) or the scale factors (index 1): the squared Laplacian or AMG

@@ -376,6 +376,34 @@ impl GpuSolver {
         if !self.chol_host.has_analysed(&k.col_ptr, &k.row_idx) {
             self.chol_host.analyse(k).map_err(backend)?;
         }
+        let analysis = self.chol_host.analysis_id();
+        // The scale-driven kind's recording, where this is of its analysis.
+        if let Some(rec) = self.factor_recording.take() {
+            if kind != SystemKind::ScaleFactors
+                && rec.analysis.is_of(&self.chol_host)
+                && rec.fac.nnz_k() == k.row_idx.len()
+            {
+                let analysed = t.elapsed().as_secs_f64();
+                let g = rec.skeleton.twin(&self.ctx)?;
+                let fac = rec.fac.for_factor(&self.ctx, &g)?;
+                drop(rec);
+                let recorded = t.elapsed().as_secs_f64() - analysed;
+                fac.submit(&self.ctx, &k.values, timed)?;
+                return Ok(GpuMade {
+                    g,
+                    fac,
+                    kind,
+                    analysis,
+                    reused: true,
+                    host: [
+                        analysed,
+                        recorded,
+                        t.elapsed().as_secs_f64() - analysed - recorded,
+                    ],
+                    submitted: std::time::Instant::now(),
+                });
+            }
+        }
         let f = self
             .chol_host
             .supernodal_structure()
@@ -401,6 +429,9 @@ impl GpuSolver {
         Ok(GpuMade {
             g,
             fac,
+            kind,
+            analysis,
+            reused: false,
             host: [
                 analysed,
                 recorded,
@@ -422,11 +453,23 @@ impl GpuSolver {
         made.fac.finish(&self.ctx, timed)?;
         let waited = t.elapsed().as_secs_f64();
         let work = made.fac.work();
-        drop(made.fac);
+        // The scale-driven kind's recording serves the fine-tune's.
+        self.factor_recording = match (made.kind, made.analysis) {
+            (SystemKind::ScaleDriven, Some(analysis)) => Some(FactorRecording {
+                analysis,
+                fac: made.fac,
+                skeleton: made.g.handles(),
+            }),
+            _ => None,
+        };
         self.supernodal_kernels(precision::Precision::F64)?;
         let [analysed, recorded, submitted] = made.host;
+        let how = match made.reused {
+            true => "the scale-driven kind's recording bound in",
+            false => "recorded in",
+        };
         let text = format!(
-            "factored on the GPU: analysis {analysed:.3} s, recorded in {recorded:.3} s, \
+            "factored on the GPU: analysis {analysed:.3} s, {how} {recorded:.3} s, \
              submitted in {submitted:.3} s, waited for {waited:.3} s ({since:.3} s after its \
              submission; {} dispatches, {} serial steps, {:.1} MB modelled)",
             work.dispatches,
@@ -687,6 +730,25 @@ impl GpuSolver {
 pub(super) struct GpuMade {
     g: supernodal::GpuFactor,
     fac: crate::factorize::GpuFactorization,
+    kind: SystemKind,
+    /// The host's analysis it was recorded on.
+    analysis: Option<solver_cpu::AnalysisId>,
+    /// Recorded for another factor of the kind's pattern (the scale-driven
+    /// kind's), bound to this one.
+    reused: bool,
     host: [f64; 3],
     submitted: std::time::Instant,
+}
+
+/// The scale-driven kind's factorization once finished, kept for the
+/// fine-tune's (the same pattern and analysis): its index, map and plan
+/// are not made or sent again ([`GpuFactorization::for_factor`]), only the
+/// values' buffers and bind groups.
+///
+/// [`GpuFactorization::for_factor`]: crate::factorize::GpuFactorization::for_factor
+pub(super) struct FactorRecording {
+    analysis: solver_cpu::AnalysisId,
+    fac: crate::factorize::GpuFactorization,
+    /// The factor it was bound to (handles), whose structure a twin takes.
+    skeleton: supernodal::GpuFactor,
 }
