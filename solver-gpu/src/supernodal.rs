@@ -500,17 +500,8 @@ impl GpuFactor {
             })
             .collect::<Result<Vec<_>, _>>()?;
         Ok(GpuFactor {
-            idx: self.idx.clone(),
             vals,
-            offsets: self.offsets,
-            slots: self.slots,
-            levels: self.levels.clone(),
-            sizes: self.sizes.clone(),
-            pulls: self.pulls.clone(),
-            nv: self.nv,
-            nnz: self.nnz,
-            precision: self.precision,
-            bytes: self.bytes,
+            ..self.handles()
         })
     }
 
