@@ -438,6 +438,11 @@ fn inverse_permutation(forward: &[usize], n: usize) -> Option<Vec<usize>> {
 pub struct AnalysisId(Arc<SymbolicFactor>);
 
 impl AnalysisId {
+    /// Whether `other` is this very analysis.
+    pub fn is(&self, other: &AnalysisId) -> bool {
+        Arc::ptr_eq(&self.0, &other.0)
+    }
+
     /// Whether `solver` holds this very analysis.
     pub fn is_of(&self, solver: &CholeskySolver) -> bool {
         solver

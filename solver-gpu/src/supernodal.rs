@@ -112,6 +112,39 @@ impl SupernodalKernels {
     }
 }
 
+/// `f`'s values in `precision`, uploaded chunk by chunk in `place`'s order
+/// (each supernode's block as it is, a piece of one upload).
+fn upload_values(
+    ctx: &Context,
+    staging: &mut crate::device::Staging,
+    f: &SupernodalFactor,
+    place: &Placement,
+    chunk_len: &[usize],
+    precision: Precision,
+) -> Result<Vec<wgpu::Buffer>, GpuError> {
+    let piece = |s: usize| -> &[u8] {
+        let r = f.val_ptr[s] as usize..f.val_ptr[s + 1] as usize;
+        match precision {
+            Precision::F32 => bytemuck::cast_slice(&f.values[r]),
+            Precision::F64 => bytemuck::cast_slice(&f.values64[r]),
+        }
+    };
+    (0..chunk_len.len())
+        .map(|k| {
+            ctx.storage_from_pieces(
+                staging,
+                &format!("Cholesky values ({precision:?}, chunk {k})"),
+                chunk_len[k] as u64 * precision.bytes(),
+                place
+                    .order
+                    .iter()
+                    .filter(|&&s| place.chunk[s] as usize == k)
+                    .map(|&s| piece(s)),
+            )
+        })
+        .collect()
+}
+
 /// A supernodal factor on the GPU, with its level schedule.
 pub(crate) struct GpuFactor {
     pub(crate) idx: wgpu::Buffer,
@@ -140,6 +173,10 @@ pub(crate) struct GpuFactor {
     pub precision: Precision,
     /// Bytes of the factor's values and row indices (read twice an application).
     bytes: u64,
+    /// The host's symbolic analysis it is of, where its maker knows it: a
+    /// factor of the same one shares its index sections
+    /// ([`GpuFactor::upload_like`]).
+    pub(crate) analysis: Option<solver_cpu::AnalysisId>,
 }
 
 /// Where [`GpuFactor::upload`] put each supernode's values.
@@ -427,30 +464,15 @@ impl GpuFactor {
         // The host's copies are dropped before the values go up.
         drop((header, rows, tptr, tpos, cols, owner, slot_owner));
         let bytes = b * nvals as u64 + 8 * nrows as u64;
-        let piece = |s: usize| -> &[u8] {
-            let r = f.val_ptr[s] as usize..f.val_ptr[s + 1] as usize;
-            match precision {
-                Precision::F32 => bytemuck::cast_slice(&f.values[r]),
-                Precision::F64 => bytemuck::cast_slice(&f.values64[r]),
-            }
+        let vals = match fill {
+            true => upload_values(ctx, &mut staging, f, &place, &chunk_len, precision)?,
+            false => (0..chunk_len.len())
+                .map(|k| {
+                    let label = format!("Cholesky values ({precision:?}, chunk {k})");
+                    ctx.storage(&label, chunk_len[k] as u64 * b)
+                })
+                .collect::<Result<Vec<_>, _>>()?,
         };
-        let vals = (0..chunk_len.len())
-            .map(|k| {
-                let label = format!("Cholesky values ({precision:?}, chunk {k})");
-                match fill {
-                    true => ctx.storage_from_pieces(
-                        &mut staging,
-                        &label,
-                        chunk_len[k] as u64 * b,
-                        order
-                            .iter()
-                            .filter(|&&s| chunk[s] as usize == k)
-                            .map(|&s| piece(s)),
-                    ),
-                    false => ctx.storage(&label, chunk_len[k] as u64 * b),
-                }
-            })
-            .collect::<Result<Vec<_>, _>>()?;
         let g = GpuFactor {
             idx: idx_buf,
             vals,
@@ -463,8 +485,61 @@ impl GpuFactor {
             nnz: nvals,
             precision,
             bytes,
+            analysis: None,
         };
         Ok((g, place))
+    }
+
+    /// `f` (its diagonal blocks inverted) uploaded as [`GpuFactor::upload`]
+    /// would, but for its values alone: laid out as `like`, a factor of the
+    /// same symbolic analysis, precision and binding `limit`, whose index
+    /// sections it shares (not built or sent again: about 220 MB at homer
+    /// 1.2M). Refused where `f`'s structure does not lay out as `like`'s.
+    pub fn upload_like(
+        ctx: &Context,
+        like: &GpuFactor,
+        f: &SupernodalFactor,
+        limit: u64,
+    ) -> Result<GpuFactor, GpuError> {
+        let bad = |what: &str| GpuError::Backend(format!("supernodal factor: {what}"));
+        if !f.inverted {
+            return Err(bad("diagonal blocks not inverted"));
+        }
+        let precision = match f.values64.is_empty() {
+            true => Precision::F32,
+            false => Precision::F64,
+        };
+        let nvals = f.val_ptr.last().copied().unwrap_or(0) as usize;
+        if precision != like.precision
+            || nvals != f.nnz()
+            || nvals != like.nnz
+            || f.len() != like.sizes.len()
+            || f.perm.len() != like.nv
+            || f.rows.len() != like.slots
+        {
+            return Err(bad("not of the structure of the factor it is laid out as"));
+        }
+        let level = f
+            .levels()
+            .ok_or_else(|| bad("supernodes out of topological order"))?;
+        let cap = (limit / precision.bytes()).min(u32::MAX as u64) as usize;
+        let (place, chunk_len) =
+            Placement::new(f, &level, cap).map_err(|_| bad("a supernode over the binding"))?;
+        let b = precision.bytes();
+        if chunk_len.len() != like.vals.len()
+            || chunk_len
+                .iter()
+                .zip(&like.vals)
+                .any(|(&n, v)| (n as u64 * b).max(16).div_ceil(4) * 4 != v.size())
+        {
+            return Err(bad("values not cut as the factor's it is laid out as"));
+        }
+        let mut staging = crate::device::Staging::default();
+        let vals = upload_values(ctx, &mut staging, f, &place, &chunk_len, precision)?;
+        Ok(GpuFactor {
+            vals,
+            ..like.handles()
+        })
     }
 
     /// This factor's handles (its buffers shared, not copied): a skeleton
@@ -482,6 +557,7 @@ impl GpuFactor {
             nnz: self.nnz,
             precision: self.precision,
             bytes: self.bytes,
+            analysis: self.analysis.clone(),
         }
     }
 
@@ -1111,6 +1187,65 @@ mod tests {
                 SupernodalSteps::new(ctx, &kernels, &g, &r, &z, bs, ncols, per_slot),
                 Err(GpuError::LimitExceeded { .. })
             ));
+        }
+    }
+
+    /// A second factor of the same analysis uploaded like the first (its
+    /// index sections shared, over several value buffers too) holds the
+    /// values a full upload of it holds, to the bit, and applies as it does;
+    /// one of another structure is refused.
+    #[test]
+    fn a_factor_laid_out_like_another_is_its_full_upload() {
+        let Some(s) = crate::test_solver() else {
+            return;
+        };
+        let ctx = &s.ctx;
+        let k = grid(40, 30);
+        let mut k2 = k.clone();
+        for j in 0..k2.n {
+            k2.values[k2.col_ptr[j]] += 0.5 + (j % 3) as f64;
+        }
+        for precision in precisions(ctx) {
+            let mut first = host_factor(&k, precision);
+            let mut second = first.numeric_twin(precision == Precision::F32).unwrap();
+            second.prepare(&k2).unwrap();
+            let mut f1 = first.take_supernodal_factor().unwrap();
+            let mut f2 = second.take_supernodal_factor().unwrap();
+            f1.invert_diagonal_blocks();
+            f2.invert_diagonal_blocks();
+            let b = precision.bytes();
+            for limit in [crate::matrix::binding_limit(ctx), b * f1.nnz() as u64 / 3] {
+                let g1 = GpuFactor::upload(ctx, &f1, limit).unwrap();
+                let full = GpuFactor::upload(ctx, &f2, limit).unwrap();
+                let like = GpuFactor::upload_like(ctx, &g1, &f2, limit).unwrap();
+                assert_eq!(like.vals.len(), full.vals.len());
+                assert!(limit > b * f1.nnz() as u64 || like.vals.len() > 1);
+                assert!(like.idx == g1.idx, "{precision:?}: the index not shared");
+                let read = |g: &GpuFactor| -> Vec<Vec<u8>> {
+                    g.vals
+                        .iter()
+                        .map(|v| {
+                            ctx.read::<u8>(v, v.size() as usize, &mut None, None)
+                                .unwrap()
+                        })
+                        .collect()
+                };
+                assert!(read(&like) == read(&full), "{precision:?}: values differ");
+                assert!(
+                    read(&like) != read(&g1),
+                    "{precision:?}: the first's values"
+                );
+            }
+            // Another structure (another grid) is refused.
+            let mut other = host_factor(&grid(30, 40), precision)
+                .take_supernodal_factor()
+                .unwrap();
+            other.invert_diagonal_blocks();
+            let g1 = GpuFactor::upload(ctx, &f1, crate::matrix::binding_limit(ctx)).unwrap();
+            assert!(
+                GpuFactor::upload_like(ctx, &g1, &other, crate::matrix::binding_limit(ctx))
+                    .is_err()
+            );
         }
     }
 

@@ -326,7 +326,8 @@ impl GpuSolver {
                         let t = std::time::Instant::now();
                         let f = self.factor_here(k, precision)?;
                         let factor_seconds = t.elapsed().as_secs_f64();
-                        let (g, inverse_seconds) = self.upload_factor(f)?;
+                        let (mut g, inverse_seconds) = self.upload_factor(f)?;
+                        g.analysis = self.chol_host.analysis_id();
                         let made = format!(
                             "factor {factor_seconds:.3} s, its inverted form {inverse_seconds:.3} s"
                         );
@@ -384,7 +385,8 @@ impl GpuSolver {
                 && rec.fac.nnz_k() == k.row_idx.len()
             {
                 let analysed = t.elapsed().as_secs_f64();
-                let g = rec.skeleton.twin(&self.ctx)?;
+                let mut g = rec.skeleton.twin(&self.ctx)?;
+                g.analysis = analysis.clone();
                 let fac = rec.fac.for_factor(&self.ctx, &g)?;
                 drop(rec);
                 let recorded = t.elapsed().as_secs_f64() - analysed;
@@ -422,7 +424,8 @@ impl GpuSolver {
         if let Err(GpuError::LimitExceeded { .. }) = recorded {
             self.gpu_factor_refused[self.chol_group_of(kind)] = true;
         }
-        let (g, fac) = recorded?;
+        let (mut g, fac) = recorded?;
+        g.analysis = analysis.clone();
         drop(f);
         let recorded = t.elapsed().as_secs_f64() - analysed;
         fac.submit(&self.ctx, &k.values, timed)?;
@@ -561,21 +564,49 @@ impl GpuSolver {
             false => precision::Precision::F64,
         };
         self.check_supernodes(&factored, precision)?;
+        let analysis = factored.analysis_id();
         let mut f = factored
             .take_supernodal_factor()
             .ok_or_else(|| GpuError::Backend("no supernodal factor".into()))?;
         drop(factored);
+        // The factor on the device, where it is of the same analysis and
+        // precision (the scale-driven kind's, for the fine-tune's): its
+        // index sections are shared, not built on the host and sent again.
+        let like = self
+            .chol
+            .as_ref()
+            .filter(|g| {
+                g.precision == precision
+                    && match (&g.analysis, &analysis) {
+                        (Some(a), Some(b)) => a.is(b),
+                        _ => false,
+                    }
+            })
+            .map(supernodal::GpuFactor::handles);
         let ctx = self.ctx.clone();
         let limit = matrix::binding_limit(&self.ctx);
         let beside = self.beside_uploads;
-        let mut up = move || {
+        let up = move || {
             let t = std::time::Instant::now();
             f.invert_diagonal_blocks();
             let inverse_seconds = t.elapsed().as_secs_f64();
-            let g = supernodal::GpuFactor::upload(&ctx, &f, limit)?;
+            let shared = like.as_ref().and_then(|like| {
+                supernodal::GpuFactor::upload_like(&ctx, like, &f, limit)
+                    .inspect_err(|e| log::debug!("{e}: its index sections sent too"))
+                    .ok()
+            });
+            let index = match shared.is_some() {
+                true => ", its index sections shared",
+                false => "",
+            };
+            let mut g = match shared {
+                Some(g) => g,
+                None => supernodal::GpuFactor::upload(&ctx, &f, limit)?,
+            };
+            g.analysis = analysis;
             log::debug!(
                 "Cholesky factor made ahead ({kind:?} system, {precision:?}): inverted form \
-                 {inverse_seconds:.3} s, uploaded in {:.3} s{}",
+                 {inverse_seconds:.3} s, uploaded in {:.3} s{}{index}",
                 t.elapsed().as_secs_f64() - inverse_seconds,
                 if beside { ", on its own thread" } else { "" }
             );
