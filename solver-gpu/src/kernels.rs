@@ -349,6 +349,19 @@ pub fn submissions(s: &GpuSolver) -> (u64, u64) {
     (t.submits, t.beside_submits)
 }
 
+/// Bytes the solver sent to the device from threads beside its caller's.
+pub fn beside_bytes(s: &GpuSolver) -> u64 {
+    s.ctx.traffic().beside_to_device
+}
+
+/// Bytes of the active Cholesky preconditioner's value buffers; `None`
+/// when it is not active.
+pub fn cholesky_value_bytes(s: &GpuSolver) -> Option<u64> {
+    s.chol
+        .as_ref()
+        .map(|f| f.vals.iter().map(|b| b.size()).sum())
+}
+
 /// Storage buffers the active Cholesky preconditioner's values are split
 /// into (one where they fit a binding); `None` when it is not active.
 pub fn cholesky_chunks(s: &GpuSolver) -> Option<usize> {
