@@ -1574,7 +1574,10 @@ fn a_factor_made_ahead_is_the_kinds_preconditioner() {
 fn a_factor_made_ahead_goes_up_beside_the_caller() {
     let (a, a_ft, fixed, mut rng) = two_kinds_of_one_pattern(53);
     let b = rng.vec(3 * a.n());
-    let run = |ahead: bool| -> Option<((u64, u64), Vec<f64>, usize, [Option<u64>; 2])> {
+    // Submissions (caller's, beside), the solve, host factorizations, and
+    // the bytes sent beside the caller with the active factor's values'.
+    type Run = ((u64, u64), Vec<f64>, usize, [Option<u64>; 2]);
+    let run = |ahead: bool| -> Option<Run> {
         let mut s = gpu()?;
         kernels::set_beside_uploads(&mut s, true);
         s.set_system_kind(SystemKind::ScaleDriven);
