@@ -636,14 +636,15 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
         let scale_driven_on_device = model
             .solver()
             .factors_isotropic_on_device(SystemKind::ScaleDriven);
+        let scale_driven_k_of = |model: &ShapeModel| {
+            isotropic_part_logged(model, mesh, x0, &o.shape, SystemKind::ScaleDriven)
+        };
         let mut scale_driven_k = None;
         let (mut scale_system, early, mut fine_tune_k) =
             if analysis_early.is_some() && !factors_ahead {
                 // Assembled while the scale factors' set-up runs on.
                 let k = fine_tune_k(&model);
-                scale_driven_k = scale_driven_on_device.then(|| {
-                    isotropic_part_logged(&model, mesh, &x, &o.shape, SystemKind::ScaleDriven)
-                });
+                scale_driven_k = scale_driven_on_device.then(|| scale_driven_k_of(&model));
                 (make_scale_system()?, None, k)
             } else {
                 let analysis = analysis_early.take();
@@ -675,17 +676,7 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
             if let Some(analysis) = analysis_early.take() {
                 adopt_early_analysis(&mut model, analysis);
             }
-            if scale_driven_k.is_none() {
-                scale_driven_k = Some(isotropic_part_logged(
-                    &model,
-                    mesh,
-                    &x,
-                    &o.shape,
-                    SystemKind::ScaleDriven,
-                ));
-            }
-        } else {
-            scale_driven_k = None;
+            scale_driven_k.get_or_insert_with(|| scale_driven_k_of(&model));
         }
         stop_reason = "iteration cap".into();
         // The constraints in scale-factor form; their coefficients are

@@ -377,64 +377,54 @@ impl GpuSolver {
         if !self.chol_host.has_analysed(&k.col_ptr, &k.row_idx) {
             self.chol_host.analyse(k).map_err(backend)?;
         }
-        let analysis = self.chol_host.analysis_id();
         // The scale-driven kind's recording, where this is of its analysis.
-        if let Some(rec) = self.factor_recording.take() {
-            if kind != SystemKind::ScaleFactors
-                && rec.analysis.is_of(&self.chol_host)
+        let reuse = self.factor_recording.take().filter(|rec| {
+            kind != SystemKind::ScaleFactors
+                && (rec.skeleton.analysis.as_ref()).is_some_and(|a| a.is_of(&self.chol_host))
                 && rec.fac.nnz_k() == k.row_idx.len()
-            {
+        });
+        let reused = reuse.is_some();
+        let (analysed, mut g, fac) = match reuse {
+            Some(rec) => {
                 let analysed = t.elapsed().as_secs_f64();
-                let mut g = rec.skeleton.twin(&self.ctx)?;
-                g.analysis = analysis.clone();
+                let g = rec.skeleton.twin(&self.ctx)?;
                 let fac = rec.fac.for_factor(&self.ctx, &g)?;
-                drop(rec);
-                let recorded = t.elapsed().as_secs_f64() - analysed;
-                fac.submit(&self.ctx, &k.values, timed)?;
-                return Ok(GpuMade {
-                    g,
-                    fac,
-                    kind,
-                    analysis,
-                    reused: true,
-                    host: [
-                        analysed,
-                        recorded,
-                        t.elapsed().as_secs_f64() - analysed - recorded,
-                    ],
-                    submitted: std::time::Instant::now(),
-                });
+                (analysed, g, fac)
             }
-        }
-        let f = self
-            .chol_host
-            .supernodal_structure()
-            .ok_or_else(|| GpuError::Backend("no supernodal structure".into()))?;
-        let analysed = t.elapsed().as_secs_f64();
-        let kernels = self.factor_kernels()?;
-        let recorded =
-            supernodal::GpuFactor::allocate(&self.ctx, &f, matrix::binding_limit(&self.ctx))
+            None => {
+                let f = self
+                    .chol_host
+                    .supernodal_structure()
+                    .ok_or_else(|| GpuError::Backend("no supernodal structure".into()))?;
+                let analysed = t.elapsed().as_secs_f64();
+                let kernels = self.factor_kernels()?;
+                let recorded = supernodal::GpuFactor::allocate(
+                    &self.ctx,
+                    &f,
+                    matrix::binding_limit(&self.ctx),
+                )
                 .and_then(|(g, place)| {
                     let fac = crate::factorize::GpuFactorization::new(
                         &self.ctx, &kernels, &g, &place, &f, k,
                     )?;
                     Ok((g, fac))
                 });
-        // Over the device's limits for this pattern: not asked again.
-        if let Err(GpuError::LimitExceeded { .. }) = recorded {
-            self.gpu_factor_refused[self.chol_group_of(kind)] = true;
-        }
-        let (mut g, fac) = recorded?;
-        g.analysis = analysis.clone();
-        drop(f);
+                // Over the device's limits for this pattern: not asked again.
+                if let Err(GpuError::LimitExceeded { .. }) = recorded {
+                    self.gpu_factor_refused[self.chol_group_of(kind)] = true;
+                }
+                let (g, fac) = recorded?;
+                (analysed, g, fac)
+            }
+        };
+        g.analysis = self.chol_host.analysis_id();
         let recorded = t.elapsed().as_secs_f64() - analysed;
         fac.submit(&self.ctx, &k.values, timed)?;
         Ok(GpuMade {
             g,
             fac,
             kind,
-            analysis,
-            reused: false,
+            reused,
             host: [
                 analysed,
                 recorded,
@@ -457,14 +447,14 @@ impl GpuSolver {
         let waited = t.elapsed().as_secs_f64();
         let work = made.fac.work();
         // The scale-driven kind's recording serves the fine-tune's.
-        self.factor_recording = match (made.kind, made.analysis) {
-            (SystemKind::ScaleDriven, Some(analysis)) => Some(FactorRecording {
-                analysis,
-                fac: made.fac,
-                skeleton: made.g.handles(),
-            }),
-            _ => None,
-        };
+        self.factor_recording =
+            match made.kind == SystemKind::ScaleDriven && made.g.analysis.is_some() {
+                true => Some(FactorRecording {
+                    fac: made.fac,
+                    skeleton: made.g.handles(),
+                }),
+                false => None,
+            };
         self.supernodal_kernels(precision::Precision::F64)?;
         let [analysed, recorded, submitted] = made.host;
         let how = match made.reused {
@@ -762,8 +752,6 @@ pub(super) struct GpuMade {
     g: supernodal::GpuFactor,
     fac: crate::factorize::GpuFactorization,
     kind: SystemKind,
-    /// The host's analysis it was recorded on.
-    analysis: Option<solver_cpu::AnalysisId>,
     /// Recorded for another factor of the kind's pattern (the scale-driven
     /// kind's), bound to this one.
     reused: bool,
@@ -778,8 +766,8 @@ pub(super) struct GpuMade {
 ///
 /// [`GpuFactorization::for_factor`]: crate::factorize::GpuFactorization::for_factor
 pub(super) struct FactorRecording {
-    analysis: solver_cpu::AnalysisId,
     fac: crate::factorize::GpuFactorization,
-    /// The factor it was bound to (handles), whose structure a twin takes.
+    /// The factor it was bound to (handles, with the host's analysis it is
+    /// of), whose structure a twin takes.
     skeleton: supernodal::GpuFactor,
 }
