@@ -481,7 +481,7 @@ impl ShapeModel {
                 free.push(verts);
             }
         }
-        Ok(ShapeModel {
+        let mut model = ShapeModel {
             n,
             cot,
             operator_model: None,
@@ -504,7 +504,13 @@ impl ShapeModel {
             solver,
             grad: vec![0.0; 3 * n],
             assembly_seconds: 0.0,
-        })
+        };
+        // Its matrices' pattern is known from now on: a solver may set up
+        // what depends on it alone while the first values are made.
+        if let Some(h) = model.h.as_ref() {
+            model.solver.prepare_shape_pattern(h, &model.fixed);
+        }
+        Ok(model)
     }
 
     /// Mean input edge length.

@@ -1464,6 +1464,26 @@ fn readme_json_job_example_runs() {
     assert_eq!(r["constraints"].as_array().unwrap().len(), 3);
 }
 
+/// Whether a GPU adapter is present; without one, a failure where
+/// `REQUIRE_GPU=1` asks for one.
+fn gpu_adapter_present() -> bool {
+    let present = solver_gpu::gpu_available();
+    assert!(
+        present || std::env::var("REQUIRE_GPU").map_or(true, |v| v != "1"),
+        "REQUIRE_GPU=1 but no GPU adapter is available"
+    );
+    present
+}
+
+/// The demo's constraints on spot (several outer iterations), for the GPU
+/// paths' comparisons.
+const SPOT_GPU_JOB: &str = "mesh = \"spot.obj\"\noutput = \"out.obj\"\n\
+    [[constraint]]\nkind = \"length\"\n\
+    curve = { plane = { origin = [0.0, -0.1, 0.3], normal = [0.0, 0.0, 1.0] } }\nscale = 1.1\n\
+    [[constraint]]\nkind = \"area\"\n\
+    region = { sphere = { center = [0.0, 0.55, -0.4], radius = 0.35 } }\nscale = 1.3\n\
+    [[constraint]]\nkind = \"volume\"\nscale = 1.0\n";
+
 /// `METRICDEFORM_GPU_FACTORIZATION=gpu`: every Cholesky factor is made on
 /// the GPU, submitted ahead (the scale factors' by their set-up, the
 /// scale-driven kind's while the host estimates the first scale factors,
@@ -1473,21 +1493,11 @@ fn readme_json_job_example_runs() {
 /// fewer bytes moved (the factors stay on the device).
 #[test]
 fn gpu_factorization_gives_the_host_factors_result() {
-    if !solver_gpu::gpu_available() {
-        assert!(
-            std::env::var("REQUIRE_GPU").map_or(true, |v| v != "1"),
-            "REQUIRE_GPU=1 but no GPU adapter is available"
-        );
+    if !gpu_adapter_present() {
         return;
     }
     let f64_adapter = solver_gpu::default_adapter().is_ok_and(|a| a.shader_f64);
-    // The demo's constraints: several outer iterations.
-    let job = "mesh = \"spot.obj\"\noutput = \"out.obj\"\n\
-        [[constraint]]\nkind = \"length\"\n\
-        curve = { plane = { origin = [0.0, -0.1, 0.3], normal = [0.0, 0.0, 1.0] } }\nscale = 1.1\n\
-        [[constraint]]\nkind = \"area\"\n\
-        region = { sphere = { center = [0.0, 0.55, -0.4], radius = 0.35 } }\nscale = 1.3\n\
-        [[constraint]]\nkind = \"volume\"\nscale = 1.0\n";
+    let job = SPOT_GPU_JOB;
     let run = |factorization: &str| {
         let (out, dir) = deform_job_env(
             "spot.obj",
@@ -1553,4 +1563,41 @@ fn gpu_factorization_gives_the_host_factors_result() {
         "GPU-made factors' result {:.2e} % of the bbox diagonal from the host-made's",
         100.0 * worst / diagonal
     );
+}
+
+/// On a host with threads to spare for uploads beside the caller (4 of
+/// rayon's threads here), the shape matrices' pattern is set up on its own
+/// thread from the shape model's set-up on (the blocks' pattern, the
+/// expansion, the shape sum and its ring pairs) and taken up by the first
+/// shape matrix; the run writes the very mesh a run on 2 threads writes,
+/// where the first matrix sets its pattern up itself.
+#[test]
+fn a_shape_pattern_set_up_ahead_writes_the_same_mesh() {
+    if !gpu_adapter_present() {
+        return;
+    }
+    let f64_adapter = solver_gpu::default_adapter().is_ok_and(|a| a.shader_f64);
+    let job = SPOT_GPU_JOB;
+    let run = |threads: &str| {
+        let (out, dir) = deform_job_env(
+            "spot.obj",
+            job,
+            &["--backend", "gpu"],
+            &[
+                ("RAYON_NUM_THREADS", threads),
+                ("RUST_LOG", "solver_gpu=debug"),
+            ],
+        );
+        let err = String::from_utf8_lossy(&out.stderr).into_owned();
+        assert_eq!(out.status.code(), Some(0), "{threads} threads: {err}");
+        (std::fs::read(dir.path().join("out.obj")).unwrap(), err)
+    };
+    let (two, log_two) = run("2");
+    let (four, log_four) = run("4");
+    let taken = |log: &str| log.contains("shape pattern set up ahead: waited");
+    assert!(!taken(&log_two), "{log_two}");
+    if f64_adapter {
+        assert!(taken(&log_four), "{log_four}");
+    }
+    assert!(two == four, "the meshes written on 2 and 4 threads differ");
 }

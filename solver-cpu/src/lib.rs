@@ -345,6 +345,14 @@ pub trait SpdSolver: Send {
     ) -> Result<Option<IsoRingSym3>, SolverError> {
         self.prepare_blocks(&a.to_blocks(), fixed).map(|()| Some(a))
     }
+    /// The pattern of the shape matrices to come, before the first of them:
+    /// `a`'s pattern of `K`, its rings (and their slots where it names
+    /// them) and the held vertices `fixed`; `a`'s values are not read. A
+    /// solver may set up meanwhile what depends on them alone (the GPU
+    /// backend: its device's buffers, on a thread of its own), for the
+    /// first [`Self::prepare_shape_owned`] of that pattern to take up.
+    /// Default: nothing.
+    fn prepare_shape_pattern(&mut self, _a: &IsoRingSym3, _fixed: &[bool]) {}
     /// Whether the next shape matrix must carry its whole isotropic part in
     /// `K` (default: always). A backend whose preconditioner of the current
     /// system kind is made (from an earlier matrix's `K`) and never reads `K`

@@ -174,6 +174,8 @@ pub(crate) struct ExpandParams {
     pub(crate) pad: u32,
 }
 
+/// Clones share the kernels' compiled pipelines and layouts.
+#[derive(Clone)]
 pub(crate) struct ExpandBlocks {
     shader: Shader,
     kernel: Kernel,
@@ -371,7 +373,12 @@ impl ShapeSum {
     /// pairs in one binding, and `K`'s values (and the term's), the `C_i`
     /// and the pairs' starts in one each.
     pub fn fits(a: &IsoRingSym3, slots: &RingSlots, limit: u64) -> bool {
-        let (l, r) = (a.iso.row_idx.len(), a.rings.len());
+        Self::fits_pattern((&a.rings, a.iso.row_idx.len(), slots), limit)
+    }
+
+    /// [`Self::fits`] for `rings` over a pattern of `l` lower blocks.
+    pub fn fits_pattern((rings, l, slots): (&SparseRows, usize, &RingSlots), limit: u64) -> bool {
+        let r = rings.len();
         let Some((parts, part_blocks)) = LowerParts::layout(l, limit) else {
             return false;
         };
@@ -454,19 +461,31 @@ impl ShapeSum {
         lower: &LowerParts,
         pairs: Option<PairBuffers>,
     ) -> Result<ShapeSum, GpuError> {
-        let nnz = a.iso.row_idx.len();
+        let pattern = (&a.rings, a.iso.row_idx.len(), slots);
+        Self::of_pattern(k, ctx, pattern, lower, pairs)
+    }
+
+    /// [`Self::new`] for `rings` over a pattern of `nnz` lower blocks:
+    /// the sum reads no value of a matrix until it runs.
+    pub fn of_pattern(
+        k: &ExpandBlocks,
+        ctx: &Context,
+        (rings, nnz, slots): (&Arc<SparseRows>, usize, &RingSlots),
+        lower: &LowerParts,
+        pairs: Option<PairBuffers>,
+    ) -> Result<ShapeSum, GpuError> {
         let pairs = match pairs {
             Some(p) if p.blocks == nnz && p.parts.len() == lower.buffers.len() => p,
             _ => PairBuffers::upload(
                 ctx,
-                (&a.rings, nnz, slots),
+                (rings, nnz, slots),
                 (lower.part_blocks, lower.buffers.len()),
             )?,
         };
         let iso = ctx.storage("shape sum: K values (f64)", 8 * nnz.max(1) as u64)?;
         let ring_c = ctx.storage(
             "shape sum: ring matrices C_i (f64)",
-            48 * a.rings.len().max(1) as u64,
+            48 * rings.len().max(1) as u64,
         )?;
         let square = ctx.storage(
             "shape sum: constant term's values (f64)",
@@ -511,7 +530,7 @@ impl ShapeSum {
         let pairs = pairs.pairs as u64;
         let bytes = 8 * nnz as u64 + 4 * (nnz as u64 + 1) + pairs * (4 + 8 + 48) + 72 * nnz as u64;
         Ok(ShapeSum {
-            rings: a.rings.clone(),
+            rings: rings.clone(),
             iso,
             ring_c,
             square,
@@ -965,20 +984,95 @@ mod tests {
     /// matrix. Every solve's residual is still the host-summed matrix's.
     #[test]
     fn a_shape_patterns_expansion_is_set_up_once() {
-        use solver_cpu::SystemKind::{FineTune, ScaleDriven};
         let Some(mut s) = mixed_solver() else {
             return;
         };
+        let (fixed, rings) = held_and_rings(60);
+        shape_steps(&mut s, &fixed, &rings);
+        assert_eq!(s.setups, 2, "one factor per kind");
+        assert_eq!(s.mixed_builds, 1, "one mixed-precision matrix");
+        assert_eq!(s.expansions, 1, "one expansion");
+        assert_eq!(s.patterns_taken_ahead, 0);
+    }
+
+    /// A shape pattern set up ahead of its first matrix, on a thread
+    /// beside the caller (`start_pattern_ahead`: the blocks' pattern and
+    /// map, the mixed-precision matrix's low parts, the expansion and the
+    /// shape sum), is taken up by that matrix: still one expansion and one
+    /// mixed-precision matrix in the run, the caller's first matrix sends
+    /// less than without it (at least the block map and column indices
+    /// fewer), and every solve's residual is the host-summed matrix's. A
+    /// pattern set up for other held vertices or other rings is not taken
+    /// up: the matrix sets up its own, with the same solves.
+    #[test]
+    fn a_shape_pattern_set_up_ahead_is_taken_up_by_its_first_matrix() {
         let n = 60;
+        let (fixed, rings) = held_and_rings(n);
+        let mut other_held = fixed.clone();
+        other_held[8] = true;
+        let other_rings = crate::matrix::shape_strip(n, 0.0).rings;
+        let cases = [
+            ("ahead", Some((&fixed, &rings))),
+            ("other held vertices", Some((&other_held, &rings))),
+            ("other rings", Some((&fixed, &other_rings))),
+            ("none", None),
+        ];
+        let mut first = Vec::new();
+        for (case, ahead) in cases {
+            let Some(mut s) = mixed_solver() else {
+                return;
+            };
+            s.beside_uploads = true;
+            if let Some((held, rings)) = ahead {
+                let mut a = crate::matrix::shape_strip(n, 0.0);
+                a.rings = rings.clone();
+                s.prepare_shape_pattern(&a, held);
+            }
+            let caller = shape_steps(&mut s, &fixed, &rings);
+            let taken = usize::from(case == "ahead");
+            assert_eq!(s.patterns_taken_ahead, taken, "{case}");
+            assert_eq!(s.setups, 2, "{case}: one factor per kind");
+            assert_eq!(s.mixed_builds, 1, "{case}: one mixed-precision matrix");
+            assert_eq!(s.expansions, 1, "{case}: one expansion");
+            first.push(caller[0]);
+        }
+        // Each full block's map entry and column index: 8 bytes.
+        let full = 2 * crate::matrix::shape_strip(n, 0.0).iso.row_idx.len() - n;
+        assert!(
+            first[0] + 8 * full as u64 <= first[3],
+            "the first matrix's bytes from the caller: {first:?}"
+        );
+    }
+
+    /// Held vertex 7 of `n`, and the rings of the tests' strip.
+    fn held_and_rings(n: usize) -> (Vec<bool>, Arc<solver_cpu::SparseRows>) {
         let mut fixed = vec![false; n];
         fixed[7] = true;
-        let rings = crate::matrix::shape_strip(n, 0.0).rings;
+        (fixed, crate::matrix::shape_strip(n, 0.0).rings)
+    }
+
+    /// Two scale-driven matrices of the strip with `rings` solved, then two
+    /// of the fine-tune of 4 and 3 columns, each solve's residual the
+    /// host-summed matrix's; the bytes each matrix's preparation sent from
+    /// the caller's thread.
+    fn shape_steps(
+        s: &mut crate::GpuSolver,
+        fixed: &[bool],
+        rings: &Arc<solver_cpu::SparseRows>,
+    ) -> Vec<u64> {
+        use solver_cpu::SystemKind::{FineTune, ScaleDriven};
+        let n = fixed.len();
         let steps = [
             (ScaleDriven, 0.0, 1),
             (ScaleDriven, 0.25, 1),
             (FineTune, 0.5, 4),
             (FineTune, 0.75, 3),
         ];
+        let caller = |s: &crate::GpuSolver| {
+            let t = s.ctx.traffic();
+            t.to_device - t.beside_to_device
+        };
+        let mut sent = Vec::new();
         for (kind, seed, ncols) in steps {
             s.set_system_kind(kind);
             let mut a = crate::matrix::shape_strip(n, seed);
@@ -987,8 +1081,10 @@ mod tests {
             let slots =
                 crate::matrix::RingSlots::new(&a.rings, &a.iso.col_ptr, &a.iso.row_idx, None)
                     .unwrap();
-            want.fill_shape(&a, &slots, &fixed).unwrap();
-            assert!(s.prepare_shape_owned(a, &fixed).unwrap().is_none());
+            want.fill_shape(&a, &slots, fixed).unwrap();
+            let before = caller(s);
+            assert!(s.prepare_shape_owned(a, fixed).unwrap().is_none());
+            sent.push(caller(s) - before);
             let b: Vec<f64> = (0..3 * n * ncols)
                 .map(|i| 1.0 + (i / (3 * n)) as f64 + 0.01 * (i % 7) as f64)
                 .collect();
@@ -1016,9 +1112,7 @@ mod tests {
                 assert!(rel < 1e-9, "{kind:?}, seed {seed}, column {c}: {rel:e}");
             }
         }
-        assert_eq!(s.setups, 2, "one factor per kind");
-        assert_eq!(s.mixed_builds, 1, "one mixed-precision matrix");
-        assert_eq!(s.expansions, 1, "one expansion");
+        sent
     }
 
     /// Uploads go up beside the caller by default from

@@ -467,7 +467,7 @@ impl HostMatrix {
 
     /// The held vertices `fixed`: the map made for others is dropped (made
     /// again when asked for).
-    fn set_fixed(&mut self, fixed: &[bool]) {
+    pub(crate) fn set_fixed(&mut self, fixed: &[bool]) {
         if self.map_fixed != fixed {
             self.map = OnceLock::new();
             self.map_fixed.clear();
@@ -1407,8 +1407,8 @@ mod shape_fill_tests {
         h.fill_blocks(&blocks, &fixed);
         let mut minv = Vec::new();
         crate::block_jacobi::inverse_diagonal(&h, &mut minv).unwrap();
-        let f32_matrix = GpuMatrix::upload(ctx, &h, &minv, true).unwrap();
-        let split = GpuMatrix::upload_split_f64(ctx, &h, &f32_matrix, true).unwrap();
+        let f32_matrix = GpuMatrix::upload(ctx, &h, Some(&minv), true).unwrap();
+        let split = GpuMatrix::upload_split_f64(ctx, &h, &f32_matrix, true, true).unwrap();
         let read = |m: &GpuMatrix| ctx.read::<f64>(&m.minv, 33, &mut None, None).unwrap();
         let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
         assert_eq!(bits(&read(&split)), bits(&split_inverse_diagonal(&h)));
@@ -1925,13 +1925,14 @@ fn write_split_inverse_diagonal(ctx: &Context, buffer: &wgpu::Buffer, h: &HostMa
 }
 
 impl GpuMatrix {
-    /// The matrix `h` with the inverse diagonal `minv`; a block matrix's
-    /// values are written from `h` when `write`, else left for the GPU's
-    /// expansion.
+    /// The matrix `h` with the inverse diagonal `minv` (`None`: zeros, for
+    /// a kind whose preconditioner reads none until it is written); a
+    /// block matrix's values are written from `h` when `write`, else left
+    /// for the GPU's expansion.
     pub fn upload(
         ctx: &Context,
         h: &HostMatrix,
-        minv: &[f32],
+        minv: Option<&[f32]>,
         write: bool,
     ) -> Result<GpuMatrix, GpuError> {
         let storage = if h.bs == 3 {
@@ -1964,10 +1965,17 @@ impl GpuMatrix {
                 vals: ctx.storage_init("matrix values", &vals32)?,
             }
         };
+        let minv = match minv {
+            Some(minv) => ctx.storage_init("inverted diagonal blocks", minv)?,
+            None => ctx.storage(
+                "inverted diagonal blocks (not yet written)",
+                4 * (h.rows * h.bs * h.bs).max(1) as u64,
+            )?,
+        };
         Ok(GpuMatrix {
             row_ptr: ctx.storage_init("matrix row pointers", &h.row_ptr)?,
             storage,
-            minv: ctx.storage_init("inverted diagonal blocks", minv)?,
+            minv,
             stored: stored_bytes(h.rows, h.nnz_blocks(), h.bs as u64, 4),
         })
     }
@@ -2021,13 +2029,15 @@ impl GpuMatrix {
     /// `f32_matrix`'s value buffers as the high parts (with its columns, row
     /// pointers and chunk uniforms), new buffers of the low parts
     /// (`v - f64(f32(v))` rounded to f32, so `hi + lo` carries 48 bits) in
-    /// the same chunks, and the scalar inverse diagonal in f64. The low parts
-    /// are written from `h` when `write`, else left for the GPU's expansion.
+    /// the same chunks, and the scalar inverse diagonal in f64 (from `h`
+    /// where `diagonal`, else zeros until written). The low parts are
+    /// written from `h` when `write`, else left for the GPU's expansion.
     pub fn upload_split_f64(
         ctx: &Context,
         h: &HostMatrix,
         f32_matrix: &GpuMatrix,
         write: bool,
+        diagonal: bool,
     ) -> Result<GpuMatrix, GpuError> {
         let MatrixStorage::Blocks { chunks, uniforms } = &f32_matrix.storage else {
             return Err(GpuError::Backend(
@@ -2058,8 +2068,17 @@ impl GpuMatrix {
                 low_part,
             );
         }
-        let dinv = split_inverse_diagonal(h);
         let (rows, blocks) = (h.rows as u64, h.nnz_blocks() as u64);
+        let minv = match diagonal {
+            true => ctx.storage_init(
+                "scalar inverse diagonal (f64)",
+                &Precision::F64.encode(&split_inverse_diagonal(h)),
+            )?,
+            false => ctx.storage(
+                "scalar inverse diagonal (f64, not yet written)",
+                (24 * rows).max(8),
+            )?,
+        };
         // hi and lo, 36 bytes each, are the 72 bytes of the f64 values: the
         // least storage at f64.
         let stored = blocks * (36 + 36 + 4) + 4 * (rows + 1);
@@ -2071,10 +2090,7 @@ impl GpuMatrix {
                 uniforms: uniforms.clone(),
             },
             stored: (stored, stored_bytes(h.rows, h.nnz_blocks(), 3, 8).1),
-            minv: ctx.storage_init(
-                "scalar inverse diagonal (f64)",
-                &Precision::F64.encode(&dinv),
-            )?,
+            minv,
         })
     }
 

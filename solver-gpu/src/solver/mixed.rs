@@ -210,7 +210,7 @@ impl GpuSolver {
         // A shape matrix whose blocks the GPU sums has no blocks on the host:
         // the new matrix's low parts are summed and expanded there too.
         let on_gpu = self.host.as_ref().is_some_and(|h| h.shape_form().is_some());
-        self.build_mixed(want, stamp, on_gpu)?;
+        self.build_mixed(want, stamp, on_gpu, None)?;
         if on_gpu {
             let mut h = self.host.take().unwrap();
             let done = self.expand_on_gpu(&h);
@@ -239,18 +239,28 @@ impl GpuSolver {
     }
 
     /// [`Self::mixed_workspace`]'s new matrix and workspace, its low parts
-    /// written from the host unless `unwritten`.
+    /// written from the host unless `unwritten`; the matrix `made` where
+    /// it was made ahead of its values (the split f64 matrix of the
+    /// uploaded pattern, [`Self::start_pattern_ahead`]).
     pub(super) fn build_mixed(
         &mut self,
         want: usize,
         stamp: (usize, usize),
         unwritten: bool,
+        made: Option<GpuMatrix>,
     ) -> Result<(), GpuError> {
         self.mixed_kernels()?;
         let h = self.host.as_ref().unwrap();
-        let matrix = match h.bs {
-            1 => GpuMatrix::upload_scalar(&self.ctx, h, precision::Precision::F64)?,
-            _ => GpuMatrix::upload_split_f64(&self.ctx, h, self.gpu.as_ref().unwrap(), !unwritten)?,
+        let matrix = match (made, h.bs) {
+            (Some(m), _) => m,
+            (None, 1) => GpuMatrix::upload_scalar(&self.ctx, h, precision::Precision::F64)?,
+            (None, _) => GpuMatrix::upload_split_f64(
+                &self.ctx,
+                h,
+                self.gpu.as_ref().unwrap(),
+                !unwritten,
+                self.diagonal_current,
+            )?,
         };
         let (ws, refine) = self.mixed_vectors(&matrix, want)?;
         self.mixed = Some(MixedData {

@@ -29,8 +29,9 @@ mod warm;
 
 /// From this many of rayon's threads on, uploads go up on threads of their
 /// own, beside the caller: a factor made ahead
-/// ([`GpuSolver::upload_factor_ahead`]) and the shape sum's ring pairs
-/// ([`GpuSolver::start_pairs_ahead`]). Below, on the caller's thread. On the
+/// ([`GpuSolver::upload_factor_ahead`]), the shape sum's ring pairs
+/// ([`GpuSolver::start_pairs_ahead`]) and the shape matrices' pattern
+/// ([`GpuSolver::start_pattern_ahead`]). Below, on the caller's thread. On the
 /// development machine's 2 cores at homer 1.2M, lavapipe, those threads
 /// shared the cores with the main thread's own passes and with lavapipe's
 /// copies:
@@ -146,6 +147,8 @@ fn on_context(ctx: Context, t: std::time::Instant) -> Result<GpuSolver, GpuError
         squares_taken_ahead: 0,
         pairs_ahead: None,
         pairs_taken_ahead: 0,
+        pattern_ahead: None,
+        patterns_taken_ahead: 0,
         beside_uploads: rayon::current_num_threads() >= BESIDE_UPLOADS_FROM_THREADS,
         minv_scratch: Vec::new(),
         diagonal_current: false,
@@ -285,6 +288,11 @@ pub struct GpuSolver {
     /// ([`Self::start_pairs_ahead`]), and how many such the sums took.
     pairs_ahead: Option<upload::PairsAhead>,
     pub(crate) pairs_taken_ahead: usize,
+    /// The shape matrices' pattern being set up on its own thread
+    /// ([`Self::start_pattern_ahead`]), and how many patterns were taken
+    /// up so.
+    pattern_ahead: Option<upload::PatternAhead>,
+    pub(crate) patterns_taken_ahead: usize,
     /// Whether uploads go up on threads beside the caller: from
     /// [`BESIDE_UPLOADS_FROM_THREADS`] of rayon's threads (the tests set it
     /// either way).
@@ -795,7 +803,7 @@ impl SpdSolver for GpuSolver {
         }
         let mut h = self.take_host(same, a.n, 1, &a.col_ptr, &a.row_idx)?;
         h.fill_scalar(a);
-        self.upload(h, same).map_err(Into::into)
+        self.upload(h, same, None).map_err(Into::into)
     }
 
     fn prepare_blocks(&mut self, a: &BlockSym3, fixed: &[bool]) -> Result<(), SolverError> {
@@ -814,7 +822,7 @@ impl SpdSolver for GpuSolver {
         h.fill_blocks(a, fixed);
         self.fixed.clear();
         self.fixed.extend_from_slice(fixed);
-        self.upload(h, same).map_err(Into::into)
+        self.upload(h, same, None).map_err(Into::into)
     }
 
     /// No [`BlockSym3`] is built, and the ring pairs' slots are found once
@@ -848,7 +856,18 @@ impl SpdSolver for GpuSolver {
         }
         let (col_ptr, row_idx) = (&a.iso.col_ptr, &a.iso.row_idx);
         let same = self.same_pattern(3, col_ptr, row_idx);
-        if !(same && self.ring_slots.as_ref().is_some_and(|r| r.of(&a.rings))) {
+        // A new pattern's parts set up ahead, where they are this one's.
+        let ready = match same {
+            true => None,
+            false => self.pattern_ready(&a, fixed),
+        };
+        if let Some(up) = ready.as_ref() {
+            self.pairs_ahead = None;
+            self.ring_slots = Some(up.slots.clone());
+        }
+        let slots_current =
+            ready.is_some() || same && self.ring_slots.as_ref().is_some_and(|r| r.of(&a.rings));
+        if !slots_current {
             let t = std::time::Instant::now();
             let given = a.ring_slots.as_ref();
             let slots = Arc::new(RingSlots::new(&a.rings, col_ptr, row_idx, given)?);
@@ -864,7 +883,13 @@ impl SpdSolver for GpuSolver {
             self.ring_slots = Some(slots);
         }
         let t = std::time::Instant::now();
-        let mut h = self.take_host(same, n, 3, col_ptr, row_idx)?;
+        let (mut h, ahead) = match ready {
+            Some(up) => {
+                self.host = None;
+                (up.host, Some(up.device))
+            }
+            None => (self.take_host(same, n, 3, col_ptr, row_idx)?, None),
+        };
         let slots = self.ring_slots.clone().unwrap();
         // A shape matrix is summed on the GPU where it can be (the first of a
         // pattern too): the host keeps it in its own form, not its blocks.
@@ -896,7 +921,7 @@ impl SpdSolver for GpuSolver {
             self.start_square_values(h.shape_form(), &slots);
         }
         let t = std::time::Instant::now();
-        let uploaded = self.upload(h, same);
+        let uploaded = self.upload(h, same, ahead);
         // Taken up by the shape sum, or not needed.
         self.square_values = None;
         uploaded?;
@@ -990,6 +1015,10 @@ impl SpdSolver for GpuSolver {
 
     fn set_system_kind(&mut self, kind: SystemKind) {
         self.kind = kind;
+    }
+
+    fn prepare_shape_pattern(&mut self, a: &IsoRingSym3, fixed: &[bool]) {
+        self.start_pattern_ahead(a, fixed);
     }
 
     fn set_shape_model(&mut self, model: Option<std::sync::Arc<ShapeOperatorModel>>) {

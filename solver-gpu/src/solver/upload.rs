@@ -4,6 +4,7 @@
 //! the lower triangle the host sends.
 
 use super::*;
+use solver_cpu::SparseRows;
 
 /// `h`'s f32 inverse diagonal blocks into `minv`
 /// ([`block_jacobi::inverse_diagonal`]), a block that is not positive
@@ -24,8 +25,15 @@ impl GpuSolver {
     }
 
     /// Upload a prepared host matrix (pattern if new, else values only: a
-    /// block matrix's as its lower triangle, see [`Self::expand_values`]).
-    pub(super) fn upload(&mut self, mut h: HostMatrix, same: bool) -> Result<(), GpuError> {
+    /// block matrix's as its lower triangle, see [`Self::expand_values`]);
+    /// a new pattern's device part `ahead` where it was set up ahead of
+    /// its values ([`Self::pattern_ready`]: of this one).
+    pub(super) fn upload(
+        &mut self,
+        mut h: HostMatrix,
+        same: bool,
+        ahead: Option<PatternDevice>,
+    ) -> Result<(), GpuError> {
         self.matrices += 1;
         let mut minv = std::mem::take(&mut self.minv_scratch);
         // The inverse diagonal blocks are read by the block-Jacobi and AMG
@@ -33,7 +41,11 @@ impl GpuSolver {
         // kind's Cholesky factor preconditions leave them, on the host and
         // the GPU, until another preconditioner asks for them
         // ([`Self::refresh_inverse_diagonal`]).
-        let diagonal = !(same && self.gpu.is_some() && self.chol.is_some());
+        // Nor does a new pattern's first shape matrix (summed on the GPU)
+        // where the kind's factor is made.
+        let ahead = ahead.filter(|_| !same);
+        let fresh_shape = !same && h.shape_form().is_some();
+        let diagonal = !(self.chol.is_some() && (same && self.gpu.is_some() || fresh_shape));
         if diagonal {
             inverse_diagonal(&h, &mut minv)?;
         }
@@ -59,7 +71,21 @@ impl GpuSolver {
                 // A shape matrix kept in its form is summed on the GPU from
                 // the start: its pattern goes up with no values.
                 let shape = h.shape_form().is_some();
-                self.gpu = Some(GpuMatrix::upload(&self.ctx, &h, &minv, !shape)?);
+                let (gpu, mut split, sum) = match ahead {
+                    Some(d) => {
+                        if diagonal {
+                            d.gpu.write_diagonal(&self.ctx, &h, &minv);
+                        }
+                        self.patterns_taken_ahead += 1;
+                        (d.gpu, d.split, d.sum)
+                    }
+                    None => (
+                        GpuMatrix::upload(&self.ctx, &h, diagonal.then_some(&minv[..]), !shape)?,
+                        None,
+                        None,
+                    ),
+                };
+                self.gpu = Some(gpu);
                 self.pattern_uploads += 1;
                 // A kind whose solves start in mixed precision has its
                 // mixed-precision matrix made now, before the expansion, so
@@ -67,12 +93,20 @@ impl GpuSolver {
                 // first solve, it set the expansion up a second time (the
                 // map and the values sent up again).
                 let early = shape && self.mixed_from_the_first_solve();
+                let split_ahead = early && split.is_some();
                 if early {
                     let stamp = (self.pattern_uploads, self.value_uploads);
                     self.host = Some(h);
-                    let built = self.build_mixed(1, stamp, true);
+                    let built = self.build_mixed(1, stamp, true, split.take());
                     h = self.host.take().unwrap();
                     built?;
+                    if split_ahead && diagonal {
+                        let m = &self.mixed.as_ref().unwrap().matrix;
+                        m.write_diagonal(&self.ctx, &h, &[]);
+                    }
+                }
+                if let Some(sum) = sum {
+                    self.adopt_sum_ahead(sum, early, split_ahead);
                 }
                 if shape && self.expand_on_gpu(&h)? {
                     h.release_map();
@@ -419,6 +453,129 @@ impl GpuSolver {
         }
     }
 
+    /// Starts setting up on a thread beside the caller what the shape
+    /// matrices of `a`'s pattern, rings and held vertices `fixed` need
+    /// before their first values: the ring pairs' slots, the host's block
+    /// pattern and map, the block matrix (and the f64 low parts of the
+    /// mixed-precision one) on the device, the expansion and the shape sum
+    /// with its ring pairs ([`PatternAhead`]). The first matrix of the
+    /// pattern takes them up ([`Self::pattern_ready`]) and makes no inverse
+    /// diagonal where the kind's Cholesky factor preconditions it (nothing
+    /// reads it: [`Self::refresh_inverse_diagonal`] makes it where a
+    /// preconditioner will). On the main thread that was the first shape
+    /// matrix's hand-over, between the first scale factors and the first
+    /// shape solve: at homer 1.2M on the development machine (lavapipe, 2
+    /// cores) 1.3 s on 2 of rayon's threads (the slots' check 0.22 s, the
+    /// inverse diagonal 0.20, the expansion 0.20, the ring pairs 0.58) and
+    /// 0.74 s on 4 (the pairs already beside it), against 0.17 s with the
+    /// pattern set up ahead. Nothing where uploads do not go beside the
+    /// caller ([`super::BESIDE_UPLOADS_FROM_THREADS`]) or the adapter has
+    /// no `SHADER_F64`.
+    pub(super) fn start_pattern_ahead(&mut self, a: &IsoRingSym3, fixed: &[bool]) {
+        self.pattern_ahead = None;
+        let n = a.n();
+        if !self.beside_uploads
+            || !self.ctx.shader_f64
+            || fixed.len() != n
+            || a.rings.len() != n
+            || a.iso.col_ptr.len() != n + 1
+        {
+            return;
+        }
+        let expand = match self.expand.as_ref() {
+            Some(e) => e.clone(),
+            None => match expand_blocks::ExpandBlocks::new(&self.ctx) {
+                Ok(e) => self.expand.insert(e).clone(),
+                Err(e) => {
+                    log::debug!("no shape pattern set up ahead: {e}");
+                    return;
+                }
+            },
+        };
+        // As `mixed_from_the_first_solve` will say once the kind's
+        // preconditioner is made.
+        let mixed = self.mixed_precision != MixedPrecision::Never && self.starts_mixed();
+        let pattern = (a.iso.col_ptr.clone(), a.iso.row_idx.clone());
+        let (ctx, rings, given) = (self.ctx.clone(), a.rings.clone(), a.ring_slots.clone());
+        let held = fixed.to_vec();
+        let thread = std::thread::Builder::new()
+            .name("shape pattern ahead".into())
+            .spawn(move || {
+                ctx.beside_the_caller(|| {
+                    let t = std::time::Instant::now();
+                    let up = pattern_up(&ctx, &expand, pattern, (rings, given, held), mixed);
+                    log::debug!(
+                        "shape pattern set up ahead on its own thread in {:.3} s",
+                        t.elapsed().as_secs_f64()
+                    );
+                    up
+                })
+            });
+        match thread {
+            Ok(thread) => {
+                self.pattern_ahead = Some(PatternAhead {
+                    rings: a.rings.clone(),
+                    fixed: fixed.to_vec(),
+                    thread,
+                })
+            }
+            Err(e) => log::debug!("no thread for the shape pattern ahead: {e}"),
+        }
+    }
+
+    /// The pattern set up ahead ([`Self::start_pattern_ahead`]) where it is
+    /// `a`'s, with its rings and held vertices `fixed`, once its thread is
+    /// done; `None` where not (or it failed: the matrix sets it up itself).
+    pub(super) fn pattern_ready(&mut self, a: &IsoRingSym3, fixed: &[bool]) -> Option<PatternUp> {
+        let ahead = self.pattern_ahead.take()?;
+        if !Arc::ptr_eq(&ahead.rings, &a.rings) || ahead.fixed != fixed {
+            return None;
+        }
+        let t = std::time::Instant::now();
+        let up = match joined(ahead.thread) {
+            Ok(up) => up,
+            Err(e) => {
+                log::debug!("shape pattern ahead: {e}; set up at its first matrix");
+                return None;
+            }
+        };
+        if !up.host.same_pattern(3, &a.iso.col_ptr, &a.iso.row_idx) {
+            return None;
+        }
+        log::debug!(
+            "shape pattern set up ahead: waited {:.3} s for its thread",
+            t.elapsed().as_secs_f64()
+        );
+        Some(up)
+    }
+
+    /// The lower parts, expansion and shape sum set up ahead, taken up as
+    /// the new pattern's (stamped with it). The expansion only where it
+    /// writes the low parts of the mixed-precision matrix just as the one
+    /// made now would (`early`: there is one; `split_ahead`: made with it);
+    /// else [`Self::expand_on_gpu`] makes its own.
+    fn adopt_sum_ahead(&mut self, sum: SumAhead, early: bool, split_ahead: bool) {
+        let stamp = self.pattern_uploads;
+        let SumAhead {
+            lower,
+            expansion,
+            sum,
+            split,
+        } = sum;
+        self.expand_lower = Some((stamp, lower));
+        self.shape_sum = Some((stamp, sum));
+        self.expansion = None;
+        let writes_as_now = match split {
+            true => split_ahead,
+            false => !early,
+        };
+        if writes_as_now {
+            let writes = early.then_some(self.mixed_builds);
+            self.expansion = Some((expansion, stamp, writes, self.fixed.clone()));
+            self.expansions += 1;
+        }
+    }
+
     /// Whether the prepared matrix has this lower pattern and block size.
     pub(super) fn same_pattern(&self, bs: usize, col_ptr: &[usize], row_idx: &[usize]) -> bool {
         self.host
@@ -480,4 +637,98 @@ pub(crate) struct SquareAhead {
     pub model: Arc<ShapeOperatorModel>,
     pub slots: Arc<RingSlots>,
     pub values: std::thread::JoinHandle<Vec<f64>>,
+}
+
+/// A shape pattern being set up on a thread beside the caller
+/// ([`GpuSolver::start_pattern_ahead`]) for these rings and held vertices.
+pub(crate) struct PatternAhead {
+    rings: Arc<SparseRows>,
+    fixed: Vec<bool>,
+    thread: std::thread::JoinHandle<Result<PatternUp, GpuError>>,
+}
+
+/// What a shape pattern's first matrix needs before its values: on the
+/// host, the pattern's blocks (and map: see [`HostMatrix::map`]) and the
+/// ring pairs' slots; on the device, [`PatternDevice`].
+pub(crate) struct PatternUp {
+    pub host: HostMatrix,
+    pub slots: Arc<RingSlots>,
+    pub device: PatternDevice,
+}
+
+/// The device's part of [`PatternUp`], taken up by [`GpuSolver::upload`].
+pub(crate) struct PatternDevice {
+    /// The f32 block matrix, its values and inverse diagonal unwritten.
+    gpu: GpuMatrix,
+    /// The mixed-precision matrix's f64 low parts and inverse diagonal
+    /// over `gpu`, unwritten, where its solves start in mixed precision.
+    split: Option<GpuMatrix>,
+    /// Where the GPU sums the blocks.
+    sum: Option<SumAhead>,
+}
+
+/// The lower parts, expansion (`split`: writing the low parts too) and
+/// shape sum of a pattern set up ahead.
+struct SumAhead {
+    lower: expand_blocks::LowerParts,
+    expansion: expand_blocks::Expansion,
+    sum: expand_blocks::ShapeSum,
+    split: bool,
+}
+
+/// [`PatternUp`] for the lower pattern `(col_ptr, row_idx)`, its `rings`
+/// (their slots checked against `given` where given) and held vertices
+/// `held`; the split f64 matrix where `mixed`.
+fn pattern_up(
+    ctx: &Context,
+    expand: &expand_blocks::ExpandBlocks,
+    (col_ptr, row_idx): (Vec<usize>, Vec<usize>),
+    (rings, given, held): (Arc<SparseRows>, Option<Arc<[u32]>>, Vec<bool>),
+    mixed: bool,
+) -> Result<PatternUp, GpuError> {
+    let host_error = |e: SolverError| GpuError::Backend(e.to_string());
+    let n = held.len();
+    let slots = RingSlots::new(&rings, &col_ptr, &row_idx, given.as_ref()).map_err(host_error)?;
+    let slots = Arc::new(slots);
+    let mut host = HostMatrix::pattern(n, 3, &col_ptr, &row_idx).map_err(host_error)?;
+    host.set_fixed(&held);
+    let nnz = row_idx.len();
+    drop((col_ptr, row_idx));
+    let gpu = GpuMatrix::upload(ctx, &host, None, false)?;
+    let split = match mixed {
+        true => Some(GpuMatrix::upload_split_f64(ctx, &host, &gpu, false, false)?),
+        false => None,
+    };
+    let limit = matrix::binding_limit(ctx);
+    let fits = expand_blocks::ShapeSum::fits_pattern((&rings, nnz, &slots), limit)
+        && expand_blocks::LowerParts::layout(nnz, limit).is_some();
+    let sum = match (fits, gpu.block_parts()) {
+        (true, Some((chunks, None))) => {
+            let lower = expand_blocks::LowerParts::new(ctx, nnz, limit)?;
+            let lo = split
+                .as_ref()
+                .and_then(|m| m.block_parts())
+                .and_then(|p| p.1);
+            let expansion = expand.expansion(ctx, &lower, host.map(), chunks, lo)?;
+            let sum = expand_blocks::ShapeSum::of_pattern(
+                expand,
+                ctx,
+                (&rings, nnz, &slots),
+                &lower,
+                None,
+            )?;
+            Some(SumAhead {
+                lower,
+                expansion,
+                sum,
+                split: lo.is_some(),
+            })
+        }
+        _ => None,
+    };
+    Ok(PatternUp {
+        host,
+        slots,
+        device: PatternDevice { gpu, split, sum },
+    })
 }
