@@ -472,7 +472,7 @@ impl GpuSolver {
     /// caller ([`super::BESIDE_UPLOADS_FROM_THREADS`]) or the adapter has
     /// no `SHADER_F64`.
     pub(super) fn start_pattern_ahead(&mut self, a: &IsoRingSym3, fixed: &[bool]) {
-        self.pattern_ahead = None;
+        self.wait_for_pattern_ahead();
         let n = a.n();
         if !self.beside_uploads
             || !self.ctx.shader_f64
@@ -529,6 +529,8 @@ impl GpuSolver {
     pub(super) fn pattern_ready(&mut self, a: &IsoRingSym3, fixed: &[bool]) -> Option<PatternUp> {
         let ahead = self.pattern_ahead.take()?;
         if !Arc::ptr_eq(&ahead.rings, &a.rings) || ahead.fixed != fixed {
+            // Ended, not left running on the device (see `Drop`).
+            let _ = ahead.thread.join();
             return None;
         }
         let t = std::time::Instant::now();
@@ -547,6 +549,13 @@ impl GpuSolver {
             t.elapsed().as_secs_f64()
         );
         Some(up)
+    }
+
+    /// Waits for a shape pattern's thread not taken up (its work dropped).
+    pub(super) fn wait_for_pattern_ahead(&mut self) {
+        if let Some(ahead) = self.pattern_ahead.take() {
+            let _ = ahead.thread.join();
+        }
     }
 
     /// The lower parts, expansion and shape sum set up ahead, taken up as

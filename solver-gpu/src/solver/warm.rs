@@ -141,9 +141,11 @@ impl GpuSolver {
 }
 
 impl Drop for GpuSolver {
-    /// The threads compiling for the solver's device end before the
-    /// solver does, so that the device is dropped where the solver is.
+    /// The threads compiling for the solver's device, and the one setting
+    /// a shape pattern up ahead, end before the solver does, so that the
+    /// device is dropped where the solver is.
     fn drop(&mut self) {
         self.wait_for_warm_up();
+        self.wait_for_pattern_ahead();
     }
 }
