@@ -571,6 +571,20 @@ impl Context {
         r
     }
 
+    /// `f` on a new thread named `name`, run [`Self::beside_the_caller`]
+    /// of this context (an upload that the caller's thread need not wait
+    /// for until it takes the result).
+    pub fn spawn_beside<R: Send + 'static>(
+        self: &Arc<Self>,
+        name: String,
+        f: impl FnOnce() -> R + Send + 'static,
+    ) -> std::io::Result<std::thread::JoinHandle<R>> {
+        let ctx = self.clone();
+        std::thread::Builder::new()
+            .name(name)
+            .spawn(move || ctx.beside_the_caller(f))
+    }
+
     /// Counts `bytes` written to the device (on a thread beside the caller:
     /// counted there too).
     fn count_to_device(&self, bytes: u64) {

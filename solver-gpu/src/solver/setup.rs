@@ -604,10 +604,9 @@ impl GpuSolver {
         };
         let upload = match beside {
             true => {
-                let ctx = self.ctx.clone();
-                let thread = std::thread::Builder::new()
-                    .name(format!("{kind:?} factor upload"))
-                    .spawn(move || ctx.beside_the_caller(up))
+                let thread = self
+                    .ctx
+                    .spawn_beside(format!("{kind:?} factor upload"), up)
                     .map_err(|e| GpuError::Backend(format!("a thread for its upload: {e}")))?;
                 Uploading::Beside(thread)
             }

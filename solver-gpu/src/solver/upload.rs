@@ -26,8 +26,8 @@ impl GpuSolver {
 
     /// Upload a prepared host matrix (pattern if new, else values only: a
     /// block matrix's as its lower triangle, see [`Self::expand_values`]);
-    /// a new pattern's device part `ahead` where it was set up ahead of
-    /// its values ([`Self::pattern_ready`]: of this one).
+    /// a new pattern's (not `same`) device part `ahead` where it was set
+    /// up ahead of its values ([`Self::pattern_ready`]: of this one).
     pub(super) fn upload(
         &mut self,
         mut h: HostMatrix,
@@ -43,7 +43,6 @@ impl GpuSolver {
         // ([`Self::refresh_inverse_diagonal`]).
         // Nor does a new pattern's first shape matrix (summed on the GPU)
         // where the kind's factor is made.
-        let ahead = ahead.filter(|_| !same);
         let fresh_shape = !same && h.shape_form().is_some();
         let diagonal = !(self.chol.is_some() && (same && self.gpu.is_some() || fresh_shape));
         if diagonal {
@@ -428,25 +427,21 @@ impl GpuSolver {
         };
         let (ctx, rings, slots) = (self.ctx.clone(), a.rings.clone(), slots.clone());
         let ours = slots.clone();
-        let thread = std::thread::Builder::new()
-            .name("shape sum's pairs".into())
-            .spawn(move || {
-                ctx.beside_the_caller(|| {
-                    let t = std::time::Instant::now();
-                    let (parts, part_blocks) = layout;
-                    let up = expand_blocks::PairBuffers::upload(
-                        &ctx,
-                        (&rings, blocks, &ours),
-                        (part_blocks, parts),
-                    );
-                    log::debug!(
-                        "shape sum's ring pairs gathered by block and sent up on their own \
-                         thread in {:.3} s",
-                        t.elapsed().as_secs_f64()
-                    );
-                    up
-                })
-            });
+        let thread = self.ctx.spawn_beside("shape sum's pairs".into(), move || {
+            let t = std::time::Instant::now();
+            let (parts, part_blocks) = layout;
+            let up = expand_blocks::PairBuffers::upload(
+                &ctx,
+                (&rings, blocks, &ours),
+                (part_blocks, parts),
+            );
+            log::debug!(
+                "shape sum's ring pairs gathered by block and sent up on their own \
+                 thread in {:.3} s",
+                t.elapsed().as_secs_f64()
+            );
+            up
+        });
         match thread {
             Ok(thread) => self.pairs_ahead = Some(PairsAhead { slots, thread }),
             Err(e) => log::debug!("no thread for the shape sum's pairs ({e}): made at the sum"),
@@ -498,18 +493,16 @@ impl GpuSolver {
         let pattern = (a.iso.col_ptr.clone(), a.iso.row_idx.clone());
         let (ctx, rings, given) = (self.ctx.clone(), a.rings.clone(), a.ring_slots.clone());
         let held = fixed.to_vec();
-        let thread = std::thread::Builder::new()
-            .name("shape pattern ahead".into())
-            .spawn(move || {
-                ctx.beside_the_caller(|| {
-                    let t = std::time::Instant::now();
-                    let up = pattern_up(&ctx, &expand, pattern, (rings, given, held), mixed);
-                    log::debug!(
-                        "shape pattern set up ahead on its own thread in {:.3} s",
-                        t.elapsed().as_secs_f64()
-                    );
-                    up
-                })
+        let thread = self
+            .ctx
+            .spawn_beside("shape pattern ahead".into(), move || {
+                let t = std::time::Instant::now();
+                let up = pattern_up(&ctx, &expand, pattern, (rings, given, held), mixed);
+                log::debug!(
+                    "shape pattern set up ahead on its own thread in {:.3} s",
+                    t.elapsed().as_secs_f64()
+                );
+                up
             });
         match thread {
             Ok(thread) => {
