@@ -31,7 +31,7 @@
 use crate::device::{dispatch, Bind, Context, Kernel, KernelWork, Shader, FLAT_WG};
 #[cfg(doc)]
 use crate::matrix::HostMatrix;
-use crate::matrix::{Chunk, RingSlots};
+use crate::matrix::{self, Chunk, RingSlots};
 use crate::GpuError;
 use solver_cpu::{IsoRingSym3, ShapeOperatorModel, SparseRows};
 use std::sync::Arc;
@@ -39,7 +39,7 @@ use std::sync::Arc;
 pub(crate) const SOURCE: &str = include_str!("../../shaders/expand_blocks.wgsl");
 pub(crate) const SUM_SOURCE: &str = include_str!("../../shaders/sum_shape_blocks.wgsl");
 
-const SUM_BINDINGS: [(u32, Bind); 8] = [
+const SUM_BINDINGS: [(u32, Bind); 9] = [
     (0, Bind::Uniform),
     (1, Bind::Read),
     (2, Bind::Read),
@@ -48,6 +48,7 @@ const SUM_BINDINGS: [(u32, Bind); 8] = [
     (5, Bind::Read),
     (6, Bind::ReadWrite),
     (7, Bind::Read),
+    (8, Bind::Read),
 ];
 
 const BINDINGS: [(u32, Bind); 8] = [
@@ -329,7 +330,8 @@ impl ExpandBlocks {
 
 /// What `sum_shape_blocks.wgsl` needs beyond a matrix's values, made once
 /// per pattern and rings: per lower block, its ring pairs `(p, q)` in ring
-/// order, as the ring `i` and the weight `R_ip R_iq` of each; the buffers
+/// order, each packed with its ring `i` and its positions in row `i` (or as
+/// the ring and the weight `R_ip R_iq`: [`PairBuffers`]); the buffers
 /// each matrix's `K` values and `C_i` are written to; and the values of
 /// the constant term the matrices name, if any (once per model). The sum
 /// runs once per part of the lower blocks ([`LowerParts`]), each part's
@@ -365,6 +367,13 @@ pub(crate) struct SumParams {
     /// Its first lower block, and the first of its blocks' ring pairs.
     pub(crate) block0: u32,
     pub(crate) pair0: u32,
+    /// The bits of each position in a packed ring pair
+    /// ([`RingSlots::by_block_packed`]); 0 where the pairs go with their
+    /// rings and weights apart.
+    pub(crate) bits: u32,
+    pub(crate) pad0: u32,
+    pub(crate) pad1: u32,
+    pub(crate) pad2: u32,
 }
 
 impl ShapeSum {
@@ -383,11 +392,17 @@ impl ShapeSum {
             return false;
         };
         let whole = [8 * l as u64, 48 * r as u64, 4 * (l as u64 + 1)];
+        // Packed, a pair's 4 bytes and the rows' weights; else its weight's 8.
+        let (pair, weights) = match matrix::pack_bits(rings) {
+            Some(_) => (4, 8 * (r + rings.w.len()) as u64),
+            None => (8, 0),
+        };
         whole.iter().all(|&x| x <= limit)
+            && weights <= limit
             && slots
                 .pairs_per_part(part_blocks, parts)
                 .iter()
-                .all(|&p| 8 * p as u64 <= limit)
+                .all(|&p| pair * p as u64 <= limit)
     }
 
     /// Whether this was made for `rings`.
@@ -436,8 +451,9 @@ impl ShapeSum {
     }
 
     /// What one sum reads and writes: K once (and the constant term's
-    /// values where added), each block's pairs (ring, weight) and its C_i
-    /// once, the lower blocks written.
+    /// values where added), each block's pairs (packed, or ring and weight)
+    /// and its C_i once (packed: and its row's start and two weights), the
+    /// lower blocks written.
     fn work(&self) -> KernelWork {
         let square = if self.square_of.is_some() {
             8 * self.nnz as u64
@@ -492,7 +508,16 @@ impl ShapeSum {
             8 * nnz.max(1) as u64,
         )?;
         let start_buf = pairs.start;
-        let mut keep = vec![start_buf.clone()];
+        let (bits, row_start, weights) = match pairs.rows {
+            Some((bits, row_start, weights)) => (bits, Some(row_start), Some(weights)),
+            None => (0, None, None),
+        };
+        // Unpacked, the rows' starts are not read: a placeholder.
+        let row_start = match row_start {
+            Some(b) => b,
+            None => ctx.storage("shape sum: rows' weights' starts (unread)", 4)?,
+        };
+        let mut keep = vec![start_buf.clone(), row_start.clone()];
         let mut params = Vec::new();
         let mut parts = Vec::new();
         for (part, (out, (ring_buf, f_buf, pair0))) in
@@ -504,7 +529,13 @@ impl ShapeSum {
                 square: 0,
                 block0: blocks.start as u32,
                 pair0,
+                bits,
+                ..SumParams::default()
             };
+            // Packed, every part weighs its pairs from the rows' weights.
+            let f_buf = f_buf
+                .or_else(|| weights.clone())
+                .ok_or_else(|| GpuError::Backend("shape sum: pairs without weights".into()))?;
             let p_buf = ctx.uniform_of("sum_shape_blocks params", &p)?;
             let bind = k.sum_shader.bind(
                 ctx,
@@ -517,6 +548,7 @@ impl ShapeSum {
                     (5, &f_buf),
                     (6, out),
                     (7, &square),
+                    (8, &row_start),
                 ],
             )?;
             let dims = ctx.dims(
@@ -527,8 +559,14 @@ impl ShapeSum {
             params.push((p, p_buf));
             keep.extend([ring_buf, f_buf]);
         }
-        let pairs = pairs.pairs as u64;
-        let bytes = 8 * nnz as u64 + 4 * (nnz as u64 + 1) + pairs * (4 + 8 + 48) + 72 * nnz as u64;
+        let pair_bytes = match bits {
+            0 => 4 + 8 + 48,
+            _ => 4 + 4 + 16 + 48,
+        };
+        let bytes = 8 * nnz as u64
+            + 4 * (nnz as u64 + 1)
+            + pairs.pairs as u64 * pair_bytes
+            + 72 * nnz as u64;
         Ok(ShapeSum {
             rings: rings.clone(),
             iso,
@@ -546,14 +584,21 @@ impl ShapeSum {
 
 /// The ring pairs of a shape pattern gathered by lower block, on the GPU
 /// (`sum_shape_blocks.wgsl`'s `start`, and per part of the lower blocks its
-/// pairs' rings and weights, [`RingSlots::by_block`]): made once per
-/// pattern and rings, 16.8M pairs and 214 MB at homer 1.2M (0.28 s to
-/// gather and 0.46 s to send up on the development machine), on a thread
-/// beside the solver's caller where it can ([`PairBuffers::upload`]).
+/// pairs): made once per pattern and rings, on a thread beside the solver's
+/// caller where it can ([`PairBuffers::upload`]). Each pair is packed in 4
+/// bytes with its ring and its positions in the ring's row, weighed on the
+/// GPU from the rows' weights ([`RingSlots::by_block_packed`]), where the
+/// rows are short enough; else it goes as its ring and weight, 12 bytes
+/// ([`RingSlots::by_block`]). Homer 1.2M's 16.8M pairs: 67 MB packed
+/// (and 34 MB of rows' weights) against 202 MB.
 pub(crate) struct PairBuffers {
     start: wgpu::Buffer,
-    /// Per part: its pairs' rings, their weights, and its first pair.
-    parts: Vec<(wgpu::Buffer, wgpu::Buffer, u32)>,
+    /// Per part: its pairs (packed, or their rings), their weights (none
+    /// where packed), and its first pair.
+    parts: Vec<(wgpu::Buffer, Option<wgpu::Buffer>, u32)>,
+    /// Where the pairs are packed: the bits of a position, and the rows'
+    /// weights' starts and the weights ([`matrix::ring_weights`]).
+    rows: Option<(u32, wgpu::Buffer, wgpu::Buffer)>,
     /// Lower blocks and pairs in all.
     blocks: usize,
     pairs: usize,
@@ -562,13 +607,39 @@ pub(crate) struct PairBuffers {
 impl PairBuffers {
     /// The pairs of `rings` (their slots `slots` in a pattern of `blocks`
     /// lower blocks) gathered by lower block and sent up, cut as lower parts
-    /// of `part_blocks` blocks, `parts` of them.
+    /// of `part_blocks` blocks, `parts` of them; packed where
+    /// [`matrix::pack_bits`] allows.
     pub fn upload(
         ctx: &Context,
         (rings, blocks, slots): (&SparseRows, usize, &RingSlots),
         (part_blocks, parts): (usize, usize),
     ) -> Result<PairBuffers, GpuError> {
-        let (start, ring, f) = slots.by_block(rings, blocks);
+        Self::upload_packed(ctx, (rings, blocks, slots), (part_blocks, parts), true)
+    }
+
+    /// [`Self::upload`], packed only where `pack` (tests send both forms).
+    pub(crate) fn upload_packed(
+        ctx: &Context,
+        (rings, blocks, slots): (&SparseRows, usize, &RingSlots),
+        (part_blocks, parts): (usize, usize),
+        pack: bool,
+    ) -> Result<PairBuffers, GpuError> {
+        let (start, pair, f, rows) = match matrix::pack_bits(rings).filter(|_| pack) {
+            Some(bits) => {
+                let (start, packed) = slots.by_block_packed(rings, blocks, bits);
+                let (row_start, weights) = matrix::ring_weights(rings);
+                let rows = (
+                    bits,
+                    ctx.storage_init("shape sum: rows' weights' starts", &row_start)?,
+                    ctx.storage_init("shape sum: rows' weights (f64)", &weights)?,
+                );
+                (start, packed, Vec::new(), Some(rows))
+            }
+            None => {
+                let (start, ring, f) = slots.by_block(rings, blocks);
+                (start, ring, f, None)
+            }
+        };
         let start_buf = ctx.storage_init("shape sum: ring pairs per lower block", &start)?;
         let parts = (0..parts)
             .map(|part| {
@@ -582,23 +653,38 @@ impl PairBuffers {
                     };
                     ctx.storage_init(&format!("shape sum: {what} (part {part})"), bytes)
                 };
-                let ring_buf = part_of("ring of each pair", bytemuck::cast_slice(&ring), 4)?;
-                let f_buf = part_of("weight of each pair (f64)", bytemuck::cast_slice(&f), 8)?;
+                let what = match rows {
+                    Some(_) => "ring pairs, packed",
+                    None => "ring of each pair",
+                };
+                let ring_buf = part_of(what, bytemuck::cast_slice(&pair), 4)?;
+                let f_buf = match rows {
+                    Some(_) => None,
+                    None => Some(part_of(
+                        "weight of each pair (f64)",
+                        bytemuck::cast_slice(&f),
+                        8,
+                    )?),
+                };
                 Ok((ring_buf, f_buf, pairs.start as u32))
             })
             .collect::<Result<Vec<_>, GpuError>>()?;
         Ok(PairBuffers {
             start: start_buf,
             parts,
+            rows,
             blocks,
-            pairs: f.len(),
+            pairs: pair.len(),
         })
     }
 }
 
 #[cfg(test)]
 mod tests {
-    use super::{LowerParts, IDENTITY, PART_SHIFT, TRANSPOSE, ZERO};
+    use super::{
+        dispatch, matrix, ExpandBlocks, LowerParts, PairBuffers, RingSlots, ShapeSum, IDENTITY,
+        PART_SHIFT, TRANSPOSE, ZERO,
+    };
     use crate::matrix::{high_part, low_part, HostMatrix};
     use crate::MixedPrecision;
     use solver_cpu::{BlockSym3, SpdSolver};
@@ -977,6 +1063,92 @@ mod tests {
         }
     }
 
+    /// The shape sum's lower blocks are the same bits with the ring pairs
+    /// packed (weighed on the GPU from the rows' weights) as with each
+    /// pair's weight sent up, in one part and in three; and they are the
+    /// host's sum of the pairs by block to rounding.
+    #[test]
+    fn packed_ring_pairs_sum_the_same_blocks_as_weighed_ones() {
+        if mixed_solver().is_none() {
+            return;
+        }
+        for (n, limit) in [(40, None), (200, Some(15_000))] {
+            let s = match limit {
+                Some(l) => mixed_solver_with_limit(l).unwrap(),
+                None => mixed_solver().unwrap(),
+            };
+            let ctx = &s.ctx;
+            let a = crate::matrix::shape_strip(n, 0.3);
+            let (col_ptr, row_idx) = (&a.iso.col_ptr, &a.iso.row_idx);
+            let slots = RingSlots::new(&a.rings, col_ptr, row_idx, None).unwrap();
+            let nnz = row_idx.len();
+            let k = ExpandBlocks::new(ctx).unwrap();
+            let lower = LowerParts::new(ctx, nnz, matrix::binding_limit(ctx)).unwrap();
+            assert_eq!(lower.buffers.len(), if limit.is_some() { 3 } else { 1 });
+            let mut sums = Vec::new();
+            for pack in [true, false] {
+                let layout = (lower.part_blocks, lower.buffers.len());
+                let up0 = ctx.traffic().to_device;
+                let pairs =
+                    PairBuffers::upload_packed(ctx, (&a.rings, nnz, &slots), layout, pack).unwrap();
+                let up = ctx.traffic().to_device - up0;
+                assert_eq!(pairs.rows.is_some(), pack);
+                // Packed: 4 bytes a pair and the rows' weights and starts
+                // (a ring's weights: its diagonal and 2 neighbours); else 12.
+                let pair_bytes = (4 * (n + 1) + 8 * 3 * n + 4 * pairs.pairs) as u64;
+                let want_up = 4 * (nnz as u64 + 1)
+                    + match pack {
+                        true => pair_bytes,
+                        false => 12 * pairs.pairs as u64,
+                    };
+                assert_eq!(up, want_up, "pack {pack}");
+                let sum = ShapeSum::new(&k, ctx, (&a, &slots), &lower, Some(pairs)).unwrap();
+                ctx.write_buffer(&sum.iso, 0, bytemuck::cast_slice(&a.iso.values));
+                ctx.write_buffer(&sum.ring_c, 0, bytemuck::cast_slice(&a.ring_c));
+                let pipeline = k.sum_kernel.pipeline(ctx, 1).unwrap();
+                let mut enc = ctx.encoder("sum");
+                {
+                    let mut pass = enc.begin_compute_pass(&Default::default());
+                    for (bind, dims) in &sum.parts {
+                        dispatch(&mut pass, &pipeline, bind, *dims);
+                    }
+                }
+                ctx.submit(Some(enc));
+                let mut staging = None;
+                let got: Vec<f64> = (0..lower.buffers.len())
+                    .flat_map(|part| {
+                        let count = 9 * lower.range(part).len();
+                        ctx.read::<f64>(lower.part(part), count, &mut staging, None)
+                            .unwrap()
+                    })
+                    .collect();
+                sums.push(got);
+            }
+            assert_eq!(sums[0], sums[1], "n {n}: packed and weighed differ");
+            // The host's sum of each block's pairs, in their order.
+            let (start, ring, f) = slots.by_block(&a.rings, nnz);
+            for b in 0..nnz {
+                let kv = a.iso.values[b];
+                let mut m = [kv, 0.0, 0.0, 0.0, kv, 0.0, 0.0, 0.0, kv];
+                for t in start[b] as usize..start[b + 1] as usize {
+                    let c = a.ring_c[ring[t] as usize];
+                    let full = [c[0], c[3], c[4], c[3], c[1], c[5], c[4], c[5], c[2]];
+                    for q in 0..9 {
+                        m[q] += f[t] * full[q];
+                    }
+                }
+                for q in 0..9 {
+                    let g = sums[0][9 * b + q];
+                    assert!(
+                        (g - m[q]).abs() <= 1e-15 * (1.0 + m[q].abs()),
+                        "{g} vs {}",
+                        m[q]
+                    );
+                }
+            }
+        }
+    }
+
     /// A shape pattern's expansion is set up once in a run: the first
     /// matrix's mixed-precision matrix is made before it (its low parts
     /// expanded with the high ones), a new kind's factor makes new steps
@@ -1164,10 +1336,11 @@ mod tests {
             let beside0 = s.ctx.traffic().beside_to_device;
             let kept = s.prepare_shape_owned(a, &fixed).unwrap();
             let beside = s.ctx.traffic().beside_to_device - beside0;
-            // The pairs' starts and, per part, their rings and weights, from
-            // the thread beside the caller.
+            // The pairs' starts and, per part, the pairs packed, with the
+            // rows' starts and weights (each ring's diagonal and 2
+            // neighbours), from the thread beside the caller.
             let pairs_up = match ahead && seed == 0.0 {
-                true => 4 * (nnz + 1) + 12 * pairs,
+                true => 4 * (nnz + 1) + 4 * pairs + 4 * (n + 1) + 8 * 3 * n,
                 false => 0,
             };
             assert_eq!(beside as usize, pairs_up, "seed {seed}");
@@ -1182,7 +1355,7 @@ mod tests {
             // matrix's expansion (made at its build); the term's values (and
             // the sum's parameters) once.
             let each = 8 * nnz + 48 * n;
-            let square_once = if seed == 0.5 { 8 * nnz + 16 * parts } else { 0 };
+            let square_once = if seed == 0.5 { 8 * nnz + 32 * parts } else { 0 };
             if seed > 0.0 {
                 assert_eq!(up, (each + square_once) as u64, "seed {seed}");
             }

@@ -1118,13 +1118,7 @@ impl RingSlots {
     /// 1]`, each with its ring and weight `R_ip R_iq`, in ring order (the
     /// order [`HostMatrix::fill_shape`] adds them in).
     pub fn by_block(&self, rings: &SparseRows, slots: usize) -> (Vec<u32>, Vec<u32>, Vec<f64>) {
-        let mut start = vec![0u32; slots + 1];
-        for &s in self.slot.iter() {
-            start[s as usize + 1] += 1;
-        }
-        for s in 0..slots {
-            start[s + 1] += start[s];
-        }
+        let start = self.block_starts(slots);
         let mut next = start.clone();
         let mut ring = vec![0u32; self.slot.len()];
         let mut f = vec![0f64; self.slot.len()];
@@ -1139,6 +1133,76 @@ impl RingSlots {
         }
         (start, ring, f)
     }
+
+    /// [`Self::by_block`] with each pair packed in one `u32` and no weight:
+    /// `(i << 2 bits) | (a << bits) | b`, its ring `i` and the positions
+    /// `a`, `b` of `p` and `q` in row `i` (the diagonal first), whose
+    /// weights `R_ip R_iq` the GPU reads from [`ring_weights`]. `bits` from
+    /// [`pack_bits`]: 4 bytes a pair against 12 (16.8M pairs at homer 1.2M).
+    pub fn by_block_packed(
+        &self,
+        rings: &SparseRows,
+        slots: usize,
+        bits: u32,
+    ) -> (Vec<u32>, Vec<u32>) {
+        let start = self.block_starts(slots);
+        let mut next = start.clone();
+        let mut packed = vec![0u32; self.slot.len()];
+        for i in 0..rings.len() {
+            let slots = &self.slot[self.start[i] as usize..self.start[i + 1] as usize];
+            let row = || rings.row(i).map(|(p, _)| p).enumerate();
+            let pairs = row().flat_map(|(a, p)| {
+                row()
+                    .filter(move |&(_, q)| p >= q)
+                    .map(move |(b, _)| ((i as u32) << (2 * bits)) | ((a as u32) << bits) | b as u32)
+            });
+            for (&s, v) in slots.iter().zip(pairs) {
+                let at = next[s as usize] as usize;
+                next[s as usize] += 1;
+                packed[at] = v;
+            }
+        }
+        (start, packed)
+    }
+
+    /// Per lower block `s` (`slots` of them), where its pairs start when
+    /// gathered by block, and their end.
+    fn block_starts(&self, slots: usize) -> Vec<u32> {
+        let mut start = vec![0u32; slots + 1];
+        for &s in self.slot.iter() {
+            start[s as usize + 1] += 1;
+        }
+        for s in 0..slots {
+            start[s + 1] += start[s];
+        }
+        start
+    }
+}
+
+/// The bits a ring pair's two positions in its row take each when packed
+/// with its ring in one `u32` ([`RingSlots::by_block_packed`]): enough for
+/// the longest row; `None` where the rings' count does not fit the bits
+/// left (the pairs then go with their rings and weights apart).
+pub(crate) fn pack_bits(rings: &SparseRows) -> Option<u32> {
+    let longest = (0..rings.len()).map(|i| rings.row(i).count()).max()?;
+    let bits = (usize::BITS - (longest - 1).leading_zeros()).max(1);
+    let ring_bits = 32u32.checked_sub(2 * bits).filter(|&b| b >= 1)?;
+    (rings.len() as u64 <= 1u64 << ring_bits).then_some(bits)
+}
+
+/// Each row of `rings` as its weights, the diagonal first (the
+/// coefficients [`SparseRows::row`] gives): row `i` is
+/// `weights[start[i]..start[i + 1]]`. What packed ring pairs
+/// ([`RingSlots::by_block_packed`]) are weighed from.
+pub(crate) fn ring_weights(rings: &SparseRows) -> (Vec<u32>, Vec<f64>) {
+    let mut start = Vec::with_capacity(rings.len() + 1);
+    let mut weights = Vec::with_capacity(rings.len() + rings.w.len());
+    start.push(0);
+    for i in 0..rings.len() {
+        weights.extend(rings.row(i).map(|(_, w)| w));
+        start.push(weights.len() as u32);
+    }
+    (start, weights)
 }
 
 /// An SPD shape matrix on a strip of `n` vertices (a closed ring): rings of
@@ -1549,6 +1613,62 @@ mod shape_fill_tests {
                 .collect();
             assert_eq!(got, want[s], "block {s}");
         }
+    }
+
+    /// Packed by block, each pair names the ring and, by its positions in
+    /// the ring's row, the weights whose product is the pair's weight as
+    /// gathered unpacked, the same bits, in the same order.
+    #[test]
+    fn packed_pairs_by_block_are_the_weighed_ones() {
+        let n = 17;
+        let a = shape_strip(n, 0.0);
+        let slots = RingSlots::new(&a.rings, &a.iso.col_ptr, &a.iso.row_idx, None).unwrap();
+        let nnz = a.iso.row_idx.len();
+        let bits = pack_bits(&a.rings).unwrap();
+        // Rows of 3 (the diagonal and two neighbours): 2 bits a position.
+        assert_eq!(bits, 2);
+        let (start, ring, f) = slots.by_block(&a.rings, nnz);
+        let (start_p, packed) = slots.by_block_packed(&a.rings, nnz, bits);
+        assert_eq!(start, start_p);
+        let (row_start, weights) = ring_weights(&a.rings);
+        assert_eq!(row_start.len(), n + 1);
+        for (t, &v) in packed.iter().enumerate() {
+            let i = (v >> (2 * bits)) as usize;
+            let (p, q) = ((v >> bits) & 3, v & 3);
+            let r = row_start[i] as usize;
+            assert_eq!(i as u32, ring[t], "pair {t}");
+            assert!(p < 3 && q < 3 && r + 3 == row_start[i + 1] as usize);
+            assert_eq!(
+                (weights[r + p as usize] * weights[r + q as usize]).to_bits(),
+                f[t].to_bits()
+            );
+        }
+    }
+
+    /// Positions take the bits of the longest row; rings too many for the
+    /// bits left are not packed.
+    #[test]
+    fn pair_packing_fits_the_longest_row_and_the_rings() {
+        // `rows` rings, the first of `len` entries (the diagonal and
+        // `len - 1` others), the rest of 2.
+        let rings = |rows: u32, len: u32| {
+            let mut t: Vec<_> = (1..len).map(|j| (0, j, 1.0)).collect();
+            t.extend((1..rows).map(|i| (i, 0, 1.0)));
+            SparseRows::from_triplets(rows as usize, t, true)
+        };
+        assert_eq!(pack_bits(&rings(5, 2)), Some(1));
+        assert_eq!(pack_bits(&rings(5, 4)), Some(2));
+        assert_eq!(pack_bits(&rings(5, 5)), Some(3));
+        assert_eq!(pack_bits(&rings(5, 16)), Some(4));
+        assert_eq!(pack_bits(&rings(5, 17)), Some(5));
+        // 2^15 entries: 15 bits each, 2 left for the ring (4 rings).
+        assert_eq!(pack_bits(&rings(4, 1 << 15)), Some(15));
+        assert_eq!(pack_bits(&rings(5, 1 << 15)), None);
+        assert_eq!(pack_bits(&rings(4, (1 << 15) + 1)), None);
+        assert_eq!(
+            pack_bits(&SparseRows::from_triplets(0, Vec::new(), true)),
+            None
+        );
     }
 
     /// Each ring pair's slot is the pattern entry `(p, q)`, row after row in

@@ -174,7 +174,11 @@ fn every_shader_struct_has_its_host_twins_layout() {
                 slots,
                 square,
                 block0,
-                pair0
+                pair0,
+                bits,
+                pad0,
+                pad1,
+                pad2
             )],
         ),
         (
