@@ -168,6 +168,20 @@ impl SparseRows {
         })
     }
 
+    /// The positions `(a, b)` in row `i` ([`Self::row`]'s order, the
+    /// diagonal at 0) of the entries of each pair [`Self::pairs`] gives, in
+    /// its order: what a pair is named by where its weight `R_ip R_iq` is
+    /// formed from the row's weights later (the GPU's shape sum).
+    #[inline]
+    pub fn pair_positions(&self, i: usize) -> impl Iterator<Item = (usize, usize)> + '_ {
+        let row = move || self.row(i).map(|(p, _)| p).enumerate();
+        row().flat_map(move |(a, p)| {
+            row()
+                .filter(move |&(_, q)| p >= q)
+                .map(move |(b, _)| (a, b))
+        })
+    }
+
     /// Coefficient `R_ij` (0 when `j` is not in row `i`).
     #[inline]
     pub fn coefficient(&self, i: usize, j: usize) -> f64 {
@@ -639,6 +653,36 @@ mod tests {
             w,
             diag,
         }
+    }
+
+    /// Each pair's positions name the row entries whose columns and
+    /// product it is, in the pairs' order; rows of several lengths, columns
+    /// on either side of the diagonal.
+    #[test]
+    fn pair_positions_name_each_pairs_entries() {
+        let t = vec![
+            (0, 3, 1.0),
+            (0, 1, 2.0),
+            (1, 0, 0.5),
+            (2, 0, 1.0),
+            (2, 1, 3.0),
+            (2, 3, 1.0),
+        ];
+        let rows = SparseRows::from_triplets(4, t, false);
+        let mut seen = 0;
+        for i in 0..rows.len() {
+            let entries: Vec<(usize, f64)> = rows.row(i).collect();
+            let n = entries.len();
+            assert_eq!(rows.pair_positions(i).count(), rows.pairs(i).count());
+            for ((a, b), (p, q, f)) in rows.pair_positions(i).zip(rows.pairs(i)) {
+                assert_eq!((entries[a].0, entries[b].0), (p, q), "row {i}");
+                assert_eq!((entries[a].1 * entries[b].1).to_bits(), f.to_bits());
+                assert!(a < n && b < n);
+                seen += 1;
+            }
+        }
+        // Rows of 3, 2, 4 and 1 entries: k (k + 1) / 2 pairs each.
+        assert_eq!(seen, 6 + 3 + 10 + 1);
     }
 
     /// Rows in several groups of [`TRIPLET_ROWS`], with duplicates (up to

@@ -1150,12 +1150,9 @@ impl RingSlots {
         let mut packed = vec![0u32; self.slot.len()];
         for i in 0..rings.len() {
             let slots = &self.slot[self.start[i] as usize..self.start[i + 1] as usize];
-            let row = || rings.row(i).map(|(p, _)| p).enumerate();
-            let pairs = row().flat_map(|(a, p)| {
-                row()
-                    .filter(move |&(_, q)| p >= q)
-                    .map(move |(b, _)| ((i as u32) << (2 * bits)) | ((a as u32) << bits) | b as u32)
-            });
+            let pairs = rings
+                .pair_positions(i)
+                .map(|(a, b)| ((i as u32) << (2 * bits)) | ((a as u32) << bits) | b as u32);
             for (&s, v) in slots.iter().zip(pairs) {
                 let at = next[s as usize] as usize;
                 next[s as usize] += 1;
