@@ -1181,7 +1181,9 @@ impl RingSlots {
 /// the longest row; `None` where the rings' count does not fit the bits
 /// left (the pairs then go with their rings and weights apart).
 pub(crate) fn pack_bits(rings: &SparseRows) -> Option<u32> {
-    let longest = (0..rings.len()).map(|i| rings.row(i).count()).max()?;
+    // A row's entries: its diagonal and its others (asked at every matrix,
+    // so from the starts, not by walking the rows).
+    let longest = rings.start.windows(2).map(|w| w[1] - w[0] + 1).max()?;
     let bits = (usize::BITS - (longest - 1).leading_zeros()).max(1);
     let ring_bits = 32u32.checked_sub(2 * bits).filter(|&b| b >= 1)?;
     (rings.len() as u64 <= 1u64 << ring_bits).then_some(bits)
