@@ -1118,19 +1118,17 @@ impl RingSlots {
     /// 1]`, each with its ring and weight `R_ip R_iq`, in ring order (the
     /// order [`HostMatrix::fill_shape`] adds them in).
     pub fn by_block(&self, rings: &SparseRows, slots: usize) -> (Vec<u32>, Vec<u32>, Vec<f64>) {
-        let start = self.block_starts(slots);
-        let mut next = start.clone();
         let mut ring = vec![0u32; self.slot.len()];
         let mut f = vec![0f64; self.slot.len()];
-        for i in 0..rings.len() {
-            let slots = &self.slot[self.start[i] as usize..self.start[i + 1] as usize];
-            for (&s, (_, _, w)) in slots.iter().zip(rings.pairs(i)) {
-                let at = next[s as usize] as usize;
-                next[s as usize] += 1;
-                ring[at] = i as u32;
+        let start = self.scatter_by_block(
+            slots,
+            rings.len(),
+            |i| rings.pairs(i).map(move |(_, _, w)| (i as u32, w)),
+            |at, (i, w)| {
+                ring[at] = i;
                 f[at] = w;
-            }
-        }
+            },
+        );
         (start, ring, f)
     }
 
@@ -1145,32 +1143,47 @@ impl RingSlots {
         slots: usize,
         bits: u32,
     ) -> (Vec<u32>, Vec<u32>) {
-        let start = self.block_starts(slots);
-        let mut next = start.clone();
         let mut packed = vec![0u32; self.slot.len()];
-        for i in 0..rings.len() {
-            let slots = &self.slot[self.start[i] as usize..self.start[i + 1] as usize];
-            let pairs = rings
-                .pair_positions(i)
-                .map(|(a, b)| ((i as u32) << (2 * bits)) | ((a as u32) << bits) | b as u32);
-            for (&s, v) in slots.iter().zip(pairs) {
-                let at = next[s as usize] as usize;
-                next[s as usize] += 1;
-                packed[at] = v;
-            }
-        }
+        let start = self.scatter_by_block(
+            slots,
+            rings.len(),
+            |i| {
+                rings
+                    .pair_positions(i)
+                    .map(move |(a, b)| ((i as u32) << (2 * bits)) | ((a as u32) << bits) | b as u32)
+            },
+            |at, v| packed[at] = v,
+        );
         (start, packed)
     }
 
-    /// Per lower block `s` (`slots` of them), where its pairs start when
-    /// gathered by block, and their end.
-    fn block_starts(&self, slots: usize) -> Vec<u32> {
+    /// The one pass both forms gather by: `put(at, item)` for each ring
+    /// `i`'s items `pairs(i)` (one per ring pair, in the slots' order) at its
+    /// place `at` among its lower block's pairs (`slots` blocks, their pairs
+    /// in ring order); returns per block where its pairs start, and their
+    /// end.
+    fn scatter_by_block<I: Iterator>(
+        &self,
+        slots: usize,
+        rings: usize,
+        pairs: impl Fn(usize) -> I,
+        mut put: impl FnMut(usize, I::Item),
+    ) -> Vec<u32> {
         let mut start = vec![0u32; slots + 1];
         for &s in self.slot.iter() {
             start[s as usize + 1] += 1;
         }
         for s in 0..slots {
             start[s + 1] += start[s];
+        }
+        let mut next = start.clone();
+        for i in 0..rings {
+            let slots = &self.slot[self.start[i] as usize..self.start[i + 1] as usize];
+            for (&s, item) in slots.iter().zip(pairs(i)) {
+                let at = next[s as usize] as usize;
+                next[s as usize] += 1;
+                put(at, item);
+            }
         }
         start
     }
