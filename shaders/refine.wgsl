@@ -15,11 +15,16 @@
 // Bindings (group 0):
 //   0  P       uniform  rows, ncols (= NCOLS), n = length of a column,
 //                       groups = ceil(n / WG) (the partial sums' workgroups).
-//   1  aim     read     f64: aim[c] = ||b_c|| (c < ncols), aim[CMAX] = the
+//   1  aim     rw       f64: aim[c] = ||b_c|| (c < ncols), aim[CMAX] = the
 //                       relative residual asked for (tol), aim[CMAX + 1] =
-//                       eps ||A||_inf (the f64 rounding floor's factor).
+//                       eps ||A||_inf (the f64 rounding floor's factor):
+//                       the host's, or `rounding_floor`'s (its one writer
+//                       here).
 //   2  b       read     f64, the right-hand sides, column-major, stride n.
-//   3  ax      read     f64, A x' (the SpMV's output, the PCG's `Ap` buffer).
+//   3  ax      read     f64, A x' (the SpMV's output, the PCG's `Ap` buffer);
+//                       for `rounding_floor`, the block rows' largest
+//                       absolute row sums (`refine_product.wgsl`'s
+//                       `refine_row_abs`).
 //   4  x       read     f64, the solution so far.
 //   5  d       read     f64, the PCG's solution of the round (its `x` buffer).
 //   6  xnew    rw       f64, x' = x + scale d (`add`), read by `residual`.
@@ -27,14 +32,15 @@
 //   8  partials rw      f64, (s ncols + c) groups + g: s = 0 r'.r', 1 x'.x'.
 //   9  norms   rw       f64, 3 per column: r'.r', x'.x' (`finish`), and the
 //                       round's scale ||r|| (0 or -1: column done; see
-//                       `start`).
+//                       `start`); then, at 3 NCOLS, aim[CMAX + 1] (`finish`
+//                       copies it: the host reads the floor with the sums).
 //  10  rp      rw       f64, the PCG's right-hand side r / ||r|| (`scale_r`).
 //  11  cols    rw       the PCG's column states (ColState of pcg.wgsl, f64):
 //                       `start` writes each column's threshold.
 // `add`, `residual` and `scale_r`: one invocation per entry of the columns,
 // 2-D dispatch (linear index gid.x + gid.y * nwg.x * WG), past the end return;
 // `residual` reduces per workgroup of one column (workgroup g of column c is
-// c groups + g); `finish` and `start`: one workgroup.
+// c groups + g); `finish`, `start` and `rounding_floor`: one workgroup.
 
 struct Params {
     rows: u32,
@@ -63,7 +69,7 @@ const CMAX: u32 = 8u;
 override NCOLS: u32 = 1u;
 
 @group(0) @binding(0) var<uniform> P: Params;
-@group(0) @binding(1) var<storage, read> aim: array<f64>;
+@group(0) @binding(1) var<storage, read_write> aim: array<f64>;
 @group(0) @binding(2) var<storage, read> b: array<f64>;
 @group(0) @binding(3) var<storage, read> ax: array<f64>;
 @group(0) @binding(4) var<storage, read> x: array<f64>;
@@ -150,6 +156,32 @@ fn finish(@builtin(local_invocation_index) lid: u32) {
             norms[3u * c + 1u] = red[WG];
         }
         workgroupBarrier();
+    }
+    if lid == 0u {
+        norms[3u * NCOLS] = aim[CMAX + 1u];
+    }
+}
+
+// The rounding floor's factor eps ||A||_inf into aim[CMAX + 1], from the
+// block rows' largest absolute row sums in ax[0 .. n / 3]
+// (`refine_row_abs`): once per matrix, before its first round's residual.
+// A maximum, so the same whatever the order. eps = 2^-52.
+@compute @workgroup_size(256)
+fn rounding_floor(@builtin(local_invocation_index) lid: u32) {
+    var m = f64(0.0);
+    for (var i = lid; i < P.n / 3u; i += WG) {
+        m = max(m, ax[i]);
+    }
+    red[lid] = m;
+    workgroupBarrier();
+    for (var h = WG / 2u; h > 0u; h >>= 1u) {
+        if lid < h {
+            red[lid] = max(red[lid], red[lid + h]);
+        }
+        workgroupBarrier();
+    }
+    if lid == 0u {
+        aim[CMAX + 1u] = red[0] / f64(4503599627370496.0);
     }
 }
 

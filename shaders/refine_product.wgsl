@@ -11,6 +11,14 @@
 // As in bsr_spmv_f64.wgsl the blocks' columns come in chunks of block rows,
 // one dispatch per chunk.
 //
+// `refine_row_abs`, with the same bindings and dispatches, writes per block
+// row the largest of its three rows' absolute sums into `y[row]`: the rows'
+// part of ||A||_inf for the rounding floor (`refine.wgsl`'s
+// `rounding_floor` takes their maximum), once per matrix, where the host
+// would walk every value (`HostMatrix::norm_inf`). In block-CSR order, each
+// block's row of three values summed before it is added, as the host sums
+// them (the same bits).
+//
 // Bindings (group 0):
 //   0  P       uniform  n = length of one column (3 x block rows), ncols
 //                       (= NCOLS).
@@ -24,7 +32,9 @@
 //                       part 0 where there are fewer).
 //   4  x       read     f64, ncols columns of length n, column-major.
 //   5  y       rw       y = A x, same layout; every entry of the chunk's rows
-//                       in the first ncols columns is written.
+//                       in the first ncols columns is written
+//                       (`refine_row_abs`: y[row] per block row of the
+//                       chunk).
 //   6  cols    read     u32 block column per block of the chunk.
 //   7  C       uniform  this chunk: block rows row0..row1, its first block
 //                       block0 (group0 unused here).
@@ -91,6 +101,42 @@ fn lower_row(part: u32, o: u32) -> vec3<f64> {
     }
 }
 
+struct Block {
+    r0: vec3<f64>,
+    r1: vec3<f64>,
+    r2: vec3<f64>,
+}
+
+// The rows of the block of both triangles that `m` (its map entry, not ZERO)
+// names: the identity, or a lower block as stored or transposed.
+fn block(m: u32) -> Block {
+    if m == IDENTITY {
+        return Block(
+            vec3<f64>(f64(1.0), f64(0.0), f64(0.0)),
+            vec3<f64>(f64(0.0), f64(1.0), f64(0.0)),
+            vec3<f64>(f64(0.0), f64(0.0), f64(1.0)),
+        );
+    }
+    let o = 9u * (m & OFFSET);
+    let part = (m >> PART_SHIFT) & 3u;
+    let r0 = lower_row(part, o);
+    let r1 = lower_row(part, o + 3u);
+    let r2 = lower_row(part, o + 6u);
+    if (m & TRANSPOSE) != 0u {
+        return Block(
+            vec3<f64>(r0.x, r1.x, r2.x),
+            vec3<f64>(r0.y, r1.y, r2.y),
+            vec3<f64>(r0.z, r1.z, r2.z),
+        );
+    }
+    return Block(r0, r1, r2);
+}
+
+// |v.x| + |v.y| + |v.z|, left to right.
+fn abs_sum(v: vec3<f64>) -> f64 {
+    return abs(v.x) + abs(v.y) + abs(v.z);
+}
+
 fn xv(c: u32, j: u32) -> vec3<f64> {
     let o = c * P.n + 3u * j;
     return vec3<f64>(x[o], x[o + 1u], x[o + 2u]);
@@ -116,28 +162,10 @@ fn refine_product(
             continue;
         }
         let j = cols[k - C.block0];
-        var m0 = vec3<f64>(f64(1.0), f64(0.0), f64(0.0));
-        var m1 = vec3<f64>(f64(0.0), f64(1.0), f64(0.0));
-        var m2 = vec3<f64>(f64(0.0), f64(0.0), f64(1.0));
-        if m != IDENTITY {
-            let o = 9u * (m & OFFSET);
-            let part = (m >> PART_SHIFT) & 3u;
-            let r0 = lower_row(part, o);
-            let r1 = lower_row(part, o + 3u);
-            let r2 = lower_row(part, o + 6u);
-            if (m & TRANSPOSE) != 0u {
-                m0 = vec3<f64>(r0.x, r1.x, r2.x);
-                m1 = vec3<f64>(r0.y, r1.y, r2.y);
-                m2 = vec3<f64>(r0.z, r1.z, r2.z);
-            } else {
-                m0 = r0;
-                m1 = r1;
-                m2 = r2;
-            }
-        }
+        let b = block(m);
         for (var c = 0u; c < NCOLS; c++) {
             let v = xv(c, j);
-            yv[c] += vec3<f64>(dot(m0, v), dot(m1, v), dot(m2, v));
+            yv[c] += vec3<f64>(dot(b.r0, v), dot(b.r1, v), dot(b.r2, v));
         }
     }
     for (var c = 0u; c < NCOLS; c++) {
@@ -146,4 +174,26 @@ fn refine_product(
         y[o + 1u] = yv[c].y;
         y[o + 2u] = yv[c].z;
     }
+}
+
+@compute @workgroup_size(128)
+fn refine_row_abs(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let row = C.row0 + (wid.x + wid.y * nwg.x) * WG + lid;
+    if row >= C.row1 {
+        return;
+    }
+    var acc = vec3<f64>(f64(0.0), f64(0.0), f64(0.0));
+    for (var k = row_ptr[row]; k < row_ptr[row + 1u]; k++) {
+        let m = map[k];
+        if m == ZERO {
+            continue;
+        }
+        let b = block(m);
+        acc += vec3<f64>(abs_sum(b.r0), abs_sum(b.r1), abs_sum(b.r2));
+    }
+    y[row] = max(max(acc.x, acc.y), acc.z);
 }

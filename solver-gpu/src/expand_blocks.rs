@@ -885,6 +885,9 @@ mod tests {
             s.solve_with_guess(&b, &mut x, 2).unwrap();
             assert_eq!(s.host_residuals, host, "residuals on the GPU");
             assert!(s.last_solve_mixed());
+            let mut want = HostMatrix::pattern(n, 3, &a.col_ptr, &a.row_idx).unwrap();
+            want.fill_blocks(&a, &fixed);
+            check_gpu_floor(&s, 2, &want, &format!("seed {seed}"));
             let e = &s.expansion.as_ref().unwrap().0;
             assert_eq!(e.lower.buffers.len(), parts);
             // The round's last product A x (left in the PCG's `Ap`) is the
@@ -1026,6 +1029,42 @@ mod tests {
     }
 
     /// A solve with the prepared matrix has `want`'s residual below 1e-9.
+    /// The rounding floor `eps ||A||_inf` that the last solve of `ncols`
+    /// columns refined on the GPU ran with (read back with its sums).
+    fn gpu_floor(s: &crate::GpuSolver, ncols: usize) -> f64 {
+        let m = s.mixed.as_ref().unwrap();
+        let v: Vec<f64> = s
+            .ctx
+            .read(&m.refine.norms, 3 * ncols + 1, &mut None, None)
+            .unwrap();
+        v[3 * ncols]
+    }
+
+    /// A block matrix refined on the GPU has its rounding floor found there,
+    /// from its exact values: `eps` times the host's `||A||_inf` of the same
+    /// blocks to the bit (`want`: the host's matrix), the host walking none
+    /// of its own values for it (`bound`: the host's own bound where it
+    /// keeps a shape form, which the exact norm may not exceed).
+    fn check_gpu_floor(s: &crate::GpuSolver, ncols: usize, want: &HostMatrix, what: &str) {
+        let floor = gpu_floor(s, ncols);
+        let h = s.host.as_ref().unwrap();
+        assert!(!h.norm_found(), "{what}: the host found ||A||_inf");
+        let exact = f64::EPSILON * want.norm_inf();
+        assert!(exact > 0.0);
+        assert_eq!(
+            floor.to_bits(),
+            exact.to_bits(),
+            "{what}: {floor:e} against {exact:e}"
+        );
+        if h.shape_form().is_some() {
+            let bound = f64::EPSILON * h.norm_inf();
+            assert!(
+                floor <= bound,
+                "{what}: {floor:e} above the bound {bound:e}"
+            );
+        }
+    }
+
     fn check_solve(s: &mut crate::GpuSolver, want: &HostMatrix) {
         let n = want.rows;
         let mut y = vec![1.0; 3 * n];
@@ -1363,6 +1402,7 @@ mod tests {
             // (The first matrix's upload made the mixed-precision matrix.)
             check_solve(&mut s, &want);
             assert!(s.last_solve_mixed());
+            check_gpu_floor(&s, 1, &want, &format!("seed {seed}"));
             check_parts(&s, &want);
             let h = s.host.as_ref().unwrap();
             assert!(!h.lower_summed_on_host(), "seed {seed}: summed on the host");

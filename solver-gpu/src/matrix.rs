@@ -55,11 +55,6 @@ pub(crate) struct HostMatrix {
     lower_col_ptr: Vec<u32>,
     /// [`Self::norm_inf`] of the current values (reset by every fill).
     norm: OnceLock<f64>,
-    /// The rings' norm part of the shape form last taken back
-    /// ([`Self::take_shape`]), refilled by the next [`Self::set_shape`]: 8
-    /// bytes a block row (4.8 MB at 1.2M faces), which a fresh vector would
-    /// fault in page by page for every matrix.
-    spare: Vec<f64>,
 }
 
 /// A shape matrix `K (x) I3 + sum_i R_i^T C_i R_i` kept in that form.
@@ -77,9 +72,6 @@ struct ShapeForm {
     lower: OnceLock<Vec<[f64; 9]>>,
     /// What the host keeps of its [`IsoRingSym3::laplacian_square`] term.
     square: Option<Arc<SquareParts>>,
-    /// Per row `p`, the rings' part of [`shape_norm_bound`]: the sum over
-    /// the rings `i` holding `p` of `|R_ip| ||C_i||_inf sum_q |R_iq|`.
-    ring_abs: Vec<f64>,
 }
 
 impl ShapeForm {
@@ -307,7 +299,6 @@ impl HostMatrix {
             key: solver_cpu::PatternKey::of(col_ptr, row_idx),
             lower_col_ptr: col_ptr.iter().map(|&c| c as u32).collect(),
             norm: OnceLock::new(),
-            spare: Vec::new(),
         })
     }
 
@@ -370,34 +361,12 @@ impl HostMatrix {
         );
         self.norm = OnceLock::new();
         self.lower = Vec::new();
-        // The rings' part of the norm bound (`shape_norm_bound`), per row.
-        let mut ring_abs = std::mem::take(&mut self.spare);
-        ring_abs.clear();
-        ring_abs.resize(a.n(), 0.0);
-        if slots.symmetric {
-            ring_abs.par_iter_mut().enumerate().for_each(|(p, abs)| {
-                rings_holding(&a, p, |i, w| {
-                    *abs += w.abs() * (sym3_norm_inf(&a.ring_c[i]) * slots.abs_sum[i]);
-                });
-            });
-        } else {
-            for (i, c) in a.ring_c.iter().enumerate() {
-                if *c == [0.0; 6] {
-                    continue;
-                }
-                let cs = sym3_norm_inf(c) * slots.abs_sum[i];
-                for (p, w) in a.rings.row(i) {
-                    ring_abs[p] += w.abs() * cs;
-                }
-            }
-        }
         self.shape = Some(ShapeForm {
             a,
             slots,
             diag: OnceLock::new(),
             lower: OnceLock::new(),
             square,
-            ring_abs,
         });
         self.set_fixed(fixed);
     }
@@ -442,10 +411,7 @@ impl HostMatrix {
     /// Takes back the shape matrix kept by [`Self::set_shape`]: the matrix
     /// has no values until the next fill ([`Self::is_filled`]).
     pub fn take_shape(&mut self) -> Option<IsoRingSym3> {
-        self.shape.take().map(|f| {
-            self.spare = f.ring_abs;
-            f.a
-        })
+        self.shape.take().map(|f| f.a)
     }
 
     /// Whether the matrix has values (a shape matrix taken back has none).
@@ -691,10 +657,17 @@ impl HostMatrix {
         *self.norm.get_or_init(|| self.row_sums_max())
     }
 
+    /// Whether [`Self::norm_inf`] was found for the current values.
+    #[cfg(test)]
+    pub fn norm_found(&self) -> bool {
+        self.norm.get().is_some()
+    }
+
     fn row_sums_max(&self) -> f64 {
         if let Some(f) = &self.shape {
             let square = f.square.as_ref().map(|q| q.row_abs.as_slice());
-            return shape_norm_bound(&f.a, square, &f.ring_abs, &self.map_fixed);
+            let ring_abs = rings_abs_parts(&f.a, &f.slots);
+            return shape_norm_bound(&f.a, square, &ring_abs, &self.map_fixed);
         }
         let bs = self.bs;
         self.make_block_parts();
@@ -884,14 +857,39 @@ fn shape_diagonal(
     diag
 }
 
+/// Per row `p` of the shape matrix `a`, the rings' part of
+/// [`shape_norm_bound`]: the sum over the rings `i` holding `p` of
+/// `|R_ip| ||C_i||_inf sum_q |R_iq|` (`slots`: `a`'s ring slots).
+fn rings_abs_parts(a: &IsoRingSym3, slots: &RingSlots) -> Vec<f64> {
+    let mut ring_abs = vec![0.0; a.n()];
+    if slots.symmetric {
+        ring_abs.par_iter_mut().enumerate().for_each(|(p, abs)| {
+            rings_holding(a, p, |i, w| {
+                *abs += w.abs() * (sym3_norm_inf(&a.ring_c[i]) * slots.abs_sum[i]);
+            });
+        });
+    } else {
+        for (i, c) in a.ring_c.iter().enumerate() {
+            if *c == [0.0; 6] {
+                continue;
+            }
+            let cs = sym3_norm_inf(c) * slots.abs_sum[i];
+            for (p, w) in a.rings.row(i) {
+                ring_abs[p] += w.abs() * cs;
+            }
+        }
+    }
+    ring_abs
+}
+
 /// An upper bound of `||A||_inf` for a shape matrix `a` with the held
 /// vertices `fixed` (rows of the identity), without its blocks: per row `p`,
-/// `sum_j |K_pj|`, plus the rings' part `ring_abs[p]` (the sum over the
-/// rings `i` holding `p` of `|R_ip| ||C_i||_inf sum_q |R_iq|`, found by
-/// [`HostMatrix::set_shape`]), plus the absolute row
-/// sums `square` of a Laplacian square term it names (the triangle
-/// inequality on every block's sum). Used for the rounding floor of the
-/// residual target only.
+/// `sum_j |K_pj|`, plus the rings' part `ring_abs[p]` ([`rings_abs_parts`]),
+/// plus the absolute row sums `square` of a Laplacian square term it names
+/// (the triangle inequality on every block's sum). Used for the rounding
+/// floor of the residual target only, where the GPU does not find the
+/// exact norm itself (`refine.wgsl`'s `rounding_floor`: the host's
+/// fallbacks).
 fn shape_norm_bound(
     a: &IsoRingSym3,
     square: Option<&[f64]>,

@@ -657,8 +657,7 @@ impl Pcg {
             let mut parts: Vec<(&wgpu::Buffer, u64)> = vec![(&ws.cols, bytes)];
             match refined {
                 Some(rf) => {
-                    let norms = (crate::refine::NORMS_PER_COLUMN * ncols * 8) as u64;
-                    parts.push((&rf.refinement.norms, norms));
+                    parts.push((&rf.refinement.norms, crate::refine::norms_bytes(ncols)));
                     parts.push((&rf.refinement.xnew, x_bytes));
                 }
                 None if with_x => parts.push((&ws.x, x_bytes)),

@@ -3,6 +3,8 @@
 //!
 //! ```text
 //! r = b - A x, ||r||, ||x||                       f64 SpMV and sums (GPU)
+//! eps ||A||_inf                                   once per matrix (GPU;
+//!                                                  a scalar matrix's: host)
 //! loop:
 //!     target = max(tol, eps ||A||_inf ||x|| / ||b||)
 //!     stop if ||r|| / ||b|| <= target              host, from the sums
@@ -23,8 +25,12 @@
 //! its f64 lower blocks through the block map of `expand_blocks.wgsl` (the
 //! PCG's block product reads 48-bit high and low parts). It goes into the
 //! PCG workspace's `Ap`, which the next PCG iteration recomputes before
-//! reading. Bindings: as each shader's header lists them (one bind group of
-//! `refine.wgsl` serves all its entry points).
+//! reading. A block matrix's `||A||_inf` is found the same way, from the same
+//! values (`refine_row_abs`, then `rounding_floor`), before its first round's
+//! product: the host, which keeps a shape matrix in its own form, would walk
+//! every value of `K` on one thread for a looser bound. Bindings: as each
+//! shader's header lists them (one bind group of `refine.wgsl` serves all
+//! its entry points).
 
 use crate::bsr_spmv::SpmvDispatch;
 use crate::device::{dispatch, Bind, Context, Kernel, KernelWork, Shader, FLAT_WG};
@@ -32,6 +38,7 @@ use crate::matrix::GpuMatrix;
 use crate::pcg::{Spmv, Workspace};
 use crate::precision::Precision;
 use crate::{GpuError, CMAX};
+use std::cell::Cell;
 
 pub(crate) const SOURCE: &str = include_str!("../../shaders/refine.wgsl");
 pub(crate) const PRODUCT_SOURCE: &str = include_str!("../../shaders/refine_product.wgsl");
@@ -42,7 +49,7 @@ const WG: u64 = 256;
 /// Layout of `refine.wgsl` (group 0).
 const BINDINGS: [(u32, Bind); 12] = [
     (0, Bind::Uniform),
-    (1, Bind::Read),
+    (1, Bind::ReadWrite),
     (2, Bind::Read),
     (3, Bind::Read),
     (4, Bind::Read),
@@ -84,6 +91,8 @@ pub(crate) struct RefineKernels {
     finish: Kernel,
     start: Kernel,
     scale_r: Kernel,
+    row_abs: Kernel,
+    rounding_floor: Kernel,
 }
 
 impl RefineKernels {
@@ -97,17 +106,20 @@ impl RefineKernels {
         )?;
         Ok(RefineKernels {
             product: Kernel::new(&product_shader, "refine_product", "refine_product"),
+            row_abs: Kernel::new(&product_shader, "refine_row_abs", "refine_row_abs"),
             product_shader,
             add: Kernel::new(&shader, "refine_add", "add"),
             residual: Kernel::new(&shader, "refine_residual", "residual"),
             finish: Kernel::new(&shader, "refine_finish", "finish"),
             start: Kernel::new(&shader, "refine_start", "start"),
             scale_r: Kernel::new(&shader, "refine_scale_r", "scale_r"),
+            rounding_floor: Kernel::new(&shader, "refine_rounding_floor", "rounding_floor"),
             shader,
         })
     }
 
-    /// Every kernel a refined solve runs ([`crate::solver`]'s compilations ahead).
+    /// Every kernel a refined solve runs for its columns ([`crate::solver`]'s
+    /// compilations ahead).
     pub fn kernels(&self) -> [&Kernel; 6] {
         [
             &self.product,
@@ -117,6 +129,12 @@ impl RefineKernels {
             &self.start,
             &self.scale_r,
         ]
+    }
+
+    /// The kernels a block matrix's rounding floor runs, once per matrix
+    /// and whatever the columns: their pipelines for one column.
+    pub fn floor_kernels(&self) -> [&Kernel; 2] {
+        [&self.row_abs, &self.rounding_floor]
     }
 }
 
@@ -149,14 +167,39 @@ pub(crate) struct Refinement {
     exact_bytes: u64,
     /// The matrix's stored bytes ([`GpuMatrix::stored`]).
     stored: (u64, u64),
+    /// The matrix values (the solver's count of matrices) whose rounding
+    /// floor `eps ||A||_inf` `rounding_floor` left in `aim`: none where the
+    /// host's is there.
+    floor_of: Cell<Option<usize>>,
+    /// The values whose floor the next first round finds before its
+    /// residual (a solve of them loaded without the host's floor while
+    /// `aim` held another).
+    floor_due: Cell<Option<usize>>,
     /// Only used through the bind groups.
     #[allow(dead_code)]
     rest: [wgpu::Buffer; 3],
 }
 
+/// Where a solve's rounding floor `eps ||A||_inf` comes from
+/// ([`Refinement::load`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) enum Floor {
+    /// The host's.
+    Host(f64),
+    /// Found on the GPU from the exact values of the solver's matrix
+    /// number `values` (one per set of values uploaded).
+    OnGpu(usize),
+}
+
 /// What the host reads after a round: per column `r'.r'`, `x'.x'` and the
-/// round's scale.
+/// round's scale (then, once, the rounding floor's `eps ||A||_inf`).
 pub(crate) const NORMS_PER_COLUMN: usize = 3;
+
+/// The bytes of the norms read after a round of `ncols` columns: theirs and
+/// the rounding floor's.
+pub(crate) fn norms_bytes(ncols: usize) -> u64 {
+    ((NORMS_PER_COLUMN * ncols + 1) * 8) as u64
+}
 
 impl Refinement {
     /// Buffers for the workspace `ws` (f64) of the matrix `m`.
@@ -179,7 +222,7 @@ impl Refinement {
         let xnew = ctx.storage(&what("x'"), vec_bytes)?;
         let rtrue = ctx.storage(&what("r"), vec_bytes)?;
         let partials = ctx.storage("refinement partial sums", 2 * cmax as u64 * groups * 8)?;
-        let norms = ctx.storage("refinement norms", (NORMS_PER_COLUMN * cmax * 8) as u64)?;
+        let norms = ctx.storage("refinement norms", norms_bytes(cmax))?;
         let bg = k.shader.bind(
             ctx,
             &[
@@ -229,6 +272,8 @@ impl Refinement {
             spmv,
             stored: m.stored,
             rest: [rtrue, partials, spmv_partials],
+            floor_of: Cell::new(None),
+            floor_due: Cell::new(None),
         })
     }
 
@@ -285,7 +330,11 @@ impl Refinement {
 
     /// Write a solve's `ncols` right-hand sides `b`, the guess `x` (a zero
     /// guess is cleared on the GPU, not sent) and the aims: the norms of the
-    /// columns of `b`, the relative residual `tol` and `eps ||A||_inf`.
+    /// columns of `b`, the relative residual `tol` and the rounding floor's
+    /// `eps ||A||_inf`: the host's, or for a block matrix with its exact
+    /// product bound, [`Floor::OnGpu`]: the first round finds it on the GPU
+    /// from the exact values (`refine_row_abs`, `rounding_floor`) where
+    /// `aim` does not hold theirs yet, the host walking none of them.
     #[allow(clippy::too_many_arguments)]
     pub fn load(
         &self,
@@ -295,7 +344,7 @@ impl Refinement {
         ncols: usize,
         bnorm: &[f64],
         tol: f64,
-        eps_anorm: f64,
+        floor: Floor,
     ) {
         assert!(ncols <= self.cmax && b.len() == self.n * ncols && x.len() == b.len());
         let n = self.n;
@@ -311,7 +360,19 @@ impl Refinement {
         let mut aim = vec![0.0; CMAX + 2];
         aim[..ncols].copy_from_slice(bnorm);
         aim[CMAX] = tol;
-        aim[CMAX + 1] = eps_anorm;
+        match floor {
+            Floor::Host(v) => {
+                aim[CMAX + 1] = v;
+                self.floor_of.set(None);
+                self.floor_due.set(None);
+            }
+            Floor::OnGpu(values) => {
+                debug_assert!(self.exact.is_some());
+                aim.pop();
+                let held = self.floor_of.get() == Some(values);
+                self.floor_due.set((!held).then_some(values));
+            }
+        }
         ctx.write_buffer(&self.aim, 0, bytemuck::cast_slice(&aim));
         ctx.write_buffer(&self.b, 0, bytemuck::cast_slice(b));
         if x.iter().any(|&v| v != 0.0) {
@@ -338,6 +399,9 @@ impl Refinement {
     ) -> Result<(), GpuError> {
         let bytes = (self.n * ncols * 8) as u64;
         if first {
+            if let Some(values) = self.floor_due.get() {
+                self.record_floor(ctx, k, enc, values)?;
+            }
             enc.clear_buffer(&self.norms, 0, None);
             self.record_end(ctx, k, spmv, enc, ncols)?;
         } else {
@@ -357,6 +421,41 @@ impl Refinement {
             dispatches: 2,
             ..KernelWork::other(2 * nv)
         });
+        Ok(())
+    }
+
+    /// Record the rounding floor's `eps ||A||_inf` of the exact values (the
+    /// solver's matrix number `values`) into `aim`: each block row's largest
+    /// absolute row sum into `Ap` (free before the first round's product),
+    /// then their maximum.
+    fn record_floor(
+        &self,
+        ctx: &Context,
+        k: &RefineKernels,
+        enc: &mut wgpu::CommandEncoder,
+        values: usize,
+    ) -> Result<(), GpuError> {
+        let Some((_, steps)) = &self.exact else {
+            return Ok(());
+        };
+        let row_abs = k.row_abs.pipeline(ctx, 1)?;
+        let floor = k.rounding_floor.pipeline(ctx, 1)?;
+        let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some("refinement: rounding floor"),
+            timestamp_writes: None,
+        });
+        for (bg, dims) in steps {
+            dispatch(&mut pass, &row_abs, bg, *dims);
+        }
+        dispatch(&mut pass, &floor, &self.bg, (1, 1));
+        // The product's reads, a row's maximum written and read again.
+        let rows = (self.n / 3) as u64;
+        ctx.count_kernels(KernelWork {
+            dispatches: steps.len() as u64 + 1,
+            ..KernelWork::other(self.exact_bytes + 16 * rows)
+        });
+        self.floor_due.set(None);
+        self.floor_of.set(Some(values));
         Ok(())
     }
 
@@ -423,10 +522,11 @@ impl Refinement {
     }
 }
 
-/// The sums read back after a round, per column: `(||r'||, ||x'||)`.
-pub(crate) fn decode_norms(bytes: &[u8], ncols: usize) -> Vec<(f64, f64)> {
+/// The sums read back after a round, per column: `(||r'||, ||x'||)`; and
+/// the rounding floor's `eps ||A||_inf` the round ran with.
+pub(crate) fn decode_norms(bytes: &[u8], ncols: usize) -> (Vec<(f64, f64)>, f64) {
     let v: Vec<f64> = bytemuck::pod_collect_to_vec(bytes);
-    (0..ncols)
+    let sums = (0..ncols)
         .map(|c| {
             let at = NORMS_PER_COLUMN * c;
             (
@@ -434,7 +534,9 @@ pub(crate) fn decode_norms(bytes: &[u8], ncols: usize) -> Vec<(f64, f64)> {
                 v.get(at + 1).map_or(f64::NAN, |s| s.sqrt()),
             )
         })
-        .collect()
+        .collect();
+    let floor = v.get(NORMS_PER_COLUMN * ncols).copied().unwrap_or(f64::NAN);
+    (sums, floor)
 }
 
 #[cfg(test)]

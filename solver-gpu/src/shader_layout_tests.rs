@@ -32,11 +32,12 @@ macro_rules! host {
 }
 
 /// Structs that live on the device only (packed from `u32` arrays on the
-/// host), per shader.
-const DEVICE_ONLY: [(&str, &str); 3] = [
+/// host, or a shader's own working values), per shader.
+const DEVICE_ONLY: [(&str, &str); 4] = [
     ("supernodal.wgsl", "Super"),
     ("supernodal.wgsl", "OwnRow"),
     ("supernodal_factor.wgsl", "Super"),
+    ("refine_product.wgsl", "Block"),
 ];
 
 /// A struct as a shader declares it: name, size, and (member, offset).

@@ -139,6 +139,12 @@ impl MixedKernels {
         k
     }
 
+    /// The kernels of a block matrix's rounding floor, once per matrix
+    /// (their pipelines for one column).
+    pub(super) fn block_floor_kernels(&self) -> [&device::Kernel; 2] {
+        self.refine.floor_kernels()
+    }
+
     /// The f64 product for a matrix of block size `bs`.
     pub(crate) fn spmv(&self, bs: usize) -> Spmv<'_> {
         match bs {
@@ -159,7 +165,7 @@ pub(crate) struct MixedData {
     pub(crate) matrix: GpuMatrix,
     pub(crate) ws: Workspace,
     /// The refinement's vectors ([`crate::refine`]).
-    pub(super) refine: refine::Refinement,
+    pub(crate) refine: refine::Refinement,
     /// Whether `ws`'s preconditioner steps are of the solver's current
     /// preconditioner: a new one (a kind's factor) leaves the matrix, its
     /// expansion and the vectors as they are, and only the steps are made
@@ -373,18 +379,19 @@ impl GpuSolver {
             self.host_residual = r;
             return done;
         }
-        let anorm = self.host.as_ref().unwrap().norm_inf();
+        // A block matrix's floor is found on the GPU from its exact values
+        // (the exact product is bound: `refine_on_gpu`); a scalar one's
+        // `||A||_inf` is the host's, one parallel pass over its values.
+        let h = self.host.as_ref().unwrap();
+        let floor = match h.bs {
+            1 => refine::Floor::Host(f64::EPSILON * h.norm_inf()),
+            _ => refine::Floor::OnGpu(self.matrices),
+        };
         let x = &mut x[..n * ncols];
         let mixed = self.mixed.as_ref().unwrap();
-        mixed.refine.load(
-            &self.ctx,
-            b,
-            x,
-            ncols,
-            bnorm,
-            self.tol,
-            f64::EPSILON * anorm,
-        );
+        mixed
+            .refine
+            .load(&self.ctx, b, x, ncols, bnorm, self.tol, floor);
         let mut prev = f64::INFINITY;
         for round_no in 0.. {
             let k = self.mixed_kernels.as_ref().unwrap();
@@ -428,10 +435,9 @@ impl GpuSolver {
                     mixed
                         .refine
                         .record_end(&self.ctx, &k.refine, &pipe, &mut enc, ncols)?;
-                    let sums = (refine::NORMS_PER_COLUMN * ncols * 8) as u64;
                     let mut got = self.ctx.read_parts(
                         &[
-                            (&mixed.refine.norms, sums),
+                            (&mixed.refine.norms, refine::norms_bytes(ncols)),
                             (&mixed.refine.xnew, (n * ncols * 8) as u64),
                         ],
                         &mut None,
@@ -441,7 +447,9 @@ impl GpuSolver {
                     (got.pop().unwrap_or_default(), v)
                 }
             };
-            let sums = refine::decode_norms(&norms, ncols);
+            // The floor the round ran with: the host's, or the GPU's of the
+            // exact values.
+            let (sums, eps_anorm) = refine::decode_norms(&norms, ncols);
             self.ctx.recycle(norms);
             let mut worst = 0.0f64;
             let mut done = true;
@@ -450,7 +458,7 @@ impl GpuSolver {
                     continue;
                 }
                 let rel = rn / bnorm[c];
-                let target = self.residual_target(anorm, xn, bnorm[c]);
+                let target = self.residual_target(eps_anorm, xn, bnorm[c]);
                 worst = worst.max(rel);
                 // NaN compares false: not done.
                 done &= rel <= target;
@@ -521,10 +529,11 @@ impl GpuSolver {
     /// rounding floor `eps ||A|| ||x|| / ||b||` where that is larger (a smooth
     /// right-hand side of a stiff system has a large solution, and no f64
     /// solver, Cholesky included, gets its relative residual below that
-    /// floor). `anorm`: `||A||_inf` (`HostMatrix::norm_inf`). The GPU's
-    /// refinement applies the same rule (`refine.wgsl`'s `start`).
-    pub(super) fn residual_target(&self, anorm: f64, xnorm: f64, bnorm: f64) -> f64 {
-        self.tol.max(f64::EPSILON * anorm * xnorm / bnorm)
+    /// floor). `eps_anorm`: `eps ||A||_inf` (`HostMatrix::norm_inf`, or the
+    /// GPU's of the exact values). The GPU's refinement applies the same
+    /// rule (`refine.wgsl`'s `start`).
+    pub(super) fn residual_target(&self, eps_anorm: f64, xnorm: f64, bnorm: f64) -> f64 {
+        self.tol.max(eps_anorm * xnorm / bnorm)
     }
 
     /// Per column: the f64 residual `r = b - A x` of the host's matrix (in
@@ -553,7 +562,11 @@ impl GpuSolver {
                 if bn == 0.0 {
                     0.0
                 } else {
-                    target[c] = self.residual_target(anorm, norm(&x[c * n..(c + 1) * n]), bn);
+                    target[c] = self.residual_target(
+                        f64::EPSILON * anorm,
+                        norm(&x[c * n..(c + 1) * n]),
+                        bn,
+                    );
                     rnorm[c] / bn
                 }
             })

@@ -928,11 +928,7 @@ impl SpdSolver for GpuSolver {
         log::debug!(
             "shape matrix: {} on the host in {filled:.3} s, uploaded in {:.3} s; \
              the solver's host copy {:.1} MB (beyond the matrix's own form)",
-            if on_gpu {
-                "the rings' norm bound"
-            } else {
-                "blocks"
-            },
+            if on_gpu { "its form kept" } else { "blocks" },
             t.elapsed().as_secs_f64(),
             self.host.as_ref().map_or(0, |h| h.host_bytes()) as f64 / 1e6
         );

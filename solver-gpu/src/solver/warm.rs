@@ -78,6 +78,7 @@ impl GpuSolver {
                     each(&self.expand.as_ref().unwrap().kernels(), &[1]);
                 }
                 each(&self.mixed_kernels()?.block_solve_kernels(), &columns);
+                each(&self.mixed_kernels()?.block_floor_kernels(), &[1]);
                 each(&chol.kernels().each_ref(), &columns);
                 // The factorization's kernels, where the kind's factor is
                 // made on the GPU (the scale-driven kind's: the fine-tune's
