@@ -155,7 +155,7 @@ impl LowerParts {
     /// Write the host's lower blocks.
     pub fn write(&self, ctx: &Context, lower: &[[f64; 9]]) {
         for (k, b) in self.buffers.iter().enumerate() {
-            ctx.write_buffer(b, 0, bytemuck::cast_slice(&lower[self.range(k)]));
+            ctx.write_buffer_par(b, bytemuck::cast_slice(&lower[self.range(k)]));
         }
     }
 }
@@ -295,8 +295,8 @@ impl ExpandBlocks {
         a: &IsoRingSym3,
     ) -> Result<(), GpuError> {
         debug_assert!(sum.adds(a.laplacian_square.as_ref()));
-        ctx.write_buffer(&sum.iso, 0, bytemuck::cast_slice(&a.iso.values));
-        ctx.write_buffer(&sum.ring_c, 0, bytemuck::cast_slice(&a.ring_c));
+        ctx.write_buffer_par(&sum.iso, bytemuck::cast_slice(&a.iso.values));
+        ctx.write_buffer_par(&sum.ring_c, bytemuck::cast_slice(&a.ring_c));
         self.submit(ctx, e, Some(sum))
     }
 
