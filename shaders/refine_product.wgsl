@@ -142,13 +142,19 @@ fn xv(c: u32, j: u32) -> vec3<f64> {
     return vec3<f64>(x[o], x[o + 1u], x[o + 2u]);
 }
 
+// The block row of invocation `lid` of workgroup `wid` (2-D dispatch) in
+// this chunk.
+fn chunk_row(wid: vec3<u32>, nwg: vec3<u32>, lid: u32) -> u32 {
+    return C.row0 + (wid.x + wid.y * nwg.x) * WG + lid;
+}
+
 @compute @workgroup_size(128)
 fn refine_product(
     @builtin(workgroup_id) wid: vec3<u32>,
     @builtin(num_workgroups) nwg: vec3<u32>,
     @builtin(local_invocation_index) lid: u32,
 ) {
-    let row = C.row0 + (wid.x + wid.y * nwg.x) * WG + lid;
+    let row = chunk_row(wid, nwg, lid);
     if row >= C.row1 {
         return;
     }
@@ -182,7 +188,7 @@ fn refine_row_abs(
     @builtin(num_workgroups) nwg: vec3<u32>,
     @builtin(local_invocation_index) lid: u32,
 ) {
-    let row = C.row0 + (wid.x + wid.y * nwg.x) * WG + lid;
+    let row = chunk_row(wid, nwg, lid);
     if row >= C.row1 {
         return;
     }
