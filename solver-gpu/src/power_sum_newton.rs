@@ -363,8 +363,10 @@ pub(crate) fn estimate(
         }),
     );
     ctx.write_buffer(&data.offsets, 0, bytemuck::cast_slice(&packed.offsets));
-    ctx.write_buffer(&data.faces, 0, bytemuck::cast_slice(&packed.faces));
-    ctx.write_buffer(&data.coef, 0, bytemuck::cast_slice(&packed.coef));
+    // The entries (homer 1.2M's volume alone: 14.4 MB an estimation) into
+    // the staging memory on rayon's threads.
+    ctx.write_buffer_par(&data.faces, bytemuck::cast_slice(&packed.faces));
+    ctx.write_buffer_par(&data.coef, bytemuck::cast_slice(&packed.coef));
     ctx.write_buffer(&data.meta, 0, bytemuck::cast_slice(&packed.meta));
     let start = NewtonState {
         max_steps: rules.max_steps.min(u32::MAX as usize) as u32,
