@@ -92,12 +92,19 @@ pub(crate) const VALUE_BUFFERS: usize = 2;
 
 /// Where the GPU backend makes its Cholesky factors, the shape systems' of
 /// `K` and the scale factors' of their matrix
-/// (`METRICDEFORM_GPU_FACTORIZATION=host|gpu`).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+/// (`METRICDEFORM_GPU_FACTORIZATION=host|gpu`; unset, [`Factorization::on`]
+/// the adapter: the GPU on a hardware adapter with `SHADER_F64`, the host on
+/// a CPU emulation such as lavapipe).
+///
+/// On an NVIDIA H200 against faer on its 16-core host (BENCHMARKS.md, "Real
+/// GPU", 2026-11-28) the factors made on the GPU made the whole run 1.39x
+/// faster at 108k faces, 1.27x at 1.2M and 1.15x at 4.3M, and the host's
+/// peak 0.58x at 1.2M and 0.44x at 4.3M (the factors never on the host). On
+/// lavapipe the GPU's factorization is the host's CPU emulating it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Factorization {
     /// faer on the host (made ahead on other threads where the pipeline
     /// asks), its inverted form uploaded.
-    #[default]
     Host,
     /// On the GPU from the matrix's values (`shaders/supernodal_factor.wgsl`),
     /// the symbolic analysis on the host; where the device has `SHADER_F64`
@@ -106,23 +113,49 @@ pub enum Factorization {
 }
 
 impl Factorization {
-    /// From `METRICDEFORM_GPU_FACTORIZATION` (`host` or `gpu`), else the
-    /// default.
-    pub fn from_env() -> Factorization {
+    /// The default on an adapter: [`Factorization::Gpu`] on hardware (not a
+    /// CPU emulation) whose shaders have f64 (the factorization's kernels
+    /// are f64), else [`Factorization::Host`].
+    pub fn on(adapter: &crate::AdapterSummary) -> Factorization {
+        Factorization::on_parts(adapter.device_type == "Cpu", adapter.shader_f64)
+    }
+
+    /// [`Factorization::on`] an adapter that is a CPU emulation or not, with
+    /// f64 shaders or not.
+    pub(crate) fn on_parts(cpu: bool, shader_f64: bool) -> Factorization {
+        if !cpu && shader_f64 {
+            Factorization::Gpu
+        } else {
+            Factorization::Host
+        }
+    }
+
+    /// The one `METRICDEFORM_GPU_FACTORIZATION` asks for (`host` or `gpu`),
+    /// `None` where it is unset or names neither (a warning).
+    pub fn asked() -> Option<Factorization> {
         let v = std::env::var("METRICDEFORM_GPU_FACTORIZATION").unwrap_or_default();
         match v.to_lowercase().as_str() {
-            "" => Factorization::default(),
-            "host" => Factorization::Host,
-            "gpu" => Factorization::Gpu,
+            "" => None,
+            "host" => Some(Factorization::Host),
+            "gpu" => Some(Factorization::Gpu),
             other => {
-                let d = Factorization::default();
                 log::warn!(
                     "METRICDEFORM_GPU_FACTORIZATION={other} is not a factorization \
-                     (host or gpu); using {d:?}"
+                     (host or gpu); using the adapter's default"
                 );
-                d
+                None
             }
         }
+    }
+
+    /// What a solver opened now ([`crate::open`]) uses: the one asked for,
+    /// else the default [`on`](Factorization::on) the adapter it would open
+    /// ([`crate::default_adapter`]; [`Factorization::Host`] where there is
+    /// none).
+    pub fn from_env() -> Factorization {
+        Factorization::asked().unwrap_or_else(|| {
+            crate::device::default_adapter().map_or(Factorization::Host, |a| Factorization::on(&a))
+        })
     }
 }
 
@@ -853,6 +886,46 @@ mod tests {
     /// kernels are f64); `None` skips the test.
     fn f64_solver() -> Option<crate::GpuSolver> {
         crate::test_solver().filter(|s| s.ctx.shader_f64)
+    }
+
+    /// The default factorization: the GPU on hardware with f64 shaders, the
+    /// host on a CPU emulation or without f64; a solver opened on the test
+    /// adapter takes the default of that adapter unless one is asked for.
+    #[test]
+    fn factorization_default_follows_the_adapter() {
+        let adapter = |device_type: &str, shader_f64| crate::AdapterSummary {
+            name: "test".into(),
+            backend: "Vulkan".into(),
+            device_type: device_type.into(),
+            driver: String::new(),
+            driver_info: String::new(),
+            shader_f64,
+            timestamp_query: false,
+        };
+        assert_eq!(
+            Factorization::on(&adapter("DiscreteGpu", true)),
+            Factorization::Gpu
+        );
+        assert_eq!(
+            Factorization::on(&adapter("IntegratedGpu", true)),
+            Factorization::Gpu
+        );
+        assert_eq!(
+            Factorization::on(&adapter("DiscreteGpu", false)),
+            Factorization::Host
+        );
+        assert_eq!(
+            Factorization::on(&adapter("Cpu", true)),
+            Factorization::Host
+        );
+        let Some(s) = crate::test_solver() else {
+            return;
+        };
+        if Factorization::asked().is_none() {
+            let a = crate::default_adapter().expect("the test solver's adapter");
+            assert_eq!(s.factorization(), Factorization::on(&a));
+            assert_eq!(Factorization::from_env(), Factorization::on(&a));
+        }
     }
 
     /// A grid's second neighbourhood (the pattern of a squared Laplacian, as

@@ -103,6 +103,12 @@ fn on_context(ctx: Context, t: std::time::Instant) -> Result<GpuSolver, GpuError
         t.elapsed().as_secs_f64(),
         t.elapsed().as_secs_f64() - device_seconds
     );
+    let factorization = crate::Factorization::asked().unwrap_or_else(|| {
+        crate::Factorization::on_parts(
+            ctx.info.device_type == wgpu::DeviceType::Cpu,
+            ctx.shader_f64,
+        )
+    });
     Ok(GpuSolver {
         ctx: Arc::new(ctx),
         k: kernels,
@@ -163,7 +169,7 @@ fn on_context(ctx: Context, t: std::time::Instant) -> Result<GpuSolver, GpuError
         chol: None,
         chol_kind: None,
         chol_kernels: None,
-        factorization: crate::Factorization::from_env(),
+        factorization,
         factor_kernels: Default::default(),
         gpu_factor_ahead: None,
         chol_host: {
@@ -428,10 +434,17 @@ impl GpuSolver {
 
     /// Where the Cholesky factors (the shape systems' of `K`, the scale
     /// factors' of their matrix) are made (default
-    /// [`crate::Factorization::Host`], or `METRICDEFORM_GPU_FACTORIZATION`);
+    /// [`crate::Factorization::on`] the adapter, or
+    /// `METRICDEFORM_GPU_FACTORIZATION`);
     /// from the next set-up of a kind on.
     pub fn set_factorization(&mut self, f: crate::Factorization) {
         self.factorization = f;
+    }
+
+    /// Where the next set-up of a kind makes its Cholesky factor
+    /// ([`GpuSolver::set_factorization`]).
+    pub fn factorization(&self) -> crate::Factorization {
+        self.factorization
     }
 
     /// Whether `kind`'s factor is made on the GPU: asked for, its factor in
