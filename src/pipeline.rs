@@ -793,11 +793,16 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
                     .solver()
                     .factor_isotropic_on_device(SystemKind::ScaleDriven, &k);
             }
+            // The fine-tune's factor, in slices: one now and one at each
+            // next iteration, each run while the host makes the shape
+            // matrix (the scale factors' estimation, which waits for the
+            // device, is done).
             if fine_tune_on_device && iterations >= 1 {
-                if let Some(k) = fine_tune_k.take() {
-                    model
+                match fine_tune_k.take() {
+                    Some(k) => model
                         .solver()
-                        .factor_isotropic_on_device(SystemKind::FineTune, &k);
+                        .factor_isotropic_on_device(SystemKind::FineTune, &k),
+                    None => model.solver().advance_factor_on_device(),
                 }
             }
             let t_shape = Instant::now();

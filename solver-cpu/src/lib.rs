@@ -481,6 +481,11 @@ pub trait SpdSolver: Send {
     /// first matrix (as [`SpdSolver::adopt_isotropic_factor`]'s). Ignored
     /// (the default) where it does not apply.
     fn factor_isotropic_on_device(&mut self, _kind: SystemKind, _k: &SymCsc) {}
+    /// The next slice of a factor [`SpdSolver::factor_isotropic_on_device`]
+    /// submitted in slices (one for a set-up several solves away), where
+    /// one is left: called where the device would otherwise idle while the
+    /// host works. Ignored (the default) where it does not apply.
+    fn advance_factor_on_device(&mut self) {}
     /// The model of the next shape matrices (`None`: no model), for backends
     /// whose preconditioner builds on it; ignored by the others.
     fn set_shape_model(&mut self, _model: Option<std::sync::Arc<ShapeOperatorModel>>) {}

@@ -42,6 +42,7 @@ use crate::supernodal::{GpuFactor, Placement};
 use crate::GpuError;
 use rayon::prelude::*;
 use solver_cpu::{SupernodalFactor, SymCsc};
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
 
 pub(crate) const SOURCE: &str = include_str!("../../shaders/supernodal_factor.wgsl");
@@ -546,6 +547,10 @@ pub(crate) struct GpuFactorization {
     #[allow(dead_code)]
     second: wgpu::Buffer,
     recorded: Recorded,
+    /// Of the dispatches of the run under way: how many are submitted, and
+    /// how many a slice submits ([`GpuFactorization::submit_sliced`]).
+    submitted: AtomicUsize,
+    slice: AtomicUsize,
 }
 
 /// Each stored entry of `k` (lower triangle, `SymCsc` order): its place in
@@ -773,12 +778,15 @@ impl GpuFactorization {
                 )
             })
             .collect::<Result<Vec<_>, _>>()?;
+        let steps = recorded.steps.len();
         Ok(GpuFactorization {
             kernels: kernels.clone(),
             bgs,
             vals,
             second: one,
             recorded,
+            submitted: AtomicUsize::new(steps),
+            slice: AtomicUsize::new(steps),
         })
     }
 
@@ -799,15 +807,27 @@ impl GpuFactorization {
     /// pivot was not positive.
     #[cfg(test)]
     pub fn run(&self, ctx: &Context, values: &[f64]) -> Result<(), GpuError> {
-        self.submit(ctx, values, true)?;
+        self.submit_sliced(ctx, values, true, 1)?;
         self.finish(ctx, true)
     }
 
-    /// [`GpuFactorization::run`]'s submission alone: the host goes on at
-    /// once, [`GpuFactorization::finish`] waits. `timed`: its pass is timed
-    /// (read back by `finish`; a pass submitted ahead is not, another timed
-    /// pass in between would overwrite its times).
-    pub fn submit(&self, ctx: &Context, values: &[f64], timed: bool) -> Result<(), GpuError> {
+    /// [`GpuFactorization::run`]'s submission alone, the host going on at
+    /// once, in `slices` submissions of about as many dispatches each, in
+    /// their order: the first now, with `K`'s values;
+    /// each next by [`GpuFactorization::submit_next`], the rest by
+    /// [`GpuFactorization::finish`]. The queue runs them in order, so the
+    /// factor is the one submission's, to the bit; in between, other work
+    /// on the queue runs after the slices before it. `timed` holds for one
+    /// slice only (a pass's times are of one pass: read back by `finish`; a
+    /// pass submitted ahead is not timed, another timed pass in between
+    /// would overwrite its times).
+    pub fn submit_sliced(
+        &self,
+        ctx: &Context,
+        values: &[f64],
+        timed: bool,
+        slices: usize,
+    ) -> Result<(), GpuError> {
         let r = &self.recorded;
         if values.len() != r.nnz_k {
             return Err(GpuError::Backend(format!(
@@ -818,6 +838,40 @@ impl GpuFactorization {
         }
         ctx.write_buffer(&r.kv, 0, bytemuck::cast_slice(values));
         ctx.write_buffer(&r.flag, 0, bytemuck::bytes_of(&u32::MAX));
+        let slices = slices.max(1);
+        self.slice
+            .store(r.steps.len().div_ceil(slices).max(1), Ordering::Relaxed);
+        self.submitted.store(0, Ordering::Relaxed);
+        self.submit_steps(ctx, timed && slices == 1)
+    }
+
+    /// The next slice of a [`GpuFactorization::submit_sliced`] run, where
+    /// one is left; whether one was.
+    pub fn submit_next(&self, ctx: &Context) -> Result<bool, GpuError> {
+        if self.submitted.load(Ordering::Relaxed) >= self.recorded.steps.len() {
+            return Ok(false);
+        }
+        self.submit_steps(ctx, false)?;
+        Ok(true)
+    }
+
+    /// Slices submitted of the run under way, and slices in all.
+    pub fn slices_submitted(&self) -> (usize, usize) {
+        let slice = self.slice.load(Ordering::Relaxed).max(1);
+        let steps = self.recorded.steps.len();
+        (
+            self.submitted.load(Ordering::Relaxed).div_ceil(slice),
+            steps.div_ceil(slice),
+        )
+    }
+
+    /// One slice: the dispatches from the submitted ones on (the first
+    /// slice clears the factor and the scratch first), in one pass and one
+    /// submission.
+    fn submit_steps(&self, ctx: &Context, timed: bool) -> Result<(), GpuError> {
+        let r = &self.recorded;
+        let from = self.submitted.load(Ordering::Relaxed);
+        let to = (from + self.slice.load(Ordering::Relaxed)).min(r.steps.len());
         let pipelines = self
             .kernels
             .kernels()
@@ -825,16 +879,18 @@ impl GpuFactorization {
             .map(|k| k.pipeline(ctx, 1))
             .collect::<Result<Vec<_>, _>>()?;
         let mut enc = ctx.encoder("Cholesky factorization");
-        for b in &self.vals {
-            enc.clear_buffer(b, 0, None);
+        if from == 0 {
+            for b in &self.vals {
+                enc.clear_buffer(b, 0, None);
+            }
+            enc.clear_buffer(&r.xs, 0, None);
         }
-        enc.clear_buffer(&r.xs, 0, None);
         {
             let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
                 label: Some("Cholesky factorization"),
                 timestamp_writes: if timed { ctx.pass_timestamps() } else { None },
             });
-            for ((stage, dims), bg) in r.steps.iter().zip(&self.bgs) {
+            for ((stage, dims), bg) in r.steps[from..to].iter().zip(&self.bgs[from..to]) {
                 dispatch(&mut pass, &pipelines[*stage as usize], bg, *dims);
             }
         }
@@ -845,13 +901,21 @@ impl GpuFactorization {
             ctx.resolve_pass_time(&mut enc);
         }
         ctx.submit(Some(enc));
+        self.submitted.store(to, Ordering::Relaxed);
         Ok(())
     }
 
-    /// Waits for the submitted factorization and reads its pivot flag (and
-    /// its pass's times where `timed`): one wait.
+    /// Waits for the submitted factorization (its slices not yet submitted
+    /// submitted first) and reads its pivot flag (and its pass's times
+    /// where `timed`): one wait.
     /// [`GpuError::NotPositiveDefinite`] where a pivot was not positive.
     pub fn finish(&self, ctx: &Context, timed: bool) -> Result<(), GpuError> {
+        // The slices not yet submitted, at once.
+        if self.submitted.load(Ordering::Relaxed) < self.recorded.steps.len() {
+            self.slice
+                .store(self.recorded.steps.len(), Ordering::Relaxed);
+            self.submit_steps(ctx, false)?;
+        }
         let mut parts: Vec<(&wgpu::Buffer, u64)> = vec![(&self.recorded.flag, 4)];
         let timed = timed && ctx.pass_time_buffer().is_some();
         if timed {
@@ -1057,6 +1121,50 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// A factorization submitted in slices, another submission between two
+    /// of them and the rest left to `finish`, makes the one submission's
+    /// factor, to the bit; the slices are counted as submitted.
+    #[test]
+    fn a_factorization_in_slices_is_the_one_submissions() {
+        let Some(s) = f64_solver() else {
+            return;
+        };
+        let ctx = &s.ctx;
+        let k = two_ring_grid(40, 30);
+        let f = host(&k, true);
+        let kernels = FactorKernels::new(ctx).unwrap();
+        let limit = crate::matrix::binding_limit(ctx);
+        let read = |g: &GpuFactor| ctx.read::<f64>(&g.vals[0], g.nnz, &mut None, None).unwrap();
+        let (g, place) = GpuFactor::allocate(ctx, &f, limit).unwrap();
+        let fac = GpuFactorization::new(ctx, &kernels, &g, &place, &f, &k).unwrap();
+        fac.run(ctx, &k.values).unwrap();
+        let whole = read(&g);
+        let steps = fac.recorded.steps.len();
+        assert!(steps >= 8, "{steps} dispatches");
+        let (g2, place) = GpuFactor::allocate(ctx, &f, limit).unwrap();
+        let sliced = GpuFactorization::new(ctx, &kernels, &g2, &place, &f, &k).unwrap();
+        sliced.submit_sliced(ctx, &k.values, false, 4).unwrap();
+        assert_eq!(sliced.slices_submitted(), (1, 4));
+        assert!(sliced.submit_next(ctx).unwrap());
+        // Another submission on the queue between two slices.
+        let other = ctx
+            .storage_init("another submission's buffer", &[7.0f64; 64])
+            .unwrap();
+        let mut enc = ctx.encoder("another submission");
+        enc.clear_buffer(&other, 0, None);
+        ctx.submit(Some(enc));
+        assert!(sliced.submit_next(ctx).unwrap());
+        assert_eq!(sliced.slices_submitted(), (3, 4));
+        sliced.finish(ctx, false).unwrap();
+        assert_eq!(sliced.slices_submitted(), (1, 1));
+        assert!(!sliced.submit_next(ctx).unwrap());
+        assert!(
+            read(&g2) == whole,
+            "the sliced factor differs from the whole one's"
+        );
+        assert!(whole.iter().any(|&v| v != 0.0));
     }
 
     /// A factor whose values are cut over two buffers (a binding of a third

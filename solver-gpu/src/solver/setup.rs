@@ -358,7 +358,7 @@ impl GpuSolver {
     /// ([`crate::factorize`]), on the host's symbolic analysis of its pattern
     /// (made here unless made before), and how it was made.
     fn factor_on_gpu(&mut self, k: &SymCsc) -> Result<(supernodal::GpuFactor, String), GpuError> {
-        let made = self.start_factor_on_gpu(self.kind, k, true)?;
+        let made = self.start_factor_on_gpu(self.kind, k, true, 1)?;
         self.finish_factor_on_gpu(made, true)
     }
 
@@ -370,6 +370,7 @@ impl GpuSolver {
         kind: SystemKind,
         k: &SymCsc,
         timed: bool,
+        slices: usize,
     ) -> Result<GpuMade, GpuError> {
         let t = std::time::Instant::now();
         self.host_factor_precision(precision::Precision::F64);
@@ -419,7 +420,7 @@ impl GpuSolver {
         };
         g.analysis = self.chol_host.analysis_id();
         let recorded = t.elapsed().as_secs_f64() - analysed;
-        fac.submit(&self.ctx, &k.values, timed)?;
+        fac.submit_sliced(&self.ctx, &k.values, timed, slices)?;
         Ok(GpuMade {
             g,
             fac,
@@ -443,6 +444,7 @@ impl GpuSolver {
     ) -> Result<(supernodal::GpuFactor, String), GpuError> {
         let since = made.submitted.elapsed().as_secs_f64();
         let t = std::time::Instant::now();
+        let (sliced, slices) = made.fac.slices_submitted();
         made.fac.finish(&self.ctx, timed)?;
         let waited = t.elapsed().as_secs_f64();
         let work = made.fac.work();
@@ -461,10 +463,14 @@ impl GpuSolver {
             true => "the scale-driven kind's recording bound in",
             false => "recorded in",
         };
+        let sliced = match slices > 1 {
+            true => format!(" in {slices} slices, {sliced} ahead"),
+            false => String::new(),
+        };
         let text = format!(
             "factored on the GPU: analysis {analysed:.3} s, {how} {recorded:.3} s, \
-             submitted in {submitted:.3} s, waited for {waited:.3} s ({since:.3} s after its \
-             submission; {} dispatches, {} serial steps, {:.1} MB modelled)",
+             submitted{sliced} in {submitted:.3} s, waited for {waited:.3} s ({since:.3} s after \
+             its first submission; {} dispatches, {} serial steps, {:.1} MB modelled)",
             work.dispatches,
             work.serial_steps,
             work.bytes as f64 / 1e6
@@ -756,6 +762,19 @@ pub(super) struct GpuMade {
     reused: bool,
     host: [f64; 3],
     submitted: std::time::Instant,
+}
+
+impl GpuMade {
+    /// Its next slice submitted, where one is left: which of how many.
+    pub(super) fn submit_next(
+        &self,
+        ctx: &crate::device::Context,
+    ) -> Result<Option<(usize, usize)>, GpuError> {
+        Ok(self
+            .fac
+            .submit_next(ctx)?
+            .then(|| self.fac.slices_submitted()))
+    }
 }
 
 /// The scale-driven kind's factorization once finished, kept for the
