@@ -1526,6 +1526,12 @@ fn gpu_factorization_gives_the_host_factors_result() {
             line("(ScaleDriven system, F64)", "submitted ahead"),
             "{log}"
         );
+        // Recorded while the scale factors' set-up ran on, submitted after
+        // the first scale factors.
+        assert!(
+            line("(ScaleDriven system, F64)", "recorded ahead in"),
+            "{log}"
+        );
         assert!(line("(FineTune system, F64)", "submitted ahead"), "{log}");
         // In slices, the next ones submitted at the next outer iterations
         // (each before the host makes the shape matrix), the rest by its

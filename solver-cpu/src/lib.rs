@@ -481,6 +481,11 @@ pub trait SpdSolver: Send {
     /// first matrix (as [`SpdSolver::adopt_isotropic_factor`]'s). Ignored
     /// (the default) where it does not apply.
     fn factor_isotropic_on_device(&mut self, _kind: SystemKind, _k: &SymCsc) {}
+    /// Prepares [`SpdSolver::factor_isotropic_on_device`] of `kind` and
+    /// `k`'s pattern now (on a GPU, the factorization's recording), so that
+    /// that call only submits it: called where the host would otherwise
+    /// wait. Ignored (the default) where it does not apply.
+    fn prepare_factor_on_device(&mut self, _kind: SystemKind, _k: &SymCsc) {}
     /// The next slice of a factor [`SpdSolver::factor_isotropic_on_device`]
     /// submitted in slices (one for a set-up several solves away), where
     /// one is left: called where the device would otherwise idle while the

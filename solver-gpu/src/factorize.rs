@@ -626,13 +626,20 @@ impl GpuFactorization {
                 limit: g.vals.first().map_or(0, |b| b.size()),
             });
         }
+        let t = std::time::Instant::now();
         let map = value_map(f, place, k).ok_or_else(|| {
             GpuError::Backend("the matrix is not the pattern of the factor's analysis".into())
         })?;
+        let mapped = t.elapsed().as_secs_f64();
         let nnz_k = map.len();
         let plan = FactorizationPlan::new(f, place, nnz_k)
             .ok_or_else(|| GpuError::Backend("a factor's structure over 32-bit offsets".into()))?;
-        log::debug!("GPU factorization planned: {}", plan.describe());
+        log::debug!(
+            "GPU factorization planned (K's map {mapped:.3} s, plan {:.3} s): {}",
+            t.elapsed().as_secs_f64() - mapped,
+            plan.describe()
+        );
+        let t = std::time::Instant::now();
         // llvmpipe (lavapipe) ends an invocation's loops after 65,535
         // iterations in all: a longer one would leave a wrong factor.
         let longest = plan.steps.iter().map(|s| s.serial).max().unwrap_or(0);
@@ -698,7 +705,8 @@ impl GpuFactorization {
             };
             steps.push((st.stage, ctx.dims(ENTRIES[st.stage as usize].0, groups)?));
         }
-        GpuFactorization::bound(
+        let indexed = t.elapsed().as_secs_f64();
+        let bound = GpuFactorization::bound(
             ctx,
             kernels,
             Recorded {
@@ -712,7 +720,12 @@ impl GpuFactorization {
                 work: plan.work(),
             },
             g,
-        )
+        );
+        log::debug!(
+            "GPU factorization recorded: index and parameters {indexed:.3} s, bindings {:.3} s",
+            t.elapsed().as_secs_f64() - indexed
+        );
+        bound
     }
 
     /// This recording for `g`, a factor of the same structure (made by

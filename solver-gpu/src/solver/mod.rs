@@ -193,6 +193,7 @@ fn on_context(ctx: Context, t: std::time::Instant) -> Result<GpuSolver, GpuError
         chol_unavailable: [false; 2],
         gpu_factor_refused: [false; 2],
         factor_recording: None,
+        factor_recorded: None,
         chol_ahead: None,
         newton_kernels: None,
         warming: Vec::new(),
@@ -359,6 +360,9 @@ pub struct GpuSolver {
     factor_kernels: Arc<Mutex<Option<Arc<crate::factorize::FactorKernels>>>>,
     /// A kind's factor submitted to the GPU ahead of its set-up.
     gpu_factor_ahead: Option<(SystemKind, setup::GpuMade)>,
+    /// A kind's factorization on the GPU recorded ahead of its submission
+    /// (`prepare_factor_on_device`).
+    factor_recorded: Option<setup::GpuMade>,
     /// The scale-driven kind's factorization on the GPU, kept for the
     /// fine-tune's.
     factor_recording: Option<setup::FactorRecording>,
@@ -1134,6 +1138,21 @@ impl SpdSolver for GpuSolver {
                     }
                 );
                 self.gpu_factor_ahead = Some((kind, made));
+            }
+            Err(e) => log::debug!("{kind:?} system's factor on the GPU ahead: {e}"),
+        }
+    }
+
+    /// Recorded now, submitted by `factor_isotropic_on_device` of the same
+    /// kind and pattern.
+    fn prepare_factor_on_device(&mut self, kind: SystemKind, k: &SymCsc) {
+        if !self.factors_isotropic_on_device(kind) {
+            return;
+        }
+        match self.record_factor_on_gpu(kind, k) {
+            Ok(made) => {
+                log::debug!("{kind:?} system's factorization on the GPU recorded ahead");
+                self.factor_recorded = Some(made);
             }
             Err(e) => log::debug!("{kind:?} system's factor on the GPU ahead: {e}"),
         }

@@ -362,15 +362,47 @@ impl GpuSolver {
         self.finish_factor_on_gpu(made, true)
     }
 
-    /// [`Self::factor_on_gpu`] of `kind`'s matrix up to its submission: the
-    /// host goes on at once (`timed`: its pass timed, for a factorization
-    /// waited for next).
+    /// [`Self::factor_on_gpu`] of `kind`'s matrix up to its submission (in
+    /// `slices`, [`GpuFactorization::submit_sliced`]): the host goes on at
+    /// once (`timed`: its pass timed, for a factorization waited for next).
+    /// Recorded here unless [`Self::record_factor_on_gpu`] recorded it for
+    /// `kind` and this pattern before.
+    ///
+    /// [`GpuFactorization::submit_sliced`]: crate::factorize::GpuFactorization::submit_sliced
     pub(super) fn start_factor_on_gpu(
         &mut self,
         kind: SystemKind,
         k: &SymCsc,
         timed: bool,
         slices: usize,
+    ) -> Result<GpuMade, GpuError> {
+        let recorded = self.factor_recorded.take().filter(|made| {
+            made.kind == kind
+                && made.fac.nnz_k() == k.row_idx.len()
+                && self.chol_host.has_analysed(&k.col_ptr, &k.row_idx)
+                && (made.g.analysis.as_ref()).is_some_and(|a| a.is_of(&self.chol_host))
+        });
+        let mut made = match recorded {
+            Some(made) => GpuMade {
+                recorded_ahead: true,
+                ..made
+            },
+            None => self.record_factor_on_gpu(kind, k)?,
+        };
+        let t = std::time::Instant::now();
+        made.fac
+            .submit_sliced(&self.ctx, &k.values, timed, slices)?;
+        made.host[2] = t.elapsed().as_secs_f64();
+        made.submitted = std::time::Instant::now();
+        Ok(made)
+    }
+
+    /// `kind`'s factorization of `k`'s pattern recorded (its factor's
+    /// buffers made, `K`'s map, the plan and its bindings), not submitted.
+    pub(super) fn record_factor_on_gpu(
+        &mut self,
+        kind: SystemKind,
+        k: &SymCsc,
     ) -> Result<GpuMade, GpuError> {
         let t = std::time::Instant::now();
         self.host_factor_precision(precision::Precision::F64);
@@ -399,12 +431,17 @@ impl GpuSolver {
                     .ok_or_else(|| GpuError::Backend("no supernodal structure".into()))?;
                 let analysed = t.elapsed().as_secs_f64();
                 let kernels = self.factor_kernels()?;
+                let t = std::time::Instant::now();
                 let recorded = supernodal::GpuFactor::allocate(
                     &self.ctx,
                     &f,
                     matrix::binding_limit(&self.ctx),
                 )
                 .and_then(|(g, place)| {
+                    log::debug!(
+                        "{kind:?} system's factor allocated on the GPU in {:.3} s",
+                        t.elapsed().as_secs_f64()
+                    );
                     let fac = crate::factorize::GpuFactorization::new(
                         &self.ctx, &kernels, &g, &place, &f, k,
                     )?;
@@ -420,18 +457,14 @@ impl GpuSolver {
         };
         g.analysis = self.chol_host.analysis_id();
         let recorded = t.elapsed().as_secs_f64() - analysed;
-        fac.submit_sliced(&self.ctx, &k.values, timed, slices)?;
         Ok(GpuMade {
             g,
             fac,
             kind,
             reused,
-            host: [
-                analysed,
-                recorded,
-                t.elapsed().as_secs_f64() - analysed - recorded,
-            ],
+            host: [analysed, recorded, 0.0],
             submitted: std::time::Instant::now(),
+            recorded_ahead: false,
         })
     }
 
@@ -459,9 +492,10 @@ impl GpuSolver {
             };
         self.supernodal_kernels(precision::Precision::F64)?;
         let [analysed, recorded, submitted] = made.host;
-        let how = match made.reused {
-            true => "the scale-driven kind's recording bound in",
-            false => "recorded in",
+        let how = match (made.reused, made.recorded_ahead) {
+            (true, _) => "the scale-driven kind's recording bound in",
+            (false, true) => "recorded ahead in",
+            (false, false) => "recorded in",
         };
         let sliced = match slices > 1 {
             true => format!(" in {slices} slices, {sliced} ahead"),
@@ -762,6 +796,9 @@ pub(super) struct GpuMade {
     reused: bool,
     host: [f64; 3],
     submitted: std::time::Instant,
+    /// Recorded before its submission was asked for
+    /// (`prepare_factor_on_device`).
+    recorded_ahead: bool,
 }
 
 impl GpuMade {
