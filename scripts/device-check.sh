@@ -6,26 +6,20 @@
 #      the Cholesky bench too with CHOLESKY=1), with debug logs;
 #   1b. the 100k rows again, GPU then CPU: the driver's shader cache is
 #      warm by then (step 1's GPU rows ran on a fresh machine);
-#   1c. the 1.2M and 100k GPU rows with every factor (the shape systems'
-#      and the scale factors') made on the GPU
-#      (METRICDEFORM_GPU_FACTORIZATION=gpu, solver_gpu::factorize), against
-#      step 1's host-made factors;
-#   2. the kernels test binary three times at 16 threads, each under a
-#      watchdog that dumps the threads' wait channels where it hangs (it
-#      hung in 4 of 10 such runs on an H200), and the conformance suite
-#      (the 1.2M parity test skipped: step 1 is that check);
-#   3. the 4.3M rows while time is left: GPU, GPU with every factor made
-#      on the GPU (its host peak against the CPU path's: the factors never
-#      on the host), then CPU (over 150 s on the H200's host);
-#   4. the 1.2M GPU row again with the scale-driven kind's factor started
-#      after the scale factors' set-up (`--factors-at-once off`), against
-#      step 1's default on a host of 8 threads or more (from the symbolic
-#      analysis on, beside that set-up): time and peak;
-#   5. the host's Cholesky factorization of K at 1.2M faces, faer's loop
-#      against the elimination tree's subtrees at once, on 1 thread and
-#      on all (benches/cholesky_factor.rs), and the fill orderings at
-#      1.2M: minimum degree, METIS and the positions' nested dissection,
-#      which runs on every thread (benches/fill_ordering.rs).
+#   1c. the 1.2M and 100k GPU rows with every factor made on the host by
+#      faer (METRICDEFORM_GPU_FACTORIZATION=host), against step 1's made
+#      on the GPU (the default on a hardware adapter, solver_gpu::factorize);
+#   2. the conformance suite (the 1.2M parity test skipped: step 1 is that
+#      check), then the kernels test binary twice at 16 threads, each under
+#      a watchdog that dumps the threads' wait channels where it hangs (it
+#      hung in 5 of 13 such runs on an H200);
+#   3. the 4.3M rows while time is left: GPU, CPU (over 110 s on the H200's
+#      host), then GPU with the factors made on the host (its host peak
+#      against the default's: those factors on the host);
+#   4. with CHOLESKY_FACTOR=1, the host's Cholesky factorization of K at
+#      1.2M faces, faer's loop against the elimination tree's subtrees at
+#      once, on 1 thread and on all (benches/cholesky_factor.rs), and the
+#      fill orderings at 1.2M (benches/fill_ordering.rs).
 # END (seconds, default 540) bounds the whole; logs go to $OUT/logs.tgz and
 # the table to $OUT/table.md.
 set -u
@@ -60,18 +54,22 @@ for b in gpu cpu; do
   grep -h '^| girths\|proxies' "$L/100k.$b.warm"
 done
 pack
-echo "== the factors made on the GPU, 1.2M and 100k (t=$(el))"
+echo "== the factors made on the host, 1.2M and 100k (t=$(el))"
 for r in 1m 100k; do
-  METRICDEFORM_GPU_FACTORIZATION=gpu CAP=120 bounded "$B/pipeline-bench" --row girths-homer-$r \
-    per_constraint --backend gpu --gpu-only > "$L/$r.gpu.gpufactor" 2> "$L/$r.gpu.gpufactor.err"
+  METRICDEFORM_GPU_FACTORIZATION=host CAP=120 bounded "$B/pipeline-bench" --row girths-homer-$r \
+    per_constraint --backend gpu --gpu-only > "$L/$r.gpu.hostfactor" 2> "$L/$r.gpu.hostfactor.err"
   echo "rc $?"
-  grep -h '^| girths\|proxies\|factored on the GPU' "$L/$r.gpu.gpufactor" "$L/$r.gpu.gpufactor.err"
+  grep -h '^| girths\|proxies' "$L/$r.gpu.hostfactor"
 done
+pack
+echo "== conformance (t=$(el))"
+CAP=90 bounded "$B/conformance" --skip gpu_parity_at_a_million_faces_on_hardware > "$L/conformance-tests.txt" 2>&1
+echo "rc $?"; tail -2 "$L/conformance-tests.txt"
 pack
 # Runs "$@" (a test binary) in the background, its output in $1. Still
 # running after $WATCH seconds (a whole run takes under 10 s on an H200),
 # it is stopped, and each thread's name, state, kernel wait channel,
-# system call and kernel stack go to $1.threads first: the kernels binary hung in 4 of 10
+# system call and kernel stack go to $1.threads first: the kernels binary hung in 5 of 13
 # runs at 16 threads on the H200 (BENCHMARKS.md).
 watched() {
   local out=$1; shift
@@ -93,32 +91,26 @@ watched() {
   fi
   wait $p
 }
-echo "== kernels tests, three runs at 16 threads under a watchdog (t=$(el))"
-for i in 1 2 3; do
+echo "== kernels tests, two runs at 16 threads under a watchdog (t=$(el))"
+for i in 1 2; do
   [ "$(left)" -gt 40 ] || break
   WATCH=30 watched "$L/kernels-tests.$i.txt" "$B/kernels" --test-threads 16; echo "run $i rc $?"
   tail -2 "$L/kernels-tests.$i.txt"
 done
-echo "== conformance (t=$(el))"
-CAP=90 bounded "$B/conformance" --skip gpu_parity_at_a_million_faces_on_hardware > "$L/conformance-tests.txt" 2>&1
-echo "rc $?"; tail -2 "$L/conformance-tests.txt"
 pack
-for b in gpu gpufactor cpu; do
+for b in gpu cpu gpuhost; do
   echo "== 4m $b (t=$(el), left $(left))"
   [ "$(left)" -gt 60 ] || break
-  f=host; [ $b = gpufactor ] && f=gpu
+  f=; [ $b = gpuhost ] && f=host
   METRICDEFORM_GPU_FACTORIZATION=$f bounded "$B/pipeline-bench" --row girths-homer-4m \
-    per_constraint --backend ${b%factor} --gpu-only > "$L/4m.$b" 2> "$L/4m.$b.err"; echo "rc $?"
-  grep -h '^| girths\|proxies\|factored on the GPU' "$L/4m.$b" "$L/4m.$b.err"
+    per_constraint --backend ${b%host} --gpu-only > "$L/4m.$b" 2> "$L/4m.$b.err"; echo "rc $?"
+  grep -h '^| girths\|proxies' "$L/4m.$b"
   pack
 done
-echo "== 1m gpu, the scale-driven factor after the scale factors' set-up (t=$(el))"
-bounded "$B/pipeline-bench" --row girths-homer-1m per_constraint --backend gpu --gpu-only \
-  --factors-at-once off > "$L/1m.gpu.off" 2> "$L/1m.gpu.off.err"; echo "rc $?"
-grep -h '^| girths' "$L/1m.gpu.off"
-pack
-echo "== host Cholesky factorization at 1.2M (t=$(el))"
-REPEAT=1 CAP=100 bounded "$B/factor-bench" --1m 2> "$L/factor.err" | tee "$L/factor.md"
-CAP=60 bounded "$B/ordering-bench" --1m 2> "$L/ordering.err" | tee "$L/ordering.md"
-pack
+if [ "${CHOLESKY_FACTOR:-0}" = 1 ]; then
+  echo "== host Cholesky factorization at 1.2M (t=$(el))"
+  REPEAT=1 CAP=100 bounded "$B/factor-bench" --1m 2> "$L/factor.err" | tee "$L/factor.md"
+  CAP=60 bounded "$B/ordering-bench" --1m 2> "$L/ordering.err" | tee "$L/ordering.md"
+  pack
+fi
 echo "== done t=$(el)"
