@@ -93,6 +93,10 @@ fn row(
     let text = format!("{job_text}\n[solver]\nmultipliers = \"{multipliers}\"\n");
     let job = Job::from_str(&text, JobFormat::Toml, &dir, name).unwrap();
     let t0 = Instant::now();
+    // As the binary does: a GPU run's device opened while the mesh is read.
+    if backend == SolverBackend::Gpu {
+        solver_gpu::open_ahead();
+    }
     let mut mesh = metricdeform::mesh::io::read_mesh(&job.mesh_path()).unwrap();
     match refine {
         Refine::Midpoint(k) => {

@@ -139,6 +139,7 @@ fn main() -> ExitCode {
         }
         Command::Demo { args, .. } => demo(&args),
     };
+    solver_gpu::drop_opened_ahead();
     match result {
         Ok(code) => ExitCode::from(code),
         Err(e) => {
@@ -218,19 +219,13 @@ fn demo(args: &RunArgs) -> Result<u8, Error> {
     run(&job, &args)
 }
 
-/// Resolve the backend: flag, then the job, then METRICDEFORM_BACKEND, then auto
-/// (the GPU on a hardware adapter from the measured crossover on, see
-/// [`auto_uses_gpu`]). Returns the solver backend and the adapter in use (GPU only).
-fn choose_backend(
-    flag: Option<Backend>,
-    job: &Job,
-    faces: usize,
-    quiet: bool,
-) -> Result<(SolverBackend, Option<String>), Error> {
+/// The backend asked for: flag, then the job, then METRICDEFORM_BACKEND,
+/// then auto.
+fn backend_name(flag: Option<Backend>, job: &Job) -> String {
     let from_env = std::env::var("METRICDEFORM_BACKEND")
         .ok()
         .filter(|s| !s.is_empty());
-    let name = match flag {
+    match flag {
         Some(Backend::Auto) => "auto".to_string(),
         Some(Backend::Cpu) => "cpu".to_string(),
         Some(Backend::Gpu) => "gpu".to_string(),
@@ -241,7 +236,19 @@ fn choose_backend(
             .clone()
             .or(from_env)
             .unwrap_or_else(|| "auto".into()),
-    };
+    }
+}
+
+/// Resolve the backend: flag, then the job, then METRICDEFORM_BACKEND, then auto
+/// (the GPU on a hardware adapter from the measured crossover on, see
+/// [`auto_uses_gpu`]). Returns the solver backend and the adapter in use (GPU only).
+fn choose_backend(
+    flag: Option<Backend>,
+    job: &Job,
+    faces: usize,
+    quiet: bool,
+) -> Result<(SolverBackend, Option<String>), Error> {
+    let name = backend_name(flag, job);
     if !BACKENDS.contains(&name.as_str()) {
         return Err(Error::bad(format!(
             "unknown backend '{name}' (from METRICDEFORM_BACKEND or the job): expected auto, cpu or gpu"
@@ -343,6 +350,11 @@ fn run(job: &Job, args: &RunArgs) -> Result<u8, Error> {
     check_outputs(job, &outputs)?;
     let mut options = Options::from_spec(&job.spec.solver);
     options.preview = args.preview;
+    // A run asked to be on the GPU opens its device while the mesh is read
+    // (`main` ends one not taken).
+    if backend_name(args.backend, job) == "gpu" {
+        solver_gpu::open_ahead();
+    }
     let problem = Problem::load(job)?;
     print_warnings(&problem.warnings);
     if problem.constraints.is_empty() && problem.handles.is_empty() && problem.curvature.is_empty()

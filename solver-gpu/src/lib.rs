@@ -194,7 +194,9 @@ pub use error::GpuError;
 pub use factorize::{factorization_work, Factorization};
 pub use precision::MixedPrecision;
 pub use preconditioner::{squared_laplacian_vcycles, Preconditioner, SQUARED_LAPLACIAN_SWEEPS};
-pub use solver::{gpu_available, open, open_with, GpuSolver, SolveStats};
+pub use solver::{
+    drop_opened_ahead, gpu_available, open, open_ahead, open_with, GpuSolver, SolveStats,
+};
 
 /// The default adapter's solver for a unit test, or `None` (the test passes
 /// without running) where there is none; with `REQUIRE_GPU=1` (as in CI)
