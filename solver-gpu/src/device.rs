@@ -440,13 +440,23 @@ fn choose_adapter(inst: &wgpu::Instance, name: Option<&str>) -> Result<wgpu::Ada
     .map_err(|e| GpuError::NoAdapter(format!("wgpu found no Vulkan adapter ({e})")))
 }
 
-/// The adapter `open()` would use, without opening a device.
+/// The adapter `open()` uses, once known: found by [`default_adapter`] or
+/// by a device opened with no adapter name ([`Context::open`]).
+static DEFAULT_ADAPTER: OnceLock<AdapterSummary> = OnceLock::new();
+
+/// The adapter `open()` would use, without opening a device: found once a
+/// process (wgpu's request took 0.3 s on the H200's host, on the way to the
+/// scale factors' set-up, which asks where its factor is made), then kept.
 pub(crate) fn default_adapter() -> Result<AdapterSummary, GpuError> {
+    if let Some(known) = DEFAULT_ADAPTER.get() {
+        return Ok(known.clone());
+    }
     let inst = instance();
     let name = std::env::var("WGPU_ADAPTER_NAME")
         .ok()
         .filter(|s| !s.is_empty());
-    choose_adapter(&inst, name.as_deref()).map(|a| summary(&a))
+    let found = choose_adapter(&inst, name.as_deref()).map(|a| summary(&a))?;
+    Ok(DEFAULT_ADAPTER.get_or_init(|| found).clone())
 }
 
 impl Context {
@@ -456,6 +466,9 @@ impl Context {
             .ok()
             .filter(|s| !s.is_empty());
         let adapter = choose_adapter(&inst, opts.adapter_name.as_deref().or(env.as_deref()))?;
+        if opts.adapter_name.is_none() {
+            DEFAULT_ADAPTER.get_or_init(|| summary(&adapter));
+        }
         let info = adapter.get_info();
         let mut limits = adapter.limits();
         if let Some(f) = &opts.adjust_limits {

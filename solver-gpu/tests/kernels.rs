@@ -1535,6 +1535,9 @@ fn a_factor_made_ahead_is_the_kinds_preconditioner() {
     let b = rng.vec(3 * a.n());
     let solve = |ahead: bool| -> Option<(Vec<f64>, usize, usize)> {
         let mut s = gpu()?;
+        // The host's factor made ahead (on a hardware adapter the GPU
+        // makes its factors by default).
+        s.set_factorization(solver_gpu::Factorization::Host);
         s.set_system_kind(SystemKind::ScaleDriven);
         assert!(
             s.isotropic_factorer(SystemKind::FineTune).is_none(),
@@ -1579,6 +1582,9 @@ fn a_factor_made_ahead_goes_up_beside_the_caller() {
     type Run = ((u64, u64), Vec<f64>, usize, [Option<u64>; 2]);
     let run = |ahead: bool| -> Option<Run> {
         let mut s = gpu()?;
+        // The host's factor made ahead (on a hardware adapter the GPU
+        // makes its factors by default).
+        s.set_factorization(solver_gpu::Factorization::Host);
         kernels::set_beside_uploads(&mut s, true);
         s.set_system_kind(SystemKind::ScaleDriven);
         prepare_shape(&mut s, a.clone(), &fixed);
@@ -1628,6 +1634,9 @@ fn a_factor_made_ahead_goes_up_beside_the_caller() {
     assert_eq!(bits(&plain), bits(&ahead));
     // Uploads on the caller's thread: the factor made ahead still taken.
     let mut s = gpu().unwrap();
+    // The host's factor made ahead (on a hardware adapter the GPU
+    // makes its factors by default).
+    s.set_factorization(solver_gpu::Factorization::Host);
     kernels::set_beside_uploads(&mut s, false);
     s.set_system_kind(SystemKind::ScaleDriven);
     prepare_shape(&mut s, a.clone(), &fixed);
@@ -1663,6 +1672,9 @@ fn a_factor_made_ahead_in_another_ordering_is_the_kinds_preconditioner() {
     // `other`'s pattern.
     let solve = |ahead: Option<bool>| -> Option<(Vec<f64>, usize, usize)> {
         let mut s = gpu()?;
+        // The host's factor made ahead (on a hardware adapter the GPU
+        // makes its factors by default).
+        s.set_factorization(solver_gpu::Factorization::Host);
         s.set_system_kind(SystemKind::ScaleDriven);
         prepare_shape(&mut s, a.clone(), &fixed);
         assert_eq!(s.active_preconditioner(), Preconditioner::Cholesky);
