@@ -289,9 +289,12 @@ fn squared_laplacian_on(kind: solver_cpu::SystemKind, w: metricdeform::shape::Sh
         }
         out
     };
+    // The host's factors (on a hardware adapter the GPU's are the
+    // default): `chol_on_gpu` below is the GPU's.
     let gpu = |p: Preconditioner| -> Box<dyn SpdSolver> {
         let mut g = solver_gpu::open().unwrap();
         g.set_preconditioner(p).unwrap();
+        g.set_factorization(solver_gpu::Factorization::Host);
         Box::new(g)
     };
     let cpu = solve(Box::new(solver_cpu::BlockPcgSolver::new()));

@@ -98,10 +98,11 @@ pub(crate) const VALUE_BUFFERS: usize = 2;
 /// a CPU emulation such as lavapipe).
 ///
 /// On an NVIDIA H200 against faer on its 16-core host (BENCHMARKS.md, "Real
-/// GPU", 2026-11-28) the factors made on the GPU made the whole run 1.39x
-/// faster at 108k faces, 1.27x at 1.2M and 1.15x at 4.3M, and the host's
-/// peak 0.58x at 1.2M and 0.44x at 4.3M (the factors never on the host). On
-/// lavapipe the GPU's factorization is the host's CPU emulating it.
+/// GPU", two calls on 2026-11-28) the factors made on the GPU made the whole
+/// run 1.27-1.39x faster at 108k faces, 1.27-1.43x at 1.2M and 1.10-1.15x at
+/// 4.3M, and the host's peak 0.53-0.58x at 1.2M and 0.44-0.47x at 4.3M (the
+/// factors never on the host). On lavapipe the GPU's factorization is the
+/// host's CPU emulating it.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Factorization {
     /// faer on the host (made ahead on other threads where the pipeline

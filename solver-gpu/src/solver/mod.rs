@@ -237,6 +237,7 @@ fn on_context(ctx: Context, t: std::time::Instant) -> Result<GpuSolver, GpuError
         chol_ahead: None,
         newton_kernels: None,
         warming: Vec::new(),
+        factor_warming: Vec::new(),
         newton: None,
     })
 }
@@ -424,6 +425,9 @@ pub struct GpuSolver {
     /// use) and the buffers of the last problem size.
     /// Threads compiling pipelines ahead ([`SpdSolver::warm_up`]), by kind.
     warming: Vec<(SystemKind, std::thread::JoinHandle<()>)>,
+    /// The threads compiling the GPU factorization's pipelines ahead, apart
+    /// from the rest of their kind's: a factorization waits for these alone.
+    factor_warming: Vec<std::thread::JoinHandle<()>>,
     newton_kernels: Option<power_sum_newton::NewtonKernels>,
     newton: Option<power_sum_newton::NewtonData>,
 }

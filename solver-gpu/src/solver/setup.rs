@@ -389,6 +389,7 @@ impl GpuSolver {
             },
             None => self.record_factor_on_gpu(kind, k)?,
         };
+        self.factor_pipelines_ready();
         let t = std::time::Instant::now();
         made.fac
             .submit_sliced(&self.ctx, &k.values, timed, slices)?;

@@ -63,11 +63,6 @@ impl GpuSolver {
                 let all = columns.last().copied().unwrap_or(1);
                 each(&newton.kernels(), &[all]);
                 each(&chol.kernels().each_ref(), &columns);
-                // Its own factor's, where it is made on the GPU (another
-                // solver's on the device than the shape systems').
-                if self.factors_on_gpu(kind) {
-                    each(&self.factor_kernels()?.kernels().each_ref(), &[1]);
-                }
             }
             SystemKind::ScaleDriven | SystemKind::FineTune => {
                 if kind == SystemKind::ScaleDriven {
@@ -80,15 +75,39 @@ impl GpuSolver {
                 each(&self.mixed_kernels()?.block_solve_kernels(), &columns);
                 each(&self.mixed_kernels()?.block_floor_kernels(), &[1]);
                 each(&chol.kernels().each_ref(), &columns);
-                // The factorization's kernels, where the kind's factor is
-                // made on the GPU (the scale-driven kind's: the fine-tune's
-                // are the same pipelines).
-                if kind == SystemKind::ScaleDriven && self.factors_on_gpu(kind) {
-                    each(&self.factor_kernels()?.kernels().each_ref(), &[1]);
-                }
             }
         }
-        let count = work.len();
+        // The factorization's kernels, where the kind's factor is made on the
+        // GPU (the scale factors' own; the scale-driven kind's, whose
+        // pipelines the fine-tune's uses too): on a thread of their own, the
+        // kind's first work on the device, which waits for them alone
+        // (`factor_pipelines_ready`). Shared by the solvers of the device: a
+        // second thread finds them made, or waits for the one making them.
+        let factor_kind = kind != SystemKind::FineTune && self.factors_on_gpu(kind);
+        let factor_work: Vec<(device::Kernel, usize)> = match factor_kind {
+            true => (self.factor_kernels()?.kernels().iter())
+                .map(|k| (k.clone(), 1))
+                .collect(),
+            false => Vec::new(),
+        };
+        let factor_count = factor_work.len();
+        if factor_count > 0 {
+            let ctx = self.ctx.clone();
+            let thread = std::thread::Builder::new()
+                .name(format!("factorization pipelines ahead ({kind:?})"))
+                .spawn(move || {
+                    for (k, c) in &factor_work {
+                        if let Err(e) = k.compile_ahead(&ctx, *c) {
+                            log::debug!("{e}, compiled ahead; left to its use");
+                        }
+                    }
+                });
+            match thread {
+                Ok(h) => self.factor_warming.push(h),
+                Err(e) => log::debug!("no thread to compile pipelines ahead: {e}"),
+            }
+        }
+        let count = work.len() + factor_count;
         let ctx = self.ctx.clone();
         let name = format!("pipelines ahead ({kind:?})");
         let thread = std::thread::Builder::new().name(name).spawn(move || {
@@ -117,6 +136,25 @@ impl GpuSolver {
         for (_, h) in self.warming.drain(..) {
             let _ = h.join();
         }
+        for h in self.factor_warming.drain(..) {
+            let _ = h.join();
+        }
+    }
+
+    /// Waits for the GPU factorization's pipelines compiled ahead: before
+    /// a factorization is submitted.
+    pub(super) fn factor_pipelines_ready(&mut self) {
+        if self.factor_warming.is_empty() {
+            return;
+        }
+        let t = std::time::Instant::now();
+        for h in self.factor_warming.drain(..) {
+            let _ = h.join();
+        }
+        log::debug!(
+            "waited {:.3} s for the factorization's pipelines compiled ahead",
+            t.elapsed().as_secs_f64()
+        );
     }
 
     /// Waits for the compilations ahead of the current system kind: before
