@@ -411,6 +411,11 @@ impl FactorizationPlan {
             }
         }
         let widest = (0..ns).map(|s| f.shape(s).0).max().unwrap_or(0);
+        // The supernodes wider than a tile, in order: the only ones with
+        // tiles past the first (a pass over them, not over every supernode,
+        // per tile column: homer 4.3M's scale factors have 1.19M supernodes
+        // and tile columns up to 34).
+        let wide: Vec<usize> = (0..ns).filter(|&s| f.shape(s).0 > BLOCK).collect();
         let task0 = tasks.len() / 3;
         tasks.extend(tiles);
         let q = FactorParams {
@@ -423,7 +428,7 @@ impl FactorizationPlan {
         for i in 1..widest.div_ceil(BLOCK) {
             let kb = i * BLOCK;
             let task0 = tasks.len() / 3;
-            for s in (0..ns).filter(|&s| f.shape(s).0 > kb) {
+            for &s in wide.iter().filter(|&&s| f.shape(s).0 > kb) {
                 tasks.extend([s as u32, 0, 0]);
             }
             let n_task = tasks.len() / 3 - task0;
@@ -444,7 +449,11 @@ impl FactorizationPlan {
             let kb = j * BLOCK;
             let task0 = tasks.len() / 3;
             let mut groups = 0u64;
-            for s in 0..ns {
+            let candidates: Box<dyn Iterator<Item = usize>> = match kb {
+                0 => Box::new(0..ns),
+                _ => Box::new(wide.iter().copied()),
+            };
+            for s in candidates {
                 let (m, q) = f.shape(s);
                 if m > kb && q > 0 {
                     tasks.extend([s as u32, u32::try_from(groups).ok()?, 0]);
