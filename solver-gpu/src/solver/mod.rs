@@ -1162,7 +1162,7 @@ impl SpdSolver for GpuSolver {
     /// Submitted now (the host goes on), kept for `kind`'s Cholesky set-up,
     /// which waits for it and takes it where it is of that `K`'s pattern.
     /// One already kept for another kind is dropped (its set-up factors).
-    /// The fine-tune's goes in [`FINE_TUNE_FACTOR_SLICES`] slices, the
+    /// The fine-tune's goes in `FINE_TUNE_FACTOR_SLICES` slices, the
     /// first now, the next ones by `advance_factor_on_device`.
     fn factor_isotropic_on_device(&mut self, kind: SystemKind, k: &SymCsc) {
         if !self.factors_isotropic_on_device(kind) {
