@@ -1487,7 +1487,7 @@ const SPOT_GPU_JOB: &str = "mesh = \"spot.obj\"\noutput = \"out.obj\"\n\
 /// `METRICDEFORM_GPU_FACTORIZATION=gpu`: every Cholesky factor is made on
 /// the GPU, submitted ahead (the scale factors' by their set-up, the
 /// scale-driven kind's while the host estimates the first scale factors,
-/// the fine-tune's in slices from the second outer iteration on), and the
+/// the fine-tune's in slices from the first solve on), and the
 /// result is the host-made factors' within the parity bound (1e-3 % of the
 /// bbox diagonal), with fewer bytes moved (the factors stay on the device).
 #[test]
@@ -1533,12 +1533,11 @@ fn gpu_factorization_gives_the_host_factors_result() {
             "{log}"
         );
         assert!(line("(FineTune system, F64)", "submitted ahead"), "{log}");
-        // In slices, the next ones submitted at the next outer iterations
-        // (each before the host makes the shape matrix), the rest by its
-        // set-up.
-        assert!(line("(FineTune system, F64)", "in 5 slices"), "{log}");
+        // In slices, the next ones submitted where the device idles (after
+        // each solve, before each shape matrix), the rest by its set-up.
+        assert!(line("(FineTune system, F64)", "in 10 slices"), "{log}");
         assert!(
-            log.contains("FineTune system's factor: slice 2 of 5 submitted to the GPU ahead"),
+            log.contains("FineTune system's factor: slice 2 of 10 submitted to the GPU ahead"),
             "{log}"
         );
         // The fine-tune's factorization is the scale-driven kind's

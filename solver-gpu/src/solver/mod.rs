@@ -44,17 +44,18 @@ mod warm;
 pub(crate) const BESIDE_UPLOADS_FROM_THREADS: usize = 4;
 
 /// Slices the fine-tune's factor made on the GPU ahead is submitted in
-/// (`factor_isotropic_on_device`): the first at the scale-driven phase's
-/// second outer iteration, one more at each next one
-/// (`advance_factor_on_device`), each before the host makes that
-/// iteration's shape matrix, the rest at the fine-tune's set-up. Whole, it
-/// ran before the second iteration's solve: on the H200 at homer 1.2M that
-/// solve took 0.314 s against 0.065-0.078 s for the next ones, at 4.3M
-/// 2.225 s against 0.25-0.31 s (the factorization alone 0.26 s and 2.07 s
-/// for the scale-driven kind's of the same pattern), while the host's part
-/// of each later outer iteration was 0.08-0.11 s and 0.48-0.53 s. Six
-/// outer iterations leave five such windows.
-pub(crate) const FINE_TUNE_FACTOR_SLICES: usize = 5;
+/// (`factor_isotropic_on_device`, then `advance_factor_on_device`): the
+/// pipeline submits one at each of the scale-driven phase's windows where
+/// the device would idle (after each solve, before each shape matrix), the
+/// rest at the fine-tune's set-up. Whole, it ran before the second
+/// iteration's solve: on the H200 at homer 1.2M that solve took 0.314 s
+/// against 0.065-0.078 s for the next ones, at 4.3M 2.225 s against
+/// 0.25-0.31 s (the factorization alone 0.26 s and 2.07 s). In five slices,
+/// one before each shape matrix, four of them outlasted their windows at
+/// 4.3M (about 0.3 s of host work each) by 0.02-0.32 s; ten, two an outer
+/// iteration, give the windows after the solves too (six outer iterations
+/// give eleven).
+pub(crate) const FINE_TUNE_FACTOR_SLICES: usize = 10;
 
 /// `thread`'s value, its panic carried on to the caller.
 fn joined<T>(thread: std::thread::JoinHandle<T>) -> T {
