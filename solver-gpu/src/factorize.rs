@@ -1067,6 +1067,21 @@ mod tests {
 
     /// The host's factor of `k` (supernodal or simplicial), its diagonal
     /// blocks inverted.
+    /// `f`'s factor allocated on the device (its values in buffers of at
+    /// most `limit` bytes), its placement, and the factorization of `k`'s
+    /// values into it recorded.
+    fn recorded(
+        ctx: &Context,
+        kernels: &Arc<FactorKernels>,
+        f: &SupernodalFactor,
+        k: &SymCsc,
+        limit: u64,
+    ) -> (GpuFactor, Placement, GpuFactorization) {
+        let (g, place) = GpuFactor::allocate(ctx, f, limit).unwrap();
+        let fac = GpuFactorization::new(ctx, kernels, &g, &place, f, k).unwrap();
+        (g, place, fac)
+    }
+
     fn host(k: &SymCsc, supernodal: bool) -> SupernodalFactor {
         let mut c = CholeskySolver::new();
         c.supernodal = supernodal;
@@ -1081,8 +1096,7 @@ mod tests {
     /// order; and the factorization's recorded work.
     fn gpu(ctx: &Context, f: &SupernodalFactor, k: &SymCsc) -> (Vec<f64>, KernelWork) {
         let kernels = FactorKernels::new(ctx).unwrap();
-        let (g, place) = GpuFactor::allocate(ctx, f, crate::matrix::binding_limit(ctx)).unwrap();
-        let fac = GpuFactorization::new(ctx, &kernels, &g, &place, f, k).unwrap();
+        let (g, place, fac) = recorded(ctx, &kernels, f, k, crate::matrix::binding_limit(ctx));
         fac.run(ctx, &k.values).unwrap();
         let got: Vec<f64> = ctx.read(&g.vals[0], g.nnz, &mut None, None).unwrap();
         let mut out = vec![0.0; g.nnz];
@@ -1160,14 +1174,12 @@ mod tests {
         let kernels = FactorKernels::new(ctx).unwrap();
         let limit = crate::matrix::binding_limit(ctx);
         let read = |g: &GpuFactor| ctx.read::<f64>(&g.vals[0], g.nnz, &mut None, None).unwrap();
-        let (g, place) = GpuFactor::allocate(ctx, &f, limit).unwrap();
-        let fac = GpuFactorization::new(ctx, &kernels, &g, &place, &f, &k).unwrap();
+        let (g, _, fac) = recorded(ctx, &kernels, &f, &k, limit);
         fac.run(ctx, &k.values).unwrap();
         let whole = read(&g);
         let steps = fac.recorded.steps.len();
         assert!(steps >= 8, "{steps} dispatches");
-        let (g2, place) = GpuFactor::allocate(ctx, &f, limit).unwrap();
-        let sliced = GpuFactorization::new(ctx, &kernels, &g2, &place, &f, &k).unwrap();
+        let (g2, _, sliced) = recorded(ctx, &kernels, &f, &k, limit);
         sliced.submit_sliced(ctx, &k.values, false, 4).unwrap();
         assert_eq!(sliced.slices_submitted(), (1, 4));
         assert!(sliced.submit_next(ctx).unwrap());
@@ -1204,8 +1216,7 @@ mod tests {
         let bytes = 8 * f.nnz() as u64;
         let mut out = Vec::new();
         for limit in [crate::matrix::binding_limit(ctx), bytes * 3 / 5] {
-            let (g, place) = GpuFactor::allocate(ctx, &f, limit).unwrap();
-            let fac = GpuFactorization::new(ctx, &kernels, &g, &place, &f, &k).unwrap();
+            let (g, _, fac) = recorded(ctx, &kernels, &f, &k, limit);
             fac.run(ctx, &k.values).unwrap();
             let mut got = Vec::new();
             for b in &g.vals {
@@ -1245,8 +1256,7 @@ mod tests {
         let limit = crate::matrix::binding_limit(ctx);
         let read =
             |g: &GpuFactor| -> Vec<f64> { ctx.read(&g.vals[0], g.nnz, &mut None, None).unwrap() };
-        let (g, place) = GpuFactor::allocate(ctx, &f, limit).unwrap();
-        let fac = GpuFactorization::new(ctx, &kernels, &g, &place, &f, &k).unwrap();
+        let (g, _, fac) = recorded(ctx, &kernels, &f, &k, limit);
         fac.run(ctx, &k.values).unwrap();
         let first = read(&g);
         let twin = g.twin(ctx).unwrap();
@@ -1280,8 +1290,7 @@ mod tests {
         let k = two_ring_grid(20, 15);
         let f = host(&k, true);
         let kernels = FactorKernels::new(ctx).unwrap();
-        let (g, place) = GpuFactor::allocate(ctx, &f, crate::matrix::binding_limit(ctx)).unwrap();
-        let fac = GpuFactorization::new(ctx, &kernels, &g, &place, &f, &k).unwrap();
+        let (g, place, fac) = recorded(ctx, &kernels, &f, &k, crate::matrix::binding_limit(ctx));
         let mut bad = k.values.clone();
         bad[k.col_ptr[k.n / 2]] = -1.0;
         assert_eq!(fac.run(ctx, &bad), Err(GpuError::NotPositiveDefinite));
