@@ -1528,8 +1528,6 @@ impl EarlyAnalysis {
     }
 }
 
-/// The analysis made from the start, waited for and handed to the shape
-/// solver, where it was made.
 /// The fine-tune's factor made on the device in slices
 /// ([`SpdSolver::factor_isotropic_on_device`], then
 /// [`SpdSolver::advance_factor_on_device`]): its first slice where `k` is
@@ -1547,6 +1545,8 @@ fn fine_tune_factor_slice(model: &mut ShapeModel, k: &mut Option<SymCsc>) {
     }
 }
 
+/// The analysis made from the start, waited for and handed to the shape
+/// solver, where it was made.
 fn adopt_early_analysis(model: &mut ShapeModel, analysis: EarlyAnalysis) {
     if let Some(analysed) = analysis.join_logged() {
         model.solver().adopt_isotropic_analysis(analysed);
