@@ -22,6 +22,7 @@
 //! iterate, stays f64. At 4.3M faces this saves 78 MB of the history's 416.
 
 use glam::{DVec3, Vec3};
+use rayon::prelude::*;
 use std::collections::VecDeque;
 
 /// What the last [`Anderson::step`] did.
@@ -52,6 +53,19 @@ fn dot(a: &[DVec3], b: &[DVec3]) -> f64 {
     a.iter().zip(b).map(|(p, q)| p.dot(*q)).sum()
 }
 
+/// `df . b` in f64, `df` widened from f32.
+fn dot_wide(df: &[Vec3], b: &[DVec3]) -> f64 {
+    df.iter().zip(b).map(|(p, q)| p.as_dvec3().dot(*q)).sum()
+}
+
+/// `dot_wide` of two f32 columns.
+fn dot_narrow(a: &[Vec3], b: &[Vec3]) -> f64 {
+    a.iter()
+        .zip(b)
+        .map(|(p, q)| p.as_dvec3().dot(q.as_dvec3()))
+        .sum()
+}
+
 impl Anderson {
     /// `depth`: number of difference columns kept (0 gives the plain iteration).
     pub fn new(depth: usize) -> Anderson {
@@ -67,7 +81,10 @@ impl Anderson {
     /// `x`: the current iterate; `g`: its image `G(x)`. Returns the next iterate.
     pub fn step(&mut self, x: &[DVec3], g: Vec<DVec3>) -> (Vec<DVec3>, AndersonInfo) {
         assert_eq!(x.len(), g.len());
-        let f: Vec<DVec3> = g.iter().zip(x).map(|(a, b)| *a - *b).collect();
+        // Each vertex's terms on rayon's threads; each dot product on one
+        // thread, in vertex order, several at once (at homer 4.3M the step
+        // took 0.07-0.19 s on one thread).
+        let f: Vec<DVec3> = g.par_iter().zip(x).map(|(a, b)| *a - *b).collect();
         let norm = dot(&f, &f).sqrt();
         let mut restarted = false;
         if let Some((f_old, g_old, norm_old)) = self.last.take() {
@@ -77,14 +94,14 @@ impl Anderson {
                 restarted = true;
             } else if self.depth > 0 {
                 let df: Vec<Vec3> = f
-                    .iter()
+                    .par_iter()
                     .zip(&f_old)
                     .map(|(n, o)| (*n - *o).as_vec3())
                     .collect();
                 drop(f_old);
                 // Reuse the old image's storage for its difference.
                 let mut dg = g_old;
-                dg.iter_mut().zip(&g).for_each(|(d, n)| *d = *n - *d);
+                dg.par_iter_mut().zip(&g).for_each(|(d, n)| *d = *n - *d);
                 if self.df.len() == self.depth {
                     self.df.pop_front();
                     self.dg.pop_front();
@@ -94,10 +111,19 @@ impl Anderson {
             }
         }
         let gamma = self.coefficients(&f);
-        let mut next = g.clone();
-        for (gm, dg) in gamma.iter().zip(&self.dg) {
-            next.iter_mut().zip(dg).for_each(|(n, d)| *n -= *gm * *d);
-        }
+        // Each vertex's columns subtracted in column order, as one pass per
+        // column subtracts them.
+        let dgs: Vec<&Vec<DVec3>> = self.dg.iter().take(gamma.len()).collect();
+        let next: Vec<DVec3> = g
+            .par_iter()
+            .enumerate()
+            .map(|(i, g)| {
+                gamma
+                    .iter()
+                    .zip(&dgs)
+                    .fold(*g, |n, (gm, dg)| n - *gm * dg[i])
+            })
+            .collect();
         let info = AndersonInfo {
             columns: gamma.len(),
             residual: norm,
@@ -120,22 +146,25 @@ impl Anderson {
                 return Vec::new();
             }
             let mut a = vec![0.0; m * m];
-            let mut b = vec![0.0; m];
-            for i in 0..m {
-                b[i] = self.df[i]
-                    .iter()
-                    .zip(f)
-                    .map(|(p, q)| p.as_dvec3().dot(*q))
-                    .sum();
-                for j in 0..=i {
-                    let v = self.df[i]
-                        .iter()
-                        .zip(&self.df[j])
-                        .map(|(p, q)| p.as_dvec3().dot(q.as_dvec3()))
-                        .sum();
-                    a[i * m + j] = v;
-                    a[j * m + i] = v;
-                }
+            // b_i = dF_i . f, then the Gram matrix's lower triangle, each
+            // product on a thread of its own.
+            let pairs: Vec<(usize, Option<usize>)> = (0..m)
+                .map(|i| (i, None))
+                .chain((0..m).flat_map(|i| (0..=i).map(move |j| (i, Some(j)))))
+                .collect();
+            let df = &self.df;
+            let products: Vec<f64> = pairs
+                .par_iter()
+                .map(|&(i, j)| match j {
+                    None => dot_wide(&df[i], f),
+                    Some(j) => dot_narrow(&df[i], &df[j]),
+                })
+                .collect();
+            let b = products[..m].to_vec();
+            for (&(i, j), &v) in pairs[m..].iter().zip(&products[m..]) {
+                let j = j.unwrap_or(i);
+                a[i * m + j] = v;
+                a[j * m + i] = v;
             }
             let scale = (0..m).map(|i| a[i * m + i]).fold(0.0, f64::max);
             if scale > 0.0 {
@@ -236,6 +265,44 @@ mod tests {
     }
 
     /// Depth 0 is the plain iteration: the next iterate is exactly `G(x)`.
+    /// Four steps of depth 2 on 300k vertices give the same bits on 1 and
+    /// 4 of rayon's threads (each vertex's terms apart, each dot product on
+    /// one thread), and a mix of 2 columns to compare.
+    #[test]
+    fn the_steps_are_the_same_on_any_number_of_threads() {
+        let n = 300_000;
+        let image = |k: usize| -> Vec<DVec3> {
+            (0..n)
+                .map(|i| {
+                    let t = (i as f64 * 0.37 + k as f64).sin();
+                    DVec3::new(t, t * t * 0.5, 1.0 / (2.0 + t)) * (1.0 - 0.3f64.powi(k as i32))
+                })
+                .collect()
+        };
+        let on = |threads: usize| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap()
+                .install(|| {
+                    let mut aa = Anderson::new(2);
+                    let mut x = image(0);
+                    let mut columns = 0;
+                    for k in 1..5 {
+                        let (next, info) = aa.step(&x, image(k));
+                        columns = columns.max(info.columns);
+                        x = next;
+                    }
+                    let bits: Vec<[u64; 3]> =
+                        x.iter().map(|p| p.to_array().map(f64::to_bits)).collect();
+                    (bits, columns)
+                })
+        };
+        let one = on(1);
+        assert_eq!(one.1, 2, "a mix of two columns");
+        assert!(one == on(4));
+    }
+
     #[test]
     fn depth_zero_is_the_plain_step() {
         let mut aa = Anderson::new(0);

@@ -63,6 +63,7 @@ pub mod job;
 pub mod memory;
 pub mod mesh;
 pub mod metrics;
+pub mod ordered;
 pub mod output;
 pub mod pipeline;
 pub mod problem;

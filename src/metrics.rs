@@ -4,6 +4,7 @@
 //! scale factors `s` (for the scale-factor estimation of Eqs. 9, 11, 13).
 
 use crate::mesh::{triangle_area_gradient, Mesh};
+use crate::ordered::{fill_at_once, sum_in_order};
 use crate::selection::{FaceSet, SurfaceCurve};
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
@@ -69,10 +70,15 @@ impl Constraint {
     pub fn measure(&self, mesh: &Mesh, x: &[DVec3]) -> f64 {
         match &self.selection {
             Selection::Curve(c) => c.length(mesh, x),
-            Selection::Region(r) => r.faces.iter().map(|&f| mesh.face_area(x, f as usize)).sum(),
+            Selection::Region(r) => {
+                sum_in_order(r.faces.len(), |i| mesh.face_area(x, r.faces[i] as usize))
+            }
             Selection::Whole => match self.kind {
                 MetricKind::Volume if self.skip.is_empty() => {
                     self.orientation * mesh.signed_volume(x)
+                }
+                MetricKind::Area if self.skip.is_empty() => {
+                    sum_in_order(mesh.num_faces(), |f| mesh.face_area(x, f))
                 }
                 MetricKind::Volume => {
                     self.orientation
@@ -195,16 +201,31 @@ impl Constraint {
                     VolumeShare::Area => {
                         let vol = self.measure(mesh, x);
                         let total: f64 = self.whole_faces(mesh).map(|f| areas[f]).sum();
-                        out.extend(
-                            self.whole_faces(mesh)
-                                .map(|f| (f as u32, vol * areas[f] / total)),
-                        );
+                        if self.skip.is_empty() {
+                            fill_at_once(out, mesh.num_faces(), |f| {
+                                (f as u32, vol * areas[f] / total)
+                            });
+                        } else {
+                            out.extend(
+                                self.whole_faces(mesh)
+                                    .map(|f| (f as u32, vol * areas[f] / total)),
+                            );
+                        }
+                    }
+                    VolumeShare::Tetrahedra if self.skip.is_empty() => {
+                        fill_at_once(out, mesh.num_faces(), |f| {
+                            let [a, b, c] = mesh.corners(x, f);
+                            (f as u32, self.orientation * a.dot(b.cross(c)) / 6.0)
+                        })
                     }
                     VolumeShare::Tetrahedra => out.extend(self.whole_faces(mesh).map(|f| {
                         let [a, b, c] = mesh.corners(x, f);
                         (f as u32, self.orientation * a.dot(b.cross(c)) / 6.0)
                     })),
                 },
+                _ if self.skip.is_empty() => {
+                    fill_at_once(out, mesh.num_faces(), |f| (f as u32, areas[f]))
+                }
                 _ => out.extend(self.whole_faces(mesh).map(|f| (f as u32, areas[f]))),
             },
         }

@@ -14,7 +14,9 @@ use crate::shape::{
 };
 use crate::{Error, Mesh, Result};
 use glam::DVec3;
-use rayon::iter::{IntoParallelIterator, ParallelIterator};
+use rayon::iter::{
+    IndexedParallelIterator, IntoParallelIterator, IntoParallelRefMutIterator, ParallelIterator,
+};
 use solver_cpu::cholesky::NESTED_DISSECTION_FROM;
 use solver_cpu::{
     coordinate_nested_dissection, coordinate_nested_dissection_of_pairs,
@@ -739,9 +741,10 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
             // Eq. 3: scale factors on the current mesh.
             let (s, max_ds) = match scale_system.as_mut() {
                 Some(sys) => {
-                    for (sc, c) in cons.iter_mut().zip(&p.constraints) {
-                        c.face_coefficients_into(mesh, &x, &areas, o.volume_share, &mut sc.coeffs);
-                    }
+                    // The constraints at once (a volume's walks every face).
+                    cons.par_iter_mut().zip(&p.constraints).for_each(|(sc, c)| {
+                        c.face_coefficients_into(mesh, &x, &areas, o.volume_share, &mut sc.coeffs)
+                    });
                     parts[0] = t_iter.elapsed().as_secs_f64();
                     let waited = sys.counters().device_seconds;
                     let (s, info) = sys.estimate(&cons, o.multipliers)?;
@@ -792,6 +795,7 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
             // c_i of Eq. 21; the curvature regions' factors in the first step only.
             let t_curvature = Instant::now();
             let c = curvature_targets(
+                &model,
                 mesh,
                 &areas,
                 &s,

@@ -335,8 +335,16 @@ impl Problem {
 
 /// Largest relative metric error.
 pub fn max_error(p: &Problem, x: &[DVec3]) -> f64 {
+    residuals(p, x).iter().fold(0.0, |m, r| m.max(r.abs()))
+}
+
+/// Each constraint's relative residual at `x`, the constraints measured at
+/// once on rayon's threads (a volume or a whole-mesh area walks every
+/// face: 0.04-0.1 s at homer 4.3M).
+pub fn residuals(p: &Problem, x: &[DVec3]) -> Vec<f64> {
+    use rayon::prelude::*;
     p.constraints
-        .iter()
-        .map(|c| c.residual(&p.mesh, x).abs())
-        .fold(0.0, f64::max)
+        .par_iter()
+        .map(|c| c.residual(&p.mesh, x))
+        .collect()
 }

@@ -97,12 +97,10 @@ impl Mesh {
 
     /// Signed volume (sum of signed tetrahedra to the origin) for positions `x`.
     pub fn signed_volume(&self, x: &[DVec3]) -> f64 {
-        (0..self.faces.len())
-            .map(|f| {
-                let [a, b, c] = self.corners(x, f);
-                a.dot(b.cross(c)) / 6.0
-            })
-            .sum()
+        crate::ordered::sum_in_order(self.faces.len(), |f| {
+            let [a, b, c] = self.corners(x, f);
+            a.dot(b.cross(c)) / 6.0
+        })
     }
 
     /// Axis-aligned bounding box diagonal length of the vertices that faces use.
