@@ -600,8 +600,8 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
     let mut fine_tune_ahead = None;
     let mut scale_system_dropped = None;
     if !p.constraints.is_empty() || has_handles || has_curvature {
-        let make_scale_system = || -> Result<Option<ScaleFactorSystem>> {
-            scale_early.map(ScaleEarly::join).transpose()
+        let make_scale_system = |early: Option<ScaleEarly>| {
+            move || -> Result<Option<ScaleFactorSystem>> { early.map(ScaleEarly::join).transpose() }
         };
         // Where asked for, the scale-driven kind's factor of the input's
         // `K` starts as soon as `K`'s symbolic analysis is made, beside the
@@ -642,36 +642,59 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
             isotropic_part_logged(model, mesh, x0, &o.shape, SystemKind::ScaleDriven)
         };
         let mut scale_driven_k = None;
-        let (mut scale_system, early, mut fine_tune_k) =
-            if analysis_early.is_some() && !factors_ahead {
-                // Assembled while the scale factors' set-up runs on; so is
-                // the scale-driven kind's factorization on the device
-                // recorded, on the analysis (its factor is submitted once
-                // the first scale factors are estimated): at homer 4.3M on
-                // the H200 its recording took 0.80 s after that estimation,
-                // while the scale factors' set-up ran on for 1.5 s after the
-                // main thread had assembled `K`.
-                let k = fine_tune_k(&model);
-                scale_driven_k = scale_driven_on_device.then(|| scale_driven_k_of(&model));
-                if let Some(k) = &scale_driven_k {
-                    if let Some(analysis) = analysis_early.take() {
-                        adopt_early_analysis(&mut model, analysis);
-                    }
-                    model
-                        .solver()
-                        .prepare_factor_on_device(SystemKind::ScaleDriven, k);
+        // The scale-driven kind's factor went to the device in slices
+        // beside the scale factors' set-up; its other slices go once the
+        // first scale factors are estimated.
+        let mut scale_driven_sliced = false;
+        let (mut scale_system, early, mut fine_tune_k) = if analysis_early.is_some()
+            && !factors_ahead
+        {
+            // Assembled while the scale factors' set-up runs on; so is
+            // the scale-driven kind's factorization on the device
+            // recorded, on the analysis: at homer 4.3M on the H200 its
+            // recording took 0.80 s after the first estimation, while
+            // the scale factors' set-up ran on for 1.5 s after the main
+            // thread had assembled `K`. The scale-driven kind's `K`
+            // comes first (the fine-tune's took 0.72 s before it there).
+            scale_driven_k = scale_driven_on_device.then(|| scale_driven_k_of(&model));
+            if let Some(k) = &scale_driven_k {
+                if let Some(analysis) = analysis_early.take() {
+                    adopt_early_analysis(&mut model, analysis);
                 }
-                (make_scale_system()?, None, k)
-            } else {
-                let analysis = analysis_early.take();
-                scale_system_beside_analysis(
-                    &mut model,
-                    make_scale_system,
-                    early,
-                    analysis,
-                    fine_tune_k,
-                )?
-            };
+                model
+                    .solver()
+                    .prepare_factor_on_device(SystemKind::ScaleDriven, k);
+            }
+            let mut k = None;
+            let mut assemble = |model: &ShapeModel| k = fine_tune_k(model);
+            match scale_driven_k.take() {
+                Some(sd) => {
+                    scale_driven_sliced =
+                        scale_driven_factor_beside(&mut model, &sd, scale_early.as_ref(), assemble);
+                    // Else submitted once the first scale factors are
+                    // estimated (the device runs its work in the order
+                    // given, and the estimation waits for its own).
+                    scale_driven_k = (!scale_driven_sliced).then_some(sd);
+                }
+                None => assemble(&model),
+            }
+            let scale_system = make_scale_system(scale_early.take())()?;
+            // One more slice while the host makes the first estimation's
+            // coefficients.
+            if scale_driven_sliced {
+                model.solver().advance_factor_on_device();
+            }
+            (scale_system, None, k)
+        } else {
+            let analysis = analysis_early.take();
+            scale_system_beside_analysis(
+                &mut model,
+                make_scale_system(scale_early.take()),
+                early,
+                analysis,
+                fine_tune_k,
+            )?
+        };
         crate::memory::release_free_memory();
         // Else the first shape matrix's `K` (it depends on the positions and
         // weights only) is factored while the first scale factors are
@@ -686,7 +709,7 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
                 None,
             )
         });
-        if scale_driven_ahead.is_none() && scale_driven_on_device {
+        if scale_driven_ahead.is_none() && scale_driven_on_device && !scale_driven_sliced {
             // Its factor is of the analysis made from the start (the
             // positions' ordering), waited for here.
             if let Some(analysis) = analysis_early.take() {
@@ -809,7 +832,10 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
             if let Some(k) = scale_driven_k.take() {
                 model
                     .solver()
-                    .factor_isotropic_on_device(SystemKind::ScaleDriven, &k);
+                    .factor_isotropic_on_device(SystemKind::ScaleDriven, &k, 1);
+            }
+            if std::mem::take(&mut scale_driven_sliced) {
+                finish_factor_submission(&mut model);
             }
             // A slice of the fine-tune's factor while the host makes the
             // shape matrix (the scale factors' estimation, which waits for
@@ -1036,6 +1062,14 @@ impl ScaleEarly {
         }
     }
 
+    /// Whether its thread is done (no thread: nothing runs beside).
+    fn is_done(&self) -> bool {
+        match self {
+            ScaleEarly::Started(handle, _) => handle.is_finished(),
+            ScaleEarly::Later(..) => true,
+        }
+    }
+
     /// The system set up (joined, or made here).
     fn join(self) -> Result<ScaleFactorSystem> {
         match self {
@@ -1134,7 +1168,9 @@ impl ScaleSetUp {
                 // Submitted to the device, which factors while this thread
                 // hands the system over; its set-up waits for it. Where the
                 // device makes no factor, the set-up makes it on the host.
-                None => solver.factor_isotropic_on_device(SystemKind::ScaleFactors, &host.hessian),
+                None => {
+                    solver.factor_isotropic_on_device(SystemKind::ScaleFactors, &host.hessian, 1)
+                }
             }
         }
         ScaleFactorSystem::with_hessian(host.hessian, solver)
@@ -1532,6 +1568,21 @@ impl EarlyAnalysis {
     }
 }
 
+/// Slices a factor made on the device ahead is submitted in
+/// ([`SpdSolver::factor_isotropic_on_device`], then
+/// [`SpdSolver::advance_factor_on_device`]). The fine-tune's: the
+/// pipeline submits one at each of the scale-driven phase's windows where
+/// the device would idle (after each solve, before each shape matrix), the
+/// rest at the fine-tune's set-up. Whole, it ran before the second
+/// iteration's solve: on the H200 at homer 1.2M that solve took 0.314 s
+/// against 0.065-0.078 s for the next ones, at 4.3M 2.225 s against
+/// 0.25-0.31 s (the factorization alone 0.26 s and 2.07 s). In five slices,
+/// one before each shape matrix, four of them outlasted their windows at
+/// 4.3M (about 0.3 s of host work each) by 0.02-0.32 s; ten, two an outer
+/// iteration, give the windows after the solves too (six outer iterations
+/// give eleven).
+const FACTOR_SLICES: usize = 10;
+
 /// The fine-tune's factor made on the device in slices
 /// ([`SpdSolver::factor_isotropic_on_device`], then
 /// [`SpdSolver::advance_factor_on_device`]): its first slice where `k` is
@@ -1542,11 +1593,52 @@ impl EarlyAnalysis {
 /// work each) by 0.02-0.32 s.
 fn fine_tune_factor_slice(model: &mut ShapeModel, k: &mut Option<SymCsc>) {
     match k.take() {
-        Some(k) => model
-            .solver()
-            .factor_isotropic_on_device(SystemKind::FineTune, &k),
-        None => model.solver().advance_factor_on_device(),
+        Some(k) => {
+            model
+                .solver()
+                .factor_isotropic_on_device(SystemKind::FineTune, &k, FACTOR_SLICES)
+        }
+        None => {
+            model.solver().advance_factor_on_device();
+        }
     }
+}
+
+/// The scale-driven kind's factor on the device in slices while the scale
+/// factors' set-up runs on (on the H200 at homer 4.3M its recording was
+/// done 1.4 s before the scale factors' factor was submitted, and its 2.0 s
+/// on the device came after the first estimation): the first slice now,
+/// then one each time the device has done the last, until that set-up is
+/// done, so that the scale factors' factor waits for one slice at most.
+/// The fine-tune's `K` is assembled while the first slice runs. Whether
+/// the factor was started (its other slices go to the device once the
+/// first scale factors are estimated: [`finish_factor_submission`]).
+fn scale_driven_factor_beside(
+    model: &mut ShapeModel,
+    k: &SymCsc,
+    scale_early: Option<&ScaleEarly>,
+    mut meanwhile: impl FnMut(&ShapeModel),
+) -> bool {
+    let set_up_runs = || scale_early.is_some_and(|e| !e.is_done());
+    if !set_up_runs() {
+        meanwhile(model);
+        return false;
+    }
+    model
+        .solver()
+        .factor_isotropic_on_device(SystemKind::ScaleDriven, k, FACTOR_SLICES);
+    meanwhile(model);
+    loop {
+        model.solver().wait_for_device();
+        if !set_up_runs() || !model.solver().advance_factor_on_device() {
+            return true;
+        }
+    }
+}
+
+/// The slices of the factor on the device not yet submitted, at once.
+fn finish_factor_submission(model: &mut ShapeModel) {
+    while model.solver().advance_factor_on_device() {}
 }
 
 /// The analysis made from the start, waited for and handed to the shape
@@ -1759,6 +1851,138 @@ mod tests {
             row_idx,
             values,
         }
+    }
+
+    type Calls = std::sync::Arc<std::sync::Mutex<Vec<String>>>;
+
+    /// A solver that records the calls of a factor made on its device in
+    /// slices; its `release`-th wait for the device lets the scale factors'
+    /// set-up (a thread waiting for it) end, and returns once it has.
+    struct SliceCalls {
+        calls: Calls,
+        left: usize,
+        waits: usize,
+        release: usize,
+        set_up: Option<(std::sync::mpsc::Sender<()>, std::sync::mpsc::Receiver<()>)>,
+    }
+
+    impl SpdSolver for SliceCalls {
+        fn prepare(&mut self, _a: &SymCsc) -> std::result::Result<(), SolverError> {
+            Ok(())
+        }
+        fn prepare_blocks(
+            &mut self,
+            _a: &solver_cpu::BlockSym3,
+            _fixed: &[bool],
+        ) -> std::result::Result<(), SolverError> {
+            Ok(())
+        }
+        fn solve_in_place(
+            &mut self,
+            _rhs: &mut [f64],
+            _ncols: usize,
+        ) -> std::result::Result<solver_cpu::SolveInfo, SolverError> {
+            Err(SolverError::NotPrepared)
+        }
+        fn counters(&self) -> solver_cpu::WorkCounters {
+            solver_cpu::WorkCounters::default()
+        }
+        fn name(&self) -> &str {
+            "slice calls"
+        }
+        fn factor_isotropic_on_device(&mut self, kind: SystemKind, _k: &SymCsc, slices: usize) {
+            self.calls
+                .lock()
+                .unwrap()
+                .push(format!("{kind:?} in {slices}"));
+            self.left = slices - 1;
+        }
+        fn advance_factor_on_device(&mut self) -> bool {
+            let next = self.left > 0;
+            if next {
+                self.left -= 1;
+                self.calls.lock().unwrap().push("slice".into());
+            }
+            next
+        }
+        fn wait_for_device(&mut self) {
+            self.calls.lock().unwrap().push("wait".into());
+            self.waits += 1;
+            if self.waits == self.release {
+                let (go, ended) = self.set_up.take().unwrap();
+                go.send(()).unwrap();
+                ended.recv().unwrap();
+                // Past its last statement: the thread is done.
+                std::thread::sleep(std::time::Duration::from_millis(50));
+            }
+        }
+    }
+
+    /// The scale-driven kind's factor goes to the device in slices while
+    /// the scale factors' set-up runs: the first at once, the fine-tune's
+    /// `K` made meanwhile, then one after each wait for the device until
+    /// that set-up is done; the rest at once later. Where the set-up is
+    /// done first, nothing is submitted beside it.
+    #[test]
+    fn the_scale_driven_factor_goes_in_slices_while_the_scale_factors_are_set_up() {
+        let mesh = Mesh::from_arrays(
+            &[[0.0; 3], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+            &[[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]],
+        )
+        .unwrap();
+        let topo = crate::mesh::topology::Topology::build(&mesh);
+        let k = grid_k(3, 3);
+        let run = |release: usize, set_up_runs: bool| {
+            let calls = Calls::default();
+            let (go, wait_go) = std::sync::mpsc::channel::<()>();
+            let (ended_tx, ended) = std::sync::mpsc::channel::<()>();
+            let thread = std::thread::spawn(move || {
+                if set_up_runs {
+                    wait_go.recv().unwrap();
+                }
+                ended_tx.send(()).unwrap();
+                Err(crate::Error::Internal("no scale factors here".into()))
+            });
+            if !set_up_runs {
+                ended.recv().unwrap();
+                while !thread.is_finished() {
+                    std::thread::yield_now();
+                }
+            }
+            let solver = SliceCalls {
+                calls: calls.clone(),
+                left: 0,
+                waits: 0,
+                release,
+                set_up: Some((go, ended)),
+            };
+            let mut model =
+                ShapeModel::with_solver(&mesh, &topo, Vec::new(), Box::new(solver)).unwrap();
+            let early = ScaleEarly::Started(thread, std::sync::mpsc::channel().0);
+            let log = calls.clone();
+            let sliced = scale_driven_factor_beside(&mut model, &k, Some(&early), |_| {
+                log.lock().unwrap().push("fine-tune K".into())
+            });
+            finish_factor_submission(&mut model);
+            assert!(early.join().is_err());
+            let calls = calls.lock().unwrap().clone();
+            (sliced, calls)
+        };
+        let slices = |n: usize| vec!["slice".to_string(); n];
+        let (sliced, calls) = run(3, true);
+        assert!(sliced);
+        let mut expected = vec!["ScaleDriven in 10".to_string(), "fine-tune K".into()];
+        for _ in 0..2 {
+            expected.push("wait".into());
+            expected.push("slice".into());
+        }
+        expected.push("wait".into());
+        expected.extend(slices(10 - 1 - 2));
+        assert_eq!(calls, expected);
+        // The set-up done before the factor's recording: nothing beside it.
+        let (sliced, calls) = run(0, false);
+        assert!(!sliced);
+        assert_eq!(calls, vec!["fine-tune K".to_string()]);
     }
 
     /// Made from the symbolic analysis on, the scale-driven kind's factor

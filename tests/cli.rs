@@ -1486,8 +1486,9 @@ const SPOT_GPU_JOB: &str = "mesh = \"spot.obj\"\noutput = \"out.obj\"\n\
 
 /// `METRICDEFORM_GPU_FACTORIZATION=gpu`: every Cholesky factor is made on
 /// the GPU, submitted ahead (the scale factors' by their set-up, the
-/// scale-driven kind's while the host estimates the first scale factors,
-/// the fine-tune's in slices from the first solve on), and the
+/// scale-driven kind's in slices beside that set-up where it still runs,
+/// else while the host estimates the first scale factors, the
+/// fine-tune's in slices from the first solve on), and the
 /// result is the host-made factors' within the parity bound (1e-3 % of the
 /// bbox diagonal), with fewer bytes moved (the factors stay on the device).
 #[test]
@@ -1526,8 +1527,7 @@ fn gpu_factorization_gives_the_host_factors_result() {
             line("(ScaleDriven system, F64)", "submitted ahead"),
             "{log}"
         );
-        // Recorded while the scale factors' set-up ran on, submitted after
-        // the first scale factors.
+        // Recorded while the scale factors' set-up ran on.
         assert!(
             line("(ScaleDriven system, F64)", "recorded ahead in"),
             "{log}"

@@ -478,9 +478,11 @@ pub trait SpdSolver: Send {
     /// Starts `kind`'s factor of `k` (a `K` of the kind, or the scale
     /// factors' matrix, of the analysed pattern) on the device and returns
     /// at once, for that kind's set-up to take instead of factoring its
-    /// first matrix (as [`SpdSolver::adopt_isotropic_factor`]'s). Ignored
-    /// (the default) where it does not apply.
-    fn factor_isotropic_on_device(&mut self, _kind: SystemKind, _k: &SymCsc) {}
+    /// first matrix (as [`SpdSolver::adopt_isotropic_factor`]'s): in
+    /// `slices` submissions (1: at once), the first now, the next by
+    /// [`SpdSolver::advance_factor_on_device`], the rest by the set-up.
+    /// Ignored (the default) where it does not apply.
+    fn factor_isotropic_on_device(&mut self, _kind: SystemKind, _k: &SymCsc, _slices: usize) {}
     /// Prepares [`SpdSolver::factor_isotropic_on_device`] of `kind` and
     /// `k`'s pattern now (on a GPU, the factorization's recording), so that
     /// that call only submits it: called where the host would otherwise
@@ -489,8 +491,17 @@ pub trait SpdSolver: Send {
     /// The next slice of a factor [`SpdSolver::factor_isotropic_on_device`]
     /// submitted in slices (one for a set-up several solves away), where
     /// one is left: called where the device would otherwise idle while the
-    /// host works. Ignored (the default) where it does not apply.
-    fn advance_factor_on_device(&mut self) {}
+    /// host works. Whether a slice was submitted (`false`, the default:
+    /// none was left, or none applies).
+    fn advance_factor_on_device(&mut self) -> bool {
+        false
+    }
+    /// Waits until the device has done the work given to it (by this
+    /// solver and the solvers on its device): between the slices of a
+    /// factor ([`SpdSolver::advance_factor_on_device`]) where another
+    /// thread's work may come, so that it waits for one slice at most.
+    /// Nothing (the default) where there is no device.
+    fn wait_for_device(&mut self) {}
     /// The model of the next shape matrices (`None`: no model), for backends
     /// whose preconditioner builds on it; ignored by the others.
     fn set_shape_model(&mut self, _model: Option<std::sync::Arc<ShapeOperatorModel>>) {}

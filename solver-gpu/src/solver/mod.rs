@@ -43,20 +43,6 @@ mod warm;
 ///   first solve, against 2.4 s before.
 pub(crate) const BESIDE_UPLOADS_FROM_THREADS: usize = 4;
 
-/// Slices the fine-tune's factor made on the GPU ahead is submitted in
-/// (`factor_isotropic_on_device`, then `advance_factor_on_device`): the
-/// pipeline submits one at each of the scale-driven phase's windows where
-/// the device would idle (after each solve, before each shape matrix), the
-/// rest at the fine-tune's set-up. Whole, it ran before the second
-/// iteration's solve: on the H200 at homer 1.2M that solve took 0.314 s
-/// against 0.065-0.078 s for the next ones, at 4.3M 2.225 s against
-/// 0.25-0.31 s (the factorization alone 0.26 s and 2.07 s). In five slices,
-/// one before each shape matrix, four of them outlasted their windows at
-/// 4.3M (about 0.3 s of host work each) by 0.02-0.32 s; ten, two an outer
-/// iteration, give the windows after the solves too (six outer iterations
-/// give eleven).
-pub(crate) const FINE_TUNE_FACTOR_SLICES: usize = 10;
-
 /// `thread`'s value, its panic carried on to the caller.
 fn joined<T>(thread: std::thread::JoinHandle<T>) -> T {
     match thread.join() {
@@ -1163,16 +1149,11 @@ impl SpdSolver for GpuSolver {
     /// Submitted now (the host goes on), kept for `kind`'s Cholesky set-up,
     /// which waits for it and takes it where it is of that `K`'s pattern.
     /// One already kept for another kind is dropped (its set-up factors).
-    /// The fine-tune's goes in `FINE_TUNE_FACTOR_SLICES` slices, the
-    /// first now, the next ones by `advance_factor_on_device`.
-    fn factor_isotropic_on_device(&mut self, kind: SystemKind, k: &SymCsc) {
+    fn factor_isotropic_on_device(&mut self, kind: SystemKind, k: &SymCsc, slices: usize) {
         if !self.factors_isotropic_on_device(kind) {
             return;
         }
-        let slices = match kind {
-            SystemKind::FineTune => FINE_TUNE_FACTOR_SLICES,
-            _ => 1,
-        };
+        let slices = slices.max(1);
         match self.start_factor_on_gpu(kind, k, false, slices) {
             Ok(made) => {
                 log::debug!(
@@ -1204,17 +1185,31 @@ impl SpdSolver for GpuSolver {
     }
 
     /// The next slice of the factor kept ahead, where one is left.
-    fn advance_factor_on_device(&mut self) {
+    fn advance_factor_on_device(&mut self) -> bool {
         let Some((kind, made)) = &self.gpu_factor_ahead else {
-            return;
+            return false;
         };
         match made.submit_next(&self.ctx) {
             Ok(Some((i, n))) => {
-                log::debug!("{kind:?} system's factor: slice {i} of {n} submitted to the GPU ahead")
+                log::debug!(
+                    "{kind:?} system's factor: slice {i} of {n} submitted to the GPU ahead"
+                );
+                true
             }
-            Ok(None) => {}
+            Ok(None) => false,
             // Its set-up waits for it and finds the device's error.
-            Err(e) => log::debug!("{kind:?} system's factor on the GPU ahead: {e}"),
+            Err(e) => {
+                log::debug!("{kind:?} system's factor on the GPU ahead: {e}");
+                false
+            }
+        }
+    }
+
+    /// The queue drained (a counted wait). A device's error is left to the
+    /// set-up that waits for its factor, which reports it.
+    fn wait_for_device(&mut self) {
+        if let Err(e) = self.ctx.wait() {
+            log::debug!("waiting for the device between a factor's slices: {e}");
         }
     }
 
