@@ -1,6 +1,7 @@
 //! The pipeline's host steps between the solves, one at a time, on
 //! `girths-homer` at a pipeline row's size: what each outer iteration and
-//! each fine-tune step does on the host besides assembling and solving.
+//! each fine-tune step does on the host besides assembling and solving
+//! (and the scale factors' matrix, made once a run).
 //!
 //! `cargo bench --bench host_steps -- [100k|1m|4m]` (default `1m`); run it
 //! with `RAYON_NUM_THREADS=1` beside the default to see what rayon's
@@ -18,6 +19,7 @@ use metricdeform::constrained_step::step_from_solutions;
 use metricdeform::job::{Job, JobFormat};
 use metricdeform::metrics::VolumeShare;
 use metricdeform::problem::{max_error, Problem};
+use metricdeform::scale_factors::{Regulariser, ScaleFactorSystem};
 use metricdeform::shape::{CurvatureTarget, ShapeModel};
 use std::path::Path;
 use std::time::Instant;
@@ -82,6 +84,12 @@ fn main() {
         println!("| {name} | {fast:.4} | {median:.4} |");
     };
     let areas = mesh.face_areas(&x);
+    row(
+        "the scale factors' matrix (set-up, once a run)",
+        timed(|| {
+            ScaleFactorSystem::hessian(&p.topo.face_pairs, &areas, 1.0, 0.01, Regulariser::Area)
+        }),
+    );
     row("face areas", timed(|| mesh.face_areas(&x)));
     let mut coeffs: Vec<Vec<(u32, f64)>> = vec![Vec::new(); p.constraints.len()];
     row(

@@ -175,20 +175,66 @@ pub struct SymCsc {
 
 impl SymCsc {
     /// Build the pattern from (row, col) pairs (either triangle); values start at zero.
+    /// Each column's rows are its entries' and its diagonal, ascending, each
+    /// once: counted into place (no vector per column: at 4.3M faces, the
+    /// scale factors' 4.3M columns), each column sorted on rayon's threads.
     pub fn from_pattern(n: usize, entries: impl IntoIterator<Item = (usize, usize)>) -> SymCsc {
-        let mut cols: Vec<Vec<usize>> = vec![Vec::new(); n];
-        for (r, c) in entries {
-            let (r, c) = if r >= c { (r, c) } else { (c, r) };
-            cols[c].push(r);
+        use rayon::prelude::*;
+        let lower: Vec<(usize, usize)> = entries
+            .into_iter()
+            .map(|(r, c)| if r >= c { (r, c) } else { (c, r) })
+            .collect();
+        // Every column holds its diagonal.
+        let mut start = vec![1usize; n + 1];
+        start[n] = 0;
+        for &(_, c) in &lower {
+            start[c] += 1;
         }
+        let mut at = 0;
+        for s in start.iter_mut() {
+            let count = *s;
+            *s = at;
+            at += count;
+        }
+        let mut rows = vec![0usize; at];
+        let mut next: Vec<usize> = start[..n].to_vec();
+        for (c, slot) in next.iter_mut().enumerate() {
+            rows[*slot] = c;
+            *slot += 1;
+        }
+        for &(r, c) in &lower {
+            rows[next[c]] = r;
+            next[c] += 1;
+        }
+        drop((lower, next));
+        // Each column sorted and its repeats dropped, in place: its length.
+        let mut columns: Vec<&mut [usize]> = Vec::with_capacity(n);
+        let mut rest = &mut rows[..];
+        for c in 0..n {
+            let (column, tail) = std::mem::take(&mut rest).split_at_mut(start[c + 1] - start[c]);
+            columns.push(column);
+            rest = tail;
+        }
+        let lens: Vec<usize> = columns
+            .into_par_iter()
+            .with_min_len(1024)
+            .map(|column| {
+                column.sort_unstable();
+                let mut kept = 0;
+                for i in 0..column.len() {
+                    if i == 0 || column[i] != column[kept - 1] {
+                        column[kept] = column[i];
+                        kept += 1;
+                    }
+                }
+                kept
+            })
+            .collect();
         let mut col_ptr = Vec::with_capacity(n + 1);
-        let mut row_idx = Vec::new();
         col_ptr.push(0);
-        for (c, mut rows) in cols.into_iter().enumerate() {
-            rows.push(c);
-            rows.sort_unstable();
-            rows.dedup();
-            row_idx.extend_from_slice(&rows);
+        let mut row_idx = Vec::with_capacity(lens.iter().sum());
+        for (c, &len) in lens.iter().enumerate() {
+            row_idx.extend_from_slice(&rows[start[c]..start[c] + len]);
             col_ptr.push(row_idx.len());
         }
         let nnz = row_idx.len();
@@ -537,6 +583,43 @@ pub trait SpdSolver: Send {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The pattern counted into place is the one of a sorted vector per
+    /// column: entries in both triangles, repeated, on the diagonal, and
+    /// columns with none but their diagonal.
+    #[test]
+    fn the_pattern_is_each_columns_sorted_rows() {
+        let n = 5000;
+        let mut entries: Vec<(usize, usize)> = (0..40_000)
+            .map(|i| ((i * 7919) % n, (i * 104_729 + i / 3) % n))
+            .filter(|&(r, c)| r % 97 != 13 && c % 97 != 13)
+            .collect();
+        entries.extend([(3, 3), (7, 2), (2, 7), (7, 2)]);
+        let mut cols: Vec<Vec<usize>> = vec![Vec::new(); n];
+        for &(r, c) in &entries {
+            let (r, c) = if r >= c { (r, c) } else { (c, r) };
+            cols[c].push(r);
+        }
+        let (mut col_ptr, mut row_idx) = (vec![0], Vec::new());
+        for (c, mut rows) in cols.into_iter().enumerate() {
+            rows.push(c);
+            rows.sort_unstable();
+            rows.dedup();
+            row_idx.extend(rows);
+            col_ptr.push(row_idx.len());
+        }
+        let a = SymCsc::from_pattern(n, entries);
+        assert_eq!(a.col_ptr, col_ptr);
+        assert_eq!(a.row_idx, row_idx);
+        assert_eq!(a.values, vec![0.0; row_idx.len()]);
+        assert_eq!(
+            a.col_ptr[14] - a.col_ptr[13],
+            1,
+            "column 13: its diagonal alone"
+        );
+        let empty = SymCsc::from_pattern(0, std::iter::empty());
+        assert_eq!((empty.col_ptr, empty.row_idx), (vec![0], vec![]));
+    }
 
     /// A random-ish SPD block matrix: Laplacian of a path plus a diagonal shift.
     /// [`spd`]'s scalar part (no held rows).
