@@ -9,13 +9,18 @@
 #   1c. the 1.2M and 100k GPU rows with every factor made on the host by
 #      faer (METRICDEFORM_GPU_FACTORIZATION=host), against step 1's made
 #      on the GPU (the default on a hardware adapter, solver_gpu::factorize);
+#   1d. the 1.2M and 100k GPU rows with glibc's freed blocks kept for reuse
+#      (MALLOC_MMAP_MAX_=0 and a large MALLOC_TRIM_THRESHOLD_: no fresh
+#      pages to fault in for each vector over 32 MiB; BENCHMARKS.md, "Host
+#      steps between the solves");
 #   2. the conformance suite (the 1.2M parity test skipped: step 1 is that
 #      check), then the kernels test binary twice at 16 threads, each under
 #      a watchdog that dumps the threads' wait channels where it hangs (it
 #      hung in 5 of 13 such runs on an H200);
-#   3. the 4.3M rows while time is left: GPU, CPU (over 110 s on the H200's
-#      host), then GPU with the factors made on the host (its host peak
-#      against the default's: those factors on the host);
+#   3. the 4.3M rows while time is left: GPU, GPU with the freed blocks
+#      kept (as 1d), CPU (over 110 s on the H200's host), then GPU with the
+#      factors made on the host (its host peak against the default's:
+#      those factors on the host);
 #   4. with CHOLESKY_FACTOR=1, the host's Cholesky factorization of K at
 #      1.2M faces, faer's loop against the elimination tree's subtrees at
 #      once, on 1 thread and on all (benches/cholesky_factor.rs), and the
@@ -62,6 +67,16 @@ for r in 1m 100k; do
   grep -h '^| girths\|proxies' "$L/$r.gpu.hostfactor"
 done
 pack
+echo "== freed blocks kept for reuse, 1.2M and 100k (t=$(el))"
+# "$@" with glibc's freed blocks kept for reuse.
+kept() { MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=17179869184 "$@"; }
+for r in 1m 100k; do
+  CAP=60 kept bounded "$B/pipeline-bench" --row girths-homer-$r per_constraint \
+    --backend gpu --gpu-only > "$L/$r.gpu.kept" 2> "$L/$r.gpu.kept.err"
+  echo "rc $?"
+  grep -h '^| girths\|proxies' "$L/$r.gpu.kept"
+done
+pack
 echo "== conformance (t=$(el))"
 CAP=90 bounded "$B/conformance" --skip gpu_parity_at_a_million_faces_on_hardware > "$L/conformance-tests.txt" 2>&1
 echo "rc $?"; tail -2 "$L/conformance-tests.txt"
@@ -98,12 +113,13 @@ for i in 1 2; do
   tail -2 "$L/kernels-tests.$i.txt"
 done
 pack
-for b in gpu cpu gpuhost; do
+for b in gpu gpukept cpu gpuhost; do
   echo "== 4m $b (t=$(el), left $(left))"
   [ "$(left)" -gt 60 ] || break
   f=; [ $b = gpuhost ] && f=host
-  METRICDEFORM_GPU_FACTORIZATION=$f bounded "$B/pipeline-bench" --row girths-homer-4m \
-    per_constraint --backend ${b%host} --gpu-only > "$L/4m.$b" 2> "$L/4m.$b.err"; echo "rc $?"
+  k=; [ $b = gpukept ] && k=kept
+  METRICDEFORM_GPU_FACTORIZATION=$f $k bounded "$B/pipeline-bench" --row girths-homer-4m \
+    per_constraint --backend ${b%%[hk]*} --gpu-only > "$L/4m.$b" 2> "$L/4m.$b.err"; echo "rc $?"
   grep -h '^| girths\|proxies' "$L/4m.$b"
   pack
 done
