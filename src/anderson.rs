@@ -280,23 +280,19 @@ mod tests {
                 .collect()
         };
         let on = |threads: usize| {
-            rayon::ThreadPoolBuilder::new()
-                .num_threads(threads)
-                .build()
-                .unwrap()
-                .install(|| {
-                    let mut aa = Anderson::new(2);
-                    let mut x = image(0);
-                    let mut columns = 0;
-                    for k in 1..5 {
-                        let (next, info) = aa.step(&x, image(k));
-                        columns = columns.max(info.columns);
-                        x = next;
-                    }
-                    let bits: Vec<[u64; 3]> =
-                        x.iter().map(|p| p.to_array().map(f64::to_bits)).collect();
-                    (bits, columns)
-                })
+            crate::ordered::on_threads(threads, || {
+                let mut aa = Anderson::new(2);
+                let mut x = image(0);
+                let mut columns = 0;
+                for k in 1..5 {
+                    let (next, info) = aa.step(&x, image(k));
+                    columns = columns.max(info.columns);
+                    x = next;
+                }
+                let bits: Vec<[u64; 3]> =
+                    x.iter().map(|p| p.to_array().map(f64::to_bits)).collect();
+                (bits, columns)
+            })
         };
         let one = on(1);
         assert_eq!(one.1, 2, "a mix of two columns");

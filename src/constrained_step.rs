@@ -254,17 +254,13 @@ mod tests {
             .collect();
         let ycols: Vec<f64> = (0..k * n).map(|i| entry(i, 5) * 1e-2).collect();
         let on = |threads: usize| {
-            rayon::ThreadPoolBuilder::new()
-                .num_threads(threads)
-                .build()
-                .unwrap()
-                .install(|| {
-                    let y: Vec<f64> = (0..n).map(|i| entry(i, 9)).collect();
-                    let refs: Vec<&[f64]> = rows.iter().map(|r| &r[..]).collect();
-                    let step = step_from_solutions(y, &[0.1, -0.2, 0.05], &refs, &ycols).unwrap();
-                    let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<u64>>();
-                    (bits(&step.dx), bits(&step.lambda))
-                })
+            crate::ordered::on_threads(threads, || {
+                let y: Vec<f64> = (0..n).map(|i| entry(i, 9)).collect();
+                let refs: Vec<&[f64]> = rows.iter().map(|r| &r[..]).collect();
+                let step = step_from_solutions(y, &[0.1, -0.2, 0.05], &refs, &ycols).unwrap();
+                let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<u64>>();
+                (bits(&step.dx), bits(&step.lambda))
+            })
         };
         let one = on(1);
         assert!(one.1.iter().all(|&l| l != 0), "every column in the step");

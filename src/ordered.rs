@@ -58,6 +58,17 @@ pub fn fill_at_once<T: Send + Copy + Default>(
         .for_each(|(i, t)| *t = term(i));
 }
 
+/// `f` run in a pool of `threads` of rayon's threads (tests that compare
+/// results on several thread counts).
+#[cfg(test)]
+pub(crate) fn on_threads<T: Send>(threads: usize, f: impl FnOnce() -> T + Send) -> T {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .unwrap()
+        .install(f)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -1356,22 +1356,18 @@ mod tests {
         let x = perturbed(&mesh, 0.05);
         let (s, c, w) = varied_job(nf, mesh.num_vertices());
         let on = |threads: usize| {
-            rayon::ThreadPoolBuilder::new()
-                .num_threads(threads)
-                .build()
-                .unwrap()
-                .install(|| {
-                    assert_eq!(vertex_ranges(mesh.num_vertices(), nf).len() - 1, threads);
-                    let mut model = ShapeModel::new(&mesh, &topo, Vec::new()).unwrap();
-                    model
-                        .assemble_with_positions(&mesh, &x, &s, &c, &w, false)
-                        .unwrap();
-                    let m = model.matrix();
-                    let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<u64>>();
-                    let rings: Vec<f64> = m.ring_c.iter().flatten().copied().collect();
-                    let grad = model.gradient_at(&vec![0.0; 3 * mesh.num_vertices()]);
-                    (bits(&m.iso.values), bits(&rings), bits(&grad))
-                })
+            crate::ordered::on_threads(threads, || {
+                assert_eq!(vertex_ranges(mesh.num_vertices(), nf).len() - 1, threads);
+                let mut model = ShapeModel::new(&mesh, &topo, Vec::new()).unwrap();
+                model
+                    .assemble_with_positions(&mesh, &x, &s, &c, &w, false)
+                    .unwrap();
+                let m = model.matrix();
+                let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<u64>>();
+                let rings: Vec<f64> = m.ring_c.iter().flatten().copied().collect();
+                let grad = model.gradient_at(&vec![0.0; 3 * mesh.num_vertices()]);
+                (bits(&m.iso.values), bits(&rings), bits(&grad))
+            })
         };
         let one = on(1);
         assert!(one.2.iter().any(|&g| g != 0), "a gradient to compare");
@@ -1396,15 +1392,11 @@ mod tests {
         let one = vertex_mean_scale(&mesh, &areas, &s);
         assert_eq!(one[n as usize], 1.0, "the vertex in no face");
         assert!(one.iter().any(|&c| c != 1.0), "means to compare");
-        let by_ranges = rayon::ThreadPoolBuilder::new()
-            .num_threads(4)
-            .build()
-            .unwrap()
-            .install(|| {
-                assert_eq!(vertex_ranges(mesh.num_vertices(), nf).len() - 1, 4);
-                let model = ShapeModel::new(&mesh, &topo, Vec::new()).unwrap();
-                model.vertex_mean_scale(&mesh, &areas, &s)
-            });
+        let by_ranges = crate::ordered::on_threads(4, || {
+            assert_eq!(vertex_ranges(mesh.num_vertices(), nf).len() - 1, 4);
+            let model = ShapeModel::new(&mesh, &topo, Vec::new()).unwrap();
+            model.vertex_mean_scale(&mesh, &areas, &s)
+        });
         let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<u64>>();
         assert_eq!(bits(&one), bits(&by_ranges));
     }
