@@ -59,7 +59,10 @@ fn main() {
     let p = Problem::build(&job, mesh, &job.mesh_path()).unwrap();
     let mesh = &p.mesh;
     let (n, nf) = (mesh.num_vertices(), mesh.num_faces());
+    let _ = env_logger::builder().format_timestamp_millis().try_init();
+    let t = Instant::now();
     let model = ShapeModel::new(mesh, &p.topo, Vec::new()).unwrap();
+    let model_seconds = t.elapsed().as_secs_f64();
     // Positions moved as an outer iteration moves them, and its images.
     let x: Vec<DVec3> = mesh
         .positions
@@ -78,6 +81,7 @@ fn main() {
         .collect();
     let threads = rayon::current_num_threads();
     println!("girths-homer-{size}: {nf} faces, {n} vertices, {threads} of rayon's threads");
+    println!("shape model set up in {model_seconds:.3} s (once; RUST_LOG=debug for its parts)");
     println!("| step | fastest s | median s |");
     println!("|---|---|---|");
     let row = |name: &str, (fast, median): (f64, f64)| {

@@ -389,8 +389,10 @@ impl ShapeModel {
                 / topo.edges.len() as f64
         };
 
+        let t_pattern = std::time::Instant::now();
         let (col_ptr, row_idx) = two_ring_pattern(&cot.start, &cot.idx);
         let mut h = IsoRingSym3::new(n, col_ptr, row_idx, mv.clone());
+        let pattern_seconds = t_pattern.elapsed().as_secs_f64();
         // E_m's Hessian is isotropic ((c c^T) (x) I3): one scalar per block slot.
         let same_rings = cot.start == mv.start && cot.idx == mv.idx;
         let hm = if same_rings {
@@ -398,6 +400,7 @@ impl ShapeModel {
         } else {
             em_hessian(&cot, &vertex_area, &h)
         };
+        let t_slots = std::time::Instant::now();
         let slot = |a: u32, b: u32| -> u32 {
             h.iso
                 .slot(a as usize, b as usize)
@@ -446,16 +449,18 @@ impl ShapeModel {
         let mv_slots: Arc<[u32]> = mv_slots.into();
         h.ring_slots = Some(mv_slots.clone());
         log::debug!(
-            "shape model: {} vertices, {} blocks, set up in {:.3} s (its Laplacians {:.3} s), \
-             resident {:.0} MiB",
+            "shape model: {} vertices, {} blocks, set up in {:.3} s (its Laplacians {:.3} s, \
+             pattern {pattern_seconds:.3} s, slots {:.3} s), resident {:.0} MiB",
             n,
             h.iso.row_idx.len(),
             t_setup.elapsed().as_secs_f64(),
             laplacians_seconds,
+            t_slots.elapsed().as_secs_f64(),
             crate::memory::resident_memory_mb()
         );
 
         // Held vertices: unreferenced ones, and one per component without handles.
+        let t_held = std::time::Instant::now();
         let mut referenced = vec![false; n];
         for f in &mesh.faces {
             for &v in f {
@@ -481,6 +486,10 @@ impl ShapeModel {
                 free.push(verts);
             }
         }
+        log::debug!(
+            "shape model: held vertices and components in {:.3} s",
+            t_held.elapsed().as_secs_f64()
+        );
         let mut model = ShapeModel {
             n,
             cot,
