@@ -4,12 +4,14 @@
 //! exact-penalty line search.
 
 use crate::constrained_step::{
-    constrained_step_given, constrained_step_warm, Linearized, Multipliers,
+    constrained_step_given, constrained_step_stacked, constrained_step_warm, Linearized,
+    Multipliers,
 };
 use crate::problem::Problem;
 use crate::shape::{ShapeModel, ShapeWeights};
 use crate::Result;
 use glam::DVec3;
+use rayon::prelude::*;
 use solver_cpu::SystemKind;
 
 /// The fine-tune's settings.
@@ -81,40 +83,67 @@ pub fn fine_tune(
             break;
         }
         let t_step = std::time::Instant::now();
-        let rows: Vec<Vec<f64>> = p
-            .constraints
-            .iter()
-            .map(|con| {
-                let mut r = vec![0.0; 3 * n];
-                con.add_gradient(mesh, &x, 1.0 / con.target, &mut r);
-                for v in 0..n {
-                    if model.fixed[v] {
-                        r[3 * v..3 * v + 3].iter_mut().for_each(|e| *e = 0.0);
+        let t_rows;
+        // The constraints' gradients (`L`'s rows, held dofs zero), at once.
+        let gradient_into = |con: &crate::metrics::Constraint, r: &mut [f64]| {
+            con.add_gradient(mesh, &x, 1.0 / con.target, r);
+            for v in 0..n {
+                if model.fixed[v] {
+                    r[3 * v..3 * v + 3].iter_mut().for_each(|e| *e = 0.0);
+                }
+            }
+        };
+        let solve_y = y0.is_none();
+        let y_given = |dx: &[f64]| -> Option<Vec<f64>> {
+            y0.as_ref()
+                .map(|y0| y0.iter().zip(dx).map(|(a, d)| a - d).collect())
+        };
+        let step = match params.multipliers {
+            // The rows written straight into the right-hand sides, after
+            // `-grad E` where `y` is solved: no copies.
+            Multipliers::PerConstraint => {
+                let first = usize::from(solve_y) * 3 * n;
+                let mut rhs = vec![0.0; first + p.constraints.len() * 3 * n];
+                let (neg, rows) = rhs.split_at_mut(first);
+                rows.par_chunks_mut(3 * n)
+                    .zip(&p.constraints)
+                    .for_each(|(r, con)| gradient_into(con, r));
+                if solve_y {
+                    for (o, g) in neg.iter_mut().zip(model.gradient_at(&dx)) {
+                        *o = -g;
                     }
                 }
-                r
-            })
-            .collect();
-        let mut lin = Linearized {
-            values: c.clone(),
-            rows,
+                t_rows = t_step.elapsed().as_secs_f64();
+                constrained_step_stacked(model.solver(), y_given(&dx), &c, rhs, &mut warm)?
+            }
+            Multipliers::PerKind => {
+                let rows: Vec<Vec<f64>> = p
+                    .constraints
+                    .iter()
+                    .map(|con| {
+                        let mut r = vec![0.0; 3 * n];
+                        gradient_into(con, &mut r);
+                        r
+                    })
+                    .collect();
+                let lin = Linearized {
+                    values: c.clone(),
+                    rows,
+                }
+                .grouped(groups);
+                t_rows = t_step.elapsed().as_secs_f64();
+                match y_given(&dx) {
+                    None => {
+                        let neg: Vec<f64> = model.gradient_at(&dx).iter().map(|v| -v).collect();
+                        constrained_step_warm(model.solver(), neg, lin, &mut warm)?
+                    }
+                    Some(y) => constrained_step_given(model.solver(), y, lin, &mut warm)?,
+                }
+            }
         };
-        if params.multipliers == Multipliers::PerKind {
-            lin = lin.grouped(groups);
+        if solve_y {
+            y0 = Some(warm.drain(..3 * n).collect());
         }
-        let t_rows = t_step.elapsed().as_secs_f64();
-        let step = match &y0 {
-            None => {
-                let neg: Vec<f64> = model.gradient_at(&dx).iter().map(|v| -v).collect();
-                let step = constrained_step_warm(model.solver(), neg, lin, &mut warm)?;
-                y0 = Some(warm.drain(..3 * n).collect());
-                step
-            }
-            Some(y0) => {
-                let y = y0.iter().zip(&dx).map(|(a, d)| a - d).collect();
-                constrained_step_given(model.solver(), y, lin, &mut warm)?
-            }
-        };
         let lam_max = match params.multipliers {
             Multipliers::PerConstraint => step.lambda.iter().fold(0.0f64, |m, l| m.max(l.abs())),
             Multipliers::PerKind => groups
