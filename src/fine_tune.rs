@@ -54,8 +54,10 @@ pub fn fine_tune(
     model.assemble_with_positions(mesh, xstart, &ones_f, &ones_v, &params.weights, true)?;
     let goal = 0.01 * params.tolerance;
     let mut dx = vec![0.0; 3 * n];
+    // Each vertex apart, on rayon's threads (as the trials below).
     let apply = |dx: &[f64]| -> Vec<DVec3> {
         (0..n)
+            .into_par_iter()
             .map(|v| xstart[v] + DVec3::new(dx[3 * v], dx[3 * v + 1], dx[3 * v + 2]))
             .collect()
     };
@@ -159,7 +161,7 @@ pub fn fine_tune(
         let mut accepted = false;
         while alpha > 1.0 / 1024.0 {
             let trial: Vec<f64> = dx
-                .iter()
+                .par_iter()
                 .zip(&step.dx)
                 .map(|(a, b)| a + alpha * b)
                 .collect();

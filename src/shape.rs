@@ -1077,13 +1077,10 @@ impl ShapeModel {
         if dx.iter().any(|&v| v != 0.0) {
             self.matrix().mul_vec(dx, &mut g);
         }
-        for i in 0..dx.len() {
-            g[i] = if self.fixed[i / 3] {
-                0.0
-            } else {
-                g[i] + self.grad[i]
-            };
-        }
+        let (fixed, grad) = (&self.fixed, &self.grad);
+        g.par_iter_mut().enumerate().for_each(|(i, g)| {
+            *g = if fixed[i / 3] { 0.0 } else { *g + grad[i] };
+        });
         g
     }
 
