@@ -2,7 +2,7 @@
 //! threads, with the same bits as one thread's loop.
 //!
 //! A sum `t_0 + t_1 + ... + t_{n-1}` is kept in its order: its terms are
-//! made on rayon's threads, a block of [`BLOCK`] at a time, and added on the
+//! made on rayon's threads, a block at a time (1 MiB of them), and added on the
 //! calling thread one after the other, as `Iterator::sum` adds them. The
 //! terms (a face's corners gathered, a cross product) are the work; the
 //! additions are one each. Dot products of long vectors are made at once,
