@@ -21,6 +21,8 @@
 #      kept (as 1d), CPU (over 110 s on the H200's host), then GPU with the
 #      factors made on the host (its host peak against the default's:
 #      those factors on the host);
+#   3b. the host steps between the solves at 4.3M (benches/host_steps.rs)
+#      on all the host's threads, then with the freed blocks kept (as 1d);
 #   4. with CHOLESKY_FACTOR=1, the host's Cholesky factorization of K at
 #      1.2M faces, faer's loop against the elimination tree's subtrees at
 #      once, on 1 thread and on all (benches/cholesky_factor.rs), and the
@@ -123,6 +125,11 @@ for b in gpu gpukept cpu gpuhost; do
   grep -h '^| girths\|proxies' "$L/4m.$b"
   pack
 done
+echo "== host steps at 4.3M (t=$(el))"
+CAP=90 bounded "$B/host-steps" 4m > "$L/host-steps.md" 2>&1; echo "rc $?"; cat "$L/host-steps.md"
+CAP=90 kept bounded "$B/host-steps" 4m > "$L/host-steps.kept.md" 2>&1; echo "rc $?"
+cat "$L/host-steps.kept.md"
+pack
 if [ "${CHOLESKY_FACTOR:-0}" = 1 ]; then
   echo "== host Cholesky factorization at 1.2M (t=$(el))"
   REPEAT=1 CAP=100 bounded "$B/factor-bench" --1m 2> "$L/factor.err" | tee "$L/factor.md"

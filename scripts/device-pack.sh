@@ -16,6 +16,7 @@ pipeline=$(exe bench --bench pipeline --no-run)
 cholesky=$(exe bench --features bench-kernels --bench cholesky_teams --no-run)
 factor=$(exe bench --bench cholesky_factor --no-run)
 ordering=$(exe bench --bench fill_ordering --no-run)
+hoststeps=$(exe bench --bench host_steps --no-run)
 conformance=$(exe test --release --all-features --no-run --test conformance)
 kernels=$(exe test --release --all-features -p solver-gpu --no-run --test kernels)
 tmp=$(mktemp -d)
@@ -24,6 +25,7 @@ cp "$pipeline" "$tmp/pipeline-bench"
 cp "$cholesky" "$tmp/cholesky-bench"
 cp "$factor" "$tmp/factor-bench"
 cp "$ordering" "$tmp/ordering-bench"
+cp "$hoststeps" "$tmp/host-steps"
 cp "$conformance" "$tmp/conformance"
 cp "$kernels" "$tmp/kernels"
 strip "$tmp"/*
