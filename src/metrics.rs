@@ -74,24 +74,37 @@ impl Constraint {
                 sum_in_order(r.faces.len(), |i| mesh.face_area(x, r.faces[i] as usize))
             }
             Selection::Whole => match self.kind {
-                MetricKind::Volume if self.skip.is_empty() => {
-                    self.orientation * mesh.signed_volume(x)
-                }
-                MetricKind::Area if self.skip.is_empty() => {
-                    sum_in_order(mesh.num_faces(), |f| mesh.face_area(x, f))
-                }
                 MetricKind::Volume => {
-                    self.orientation
-                        * self
-                            .whole_faces(mesh)
-                            .map(|f| {
-                                let [a, b, c] = mesh.corners(x, f);
-                                a.dot(b.cross(c)) / 6.0
-                            })
-                            .sum::<f64>()
+                    self.orientation * self.sum_whole(mesh, |f| mesh.signed_tetrahedron(x, f))
                 }
-                _ => self.whole_faces(mesh).map(|f| mesh.face_area(x, f)).sum(),
+                _ => self.sum_whole(mesh, |f| mesh.face_area(x, f)),
             },
+        }
+    }
+
+    /// `term`'s sum over the whole-mesh metric's faces, in face order (the
+    /// terms on rayon's threads where no face is skipped).
+    fn sum_whole(&self, mesh: &Mesh, term: impl Fn(usize) -> f64 + Sync) -> f64 {
+        match self.skip.is_empty() {
+            true => sum_in_order(mesh.num_faces(), term),
+            false => self.whole_faces(mesh).map(term).sum(),
+        }
+    }
+
+    /// `out` refilled with `term` of each of the whole-mesh metric's faces,
+    /// in face order (on rayon's threads where no face is skipped).
+    fn fill_whole(
+        &self,
+        mesh: &Mesh,
+        out: &mut Vec<(u32, f64)>,
+        term: impl Fn(usize) -> (u32, f64) + Sync + Send,
+    ) {
+        match self.skip.is_empty() {
+            true => fill_at_once(out, mesh.num_faces(), term),
+            false => {
+                out.clear();
+                out.extend(self.whole_faces(mesh).map(term));
+            }
         }
     }
 
@@ -200,33 +213,14 @@ impl Constraint {
                 MetricKind::Volume => match share {
                     VolumeShare::Area => {
                         let vol = self.measure(mesh, x);
-                        let total: f64 = self.whole_faces(mesh).map(|f| areas[f]).sum();
-                        if self.skip.is_empty() {
-                            fill_at_once(out, mesh.num_faces(), |f| {
-                                (f as u32, vol * areas[f] / total)
-                            });
-                        } else {
-                            out.extend(
-                                self.whole_faces(mesh)
-                                    .map(|f| (f as u32, vol * areas[f] / total)),
-                            );
-                        }
+                        let total = self.sum_whole(mesh, |f| areas[f]);
+                        self.fill_whole(mesh, out, |f| (f as u32, vol * areas[f] / total));
                     }
-                    VolumeShare::Tetrahedra if self.skip.is_empty() => {
-                        fill_at_once(out, mesh.num_faces(), |f| {
-                            let [a, b, c] = mesh.corners(x, f);
-                            (f as u32, self.orientation * a.dot(b.cross(c)) / 6.0)
-                        })
-                    }
-                    VolumeShare::Tetrahedra => out.extend(self.whole_faces(mesh).map(|f| {
-                        let [a, b, c] = mesh.corners(x, f);
-                        (f as u32, self.orientation * a.dot(b.cross(c)) / 6.0)
-                    })),
+                    VolumeShare::Tetrahedra => self.fill_whole(mesh, out, |f| {
+                        (f as u32, self.orientation * mesh.signed_tetrahedron(x, f))
+                    }),
                 },
-                _ if self.skip.is_empty() => {
-                    fill_at_once(out, mesh.num_faces(), |f| (f as u32, areas[f]))
-                }
-                _ => out.extend(self.whole_faces(mesh).map(|f| (f as u32, areas[f]))),
+                _ => self.fill_whole(mesh, out, |f| (f as u32, areas[f])),
             },
         }
     }

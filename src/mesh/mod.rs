@@ -97,10 +97,14 @@ impl Mesh {
 
     /// Signed volume (sum of signed tetrahedra to the origin) for positions `x`.
     pub fn signed_volume(&self, x: &[DVec3]) -> f64 {
-        crate::ordered::sum_in_order(self.faces.len(), |f| {
-            let [a, b, c] = self.corners(x, f);
-            a.dot(b.cross(c)) / 6.0
-        })
+        crate::ordered::sum_in_order(self.faces.len(), |f| self.signed_tetrahedron(x, f))
+    }
+
+    /// Signed volume of the tetrahedron from the origin to face `f`.
+    #[inline]
+    pub fn signed_tetrahedron(&self, x: &[DVec3], f: usize) -> f64 {
+        let [a, b, c] = self.corners(x, f);
+        a.dot(b.cross(c)) / 6.0
     }
 
     /// Axis-aligned bounding box diagonal length of the vertices that faces use.
