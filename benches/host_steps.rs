@@ -94,6 +94,21 @@ fn main() {
             ScaleFactorSystem::hessian(&p.topo.face_pairs, &areas, 1.0, 0.01, Regulariser::Area)
         }),
     );
+    row(
+        "the shape pattern from the faces (its ordering thread's, once a run)",
+        timed(|| metricdeform::shape::shape_pattern(n, &mesh.faces)),
+    );
+    let skip = mesh.degenerate_faces(&mesh.positions);
+    row(
+        "the shape model's two Laplacians (once a run)",
+        timed(|| {
+            use metricdeform::shape::{cotangent_laplacian_masked, mean_value_laplacian_masked};
+            rayon::join(
+                || cotangent_laplacian_masked(mesh, &mesh.positions, &skip),
+                || mean_value_laplacian_masked(mesh, &mesh.positions, &skip),
+            )
+        }),
+    );
     row("face areas", timed(|| mesh.face_areas(&x)));
     let mut coeffs: Vec<Vec<(u32, f64)>> = vec![Vec::new(); p.constraints.len()];
     row(

@@ -31,9 +31,7 @@ use crate::mesh::{triangle_area_gradient, Mesh, COT_CAP};
 use crate::{Error, Result};
 use glam::DVec3;
 use rayon::prelude::*;
-use solver_cpu::{
-    BlockPcgSolver, IsoRingSym3, ShapeOperatorModel, SparseRows, SpdSolver, SymCsc, NO_TRIPLET,
-};
+use solver_cpu::{BlockPcgSolver, IsoRingSym3, ShapeOperatorModel, SparseRows, SpdSolver, SymCsc};
 use std::sync::Arc;
 
 /// Faces per thread from which the assembly's sums into `K` and the
@@ -91,12 +89,23 @@ pub fn cotangent_laplacian(mesh: &Mesh, x: &[DVec3]) -> Laplacian {
 /// `[-COT_CAP, COT_CAP]` (libigl's `cot = (l1^2 + l2^2 - l0^2) / (4 area)` is
 /// unbounded on needles).
 pub fn cotangent_laplacian_masked(mesh: &Mesh, x: &[DVec3], skip: &[bool]) -> Laplacian {
-    let t = face_triplets(mesh, |fi, f, out| {
+    laplacian_by_corners(mesh, x.len(), false, cotangent_corner(x, skip))
+}
+
+/// A face's corner in [`cotangent_laplacian_masked`]: `(face, corners, k,
+/// out)` pushes the weights corner k's row gets from the face.
+fn cotangent_corner<'a>(
+    x: &'a [DVec3],
+    skip: &'a [bool],
+) -> impl Fn(usize, [u32; 3], usize, &mut Vec<(u32, f64)>) + Sync + 'a {
+    move |fi, f, k, out| {
         let skipped = skip.get(fi).copied().unwrap_or(false);
-        for k in 0..3 {
-            let (a, b, c) = (f[k], f[(k + 1) % 3], f[(k + 2) % 3]);
+        // Side m, (f[m], f[m + 1]): half the cotangent of the angle across
+        // it, both ways; `None` where a skipped face has no such side.
+        let side = |m: usize| {
+            let (a, b, c) = (f[m], f[(m + 1) % 3], f[(m + 2) % 3]);
             if skipped && a == b {
-                continue; // a collapsed face's side (a, a): nothing to keep
+                return None; // a collapsed face's side (a, a): nothing to keep
             }
             let cot = if skipped {
                 0.0
@@ -110,31 +119,49 @@ pub fn cotangent_laplacian_masked(mesh: &Mesh, x: &[DVec3], skip: &[bool]) -> La
                     0.0
                 }
             };
-            out[2 * k] = (a, b, 0.5 * cot);
-            out[2 * k + 1] = (b, a, 0.5 * cot);
-        }
-    });
-    Laplacian::from_triplets(x.len(), t, false)
+            Some(0.5 * cot)
+        };
+        // Corner k's row: the sides from it and to it.
+        let (next, prev) = ((k + 1) % 3, (k + 2) % 3);
+        out.extend(side(k).map(|v| (f[next], v)));
+        out.extend(side(prev).map(|v| (f[prev], v)));
+    }
 }
 
-/// The triplets of a Laplacian on `mesh`'s faces, six a face (placeholders
-/// [`NO_TRIPLET`] where `per_face` writes fewer), each face's made by
-/// `per_face(face, corners, its six)` on rayon's threads: the same list on
-/// any thread count.
-fn face_triplets(
+/// Each vertex's faces, CSR `(start, faces)`, in face order: a face once
+/// for each of its distinct corners below `n`.
+fn vertex_faces(n: usize, faces: &[[u32; 3]]) -> (Vec<usize>, Vec<u32>) {
+    crate::mesh::topology::compressed_rows(n, |add| {
+        for (fi, f) in faces.iter().enumerate() {
+            for k in 0..3 {
+                if (f[k] as usize) < n && !f[..k].contains(&f[k]) {
+                    add(f[k] as usize, fi as u32);
+                }
+            }
+        }
+    })
+}
+
+/// The Laplacian ([`SparseRows::from_rows`]) of `n` vertices on `mesh`'s
+/// faces whose row i holds the weights `corner(face, corners, k, out)`
+/// pushes for each corner k at i of each of i's faces, rows on rayon's
+/// threads: the same bits on any thread count.
+fn laplacian_by_corners(
     mesh: &Mesh,
-    per_face: impl Fn(usize, [u32; 3], &mut [(u32, u32, f64); 6]) + Sync,
-) -> Vec<(u32, u32, f64)> {
-    mesh.faces
-        .par_iter()
-        .enumerate()
-        .map(|(fi, &f)| {
-            let mut out = [NO_TRIPLET; 6];
-            per_face(fi, f, &mut out);
-            out
-        })
-        .collect::<Vec<_>>()
-        .into_flattened()
+    n: usize,
+    normalise: bool,
+    corner: impl Fn(usize, [u32; 3], usize, &mut Vec<(u32, f64)>) + Sync,
+) -> Laplacian {
+    let (start, faces) = vertex_faces(n, &mesh.faces);
+    let row = |i: usize, out: &mut Vec<(u32, f64)>| {
+        for &fi in &faces[start[i]..start[i + 1]] {
+            let f = mesh.faces[fi as usize];
+            for k in (0..3).filter(|&k| f[k] as usize == i) {
+                corner(fi as usize, f, k, out);
+            }
+        }
+    };
+    SparseRows::from_rows(n, row, normalise)
 }
 
 /// Mean-value Laplacian (Floater), rows normalised to sum 1. Zero-area, needle and
@@ -146,37 +173,43 @@ pub fn mean_value_laplacian(mesh: &Mesh, x: &[DVec3]) -> Laplacian {
 /// [`mean_value_laplacian`] with the faces flagged in `skip` contributing zero
 /// weights (their vertex pairs stay in the pattern).
 pub fn mean_value_laplacian_masked(mesh: &Mesh, x: &[DVec3], skip: &[bool]) -> Laplacian {
-    let t = face_triplets(mesh, |fi, f, out| {
+    laplacian_by_corners(mesh, x.len(), true, mean_value_corner(x, skip))
+}
+
+/// A face's corner in [`mean_value_laplacian_masked`], as
+/// [`cotangent_corner`].
+fn mean_value_corner<'a>(
+    x: &'a [DVec3],
+    skip: &'a [bool],
+) -> impl Fn(usize, [u32; 3], usize, &mut Vec<(u32, f64)>) + Sync + 'a {
+    move |fi, f, k, out| {
         let skipped = skip.get(fi).copied().unwrap_or(false);
-        for k in 0..3 {
-            let (a, b, c) = (f[k], f[(k + 1) % 3], f[(k + 2) % 3]);
-            if skipped {
-                if a != b {
-                    out[2 * k] = (a, b, 0.0);
-                }
-                if a != c {
-                    out[2 * k + 1] = (a, c, 0.0);
-                }
-                continue;
+        let (a, b, c) = (f[k], f[(k + 1) % 3], f[(k + 2) % 3]);
+        if skipped {
+            if a != b {
+                out.push((b, 0.0));
             }
-            let e1 = x[b as usize] - x[a as usize];
-            let e2 = x[c as usize] - x[a as usize];
-            let (l1, l2) = (e1.length(), e2.length());
-            let denom = l1 * l2 + e1.dot(e2);
-            let tan_half = if denom > 0.0 {
-                e1.cross(e2).length() / denom
-            } else {
-                1e6
-            };
-            if l1 > 0.0 {
-                out[2 * k] = (a, b, tan_half / l1);
+            if a != c {
+                out.push((c, 0.0));
             }
-            if l2 > 0.0 {
-                out[2 * k + 1] = (a, c, tan_half / l2);
-            }
+            return;
         }
-    });
-    Laplacian::from_triplets(x.len(), t, true)
+        let e1 = x[b as usize] - x[a as usize];
+        let e2 = x[c as usize] - x[a as usize];
+        let (l1, l2) = (e1.length(), e2.length());
+        let denom = l1 * l2 + e1.dot(e2);
+        let tan_half = if denom > 0.0 {
+            e1.cross(e2).length() / denom
+        } else {
+            1e6
+        };
+        if l1 > 0.0 {
+            out.push((b, tan_half / l1));
+        }
+        if l2 > 0.0 {
+            out.push((c, tan_half / l2));
+        }
+    }
 }
 
 /// Barycentric vertex areas.
@@ -1151,29 +1184,19 @@ fn em_hessian(cot: &Laplacian, vertex_area: &[f64], h: &IsoRingSym3) -> Vec<f64>
 /// faces' sides (each pair of a face's distinct corners), as the cotangent
 /// Laplacian's pattern holds them.
 pub fn shape_pattern(n: usize, faces: &[[u32; 3]]) -> (Vec<usize>, Vec<usize>) {
-    use rayon::prelude::*;
-    let mut pairs: Vec<u64> = faces
-        .par_iter()
-        .flat_map_iter(|f| {
-            (0..3).flat_map(move |k| {
-                let (a, b) = (f[k] as u64, f[(k + 1) % 3] as u64);
-                [(a << 32) | b, (b << 32) | a]
-            })
-        })
-        .filter(|p| p >> 32 != p & 0xffff_ffff)
-        .collect();
-    pairs.par_sort_unstable();
-    pairs.dedup();
-    let mut start = vec![0usize; n + 1];
-    for p in &pairs {
-        start[(p >> 32) as usize + 1] += 1;
-    }
-    for i in 0..n {
-        start[i + 1] += start[i];
-    }
-    let idx: Vec<u32> = pairs.iter().map(|p| *p as u32).collect();
-    drop(pairs);
-    two_ring_pattern(&start, &idx)
+    let (start, by_vertex) = vertex_faces(n, faces);
+    let rings = SparseRows::from_rows(
+        n,
+        |i, out| {
+            for &fi in &by_vertex[start[i]..start[i + 1]] {
+                let others = faces[fi as usize].into_iter().filter(|&v| v as usize != i);
+                out.extend(others.filter(|&v| (v as usize) < n).map(|v| (v, 0.0)));
+            }
+        },
+        false,
+    );
+    drop((start, by_vertex));
+    two_ring_pattern(&rings.start, &rings.idx)
 }
 
 /// Lower-triangular pattern `(col_ptr, row_idx)` of the vertex pairs within two
@@ -1438,6 +1461,58 @@ mod tests {
         assert_eq!(col_ptr.len(), n as usize + 3);
         assert!(row_idx.len() > pattern(&spot_model().1).1.len());
         assert_eq!((col_ptr, row_idx), pattern(&model));
+    }
+
+    /// The Laplacians made row by row from each vertex's faces are, to the
+    /// bit, those of all faces' corners' triplets sorted at once, on one
+    /// thread and on four: on spot with a collapsed face (one vertex at two
+    /// corners), a repeated face, a needle and a skipped face.
+    #[test]
+    fn laplacians_by_rows_are_those_of_all_the_triplets() {
+        let (mut mesh, _) = spot_model();
+        let n = mesh.positions.len() as u32;
+        let (f0, far) = (mesh.faces[0], mesh.faces[mesh.faces.len() / 2]);
+        mesh.faces.push([f0[0], f0[0], far[1]]);
+        mesh.faces.push(f0);
+        mesh.positions
+            .push(mesh.positions[far[0] as usize] + DVec3::new(1e-9, 0.0, 0.0));
+        mesh.faces.push([far[0], far[1], n]);
+        let x = &mesh.positions;
+        let mut skip = mesh.degenerate_faces(x);
+        skip[3] = true;
+        assert!(skip.iter().filter(|&&s| s).count() >= 3);
+        // Every face's corners' weights as (row, column, weight) triplets.
+        let by_triplets = |corner: &dyn Fn(usize, [u32; 3], usize, &mut Vec<(u32, f64)>),
+                           normalise| {
+            let mut t = Vec::new();
+            let mut out = Vec::new();
+            for (fi, &f) in mesh.faces.iter().enumerate() {
+                for k in 0..3 {
+                    out.clear();
+                    corner(fi, f, k, &mut out);
+                    t.extend(out.iter().map(|&(j, w)| (f[k], j, w)));
+                }
+            }
+            SparseRows::from_triplets(x.len(), t, normalise)
+        };
+        let want = [
+            by_triplets(&cotangent_corner(x, &skip), false),
+            by_triplets(&mean_value_corner(x, &skip), true),
+        ];
+        for threads in [1, 4] {
+            let got = crate::ordered::on_threads(threads, || {
+                [
+                    cotangent_laplacian_masked(&mesh, x, &skip),
+                    mean_value_laplacian_masked(&mesh, x, &skip),
+                ]
+            });
+            for (got, want) in got.iter().zip(&want) {
+                assert_eq!((&got.start, &got.idx), (&want.start, &want.idx));
+                let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<u64>>();
+                assert_eq!(bits(&got.w), bits(&want.w), "{threads} threads");
+                assert_eq!(bits(&got.diag), bits(&want.diag), "{threads} threads");
+            }
+        }
     }
 
     /// Scale factors varying over the faces, curvature targets and

@@ -139,6 +139,81 @@ impl SparseRows {
         }
     }
 
+    /// The rows [`SparseRows::from_triplets`] makes of the triplets `(i,
+    /// column, weight)` that `row(i, out)` pushes as `(column, weight)` onto
+    /// `out` (empty on the call), row by row, groups of rows on rayon's
+    /// threads: the same bits, without one sort of all rows' triplets
+    /// (each row's few are sorted apart, by column, then value: the order
+    /// their duplicates are summed in there).
+    pub fn from_rows(
+        n: usize,
+        row: impl Fn(usize, &mut Vec<(u32, f64)>) + Sync,
+        normalise: bool,
+    ) -> SparseRows {
+        use rayon::prelude::*;
+        // Each group's rows: their lengths, columns, weights and diagonals.
+        type Group = (Vec<usize>, Vec<u32>, Vec<f64>, Vec<f64>);
+        let groups: Vec<Group> = (0..n.div_ceil(TRIPLET_ROWS))
+            .into_par_iter()
+            .map(|g| {
+                let rows = g * TRIPLET_ROWS..((g + 1) * TRIPLET_ROWS).min(n);
+                let (mut lens, mut idx, mut w, mut diag) = (
+                    Vec::with_capacity(rows.len()),
+                    Vec::new(),
+                    Vec::new(),
+                    Vec::with_capacity(rows.len()),
+                );
+                let mut entries = Vec::new();
+                for i in rows {
+                    entries.clear();
+                    row(i, &mut entries);
+                    entries.sort_unstable_by(|a, b| a.0.cmp(&b.0).then(a.1.total_cmp(&b.1)));
+                    let first = w.len();
+                    for run in entries.chunk_by(|a, b| a.0 == b.0) {
+                        idx.push(run[0].0);
+                        w.push(run[1..].iter().fold(run[0].1, |s, e| s + e.1));
+                    }
+                    let w = &mut w[first..];
+                    let sum: f64 = w.iter().sum();
+                    diag.push(if !normalise {
+                        sum
+                    } else if sum > 0.0 {
+                        w.iter_mut().for_each(|v| *v /= sum);
+                        1.0
+                    } else {
+                        0.0
+                    });
+                    lens.push(w.len());
+                }
+                (lens, idx, w, diag)
+            })
+            .collect();
+        let mut start = Vec::with_capacity(n + 1);
+        start.push(0);
+        for len in groups.iter().flat_map(|g| &g.0) {
+            start.push(start.last().unwrap() + len);
+        }
+        let mut idx = vec![0u32; start[n]];
+        let mut w = vec![0.0f64; start[n]];
+        let mut diag = vec![0.0; n];
+        crate::row_groups_mut(&mut idx, n, |i| start[i], TRIPLET_ROWS)
+            .into_par_iter()
+            .zip(crate::row_groups_mut(&mut w, n, |i| start[i], TRIPLET_ROWS))
+            .zip(diag.par_chunks_mut(TRIPLET_ROWS))
+            .zip(&groups)
+            .for_each(|((((_, idx), (_, w)), diag), group)| {
+                idx.copy_from_slice(&group.1);
+                w.copy_from_slice(&group.2);
+                diag.copy_from_slice(&group.3);
+            });
+        SparseRows {
+            start,
+            idx,
+            w,
+            diag,
+        }
+    }
+
     /// Number of rows.
     pub fn len(&self) -> usize {
         self.diag.len()
@@ -688,7 +763,7 @@ mod tests {
     /// Rows in several groups of [`TRIPLET_ROWS`], with duplicates (up to
     /// three of a pair, in scrambled order), empty rows, a zero-sum row and
     /// placeholders: the same rows, to the bit, as one pass over them all,
-    /// on one thread and on four.
+    /// on one thread and on four, from the triplets and row by row.
     #[test]
     fn triplets_give_the_rows_of_one_pass_on_any_thread_count() {
         let n = 3 * TRIPLET_ROWS + 17;
@@ -722,6 +797,10 @@ mod tests {
         for k in 0..len {
             t.swap(k, (k * 7919 + 13) % len);
         }
+        let mut per_row = vec![Vec::new(); n];
+        for &(i, j, v) in t.iter().filter(|e| (e.0 as usize) < n) {
+            per_row[i as usize].push((j, v));
+        }
         for normalise in [false, true] {
             let want = from_triplets_in_one_pass(n, t.clone(), normalise);
             for threads in [1, 4] {
@@ -729,16 +808,23 @@ mod tests {
                     .num_threads(threads)
                     .build()
                     .unwrap();
-                let got = pool.install(|| SparseRows::from_triplets(n, t.clone(), normalise));
-                assert_eq!(got.start, want.start, "{threads} threads");
-                assert_eq!(got.idx, want.idx);
-                let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
-                assert_eq!(
-                    bits(&got.w),
-                    bits(&want.w),
-                    "{threads} threads, {normalise}"
-                );
-                assert_eq!(bits(&got.diag), bits(&want.diag));
+                let by_triplets =
+                    pool.install(|| SparseRows::from_triplets(n, t.clone(), normalise));
+                // Each row's triplets pushed in their scrambled order.
+                let by_rows = pool.install(|| {
+                    SparseRows::from_rows(n, |i, out| out.extend(&per_row[i]), normalise)
+                });
+                for (how, got) in [("triplets", by_triplets), ("rows", by_rows)] {
+                    assert_eq!(got.start, want.start, "{how}, {threads} threads");
+                    assert_eq!(got.idx, want.idx, "{how}");
+                    let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+                    assert_eq!(
+                        bits(&got.w),
+                        bits(&want.w),
+                        "{how}, {threads} threads, {normalise}"
+                    );
+                    assert_eq!(bits(&got.diag), bits(&want.diag), "{how}");
+                }
             }
         }
     }
