@@ -1482,8 +1482,8 @@ mod tests {
         skip[3] = true;
         assert!(skip.iter().filter(|&&s| s).count() >= 3);
         // Every face's corners' weights as (row, column, weight) triplets.
-        let by_triplets = |corner: &dyn Fn(usize, [u32; 3], usize, &mut Vec<(u32, f64)>),
-                           normalise| {
+        type Corner<'a> = &'a dyn Fn(usize, [u32; 3], usize, &mut Vec<(u32, f64)>);
+        let by_triplets = |corner: Corner, normalise| {
             let mut t = Vec::new();
             let mut out = Vec::new();
             for (fi, &f) in mesh.faces.iter().enumerate() {
