@@ -1206,13 +1206,13 @@ pub fn shape_pattern(n: usize, faces: &[[u32; 3]]) -> (Vec<usize>, Vec<usize>) {
 fn two_ring_pattern(start: &[usize], idx: &[u32]) -> (Vec<usize>, Vec<usize>) {
     use rayon::prelude::*;
     // Columns in chunks, each chunk's rows in one vector (not one per
-    // column: 600k allocations at homer 1.2M, and their concatenation).
+    // column: 600k allocations at homer 1.2M), then copied into place on
+    // rayon's threads.
     const COLUMNS: usize = 4096;
     let n = start.len() - 1;
-    let row = |i: usize| {
-        std::iter::once(i).chain(idx[start[i]..start[i + 1]].iter().map(|&q| q as usize))
-    };
-    let chunks: Vec<(Vec<usize>, Vec<usize>)> = (0..n.div_ceil(COLUMNS))
+    let row =
+        |i: usize| std::iter::once(i as u32).chain(idx[start[i]..start[i + 1]].iter().copied());
+    let chunks: Vec<(Vec<usize>, Vec<u32>)> = (0..n.div_ceil(COLUMNS))
         .into_par_iter()
         .map(|c| {
             let columns = c * COLUMNS..((c + 1) * COLUMNS).min(n);
@@ -1221,9 +1221,8 @@ fn two_ring_pattern(start: &[usize], idx: &[u32]) -> (Vec<usize>, Vec<usize>) {
             let mut column = Vec::new();
             for j in columns {
                 column.clear();
-                column.push(j);
                 for p in row(j) {
-                    column.extend(row(p).filter(|&q| q >= j));
+                    column.extend(row(p as usize).filter(|&q| q as usize >= j));
                 }
                 column.sort_unstable();
                 column.dedup();
@@ -1238,10 +1237,13 @@ fn two_ring_pattern(start: &[usize], idx: &[u32]) -> (Vec<usize>, Vec<usize>) {
     for len in chunks.iter().flat_map(|(lens, _)| lens) {
         col_ptr.push(col_ptr.last().unwrap() + len);
     }
-    let mut row_idx = Vec::with_capacity(col_ptr[n]);
-    for (_, rows) in chunks {
-        row_idx.extend_from_slice(&rows);
-    }
+    let mut row_idx = vec![0usize; col_ptr[n]];
+    solver_cpu::row_groups_mut(&mut row_idx, n, |j| col_ptr[j], COLUMNS)
+        .into_par_iter()
+        .zip(&chunks)
+        .for_each(|((_, out), (_, rows))| {
+            out.iter_mut().zip(rows).for_each(|(o, &q)| *o = q as usize);
+        });
     (col_ptr, row_idx)
 }
 
