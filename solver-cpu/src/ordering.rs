@@ -215,16 +215,44 @@ struct Buckets {
     per: [f64; DIRS],
 }
 
-impl Buckets {
-    fn spanning(points: impl Iterator<Item = [f64; 3]>) -> Buckets {
-        let (mut lo, mut hi) = ([f64::INFINITY; DIRS], [f64::NEG_INFINITY; DIRS]);
+/// The least and most projections of some points on each direction.
+struct Extent {
+    lo: [f64; DIRS],
+    hi: [f64; DIRS],
+}
+
+impl Extent {
+    /// The extent of `points`.
+    fn of(points: impl Iterator<Item = [f64; 3]>) -> Extent {
+        let mut e = Extent::empty();
         for p in points {
             for d in 0..DIRS {
                 let x = project(p, DIRECTIONS[d]);
-                lo[d] = lo[d].min(x);
-                hi[d] = hi[d].max(x);
+                e.lo[d] = e.lo[d].min(x);
+                e.hi[d] = e.hi[d].max(x);
             }
         }
+        e
+    }
+
+    fn empty() -> Extent {
+        Extent {
+            lo: [f64::INFINITY; DIRS],
+            hi: [f64::NEG_INFINITY; DIRS],
+        }
+    }
+
+    fn union(mut self, other: Extent) -> Extent {
+        for d in 0..DIRS {
+            self.lo[d] = self.lo[d].min(other.lo[d]);
+            self.hi[d] = self.hi[d].max(other.hi[d]);
+        }
+        self
+    }
+
+    /// [`BUCKETS`] equal slices of the extent along each direction.
+    fn buckets(self) -> Buckets {
+        let Extent { lo, hi } = self;
         let mut per = [0.0; DIRS];
         for d in 0..DIRS {
             let extent = hi[d] - lo[d];
@@ -236,7 +264,9 @@ impl Buckets {
         }
         Buckets { lo, per }
     }
+}
 
+impl Buckets {
     fn of(&self, p: [f64; 3], d: usize) -> usize {
         let b = (project(p, DIRECTIONS[d]) - self.lo[d]) * self.per[d];
         (b as usize).min(BUCKETS - 1)
@@ -291,8 +321,15 @@ impl Dissection<'_> {
     }
 
     fn mark(&self, set: &[u32], label: u32) {
-        for &v in set {
-            self.labels[v as usize].store(label, Ordering::Relaxed);
+        let chunk = |part: &[u32]| {
+            for &v in part {
+                self.labels[v as usize].store(label, Ordering::Relaxed);
+            }
+        };
+        if set.len() >= PARALLEL_FROM {
+            set.par_chunks(CHUNK).for_each(chunk);
+        } else {
+            chunk(set);
         }
     }
 
@@ -304,9 +341,22 @@ impl Dissection<'_> {
             return;
         }
         let (d, cut, buckets) = self.best_cut(&set, label);
-        let (mut left, mut right): (Vec<u32>, Vec<u32>) = set
-            .iter()
-            .partition(|&&v| buckets.of(self.points[v as usize], d) < cut);
+        let on_left = |v: u32| buckets.of(self.points[v as usize], d) < cut;
+        // A large set's passes on rayon's threads (the halves keep the
+        // set's order either way): the first cuts' sets are the largest,
+        // and few of them run at once.
+        let (mut left, mut right): (Vec<u32>, Vec<u32>) = if set.len() >= PARALLEL_FROM {
+            let parts: Vec<(Vec<u32>, Vec<u32>)> = set
+                .par_chunks(CHUNK)
+                .map(|part| part.iter().partition(|&&v| on_left(v)))
+                .collect();
+            (
+                parts.iter().flat_map(|p| &p.0).copied().collect(),
+                parts.iter().flat_map(|p| &p.1).copied().collect(),
+            )
+        } else {
+            set.iter().partition(|&&v| on_left(v))
+        };
         if left.is_empty() || right.is_empty() {
             // Every position alike along every direction: no cut to make.
             self.order_leaf(&set, out);
@@ -320,8 +370,18 @@ impl Dissection<'_> {
         let sep = self.fresh_label();
         // The separator's unknowns leave both halves' labels.
         self.mark(&separator, sep);
-        left.retain(|&v| self.label(v) != sep);
-        right.retain(|&v| self.label(v) != sep);
+        for half in [&mut left, &mut right] {
+            let kept = |v: &u32| self.label(*v) != sep;
+            if half.len() >= PARALLEL_FROM {
+                let parts: Vec<Vec<u32>> = half
+                    .par_chunks(CHUNK)
+                    .map(|part| part.iter().copied().filter(kept).collect())
+                    .collect();
+                *half = parts.concat();
+            } else {
+                half.retain(kept);
+            }
+        }
         let (out_left, rest) = out.split_at_mut(left.len());
         let (out_right, out_sep) = rest.split_at_mut(right.len());
         out_sep.copy_from_slice(&separator);
@@ -346,7 +406,14 @@ impl Dissection<'_> {
     /// `lo < t <= b`.
     fn best_cut(&self, set: &[u32], label: u32) -> (usize, usize, Buckets) {
         let m = set.len();
-        let buckets = Buckets::spanning(set.iter().map(|&v| self.points[v as usize]));
+        let buckets = if m >= PARALLEL_FROM {
+            set.par_chunks(CHUNK)
+                .map(|part| Extent::of(part.iter().map(|&v| self.points[v as usize])))
+                .reduce(Extent::empty, Extent::union)
+                .buckets()
+        } else {
+            Extent::of(set.iter().map(|&v| self.points[v as usize])).buckets()
+        };
         let pack = |v: u32| -> u64 {
             let p = self.points[v as usize];
             (0..DIRS).fold(0u64, |packed, d| {
