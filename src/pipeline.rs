@@ -1114,26 +1114,31 @@ impl ScaleSetUp {
     /// Everything the solver is not needed for, on this thread: made while
     /// the shape solver's device is opened.
     fn host_part(&self) -> ScaleHostPart {
-        // See shape_fill_ordering.
-        let t = Instant::now();
-        let fill = self
-            .centroids
-            .as_ref()
-            .and_then(|c| coordinate_nested_dissection_of_pairs(c, &self.face_pairs))
-            .map_or(FillOrdering::Amd, |forward| {
-                log::debug!(
-                    "fill ordering of the faces (their centroids' nested dissection): {:.3} s",
-                    t.elapsed().as_secs_f64()
-                );
-                FillOrdering::Given(forward.into())
-            });
-        let hessian = ScaleFactorSystem::hessian(
-            &self.face_pairs,
-            &self.areas,
-            self.k_d,
-            self.k_r,
-            self.regulariser,
-        );
+        // See shape_fill_ordering. The matrix is made beside the ordering,
+        // not after it (0.43 s at homer 4.3M on the development machine).
+        let ordering = || {
+            let t = Instant::now();
+            self.centroids
+                .as_ref()
+                .and_then(|c| coordinate_nested_dissection_of_pairs(c, &self.face_pairs))
+                .map_or(FillOrdering::Amd, |forward| {
+                    log::debug!(
+                        "fill ordering of the faces (their centroids' nested dissection): {:.3} s",
+                        t.elapsed().as_secs_f64()
+                    );
+                    FillOrdering::Given(forward.into())
+                })
+        };
+        let matrix = || {
+            ScaleFactorSystem::hessian(
+                &self.face_pairs,
+                &self.areas,
+                self.k_d,
+                self.k_r,
+                self.regulariser,
+            )
+        };
+        let (fill, hessian) = rayon::join(ordering, matrix);
         // A GPU's scale factors are preconditioned by their factor unless
         // another preconditioner is asked for.
         let cholesky =
