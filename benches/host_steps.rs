@@ -1,7 +1,9 @@
 //! The pipeline's host steps between the solves, one at a time, on
 //! `girths-homer` at a pipeline row's size: what each outer iteration and
 //! each fine-tune step does on the host besides assembling and solving
-//! (and the scale factors' matrix, made once a run).
+//! (and the once-a-run set-ups that run beside each other at the start:
+//! the scale factors' matrix and fill ordering, the shape pattern, the
+//! shape model's Laplacians).
 //!
 //! `cargo bench --bench host_steps -- [100k|1m|4m]` (default `1m`); run it
 //! with `RAYON_NUM_THREADS=1` beside the default to see what rayon's
@@ -93,6 +95,11 @@ fn main() {
         timed(|| {
             ScaleFactorSystem::hessian(&p.topo.face_pairs, &areas, 1.0, 0.01, Regulariser::Area)
         }),
+    );
+    let centroids: Vec<DVec3> = (0..nf).map(|f| mesh.centroid(&mesh.positions, f)).collect();
+    row(
+        "the faces' fill ordering (their centroids' nested dissection, once a run)",
+        timed(|| solver_cpu::coordinate_nested_dissection_of_pairs(&centroids, &p.topo.face_pairs)),
     );
     row(
         "the shape pattern from the faces (its ordering thread's, once a run)",
