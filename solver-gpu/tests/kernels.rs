@@ -21,18 +21,78 @@ fn skip_or_fail(e: GpuError) -> Option<GpuSolver> {
     }
 }
 
+/// The GPU tests' turn: one test at a time holds a device.
+///
+/// On H200s (NVIDIA's driver 580, 16 test threads) this binary hung in 6
+/// of 15 runs with 0-2 tests done: 13 test threads waited on one
+/// priority-inheritance futex (`futex_lock_pi`) inside the driver, one
+/// test thread ran, and each test passed alone. Other projects met the
+/// same driver lock with many devices at once (paiml/aprender#2063: their
+/// GPU tests made serial). The devices' work here is a few milliseconds a
+/// test, so the turns cost little; the tests' host work still runs beside.
+static TURN: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
+std::thread_local! {
+    /// Devices this thread holds (a test may open two; the first takes
+    /// the turn).
+    static HELD: std::cell::Cell<usize> = const { std::cell::Cell::new(0) };
+}
+
+/// A device opened in its test's turn ([`TURN`]), which it holds until
+/// dropped (the device first: the solver is the first field).
+struct Gpu {
+    solver: GpuSolver,
+    _turn: Option<std::sync::MutexGuard<'static, ()>>,
+}
+
+impl Gpu {
+    /// `open()` in this test's turn; `None` (skipped) without an adapter.
+    fn open(open: impl FnOnce() -> Result<GpuSolver, GpuError>) -> Option<Gpu> {
+        let turn = (HELD.get() == 0).then(|| TURN.lock().unwrap_or_else(|e| e.into_inner()));
+        HELD.set(HELD.get() + 1);
+        let opened = open().map_or_else(skip_or_fail, Some);
+        let gpu = opened.map(|solver| Gpu {
+            solver,
+            _turn: turn,
+        });
+        if gpu.is_none() {
+            HELD.set(HELD.get() - 1);
+        }
+        gpu
+    }
+}
+
+impl Drop for Gpu {
+    fn drop(&mut self) {
+        HELD.set(HELD.get() - 1);
+    }
+}
+
+impl std::ops::Deref for Gpu {
+    type Target = GpuSolver;
+    fn deref(&self) -> &GpuSolver {
+        &self.solver
+    }
+}
+
+impl std::ops::DerefMut for Gpu {
+    fn deref_mut(&mut self) -> &mut GpuSolver {
+        &mut self.solver
+    }
+}
+
 /// The GPU solver, or `None` (test skipped) when there is no adapter.
-fn gpu() -> Option<GpuSolver> {
-    solver_gpu::open().map_or_else(skip_or_fail, Some)
+fn gpu() -> Option<Gpu> {
+    Gpu::open(solver_gpu::open)
 }
 
 /// The device opened with its limits lowered by `adjust`.
-fn gpu_with_limits(adjust: impl Fn(&mut solver_gpu::wgpu::Limits) + 'static) -> Option<GpuSolver> {
+fn gpu_with_limits(adjust: impl Fn(&mut solver_gpu::wgpu::Limits) + 'static) -> Option<Gpu> {
     let opts = OpenOptions {
         adjust_limits: Some(Box::new(adjust)),
         ..Default::default()
     };
-    solver_gpu::open_with(opts).map_or_else(skip_or_fail, Some)
+    Gpu::open(|| solver_gpu::open_with(opts))
 }
 
 /// SplitMix64: seeded, reproducible.
@@ -765,7 +825,7 @@ fn cholesky_solution(a: &BlockSym3, fixed: &[bool], b: &[f64], ncols: usize) -> 
 }
 
 /// An adapter with SHADER_F64, or None (skipped with a message).
-fn gpu_f64() -> Option<GpuSolver> {
+fn gpu_f64() -> Option<Gpu> {
     let s = gpu()?;
     if !s.adapter().shader_f64 {
         eprintln!("skipped: adapter {} has no SHADER_F64", s.adapter_name());
