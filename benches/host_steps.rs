@@ -116,6 +116,11 @@ fn main() {
             )
         }),
     );
+    let w = metricdeform::pipeline::Options::default().shape;
+    row(
+        "the shape systems' K for a factor made ahead (set-up, once a kind)",
+        timed(|| model.isotropic_part(mesh, &mesh.positions, &w)),
+    );
     row("face areas", timed(|| mesh.face_areas(&x)));
     let mut coeffs: Vec<Vec<(u32, f64)>> = vec![Vec::new(); p.constraints.len()];
     row(
