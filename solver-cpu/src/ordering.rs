@@ -226,8 +226,8 @@ impl Extent {
     fn of(points: impl Iterator<Item = [f64; 3]>) -> Extent {
         let mut e = Extent::empty();
         for p in points {
-            for d in 0..DIRS {
-                let x = project(p, DIRECTIONS[d]);
+            for (d, &direction) in DIRECTIONS.iter().enumerate() {
+                let x = project(p, direction);
                 e.lo[d] = e.lo[d].min(x);
                 e.hi[d] = e.hi[d].max(x);
             }
