@@ -1,6 +1,7 @@
 //! Edge and adjacency structure of a triangle mesh.
 
 use crate::mesh::Mesh;
+use rayon::prelude::*;
 use rustc_hash::FxHashMap;
 
 /// Undirected edges, the faces around them, and face-face adjacency.
@@ -115,30 +116,76 @@ impl Topology {
         let nf = mesh.faces.len();
         let nv = mesh.positions.len();
         let (edges, face_edges) = number_edges(&mesh.faces, nv);
-        // Duplicate faces: the same vertex set as an earlier face, whose
-        // first such face is listed at their smallest edge (faces with the
-        // same vertices have the same edges). Without a map over the
-        // faces' vertex sets (0.069 s at homer 1.2M on the development
-        // machine, Fx-hashed).
+        // Duplicate faces: the same vertex set as an earlier face, found
+        // among the faces of their smallest edge (faces with the same
+        // vertices have the same edges). Without a map over the faces'
+        // vertex sets (0.069 s at homer 1.2M on the development machine,
+        // Fx-hashed).
         let key = |f: usize| {
             let mut key = mesh.faces[f];
             key.sort_unstable();
             key
         };
-        // Faces with a repeated corner, sorted once (the lists and the loop
-        // below both ask).
+        // Faces with a repeated corner, sorted once (the adjacency and the
+        // duplicates below both ask).
         let collapsed: Vec<bool> = (0..nf)
+            .into_par_iter()
             .map(|f| {
                 let k = key(f);
                 k[0] == k[1] || k[1] == k[2]
             })
             .collect();
         let smallest_edge = |f: usize| *face_edges[f].iter().min().unwrap() as usize;
-        let (by_edge_start, by_edge) = compressed_rows(edges.len(), |add| {
-            for f in (0..nf).filter(|&f| !collapsed[f]) {
-                add(smallest_edge(f), f as u32);
-            }
-        });
+        let ne = edges.len();
+        // The faces of each edge and of each vertex (at once), leaving out
+        // `ignored`'s; made first with the collapsed faces alone left out,
+        // and made again only where there are duplicates.
+        let adjacency = |ignored: &[bool]| {
+            rayon::join(
+                || {
+                    compressed_rows(ne, |add| {
+                        for (f, fe) in face_edges.iter().enumerate() {
+                            if !ignored[f] {
+                                fe.iter().for_each(|&e| add(e as usize, f as u32));
+                            }
+                        }
+                    })
+                },
+                || {
+                    compressed_rows(nv, |add| {
+                        for (f, t) in mesh.faces.iter().enumerate() {
+                            if !ignored[f] {
+                                t.iter()
+                                    .filter(|&&v| (v as usize) < nv)
+                                    .for_each(|&v| add(v as usize, f as u32));
+                            }
+                        }
+                    })
+                },
+            )
+        };
+        let mut made = adjacency(&collapsed);
+        // Each face's first earlier face with its vertices (among the faces
+        // of its smallest edge, which every such face has), on rayon's
+        // threads; the lists in face order after.
+        let first: Vec<Option<u32>> = {
+            let (start, by_edge) = &made.0;
+            (0..nf)
+                .into_par_iter()
+                .map(|f| {
+                    if collapsed[f] {
+                        return None;
+                    }
+                    let e = smallest_edge(f);
+                    let kf = key(f);
+                    by_edge[start[e]..start[e + 1]]
+                        .iter()
+                        .take_while(|&&g| (g as usize) < f)
+                        .find(|&&g| key(g as usize) == kf)
+                        .copied()
+                })
+                .collect()
+        };
         let mut duplicate_faces = Vec::new();
         let mut is_duplicate = vec![false; nf];
         let mut collapsed_faces = Vec::new();
@@ -147,29 +194,18 @@ impl Topology {
             if collapsed[f] {
                 collapsed_faces.push(f as u32);
                 ignored[f] = true;
-                continue;
-            }
-            let e = smallest_edge(f);
-            let kf = key(f);
-            let first = by_edge[by_edge_start[e]..by_edge_start[e + 1]]
-                .iter()
-                .take_while(|&&g| (g as usize) < f)
-                .find(|&&g| key(g as usize) == kf);
-            if let Some(&g) = first {
+            } else if let Some(g) = first[f] {
                 duplicate_faces.push((f as u32, g));
                 is_duplicate[f] = true;
                 ignored[f] = true;
             }
         }
-        drop((by_edge_start, by_edge));
-        let ne = edges.len();
-        let (edge_face_start, edge_face_index) = compressed_rows(ne, |add| {
-            for (f, fe) in face_edges.iter().enumerate() {
-                if !ignored[f] {
-                    fe.iter().for_each(|&e| add(e as usize, f as u32));
-                }
-            }
-        });
+        drop(first);
+        if !duplicate_faces.is_empty() {
+            drop(made);
+            made = adjacency(&ignored);
+        }
+        let ((edge_face_start, edge_face_index), (vf_start, vf_index)) = made;
         let mut face_pairs = Vec::new();
         let mut boundary_edges = Vec::new();
         let mut non_manifold_edges = Vec::new();
@@ -197,15 +233,6 @@ impl Topology {
                 face_pairs.push([g, f]);
             }
         }
-        let (vf_start, vf_index) = compressed_rows(nv, |add| {
-            for (f, t) in mesh.faces.iter().enumerate() {
-                if !ignored[f] {
-                    t.iter()
-                        .filter(|&&v| (v as usize) < nv)
-                        .for_each(|&v| add(v as usize, f as u32));
-                }
-            }
-        });
         Topology {
             edges,
             edge_face_start,
@@ -362,6 +389,32 @@ mod tests {
                 duplicates.iter().any(|&(g, _)| g as usize == f),
                 "face {f}"
             );
+        }
+        adjacency_leaves_out_the_ignored_faces(&mesh, &topo);
+        let spot = crate::mesh::io::read_mesh(&path).unwrap();
+        adjacency_leaves_out_the_ignored_faces(&spot, &Topology::build(&spot));
+    }
+
+    /// Each edge's and each vertex's faces are the faces with it, the
+    /// ignored (duplicate and collapsed) ones left out, in face order.
+    fn adjacency_leaves_out_the_ignored_faces(mesh: &Mesh, topo: &Topology) {
+        let kept = |f: &usize| !topo.ignored[*f];
+        for (e, &[a, b]) in topo.edges.iter().enumerate() {
+            let want: Vec<u32> = (0..mesh.faces.len())
+                .filter(kept)
+                .filter(|&f| topo.face_edges[f].contains(&(e as u32)))
+                .map(|f| f as u32)
+                .collect();
+            assert_eq!(topo.edge_faces(e), want, "edge ({a}, {b})");
+        }
+        let mut want = vec![Vec::new(); mesh.positions.len()];
+        for f in (0..mesh.faces.len()).filter(kept) {
+            for &v in &mesh.faces[f] {
+                want[v as usize].push(f as u32);
+            }
+        }
+        for (v, want) in want.iter().enumerate() {
+            assert_eq!(topo.vertex_faces(v), want, "vertex {v}");
         }
     }
 
