@@ -1774,8 +1774,13 @@ fn on_shape_pattern<T: Send + 'static>(
     std::thread::Builder::new()
         .name(name.into())
         .spawn(move || {
+            let t = Instant::now();
             let (col_ptr, row_idx) = crate::shape::shape_pattern(n, &faces);
             drop(faces);
+            log::debug!(
+                "shape pattern made on its own thread in {:.3} s",
+                t.elapsed().as_secs_f64()
+            );
             then(n, col_ptr, row_idx)
         })
         .inspect_err(|e| log::debug!("no thread for the {name}: {e}"))
