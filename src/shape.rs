@@ -92,12 +92,15 @@ pub fn cotangent_laplacian_masked(mesh: &Mesh, x: &[DVec3], skip: &[bool]) -> La
     laplacian_by_corners(mesh, x.len(), false, cotangent_corner(x, skip))
 }
 
-/// A face's corner in [`cotangent_laplacian_masked`]: `(face, corners, k,
-/// out)` pushes the weights corner k's row gets from the face.
-fn cotangent_corner<'a>(
-    x: &'a [DVec3],
-    skip: &'a [bool],
-) -> impl Fn(usize, [u32; 3], usize, &mut Vec<(u32, f64)>) + Sync + 'a {
+/// What one corner of one face adds to a Laplacian ([`laplacian_by_corners`]):
+/// `corner(face, corners, k, out)` pushes onto `out` the `(column, weight)`
+/// entries corner k's row gets from the face.
+trait FaceCorner: Fn(usize, [u32; 3], usize, &mut Vec<(u32, f64)>) + Sync {}
+
+impl<F: Fn(usize, [u32; 3], usize, &mut Vec<(u32, f64)>) + Sync> FaceCorner for F {}
+
+/// A face's corner in [`cotangent_laplacian_masked`].
+fn cotangent_corner<'a>(x: &'a [DVec3], skip: &'a [bool]) -> impl FaceCorner + 'a {
     move |fi, f, k, out| {
         let skipped = skip.get(fi).copied().unwrap_or(false);
         // Side m, (f[m], f[m + 1]): half the cotangent of the angle across
@@ -143,14 +146,14 @@ fn vertex_faces(n: usize, faces: &[[u32; 3]]) -> (Vec<usize>, Vec<u32>) {
 }
 
 /// The Laplacian ([`SparseRows::from_rows`]) of `n` vertices on `mesh`'s
-/// faces whose row i holds the weights `corner(face, corners, k, out)`
-/// pushes for each corner k at i of each of i's faces, rows on rayon's
-/// threads: the same bits on any thread count.
+/// faces whose row i holds what `corner` pushes for each corner at i of
+/// each of i's faces, rows on rayon's threads: the same bits on any thread
+/// count.
 fn laplacian_by_corners(
     mesh: &Mesh,
     n: usize,
     normalise: bool,
-    corner: impl Fn(usize, [u32; 3], usize, &mut Vec<(u32, f64)>) + Sync,
+    corner: impl FaceCorner,
 ) -> Laplacian {
     let (start, faces) = vertex_faces(n, &mesh.faces);
     let row = |i: usize, out: &mut Vec<(u32, f64)>| {
@@ -176,12 +179,8 @@ pub fn mean_value_laplacian_masked(mesh: &Mesh, x: &[DVec3], skip: &[bool]) -> L
     laplacian_by_corners(mesh, x.len(), true, mean_value_corner(x, skip))
 }
 
-/// A face's corner in [`mean_value_laplacian_masked`], as
-/// [`cotangent_corner`].
-fn mean_value_corner<'a>(
-    x: &'a [DVec3],
-    skip: &'a [bool],
-) -> impl Fn(usize, [u32; 3], usize, &mut Vec<(u32, f64)>) + Sync + 'a {
+/// A face's corner in [`mean_value_laplacian_masked`].
+fn mean_value_corner<'a>(x: &'a [DVec3], skip: &'a [bool]) -> impl FaceCorner + 'a {
     move |fi, f, k, out| {
         let skipped = skip.get(fi).copied().unwrap_or(false);
         let (a, b, c) = (f[k], f[(k + 1) % 3], f[(k + 2) % 3]);
@@ -1484,8 +1483,7 @@ mod tests {
         skip[3] = true;
         assert!(skip.iter().filter(|&&s| s).count() >= 3);
         // Every face's corners' weights as (row, column, weight) triplets.
-        type Corner<'a> = &'a dyn Fn(usize, [u32; 3], usize, &mut Vec<(u32, f64)>);
-        let by_triplets = |corner: Corner, normalise| {
+        let by_triplets = |corner: &dyn FaceCorner, normalise| {
             let mut t = Vec::new();
             let mut out = Vec::new();
             for (fi, &f) in mesh.faces.iter().enumerate() {
