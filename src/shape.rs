@@ -89,7 +89,8 @@ pub fn cotangent_laplacian(mesh: &Mesh, x: &[DVec3]) -> Laplacian {
 /// `[-COT_CAP, COT_CAP]` (libigl's `cot = (l1^2 + l2^2 - l0^2) / (4 area)` is
 /// unbounded on needles).
 pub fn cotangent_laplacian_masked(mesh: &Mesh, x: &[DVec3], skip: &[bool]) -> Laplacian {
-    laplacian_by_corners(mesh, x.len(), false, cotangent_corner(x, skip))
+    let faces_of = vertex_faces(x.len(), &mesh.faces);
+    laplacian_by_corners(mesh, &faces_of, false, cotangent_corner(x, skip))
 }
 
 /// What one corner of one face adds to a Laplacian ([`laplacian_by_corners`]):
@@ -132,7 +133,10 @@ fn cotangent_corner<'a>(x: &'a [DVec3], skip: &'a [bool]) -> impl FaceCorner + '
 }
 
 /// Each vertex's faces, CSR `(start, faces)`, in face order: a face once
-/// for each of its distinct corners below `n`.
+/// for each of its distinct corners below `n`. Every face, unlike
+/// [`Topology::vertex_faces`] (which leaves duplicate and collapsed faces
+/// out, where the Laplacians keep their vertex pairs), and from the faces
+/// alone ([`shape_pattern`] has no topology).
 fn vertex_faces(n: usize, faces: &[[u32; 3]]) -> (Vec<usize>, Vec<u32>) {
     crate::mesh::topology::compressed_rows(n, |add| {
         for (fi, f) in faces.iter().enumerate() {
@@ -145,17 +149,17 @@ fn vertex_faces(n: usize, faces: &[[u32; 3]]) -> (Vec<usize>, Vec<u32>) {
     })
 }
 
-/// The Laplacian ([`SparseRows::from_rows`]) of `n` vertices on `mesh`'s
-/// faces whose row i holds what `corner` pushes for each corner at i of
-/// each of i's faces, rows on rayon's threads: the same bits on any thread
-/// count.
+/// The Laplacian ([`SparseRows::from_rows`]) of the vertices of
+/// `faces_of` ([`vertex_faces`] of `mesh`) whose row i holds what `corner`
+/// pushes for each corner at i of each of i's faces, rows on rayon's
+/// threads: the same bits on any thread count.
 fn laplacian_by_corners(
     mesh: &Mesh,
-    n: usize,
+    (start, faces): &(Vec<usize>, Vec<u32>),
     normalise: bool,
     corner: impl FaceCorner,
 ) -> Laplacian {
-    let (start, faces) = vertex_faces(n, &mesh.faces);
+    let n = start.len() - 1;
     let row = |i: usize, out: &mut Vec<(u32, f64)>| {
         for &fi in &faces[start[i]..start[i + 1]] {
             let f = mesh.faces[fi as usize];
@@ -176,7 +180,8 @@ pub fn mean_value_laplacian(mesh: &Mesh, x: &[DVec3]) -> Laplacian {
 /// [`mean_value_laplacian`] with the faces flagged in `skip` contributing zero
 /// weights (their vertex pairs stay in the pattern).
 pub fn mean_value_laplacian_masked(mesh: &Mesh, x: &[DVec3], skip: &[bool]) -> Laplacian {
-    laplacian_by_corners(mesh, x.len(), true, mean_value_corner(x, skip))
+    let faces_of = vertex_faces(x.len(), &mesh.faces);
+    laplacian_by_corners(mesh, &faces_of, true, mean_value_corner(x, skip))
 }
 
 /// A face's corner in [`mean_value_laplacian_masked`].
@@ -395,10 +400,19 @@ impl ShapeModel {
         for &(f, _) in &topo.duplicate_faces {
             no_weight[f as usize] = true;
         }
+        // Both Laplacians from one list of each vertex's faces.
+        let faces_of = vertex_faces(n, &mesh.faces);
         let (cot, mv) = rayon::join(
-            || Arc::new(cotangent_laplacian_masked(mesh, x, &no_weight)),
-            || Arc::new(mean_value_laplacian_masked(mesh, x, &no_weight)),
+            || {
+                let corner = cotangent_corner(x, &no_weight);
+                Arc::new(laplacian_by_corners(mesh, &faces_of, false, corner))
+            },
+            || {
+                let corner = mean_value_corner(x, &no_weight);
+                Arc::new(laplacian_by_corners(mesh, &faces_of, true, corner))
+            },
         );
+        drop(faces_of);
         let laplacians_seconds = t_setup.elapsed().as_secs_f64();
         let areas = mesh.face_areas(x);
         let vertex_area = vertex_areas_of(mesh, n, &areas);
