@@ -165,6 +165,26 @@ const BUCKETS: usize = 64;
 /// Unknowns a thread takes at once in a set's passes.
 const CHUNK: usize = 8192;
 
+/// `pass` of each chunk of [`CHUNK`] unknowns of `set`, in order, on
+/// rayon's threads where the set has [`PARALLEL_FROM`] unknowns or more;
+/// else of the whole set, as one chunk.
+fn per_chunk<R: Send>(set: &[u32], pass: impl Fn(&[u32]) -> R + Sync + Send) -> Vec<R> {
+    if set.len() >= PARALLEL_FROM {
+        set.par_chunks(CHUNK).map(pass).collect()
+    } else {
+        vec![pass(set)]
+    }
+}
+
+/// The chunks' parts of a set, concatenated in order (one part: itself).
+fn joined(mut parts: Vec<Vec<u32>>) -> Vec<u32> {
+    if parts.len() == 1 {
+        parts.pop().unwrap()
+    } else {
+        parts.concat()
+    }
+}
+
 /// Directions the sets are cut across: the axes and the cube's diagonals.
 const DIRS: usize = 7;
 const DIRECTIONS: [[f64; 3]; DIRS] = [
@@ -321,16 +341,11 @@ impl Dissection<'_> {
     }
 
     fn mark(&self, set: &[u32], label: u32) {
-        let chunk = |part: &[u32]| {
+        per_chunk(set, |part| {
             for &v in part {
                 self.labels[v as usize].store(label, Ordering::Relaxed);
             }
-        };
-        if set.len() >= PARALLEL_FROM {
-            set.par_chunks(CHUNK).for_each(chunk);
-        } else {
-            chunk(set);
-        }
+        });
     }
 
     /// Writes the order of `set` (whose unknowns are labelled `label`) into
@@ -345,18 +360,11 @@ impl Dissection<'_> {
         // A large set's passes on rayon's threads (the halves keep the
         // set's order either way): the first cuts' sets are the largest,
         // and few of them run at once.
-        let (mut left, mut right): (Vec<u32>, Vec<u32>) = if set.len() >= PARALLEL_FROM {
-            let parts: Vec<(Vec<u32>, Vec<u32>)> = set
-                .par_chunks(CHUNK)
-                .map(|part| part.iter().partition(|&&v| on_left(v)))
-                .collect();
-            (
-                parts.iter().flat_map(|p| &p.0).copied().collect(),
-                parts.iter().flat_map(|p| &p.1).copied().collect(),
-            )
-        } else {
-            set.iter().partition(|&&v| on_left(v))
-        };
+        let (left, right): (Vec<Vec<u32>>, Vec<Vec<u32>>) =
+            per_chunk(&set, |part| part.iter().partition(|&&v| on_left(v)))
+                .into_iter()
+                .unzip();
+        let (mut left, mut right) = (joined(left), joined(right));
         if left.is_empty() || right.is_empty() {
             // Every position alike along every direction: no cut to make.
             self.order_leaf(&set, out);
@@ -371,16 +379,13 @@ impl Dissection<'_> {
         // The separator's unknowns leave both halves' labels.
         self.mark(&separator, sep);
         for half in [&mut left, &mut right] {
-            let kept = |v: &u32| self.label(*v) != sep;
-            if half.len() >= PARALLEL_FROM {
-                let parts: Vec<Vec<u32>> = half
-                    .par_chunks(CHUNK)
-                    .map(|part| part.iter().copied().filter(kept).collect())
-                    .collect();
-                *half = parts.concat();
-            } else {
-                half.retain(kept);
-            }
+            let kept = |part: &[u32]| -> Vec<u32> {
+                part.iter()
+                    .copied()
+                    .filter(|&v| self.label(v) != sep)
+                    .collect()
+            };
+            *half = joined(per_chunk(half, kept));
         }
         let (out_left, rest) = out.split_at_mut(left.len());
         let (out_right, out_sep) = rest.split_at_mut(right.len());
@@ -406,30 +411,23 @@ impl Dissection<'_> {
     /// `lo < t <= b`.
     fn best_cut(&self, set: &[u32], label: u32) -> (usize, usize, Buckets) {
         let m = set.len();
-        let buckets = if m >= PARALLEL_FROM {
-            set.par_chunks(CHUNK)
-                .map(|part| Extent::of(part.iter().map(|&v| self.points[v as usize])))
-                .reduce(Extent::empty, Extent::union)
-                .buckets()
-        } else {
-            Extent::of(set.iter().map(|&v| self.points[v as usize])).buckets()
-        };
+        let buckets = per_chunk(set, |part| {
+            Extent::of(part.iter().map(|&v| self.points[v as usize]))
+        })
+        .into_iter()
+        .fold(Extent::empty(), Extent::union)
+        .buckets();
         let pack = |v: u32| -> u64 {
             let p = self.points[v as usize];
             (0..DIRS).fold(0u64, |packed, d| {
                 packed | (buckets.of(p, d) as u64) << (8 * d)
             })
         };
-        let chunk = |part: &[u32]| {
+        per_chunk(set, |part| {
             for &v in part {
                 self.bucket[v as usize].store(pack(v), Ordering::Relaxed);
             }
-        };
-        if m >= PARALLEL_FROM {
-            set.par_chunks(CHUNK).for_each(chunk);
-        } else {
-            chunk(set);
-        }
+        });
         let tally = |part: &[u32]| -> Tally {
             let mut t = Tally::default();
             for &v in part {
@@ -465,13 +463,9 @@ impl Dissection<'_> {
             }
             t
         };
-        let t = if m >= PARALLEL_FROM {
-            set.par_chunks(CHUNK)
-                .map(tally)
-                .reduce(Tally::default, Tally::add)
-        } else {
-            tally(set)
-        };
+        let t = per_chunk(set, tally)
+            .into_iter()
+            .fold(Tally::default(), Tally::add);
         let least = ((m as f64) * BALANCE) as i64;
         // (border, imbalance, direction, cut)
         let mut best: Option<(i64, i64, usize, usize)> = None;
