@@ -43,6 +43,7 @@ fn timed<T>(mut step: impl FnMut() -> T) -> (f64, f64) {
 }
 
 fn main() {
+    metricdeform::memory::keep_freed_memory();
     let size = std::env::args()
         .skip(1)
         .find(|a| !a.starts_with('-'))

@@ -361,6 +361,7 @@ fn io_row(subdivisions: usize) {
 }
 
 fn main() {
+    metricdeform::memory::keep_freed_memory();
     let args: Vec<String> = std::env::args().collect();
     if let Some(i) = args.iter().position(|a| a == "--io") {
         io_row(args[i + 1].parse().unwrap());

@@ -9,20 +9,21 @@
 #   1c. the 1.2M and 100k GPU rows with every factor made on the host by
 #      faer (METRICDEFORM_GPU_FACTORIZATION=host), against step 1's made
 #      on the GPU (the default on a hardware adapter, solver_gpu::factorize);
-#   1d. the 1.2M and 100k GPU rows with glibc's freed blocks kept for reuse
-#      (MALLOC_MMAP_MAX_=0 and a large MALLOC_TRIM_THRESHOLD_: no fresh
-#      pages to fault in for each vector over 32 MiB; BENCHMARKS.md, "Host
-#      steps between the solves");
+#   1d. the 1.2M and 100k GPU rows with glibc's own malloc settings
+#      (MALLOC_MMAP_MAX_ at glibc's default), against the binaries' default
+#      since this session's memory::keep_freed_memory (freed blocks kept for
+#      reuse: no fresh pages to fault in for each vector over 32 MiB;
+#      BENCHMARKS.md, "Host steps between the solves");
 #   2. the conformance suite (the 1.2M parity test skipped: step 1 is that
 #      check), then the kernels test binary twice at 16 threads, each under
 #      a watchdog that dumps the threads' wait channels where it hangs (it
 #      hung in 6 of 15 such runs on H200s before a1465b3's turns);
-#   3. the 4.3M rows while time is left: GPU, GPU with the freed blocks
-#      kept (as 1d), CPU (over 110 s on the H200's host), then GPU with the
+#   3. the 4.3M rows while time is left: GPU, GPU with glibc's own malloc
+#      settings (as 1d), CPU (over 110 s on the H200's host), then GPU with the
 #      factors made on the host (its host peak against the default's:
 #      those factors on the host);
 #   3b. the host steps between the solves at 4.3M (benches/host_steps.rs)
-#      on all the host's threads, then with the freed blocks kept (as 1d);
+#      on all the host's threads, then with glibc's own settings (as 1d);
 #   4. with CHOLESKY_FACTOR=1, the host's Cholesky factorization of K at
 #      1.2M faces, faer's loop against the elimination tree's subtrees at
 #      once, on 1 thread and on all (benches/cholesky_factor.rs), and the
@@ -69,14 +70,16 @@ for r in 1m 100k; do
   grep -h '^| girths\|proxies' "$L/$r.gpu.hostfactor"
 done
 pack
-echo "== freed blocks kept for reuse, 1.2M and 100k (t=$(el))"
-# "$@" with glibc's freed blocks kept for reuse.
-kept() { MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=17179869184 "$@"; }
+echo "== glibc's own malloc settings, 1.2M and 100k (t=$(el))"
+# "$@" with glibc's own malloc settings: a MALLOC_ variable set by the user
+# leaves them as they are (memory::keep_freed_memory); 65536 is glibc's own
+# M_MMAP_MAX.
+glibc() { MALLOC_MMAP_MAX_=65536 "$@"; }
 for r in 1m 100k; do
-  CAP=60 kept bounded "$B/pipeline-bench" --row girths-homer-$r per_constraint \
-    --backend gpu --gpu-only > "$L/$r.gpu.kept" 2> "$L/$r.gpu.kept.err"
+  CAP=60 glibc bounded "$B/pipeline-bench" --row girths-homer-$r per_constraint \
+    --backend gpu --gpu-only > "$L/$r.gpu.glibc" 2> "$L/$r.gpu.glibc.err"
   echo "rc $?"
-  grep -h '^| girths\|proxies' "$L/$r.gpu.kept"
+  grep -h '^| girths\|proxies' "$L/$r.gpu.glibc"
 done
 pack
 echo "== conformance (t=$(el))"
@@ -117,20 +120,21 @@ for i in 1 2; do
   tail -2 "$L/kernels-tests.$i.txt"
 done
 pack
-for b in gpu gpukept cpu gpuhost; do
+for b in gpu gpuglibc cpu gpuhost; do
   echo "== 4m $b (t=$(el), left $(left))"
   [ "$(left)" -gt 60 ] || break
   f=; [ $b = gpuhost ] && f=host
-  k=; [ $b = gpukept ] && k=kept
+  k=; [ $b = gpuglibc ] && k=glibc
+  backend=gpu; [ $b = cpu ] && backend=cpu
   METRICDEFORM_GPU_FACTORIZATION=$f $k bounded "$B/pipeline-bench" --row girths-homer-4m \
-    per_constraint --backend ${b%%[hk]*} --gpu-only > "$L/4m.$b" 2> "$L/4m.$b.err"; echo "rc $?"
+    per_constraint --backend $backend --gpu-only > "$L/4m.$b" 2> "$L/4m.$b.err"; echo "rc $?"
   grep -h '^| girths\|proxies' "$L/4m.$b"
   pack
 done
 echo "== host steps at 4.3M (t=$(el))"
 CAP=90 bounded "$B/host-steps" 4m > "$L/host-steps.md" 2>&1; echo "rc $?"; cat "$L/host-steps.md"
-CAP=90 kept bounded "$B/host-steps" 4m > "$L/host-steps.kept.md" 2>&1; echo "rc $?"
-cat "$L/host-steps.kept.md"
+CAP=90 glibc bounded "$B/host-steps" 4m > "$L/host-steps.glibc.md" 2>&1; echo "rc $?"
+cat "$L/host-steps.glibc.md"
 pack
 if [ "${CHOLESKY_FACTOR:-0}" = 1 ]; then
   echo "== host Cholesky factorization at 1.2M (t=$(el))"

@@ -117,6 +117,7 @@ enum Command {
 }
 
 fn main() -> ExitCode {
+    metricdeform::memory::keep_freed_memory();
     quiet_vulkan_layers();
     env_logger::Builder::from_env(env_logger::Env::default().default_filter_or("warn")).init();
     let cli = Cli::parse();
