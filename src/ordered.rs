@@ -58,6 +58,21 @@ pub fn fill_at_once<T: Send + Copy + Default>(
         .for_each(|(i, t)| *t = term(i));
 }
 
+/// `rayon::join(a, b)`, and the seconds before rayon's threads took the
+/// pair up, for the log. From a thread outside rayon's pool the pair waits
+/// in the pool's queue of work from outside, which its threads take only
+/// once they have no work of their own or to steal (rayon-core's
+/// `find_work`): another thread's large parallel step (a fill ordering)
+/// holds it back until that step runs out of work to share.
+pub fn join_timed<RA: Send, RB: Send>(
+    a: impl FnOnce() -> RA + Send,
+    b: impl FnOnce() -> RB + Send,
+) -> (RA, RB, f64) {
+    let queued = std::time::Instant::now();
+    let ((waited, ra), rb) = rayon::join(|| (queued.elapsed().as_secs_f64(), a()), b);
+    (ra, rb, waited)
+}
+
 /// `f` run in a pool of `threads` of rayon's threads (tests that compare
 /// results on several thread counts).
 #[cfg(test)]

@@ -1116,6 +1116,7 @@ impl ScaleSetUp {
     fn host_part(&self) -> ScaleHostPart {
         // See shape_fill_ordering. The matrix is made beside the ordering,
         // not after it (0.43 s at homer 4.3M on the development machine).
+        let queued = Instant::now();
         let ordering = || {
             let t = Instant::now();
             self.centroids
@@ -1123,8 +1124,10 @@ impl ScaleSetUp {
                 .and_then(|c| coordinate_nested_dissection_of_pairs(c, &self.face_pairs))
                 .map_or(FillOrdering::Amd, |forward| {
                     log::debug!(
-                        "fill ordering of the faces (their centroids' nested dissection): {:.3} s",
-                        t.elapsed().as_secs_f64()
+                        "fill ordering of the faces (their centroids' nested dissection): {:.3} s, \
+                         after {:.3} s before rayon's threads took it up",
+                        t.elapsed().as_secs_f64(),
+                        (t - queued).as_secs_f64()
                     );
                     FillOrdering::Given(forward.into())
                 })
@@ -1706,10 +1709,14 @@ fn start_shape_work(mesh: &Mesh, ordering: ShapeOrdering) -> Option<ShapeWork> {
                 (ShapeOrdering::Metis, _) => shape_nested_dissection(n, &col_ptr, &row_idx),
                 (ShapeOrdering::Coordinates, Some(positions)) => {
                     let t = Instant::now();
-                    let forward = coordinate_nested_dissection(&positions, &col_ptr, &row_idx);
+                    let (forward, (), waited) = crate::ordered::join_timed(
+                        || coordinate_nested_dissection(&positions, &col_ptr, &row_idx),
+                        || (),
+                    );
                     log::debug!(
                         "fill ordering of the shape pattern (the vertices' nested dissection), on \
-                         its own thread from the start: {:.3} s",
+                         its own thread from the start: {:.3} s ({waited:.3} s of it before \
+                         rayon's threads took it up)",
                         t.elapsed().as_secs_f64()
                     );
                     forward
@@ -1775,10 +1782,12 @@ fn on_shape_pattern<T: Send + 'static>(
         .name(name.into())
         .spawn(move || {
             let t = Instant::now();
-            let (col_ptr, row_idx) = crate::shape::shape_pattern(n, &faces);
+            let ((col_ptr, row_idx), (), waited) =
+                crate::ordered::join_timed(|| crate::shape::shape_pattern(n, &faces), || ());
             drop(faces);
             log::debug!(
-                "shape pattern made on its own thread in {:.3} s",
+                "shape pattern made on its own thread in {:.3} s ({waited:.3} s of it before \
+                 rayon's threads took it up)",
                 t.elapsed().as_secs_f64()
             );
             then(n, col_ptr, row_idx)

@@ -402,7 +402,7 @@ impl ShapeModel {
         }
         // Both Laplacians from one list of each vertex's faces.
         let faces_of = vertex_faces(n, &mesh.faces);
-        let (cot, mv) = rayon::join(
+        let (cot, mv, pool_wait) = crate::ordered::join_timed(
             || {
                 let corner = cotangent_corner(x, &no_weight);
                 Arc::new(laplacian_by_corners(mesh, &faces_of, false, corner))
@@ -496,7 +496,8 @@ impl ShapeModel {
         h.ring_slots = Some(mv_slots.clone());
         log::debug!(
             "shape model: {} vertices, {} blocks, set up in {:.3} s (its Laplacians {:.3} s, \
-             pattern {pattern_seconds:.3} s, slots {:.3} s), resident {:.0} MiB",
+             {pool_wait:.3} s of it before rayon's threads took them up; pattern \
+             {pattern_seconds:.3} s, slots {:.3} s), resident {:.0} MiB",
             n,
             h.iso.row_idx.len(),
             t_setup.elapsed().as_secs_f64(),
