@@ -228,9 +228,12 @@ impl Problem {
         curvature: &[Curvature],
     ) -> Result<Problem> {
         let mesh_path: PathBuf = source.into();
+        let t0 = std::time::Instant::now();
         // Topology::build takes any corner index; validate refuses those out of range.
         let topo = Topology::build(&mesh);
+        let t1 = std::time::Instant::now();
         let check = validate(&mesh, &topo, &mesh_path)?;
+        let t2 = std::time::Instant::now();
         // Duplicate faces count once in whole-mesh metrics.
         let skip: Vec<bool> = if topo.duplicate_faces.is_empty() {
             Vec::new()
@@ -320,6 +323,13 @@ impl Problem {
                 scale: c.scale,
             });
         }
+        log::debug!(
+            "{}: topology {:.3} s, checks {:.3} s, demands, handles and regions {:.3} s",
+            mesh_path.display(),
+            (t1 - t0).as_secs_f64(),
+            (t2 - t1).as_secs_f64(),
+            t2.elapsed().as_secs_f64()
+        );
         Ok(Problem {
             mesh_path,
             mesh,

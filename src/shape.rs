@@ -474,10 +474,15 @@ impl ShapeModel {
             let d = mv.start[i + 1] - mv.start[i] + 1;
             mv_slot_ptr.push(mv_slot_ptr[i] + d * (d + 1) / 2);
         }
-        let mut mv_slots = vec![0u32; mv_slot_ptr[n]];
+        // Written in place in their shared storage: a `Vec` turned into an
+        // `Arc` is copied (0.66 s for homer 4.3M's 240 MB, 2 threads).
+        // SAFETY: zeroed memory is a valid `u32`.
+        let mut mv_slots: Arc<[u32]> =
+            unsafe { Arc::new_zeroed_slice(mv_slot_ptr[n]).assume_init() };
         {
             use rayon::prelude::*;
-            let chunks = solver_cpu::row_groups_mut(&mut mv_slots, n, |i| mv_slot_ptr[i], 4096);
+            let slots = Arc::get_mut(&mut mv_slots).expect("the slots' new storage is not shared");
+            let chunks = solver_cpu::row_groups_mut(slots, n, |i| mv_slot_ptr[i], 4096);
             chunks.into_par_iter().for_each(|(rows, chunk)| {
                 let mut out = chunk.iter_mut();
                 for i in rows {
@@ -492,7 +497,6 @@ impl ShapeModel {
             });
         }
         // The same slots serve a solver that adds the rings' pairs itself.
-        let mv_slots: Arc<[u32]> = mv_slots.into();
         h.ring_slots = Some(mv_slots.clone());
         log::debug!(
             "shape model: {} vertices, {} blocks, set up in {:.3} s (its Laplacians {:.3} s, \
