@@ -46,14 +46,7 @@ pub fn release_free_memory() {
 pub fn keep_freed_memory() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     {
-        let set_by_user = [
-            "MALLOC_MMAP_MAX_",
-            "MALLOC_TRIM_THRESHOLD_",
-            "GLIBC_TUNABLES",
-        ]
-        .iter()
-        .any(|v| std::env::var_os(v).is_some());
-        if set_by_user {
+        if malloc_set_by_user() {
             return;
         }
         // SAFETY: mallopt only changes glibc's allocation parameters; blocks
@@ -63,6 +56,18 @@ pub fn keep_freed_memory() {
             libc::mallopt(libc::M_TRIM_THRESHOLD, std::ffi::c_int::MAX);
         }
     }
+}
+
+/// Whether the user set glibc's own malloc settings.
+#[cfg(all(target_os = "linux", target_env = "gnu"))]
+fn malloc_set_by_user() -> bool {
+    [
+        "MALLOC_MMAP_MAX_",
+        "MALLOC_TRIM_THRESHOLD_",
+        "GLIBC_TUNABLES",
+    ]
+    .iter()
+    .any(|v| std::env::var_os(v).is_some())
 }
 
 fn proc_status_mb(field: &str) -> f64 {
@@ -87,14 +92,7 @@ mod tests {
     /// block is such a mapping.
     #[test]
     fn a_large_block_comes_from_a_heap_once_freed_memory_is_kept() {
-        if [
-            "MALLOC_MMAP_MAX_",
-            "MALLOC_TRIM_THRESHOLD_",
-            "GLIBC_TUNABLES",
-        ]
-        .iter()
-        .any(|v| std::env::var_os(v).is_some())
-        {
+        if super::malloc_set_by_user() {
             eprintln!("skipped: glibc's malloc settings are the user's here");
             return;
         }

@@ -73,6 +73,14 @@ pub fn join_timed<RA: Send, RB: Send>(
     (ra, rb, waited)
 }
 
+/// `f()` as one job on rayon's pool (its parallel steps then share the
+/// pool's work as its own, not each queued from outside), and the seconds
+/// before the pool took it up ([`join_timed`]).
+pub fn on_pool_timed<T: Send>(f: impl FnOnce() -> T + Send) -> (T, f64) {
+    let (made, (), waited) = join_timed(f, || ());
+    (made, waited)
+}
+
 /// `f` run in a pool of `threads` of rayon's threads (tests that compare
 /// results on several thread counts).
 #[cfg(test)]

@@ -1116,7 +1116,6 @@ impl ScaleSetUp {
     fn host_part(&self) -> ScaleHostPart {
         // See shape_fill_ordering. The matrix is made beside the ordering,
         // not after it (0.43 s at homer 4.3M on the development machine).
-        let queued = Instant::now();
         let ordering = || {
             let t = Instant::now();
             self.centroids
@@ -1124,10 +1123,8 @@ impl ScaleSetUp {
                 .and_then(|c| coordinate_nested_dissection_of_pairs(c, &self.face_pairs))
                 .map_or(FillOrdering::Amd, |forward| {
                     log::debug!(
-                        "fill ordering of the faces (their centroids' nested dissection): {:.3} s, \
-                         after {:.3} s before rayon's threads took it up",
-                        t.elapsed().as_secs_f64(),
-                        (t - queued).as_secs_f64()
+                        "fill ordering of the faces (their centroids' nested dissection): {:.3} s",
+                        t.elapsed().as_secs_f64()
                     );
                     FillOrdering::Given(forward.into())
                 })
@@ -1141,7 +1138,11 @@ impl ScaleSetUp {
                 self.regulariser,
             )
         };
-        let (fill, hessian) = rayon::join(ordering, matrix);
+        let (fill, hessian, waited) = crate::ordered::join_timed(ordering, matrix);
+        log::debug!(
+            "the scale factors' fill ordering and matrix: {waited:.3} s before rayon's threads \
+             took them up"
+        );
         // A GPU's scale factors are preconditioned by their factor unless
         // another preconditioner is asked for.
         let cholesky =
@@ -1709,10 +1710,9 @@ fn start_shape_work(mesh: &Mesh, ordering: ShapeOrdering) -> Option<ShapeWork> {
                 (ShapeOrdering::Metis, _) => shape_nested_dissection(n, &col_ptr, &row_idx),
                 (ShapeOrdering::Coordinates, Some(positions)) => {
                     let t = Instant::now();
-                    let (forward, (), waited) = crate::ordered::join_timed(
-                        || coordinate_nested_dissection(&positions, &col_ptr, &row_idx),
-                        || (),
-                    );
+                    let (forward, waited) = crate::ordered::on_pool_timed(|| {
+                        coordinate_nested_dissection(&positions, &col_ptr, &row_idx)
+                    });
                     log::debug!(
                         "fill ordering of the shape pattern (the vertices' nested dissection), on \
                          its own thread from the start: {:.3} s ({waited:.3} s of it before \
@@ -1782,8 +1782,8 @@ fn on_shape_pattern<T: Send + 'static>(
         .name(name.into())
         .spawn(move || {
             let t = Instant::now();
-            let ((col_ptr, row_idx), (), waited) =
-                crate::ordered::join_timed(|| crate::shape::shape_pattern(n, &faces), || ());
+            let ((col_ptr, row_idx), waited) =
+                crate::ordered::on_pool_timed(|| crate::shape::shape_pattern(n, &faces));
             drop(faces);
             log::debug!(
                 "shape pattern made on its own thread in {:.3} s ({waited:.3} s of it before \
