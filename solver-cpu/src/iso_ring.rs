@@ -60,6 +60,21 @@ pub struct SparseRows {
     pub diag: Vec<f64>,
 }
 
+/// A row's diagonal from its summed weights `w`: their sum; with
+/// `normalise`, 1 after the weights are scaled to sum 1 (0 for a row whose
+/// sum is not positive, left as it is).
+fn finish_row(w: &mut [f64], normalise: bool) -> f64 {
+    let sum: f64 = w.iter().sum();
+    if !normalise {
+        sum
+    } else if sum > 0.0 {
+        w.iter_mut().for_each(|v| *v /= sum);
+        1.0
+    } else {
+        0.0
+    }
+}
+
 impl SparseRows {
     /// Rows from `(row, column, weight)` triplets (duplicates summed, the diagonal
     /// given by `diag`). With `normalise`, each row's weights are scaled to sum 1
@@ -119,16 +134,7 @@ impl SparseRows {
                 }
                 let base = start[rows.start];
                 for (i, d) in rows.zip(diag) {
-                    let w = &mut w[start[i] - base..start[i + 1] - base];
-                    let sum: f64 = w.iter().sum();
-                    if normalise {
-                        if sum > 0.0 {
-                            w.iter_mut().for_each(|v| *v /= sum);
-                            *d = 1.0;
-                        }
-                    } else {
-                        *d = sum;
-                    }
+                    *d = finish_row(&mut w[start[i] - base..start[i + 1] - base], normalise);
                 }
             });
         SparseRows {
@@ -173,17 +179,8 @@ impl SparseRows {
                         idx.push(run[0].0);
                         w.push(run[1..].iter().fold(run[0].1, |s, e| s + e.1));
                     }
-                    let w = &mut w[first..];
-                    let sum: f64 = w.iter().sum();
-                    diag.push(if !normalise {
-                        sum
-                    } else if sum > 0.0 {
-                        w.iter_mut().for_each(|v| *v /= sum);
-                        1.0
-                    } else {
-                        0.0
-                    });
-                    lens.push(w.len());
+                    diag.push(finish_row(&mut w[first..], normalise));
+                    lens.push(w.len() - first);
                 }
                 (lens, idx, w, diag)
             })
