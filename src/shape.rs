@@ -26,7 +26,7 @@
 //! handles: one vertex of each such component is held (its increment is zero) and
 //! the component is re-centred after each step.
 
-use crate::mesh::topology::{vertex_components, Topology};
+use crate::mesh::topology::Topology;
 use crate::mesh::{triangle_area_gradient, Mesh, COT_CAP};
 use crate::{Error, Result};
 use glam::DVec3;
@@ -519,15 +519,15 @@ impl ShapeModel {
             }
         }
         let mut fixed: Vec<bool> = referenced.iter().map(|r| !r).collect();
-        let comp = vertex_components(mesh);
-        let mut has_handle = vec![false; comp.1];
+        let (label, count) = (&topo.vertex_component, topo.components);
+        let mut has_handle = vec![false; count];
         for hd in &handles {
-            has_handle[comp.0[hd.vertex as usize] as usize] = true;
+            has_handle[label[hd.vertex as usize] as usize] = true;
         }
-        let mut free_components: Vec<Vec<u32>> = vec![Vec::new(); comp.1];
+        let mut free_components: Vec<Vec<u32>> = vec![Vec::new(); count];
         for v in 0..n {
             if referenced[v] {
-                free_components[comp.0[v] as usize].push(v as u32);
+                free_components[label[v] as usize].push(v as u32);
             }
         }
         let mut free = Vec::new();

@@ -42,6 +42,10 @@ pub struct Topology {
     pub collapsed_faces: Vec<u32>,
     /// Per face: a duplicate or collapsed face, left out of the adjacency.
     pub ignored: Vec<bool>,
+    /// Each vertex's connected component through the faces, and their
+    /// number: [`vertex_components`].
+    pub vertex_component: Vec<u32>,
+    pub components: usize,
 }
 
 /// The edges of `faces` (each face's sides `(t[k], t[k + 1])`, as the
@@ -115,7 +119,11 @@ impl Topology {
     pub fn build(mesh: &Mesh) -> Topology {
         let nf = mesh.faces.len();
         let nv = mesh.positions.len();
-        let (edges, face_edges) = number_edges(&mesh.faces, nv);
+        // The components beside the edges' numbering: both walk the faces
+        // once, one after the other (homer 4.3M on the development machine:
+        // 0.11-0.16 s and 0.09 s).
+        let ((edges, face_edges), (vertex_component, components)) =
+            rayon::join(|| number_edges(&mesh.faces, nv), || vertex_components(mesh));
         // Duplicate faces: the same vertex set as an earlier face, found
         // among the faces of their smallest edge (faces with the same
         // vertices have the same edges). Without a map over the faces'
@@ -247,6 +255,8 @@ impl Topology {
             is_duplicate,
             collapsed_faces,
             ignored,
+            vertex_component,
+            components,
         }
     }
 
@@ -319,13 +329,16 @@ impl UnionFind {
 
 /// Connected components of the vertices through the faces: each vertex's
 /// component label (0-based, numbered in vertex order; a vertex in no face
-/// is its own component) and the number of components.
+/// is its own component) and the number of components. A face with a
+/// corner out of range joins nothing (`validate` refuses such a mesh).
 pub fn vertex_components(mesh: &Mesh) -> (Vec<u32>, usize) {
     let n = mesh.num_vertices();
     let mut sets = UnionFind::new(n);
     for t in &mesh.faces {
-        sets.union(t[0], t[1]);
-        sets.union(t[0], t[2]);
+        if t.iter().all(|&v| (v as usize) < n) {
+            sets.union(t[0], t[1]);
+            sets.union(t[0], t[2]);
+        }
     }
     let mut label = vec![u32::MAX; n];
     let mut count = 0usize;
@@ -442,5 +455,20 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// The components made with the topology: numbered in vertex order, a
+    /// vertex in no face its own; a face with a corner out of range joins
+    /// nothing (and builds no panic: `validate` refuses the mesh after).
+    #[test]
+    fn components_are_numbered_in_vertex_order_and_skip_faces_out_of_range() {
+        let mesh = Mesh {
+            positions: vec![glam::DVec3::ZERO; 8],
+            faces: vec![[4, 5, 6], [0, 1, 2], [2, 3, 1], [6, 7, 99]],
+            groups: Vec::new(),
+        };
+        let topo = Topology::build(&mesh);
+        assert_eq!(topo.vertex_component, vec![0, 0, 0, 0, 1, 1, 1, 2]);
+        assert_eq!(topo.components, 3);
     }
 }

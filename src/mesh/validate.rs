@@ -19,7 +19,7 @@
 //! triangulation, numbered in file order).
 
 use crate::error::{Error, Result};
-use crate::mesh::topology::{vertex_components, Topology, UnionFind};
+use crate::mesh::topology::{Topology, UnionFind};
 use crate::mesh::Mesh;
 use std::path::Path;
 
@@ -257,8 +257,8 @@ pub fn validate(mesh: &Mesh, topo: &Topology, file: &Path) -> Result<MeshCheck> 
     }
 
     // Connected components of faces via shared vertices.
-    let (label, count) = vertex_components(mesh);
-    let mut seen = vec![false; count];
+    let label = &topo.vertex_component;
+    let mut seen = vec![false; topo.components];
     for v in 0..nv {
         if used[v] {
             seen[label[v] as usize] = true;
@@ -282,7 +282,9 @@ pub fn validate(mesh: &Mesh, topo: &Topology, file: &Path) -> Result<MeshCheck> 
 
 /// Vertices whose incident faces form more than one fan (faces connected through edges
 /// incident to the vertex). Assumes no non-manifold edges. Each vertex on
-/// rayon's threads, listed in vertex order.
+/// rayon's threads, listed in vertex order: its faces' corners compared
+/// ([`one_fan`]), or where there are many, a union-find over its faces
+/// through the edges ([`several_fans`]).
 fn non_manifold_vertices(mesh: &Mesh, topo: &Topology) -> Vec<usize> {
     use rayon::prelude::*;
     let more_than_one_fan = |v: usize| -> bool {
@@ -290,33 +292,89 @@ fn non_manifold_vertices(mesh: &Mesh, topo: &Topology) -> Vec<usize> {
         if fs.len() < 2 {
             return false;
         }
-        // Union-find over the faces around v (indices into fs).
-        let mut local = UnionFind::new(fs.len());
-        for (i, &f) in fs.iter().enumerate() {
-            let t = mesh.faces[f as usize];
-            for k in 0..3 {
-                let (a, b) = (t[k], t[(k + 1) % 3]);
-                if a as usize != v && b as usize != v {
-                    continue;
-                }
-                let e = topo.face_edges[f as usize][k] as usize;
-                for &g in topo.edge_faces(e) {
-                    if g != f {
-                        if let Some(j) = fs.iter().position(|&h| h == g) {
-                            local.union(i as u32, j as u32);
-                        }
-                    }
-                }
-            }
+        match one_fan(mesh, v, fs) {
+            Some(one) => !one,
+            None => several_fans(mesh, topo, v, fs),
         }
-        let root = local.find(0);
-        (1..fs.len() as u32).any(|i| local.find(i) != root)
     };
     (0..mesh.positions.len())
         .into_par_iter()
         .filter(|&v| more_than_one_fan(v))
         .collect()
 }
+
+/// Whether the faces `fs` around `v` form more than one fan: a union-find
+/// over them, joining two that share a side at `v`.
+fn several_fans(mesh: &Mesh, topo: &Topology, v: usize, fs: &[u32]) -> bool {
+    let mut local = UnionFind::new(fs.len());
+    for (i, &f) in fs.iter().enumerate() {
+        let t = mesh.faces[f as usize];
+        for k in 0..3 {
+            let (a, b) = (t[k], t[(k + 1) % 3]);
+            if a as usize != v && b as usize != v {
+                continue;
+            }
+            let e = topo.face_edges[f as usize][k] as usize;
+            for &g in topo.edge_faces(e) {
+                if g != f {
+                    if let Some(j) = fs.iter().position(|&h| h == g) {
+                        local.union(i as u32, j as u32);
+                    }
+                }
+            }
+        }
+    }
+    let root = local.find(0);
+    (1..fs.len() as u32).any(|i| local.find(i) != root)
+}
+
+/// Whether the faces `fs` around `v` form one fan, from their corners
+/// alone: two faces around `v` share a side at `v` exactly where they share
+/// a corner other than `v` (each has three distinct corners, since
+/// `Topology` leaves the others out of `vertex_faces`, so each pair of its
+/// corners is a side, and a side's faces are all of the faces holding both
+/// its ends). A union-find over at most [`FAN_LIMIT`] faces in a stack
+/// array; `None` where there are more, or a face lacks `v` ([`several_fans`]
+/// decides then).
+fn one_fan(mesh: &Mesh, v: usize, fs: &[u32]) -> Option<bool> {
+    let k = fs.len();
+    if k > FAN_LIMIT {
+        return None;
+    }
+    let mut others = [[u32::MAX; 2]; FAN_LIMIT];
+    for (o, &f) in others.iter_mut().zip(fs) {
+        let t = mesh.faces[f as usize];
+        let c = t.iter().position(|&x| x as usize == v)?;
+        *o = [t[(c + 1) % 3], t[(c + 2) % 3]];
+    }
+    let mut parent = [0u8; FAN_LIMIT];
+    for (i, p) in parent.iter_mut().enumerate() {
+        *p = i as u8;
+    }
+    let find = |parent: &[u8; FAN_LIMIT], mut x: u8| {
+        while parent[x as usize] != x {
+            x = parent[x as usize];
+        }
+        x
+    };
+    let mut sets = k;
+    for i in 0..k {
+        for j in i + 1..k {
+            let ([a, b], [c, d]) = (others[i], others[j]);
+            if a == c || a == d || b == c || b == d {
+                let (ri, rj) = (find(&parent, i as u8), find(&parent, j as u8));
+                if ri != rj {
+                    parent[ri.max(rj) as usize] = ri.min(rj);
+                    sets -= 1;
+                }
+            }
+        }
+    }
+    Some(sets == 1)
+}
+
+/// The most faces around a vertex [`one_fan`] takes.
+const FAN_LIMIT: usize = 32;
 
 /// Fails unless the mesh is closed: `what` names the requirement, e.g.
 /// `volume constraint 'body'`, giving
@@ -455,24 +513,31 @@ pub fn require_volume(
         let t = mesh.faces[f as usize];
         (0..3).any(|k| t[k] == a && t[(k + 1) % 3] == b)
     };
-    let mut bad: Vec<String> = Vec::new();
-    let mut count = 0usize;
-    for (e, &[a, b]) in topo.edges.iter().enumerate() {
-        let fs = topo.edge_faces(e);
-        if fs.len() != 2 {
-            continue;
+    // The edges whose two faces run them the same way: counted on rayon's
+    // threads; the first few listed, in edge order, only where there are any.
+    let disagree = |e: usize| -> Option<(u32, u32)> {
+        let [a, b] = topo.edges[e];
+        match *topo.edge_faces(e) {
+            [f, g] if runs_forward(f, a, b) == runs_forward(g, a, b) => Some((f, g)),
+            _ => None,
         }
-        if runs_forward(fs[0], a, b) == runs_forward(fs[1], a, b) {
-            count += 1;
-            if bad.len() < MAX_LISTED {
-                bad.push(format!(
-                    "edge ({a}, {b}) runs the same way in faces {} and {}",
-                    fs[0], fs[1]
-                ));
-            }
-        }
-    }
+    };
+    let count = {
+        use rayon::prelude::*;
+        (0..topo.edges.len())
+            .into_par_iter()
+            .filter(|&e| disagree(e).is_some())
+            .count()
+    };
     if count > 0 {
+        let bad: Vec<String> = (0..topo.edges.len())
+            .filter_map(|e| {
+                let [a, b] = topo.edges[e];
+                disagree(e)
+                    .map(|(f, g)| format!("edge ({a}, {b}) runs the same way in faces {f} and {g}"))
+            })
+            .take(MAX_LISTED)
+            .collect();
         return Err(Error::bad(format!(
             "{}: {what} needs a consistently oriented mesh, but {} (0-based; the two \
              faces of an edge must list it in opposite orders): {}{}: re-orient the faces \
@@ -493,4 +558,177 @@ pub fn require_volume(
         )));
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn mesh(positions: usize, faces: &[[u32; 3]]) -> Mesh {
+        Mesh {
+            positions: (0..positions)
+                .map(|i| glam::DVec3::new(i as f64, (i * i % 7) as f64, (i % 3) as f64))
+                .collect(),
+            faces: faces.to_vec(),
+            groups: Vec::new(),
+        }
+    }
+
+    /// A closed cone: apex `a`, ring `r` (three vertices), its cap.
+    fn cone(a: u32, r: [u32; 3]) -> [[u32; 3]; 4] {
+        [
+            [a, r[0], r[1]],
+            [a, r[1], r[2]],
+            [a, r[2], r[0]],
+            [r[0], r[2], r[1]],
+        ]
+    }
+
+    /// Every vertex's verdict from its faces' corners ([`one_fan`]) equals
+    /// the union-find's through the edges ([`several_fans`]), where it has
+    /// one; the vertices it decided.
+    fn corners_agree(m: &Mesh, topo: &Topology) -> usize {
+        let mut decided = 0;
+        for v in 0..m.num_vertices() {
+            let fs = topo.vertex_faces(v);
+            if fs.len() < 2 {
+                continue;
+            }
+            if let Some(one) = one_fan(m, v, fs) {
+                assert_eq!(!one, several_fans(m, topo, v, fs), "vertex {v}");
+                decided += 1;
+            }
+        }
+        decided
+    }
+
+    /// Two triangles touching at a corner (a bowtie) and two closed cones
+    /// touching at their apex (an hourglass: two closed fans, which counting
+    /// a vertex's interior and boundary sides does not tell from one) both
+    /// pinch their shared vertex, and only it.
+    #[test]
+    fn pinched_vertices_are_found_from_the_corners() {
+        let bowtie = mesh(5, &[[0, 1, 2], [0, 3, 4]]);
+        let topo = Topology::build(&bowtie);
+        assert_eq!(non_manifold_vertices(&bowtie, &topo), vec![0]);
+        assert_eq!(corners_agree(&bowtie, &topo), 1);
+
+        let faces: Vec<[u32; 3]> = cone(0, [1, 2, 3])
+            .into_iter()
+            .chain(cone(0, [4, 5, 6]))
+            .collect();
+        let hourglass = mesh(7, &faces);
+        let topo = Topology::build(&hourglass);
+        assert!(topo.is_closed());
+        assert_eq!(non_manifold_vertices(&hourglass, &topo), vec![0]);
+        assert_eq!(corners_agree(&hourglass, &topo), 7);
+    }
+
+    /// A closed mesh, an open disk (a fan with two boundary sides) and a
+    /// mesh with duplicate and collapsed faces (left out of the vertices'
+    /// faces) have no pinched vertex; the corners decide every vertex.
+    #[test]
+    fn manifold_vertices_are_not_listed() {
+        let octahedron = mesh(
+            6,
+            &[
+                [0, 2, 4],
+                [2, 1, 4],
+                [1, 3, 4],
+                [3, 0, 4],
+                [2, 0, 5],
+                [1, 2, 5],
+                [3, 1, 5],
+                [0, 3, 5],
+            ],
+        );
+        let topo = Topology::build(&octahedron);
+        assert!(non_manifold_vertices(&octahedron, &topo).is_empty());
+        assert_eq!(corners_agree(&octahedron, &topo), 6);
+
+        let disk = mesh(6, &[[0, 1, 2], [0, 2, 3], [0, 3, 4], [0, 4, 5]]);
+        let topo = Topology::build(&disk);
+        assert!(non_manifold_vertices(&disk, &topo).is_empty());
+        assert_eq!(corners_agree(&disk, &topo), 4);
+
+        let mut faces = octahedron.faces.clone();
+        faces.extend([[4, 0, 2], [1, 1, 3]]);
+        let odd = mesh(6, &faces);
+        let topo = Topology::build(&odd);
+        assert_eq!(topo.duplicate_faces.len(), 1);
+        assert_eq!(topo.collapsed_faces.len(), 1);
+        assert!(non_manifold_vertices(&odd, &topo).is_empty());
+        assert_eq!(corners_agree(&odd, &topo), 6);
+    }
+
+    /// On a real mesh with pinches added (a bowtie's wing glued to a vertex
+    /// of it, and a second cone's apex at another), the corners and the
+    /// union-find agree on every vertex, and the pinched ones are listed.
+    #[test]
+    fn the_corners_agree_with_the_union_find_on_spot() {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("data/meshes/spot.obj");
+        let mut m = crate::mesh::io::read_mesh(&path).unwrap();
+        let n = m.num_vertices() as u32;
+        for i in 0..5 {
+            m.positions
+                .push(glam::DVec3::new(3.0 + i as f64, 0.5 * i as f64, 1.0));
+        }
+        m.faces.push([7, n, n + 1]);
+        m.faces.extend(cone(100, [n + 2, n + 3, n + 4]));
+        let topo = Topology::build(&m);
+        assert_eq!(non_manifold_vertices(&m, &topo), vec![7, 100]);
+        // All but the wing's two corners of one face.
+        assert_eq!(corners_agree(&m, &topo), m.num_vertices() - 2);
+    }
+
+    /// A volume job on a closed mesh with faces flipped lists the first
+    /// edges whose two faces run them the same way, in edge order, and
+    /// counts the rest.
+    #[test]
+    fn flipped_faces_are_listed_in_edge_order_and_counted() {
+        let mut faces: Vec<[u32; 3]> = cone(0, [1, 2, 3]).to_vec();
+        faces.extend(cone(4, [5, 6, 7]));
+        // Two faces of the first cone (sharing an edge, which they still
+        // run opposite ways) and one of the second flipped: four edges of the
+        // first, three of the second.
+        for f in [0, 3, 5] {
+            faces[f].swap(1, 2);
+        }
+        let m = mesh(8, &faces);
+        let topo = Topology::build(&m);
+        let file = Path::new("two-cones.obj");
+        let check = validate(&m, &topo, file).unwrap();
+        let msg = require_volume(&m, &topo, &check, file, "constraint 1 (volume)")
+            .unwrap_err()
+            .to_string();
+        let disagreeing: Vec<usize> = (0..topo.edges.len())
+            .filter(|&e| {
+                let fs = topo.edge_faces(e);
+                let [a, b] = topo.edges[e];
+                let forward = |f: u32| {
+                    let t = m.faces[f as usize];
+                    (0..3).any(|k| t[k] == a && t[(k + 1) % 3] == b)
+                };
+                forward(fs[0]) == forward(fs[1])
+            })
+            .collect();
+        assert_eq!(disagreeing.len(), 7);
+        assert!(
+            msg.contains("7 edges have two faces that disagree"),
+            "{msg}"
+        );
+        assert!(msg.contains(" and 2 more"), "{msg}");
+        let listed: Vec<String> = disagreeing[..MAX_LISTED]
+            .iter()
+            .map(|&e| format!("edge ({}, {})", topo.edges[e][0], topo.edges[e][1]))
+            .collect();
+        let mut at = 0;
+        for edge in &listed {
+            let found = msg[at..]
+                .find(edge.as_str())
+                .unwrap_or_else(|| panic!("{edge} in {msg}"));
+            at += found + edge.len();
+        }
+        assert!(!msg[at..].contains("edge ("), "{msg}");
+    }
 }
