@@ -246,6 +246,9 @@ impl Problem {
             let kind = d.metric.kind();
             let label = constraint_label(i, d.name.as_deref(), kind);
             d.validate(&label).map_err(Error::bad)?;
+            // The whole mesh's signed volume, measured once: the constraint's
+            // orientation and (times it) its original value.
+            let mut volume = None;
             let (selection, orientation) = match &d.metric {
                 Metric::Length(curve) => (
                     Selection::Curve(build_curve(curve, &mesh, &topo, &label)?),
@@ -272,6 +275,7 @@ impl Problem {
                             mesh_path.display()
                         )));
                     }
+                    volume = Some(v);
                     (Selection::Whole, v.signum())
                 }
             };
@@ -287,7 +291,11 @@ impl Problem {
                 orientation,
                 skip: skip.clone(),
             };
-            c.original = c.measure(&mesh, x);
+            // `measure` is the orientation times the same sum: the same bits.
+            c.original = match volume {
+                Some(v) => c.orientation * v,
+                None => c.measure(&mesh, x),
+            };
             if c.original.is_nan() || c.original <= 0.0 || !c.original.is_finite() {
                 return Err(Error::bad(format!(
                     "{label}: the {kind} measures {} on the input mesh",

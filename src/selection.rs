@@ -296,7 +296,10 @@ fn plane_section(
     let origin = v3(origin_given);
     let normal = v3(normal_given);
     let x = &mesh.positions;
-    let d: Vec<f64> = x.iter().map(|&p| (p - origin).dot(normal)).collect();
+    let d: Vec<f64> = {
+        use rayon::prelude::*;
+        x.par_iter().map(|&p| (p - origin).dot(normal)).collect()
+    };
     let pos = |v: u32| d[v as usize] >= 0.0;
 
     // Parameter of the crossing on edge e, measured from its lower vertex.
@@ -361,22 +364,33 @@ fn plane_section(
     };
 
     let nf = mesh.faces.len();
+    // The crossed faces of the surface (duplicate and collapsed faces are
+    // not part of its adjacency), in face order, found on rayon's threads:
+    // the walks below start from them alone.
+    let crossed: Vec<u32> = {
+        use rayon::prelude::*;
+        (0..nf)
+            .into_par_iter()
+            .filter(|&f| {
+                !topo.ignored.get(f).copied().unwrap_or(false) && crossed_sides(f).is_some()
+            })
+            .map(|f| f as u32)
+            .collect()
+    };
     let mut visited = vec![false; nf];
     // Best piece so far: (distance of its nearest crossing to origin, segments,
     // closed, 1-based piece number).
     let mut best: Option<(f64, Vec<Segment>, bool, usize)> = None;
     // Pieces found so far (those with at least one segment).
     let mut pieces = 0usize;
-    for f0 in 0..nf {
-        // Duplicate and collapsed faces are not part of the surface's adjacency.
-        if visited[f0] || topo.ignored.get(f0).copied().unwrap_or(false) {
+    for &f0 in &crossed {
+        if visited[f0 as usize] {
             continue;
         }
-        let Some(sides0) = crossed_sides(f0) else {
+        let Some(sides0) = crossed_sides(f0 as usize) else {
             continue;
         };
-        visited[f0] = true;
-        let f0 = f0 as u32;
+        visited[f0 as usize] = true;
         let e_of = |f: u32, k: usize| topo.face_edges[f as usize][k];
         // Walk forward from f0 leaving through its second crossed side. Each step
         // records (face, entry side, exit side).
