@@ -393,6 +393,24 @@ impl ShapeModel {
         handles: Vec<HandleTarget>,
         solver: Box<dyn SpdSolver>,
     ) -> Result<Self> {
+        Self::with_solver_and_pattern(mesh, topo, handles, solver, None)
+    }
+
+    /// As [`ShapeModel::with_solver`], its 2-ring pattern taken from
+    /// `pattern` where that holds one already: [`shape_pattern`] of the same
+    /// mesh, made on another thread since the start (the pipeline's), not
+    /// made again here. Where it holds none yet, the pattern is made here,
+    /// and given up for the thread's should that come meanwhile (its `ready`
+    /// set): not waited for, as that thread's pattern can sit behind other
+    /// work in rayon's pool (homer 1.2M, 2 threads: a wait of 2.44 s, where
+    /// making it takes 0.3-0.4 s).
+    pub fn with_solver_and_pattern(
+        mesh: &Mesh,
+        topo: &Topology,
+        handles: Vec<HandleTarget>,
+        solver: Box<dyn SpdSolver>,
+        pattern: Option<SharedPattern>,
+    ) -> Result<Self> {
         let x = &mesh.positions;
         let n = x.len();
         let t_setup = std::time::Instant::now();
@@ -436,9 +454,40 @@ impl ShapeModel {
         };
 
         let t_pattern = std::time::Instant::now();
-        let (col_ptr, row_idx) = two_ring_pattern(&cot.start, &cot.idx);
+        // The other thread's pattern where it has come, else this one's,
+        // given up for the other's where that comes meanwhile.
+        let fits = |p: &Arc<(Vec<usize>, Vec<usize>)>| {
+            p.0.len() == n + 1 && p.0.last() == Some(&p.1.len())
+        };
+        let never = std::sync::atomic::AtomicBool::new(false);
+        let (shared, own) = match &pattern {
+            Some(share) => match share.pattern.try_recv() {
+                Ok(p) => (Some(p), None),
+                Err(_) => match two_ring_pattern(&cot.start, &cot.idx, &share.ready) {
+                    Some(own) => (None, Some(own)),
+                    None => (share.pattern.recv().ok(), None),
+                },
+            },
+            None => (None, two_ring_pattern(&cot.start, &cot.idx, &never)),
+        };
+        let shared = shared.filter(fits);
+        let from_thread = shared.is_some();
+        let (col_ptr, row_idx) = match (shared, own) {
+            (Some(p), _) => (p.0.clone(), p.1.clone()),
+            (None, Some(own)) => own,
+            // Given up for a pattern that did not fit (not the pipeline's).
+            (None, None) => {
+                two_ring_pattern(&cot.start, &cot.idx, &never).expect("a pattern not given up")
+            }
+        };
         let mut h = IsoRingSym3::new(n, col_ptr, row_idx, mv.clone());
         let pattern_seconds = t_pattern.elapsed().as_secs_f64();
+        if from_thread {
+            log::debug!(
+                "shape model: its pattern from the shape pattern's thread (copied in \
+                 {pattern_seconds:.3} s)"
+            );
+        }
         // E_m's Hessian is isotropic ((c c^T) (x) I3): one scalar per block slot.
         let same_rings = cot.start == mv.start && cot.idx == mv.idx;
         let hm = if same_rings {
@@ -1194,6 +1243,14 @@ fn em_hessian(cot: &Laplacian, vertex_area: &[f64], h: &IsoRingSym3) -> Vec<f64>
     hm
 }
 
+/// A [`shape_pattern`] made on another thread, for
+/// [`ShapeModel::with_solver_and_pattern`]: its `(col_ptr, row_idx)`, shared,
+/// and a flag the thread sets once it has sent it.
+pub struct SharedPattern {
+    pub pattern: std::sync::mpsc::Receiver<Arc<(Vec<usize>, Vec<usize>)>>,
+    pub ready: Arc<std::sync::atomic::AtomicBool>,
+}
+
 /// The shape systems' pattern (`K`'s and the shape matrices', Eqs. 7 and
 /// 8; lower CSC, as [`ShapeModel::matrix`]'s) from a mesh's `n` vertices
 /// and its faces alone,
@@ -1214,14 +1271,21 @@ pub fn shape_pattern(n: usize, faces: &[[u32; 3]]) -> (Vec<usize>, Vec<usize>) {
         false,
     );
     drop((start, by_vertex));
-    two_ring_pattern(&rings.start, &rings.idx)
+    let never = std::sync::atomic::AtomicBool::new(false);
+    two_ring_pattern(&rings.start, &rings.idx, &never).expect("a pattern not given up")
 }
 
 /// Lower-triangular pattern `(col_ptr, row_idx)` of the vertex pairs within two
 /// rings of each other (every pair inside one closed 1-ring: a vertex and
 /// its row of `(start, idx)`, which lists its 1-ring without itself),
 /// diagonal first in every column; built column by column in parallel.
-fn two_ring_pattern(start: &[usize], idx: &[u32]) -> (Vec<usize>, Vec<usize>) {
+/// `None` where `stop` is set before its last columns are made (the caller
+/// has the pattern from elsewhere).
+fn two_ring_pattern(
+    start: &[usize],
+    idx: &[u32],
+    stop: &std::sync::atomic::AtomicBool,
+) -> Option<(Vec<usize>, Vec<usize>)> {
     use rayon::prelude::*;
     // Columns in chunks, each chunk's rows in one vector (not one per
     // column: 600k allocations at homer 1.2M), then copied into place on
@@ -1234,6 +1298,9 @@ fn two_ring_pattern(start: &[usize], idx: &[u32]) -> (Vec<usize>, Vec<usize>) {
         .into_par_iter()
         .map(|c| {
             let columns = c * COLUMNS..((c + 1) * COLUMNS).min(n);
+            if stop.load(std::sync::atomic::Ordering::Acquire) {
+                return (Vec::new(), Vec::new());
+            }
             let mut lens = Vec::with_capacity(columns.len());
             let mut rows = Vec::new();
             let mut column = Vec::new();
@@ -1250,6 +1317,9 @@ fn two_ring_pattern(start: &[usize], idx: &[u32]) -> (Vec<usize>, Vec<usize>) {
             (lens, rows)
         })
         .collect();
+    if chunks.iter().map(|(lens, _)| lens.len()).sum::<usize>() < n {
+        return None;
+    }
     let mut col_ptr = Vec::with_capacity(n + 1);
     col_ptr.push(0);
     for len in chunks.iter().flat_map(|(lens, _)| lens) {
@@ -1262,7 +1332,7 @@ fn two_ring_pattern(start: &[usize], idx: &[u32]) -> (Vec<usize>, Vec<usize>) {
         .for_each(|((_, out), (_, rows))| {
             out.iter_mut().zip(rows).for_each(|(o, &q)| *o = q as usize);
         });
-    (col_ptr, row_idx)
+    Some((col_ptr, row_idx))
 }
 
 // ---------------------------------------------------------------------------
@@ -1481,6 +1551,67 @@ mod tests {
         assert_eq!(col_ptr.len(), n as usize + 3);
         assert!(row_idx.len() > pattern(&spot_model().1).1.len());
         assert_eq!((col_ptr, row_idx), pattern(&model));
+    }
+
+    /// A model given its pattern from another thread
+    /// ([`ShapeModel::with_solver_and_pattern`]) is the model that makes its
+    /// own, entry for entry and slot for slot; so is one whose channel holds
+    /// no pattern, or one of the wrong size (refused).
+    #[test]
+    fn a_model_given_its_pattern_is_the_model_that_makes_it() {
+        let (mesh, own) = spot_model();
+        let topo = Topology::build(&mesh);
+        let n = mesh.positions.len();
+        let made = |sent: Option<(Vec<usize>, Vec<usize>)>| {
+            let (tx, rx) = std::sync::mpsc::channel();
+            let ready = Arc::new(std::sync::atomic::AtomicBool::new(false));
+            if let Some(p) = sent {
+                tx.send(Arc::new(p)).unwrap();
+                ready.store(true, std::sync::atomic::Ordering::Release);
+            }
+            drop(tx);
+            let share = SharedPattern { pattern: rx, ready };
+            let solver = Box::new(BlockPcgSolver::new());
+            ShapeModel::with_solver_and_pattern(&mesh, &topo, Vec::new(), solver, Some(share))
+                .unwrap()
+        };
+        let (col_ptr, row_idx) = shape_pattern(n, &mesh.faces);
+        let short = (col_ptr[..n].to_vec(), row_idx[..col_ptr[n - 1]].to_vec());
+        // The flag set before the pattern is sent (from a thread, a moment
+        // later): the model gives its own up at its first chunk and waits.
+        let late = {
+            let (tx, rx) = std::sync::mpsc::channel();
+            let ready = Arc::new(std::sync::atomic::AtomicBool::new(true));
+            let sent = Arc::new((col_ptr.clone(), row_idx.clone()));
+            let sender = std::thread::spawn(move || {
+                std::thread::sleep(std::time::Duration::from_millis(50));
+                tx.send(sent).unwrap();
+            });
+            let share = SharedPattern { pattern: rx, ready };
+            let solver = Box::new(BlockPcgSolver::new());
+            let model =
+                ShapeModel::with_solver_and_pattern(&mesh, &topo, Vec::new(), solver, Some(share))
+                    .unwrap();
+            sender.join().unwrap();
+            model
+        };
+        let stop = std::sync::atomic::AtomicBool::new(true);
+        assert!(two_ring_pattern(&own.cot.start, &own.cot.idx, &stop).is_none());
+        let models = [
+            made(Some((col_ptr, row_idx))),
+            made(None),
+            made(Some(short)),
+            late,
+        ];
+        for model in models {
+            let (a, b) = (model.matrix(), own.matrix());
+            assert_eq!(a.iso.col_ptr, b.iso.col_ptr);
+            assert_eq!(a.iso.row_idx, b.iso.row_idx);
+            let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<u64>>();
+            assert_eq!(bits(&a.iso.values), bits(&b.iso.values));
+            assert_eq!(model.face_slots, own.face_slots);
+            assert_eq!(model.mv_slots, own.mv_slots);
+        }
     }
 
     /// The Laplacians made row by row from each vertex's faces are, to the
