@@ -89,8 +89,8 @@ pub fn cotangent_laplacian(mesh: &Mesh, x: &[DVec3]) -> Laplacian {
 /// `[-COT_CAP, COT_CAP]` (libigl's `cot = (l1^2 + l2^2 - l0^2) / (4 area)` is
 /// unbounded on needles).
 pub fn cotangent_laplacian_masked(mesh: &Mesh, x: &[DVec3], skip: &[bool]) -> Laplacian {
-    let faces_of = vertex_faces(x.len(), &mesh.faces);
-    laplacian_by_corners(mesh, &faces_of, false, cotangent_corner(x, skip))
+    let (start, faces) = vertex_faces(x.len(), &mesh.faces);
+    laplacian_by_corners(mesh, (&start, &faces), false, cotangent_corner(x, skip))
 }
 
 /// What one corner of one face adds to a Laplacian ([`laplacian_by_corners`]):
@@ -155,7 +155,7 @@ fn vertex_faces(n: usize, faces: &[[u32; 3]]) -> (Vec<usize>, Vec<u32>) {
 /// threads: the same bits on any thread count.
 fn laplacian_by_corners(
     mesh: &Mesh,
-    (start, faces): &(Vec<usize>, Vec<u32>),
+    (start, faces): (&[usize], &[u32]),
     normalise: bool,
     corner: impl FaceCorner,
 ) -> Laplacian {
@@ -180,8 +180,8 @@ pub fn mean_value_laplacian(mesh: &Mesh, x: &[DVec3]) -> Laplacian {
 /// [`mean_value_laplacian`] with the faces flagged in `skip` contributing zero
 /// weights (their vertex pairs stay in the pattern).
 pub fn mean_value_laplacian_masked(mesh: &Mesh, x: &[DVec3], skip: &[bool]) -> Laplacian {
-    let faces_of = vertex_faces(x.len(), &mesh.faces);
-    laplacian_by_corners(mesh, &faces_of, true, mean_value_corner(x, skip))
+    let (start, faces) = vertex_faces(x.len(), &mesh.faces);
+    laplacian_by_corners(mesh, (&start, &faces), true, mean_value_corner(x, skip))
 }
 
 /// A face's corner in [`mean_value_laplacian_masked`].
@@ -418,19 +418,31 @@ impl ShapeModel {
         for &(f, _) in &topo.duplicate_faces {
             no_weight[f as usize] = true;
         }
-        // Both Laplacians from one list of each vertex's faces.
-        let faces_of = vertex_faces(n, &mesh.faces);
-        let (cot, mv, pool_wait) = crate::ordered::join_timed(
-            || {
-                let corner = cotangent_corner(x, &no_weight);
-                Arc::new(laplacian_by_corners(mesh, &faces_of, false, corner))
-            },
-            || {
-                let corner = mean_value_corner(x, &no_weight);
-                Arc::new(laplacian_by_corners(mesh, &faces_of, true, corner))
-            },
-        );
-        drop(faces_of);
+        // Both Laplacians from one list of each vertex's faces: the
+        // topology's where it leaves no face out (then the same list), else
+        // made here.
+        let (cot, mv, pool_wait) = {
+            let made;
+            let faces_of: (&[usize], &[u32]) = if topo.collapsed_faces.is_empty()
+                && topo.duplicate_faces.is_empty()
+                && topo.vf_start.len() == n + 1
+            {
+                (&topo.vf_start, &topo.vf_index)
+            } else {
+                made = vertex_faces(n, &mesh.faces);
+                (&made.0, &made.1)
+            };
+            crate::ordered::join_timed(
+                || {
+                    let corner = cotangent_corner(x, &no_weight);
+                    Arc::new(laplacian_by_corners(mesh, faces_of, false, corner))
+                },
+                || {
+                    let corner = mean_value_corner(x, &no_weight);
+                    Arc::new(laplacian_by_corners(mesh, faces_of, true, corner))
+                },
+            )
+        };
         let laplacians_seconds = t_setup.elapsed().as_secs_f64();
         let areas = mesh.face_areas(x);
         let vertex_area = vertex_areas_of(mesh, n, &areas);
@@ -1551,6 +1563,22 @@ mod tests {
         assert_eq!(col_ptr.len(), n as usize + 3);
         assert!(row_idx.len() > pattern(&spot_model().1).1.len());
         assert_eq!((col_ptr, row_idx), pattern(&model));
+    }
+
+    /// Where the topology leaves no face out of its vertices' faces (no
+    /// collapsed or duplicate face), its list is [`vertex_faces`]' (which the
+    /// model then takes instead of making it); where it does, they differ.
+    #[test]
+    fn the_topologys_vertex_faces_are_the_models_where_no_face_is_left_out() {
+        let (mut mesh, _) = spot_model();
+        let topo = Topology::build(&mesh);
+        assert!(topo.collapsed_faces.is_empty() && topo.duplicate_faces.is_empty());
+        let (start, faces) = vertex_faces(mesh.num_vertices(), &mesh.faces);
+        assert_eq!((topo.vf_start, topo.vf_index), (start, faces));
+        mesh.faces.push(mesh.faces[0]);
+        let topo = Topology::build(&mesh);
+        let (start, faces) = vertex_faces(mesh.num_vertices(), &mesh.faces);
+        assert_ne!((topo.vf_start, topo.vf_index), (start, faces));
     }
 
     /// A model given its pattern from another thread
