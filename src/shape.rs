@@ -1272,19 +1272,22 @@ pub struct SharedPattern {
 /// Laplacian's pattern holds them.
 pub fn shape_pattern(n: usize, faces: &[[u32; 3]]) -> (Vec<usize>, Vec<usize>) {
     let (start, by_vertex) = vertex_faces(n, faces);
-    let rings = SparseRows::from_rows(
+    let never = std::sync::atomic::AtomicBool::new(false);
+    // The 1-rings as a pattern alone (no weights made to be dropped).
+    let (ring_start, ring_idx) = sorted_rows(
         n,
+        &never,
         |i, out| {
             for &fi in &by_vertex[start[i]..start[i + 1]] {
                 let others = faces[fi as usize].into_iter().filter(|&v| v as usize != i);
-                out.extend(others.filter(|&v| (v as usize) < n).map(|v| (v, 0.0)));
+                out.extend(others.filter(|&v| (v as usize) < n));
             }
         },
-        false,
-    );
+        |v| v,
+    )
+    .expect("rows not given up");
     drop((start, by_vertex));
-    let never = std::sync::atomic::AtomicBool::new(false);
-    two_ring_pattern(&rings.start, &rings.idx, &never).expect("a pattern not given up")
+    two_ring_pattern(&ring_start, &ring_idx, &never).expect("a pattern not given up")
 }
 
 /// Lower-triangular pattern `(col_ptr, row_idx)` of the vertex pairs within two
@@ -1298,53 +1301,72 @@ fn two_ring_pattern(
     idx: &[u32],
     stop: &std::sync::atomic::AtomicBool,
 ) -> Option<(Vec<usize>, Vec<usize>)> {
-    use rayon::prelude::*;
-    // Columns in chunks, each chunk's rows in one vector (not one per
-    // column: 600k allocations at homer 1.2M), then copied into place on
-    // rayon's threads.
-    const COLUMNS: usize = 4096;
     let n = start.len() - 1;
     let row =
         |i: usize| std::iter::once(i as u32).chain(idx[start[i]..start[i + 1]].iter().copied());
-    let chunks: Vec<(Vec<usize>, Vec<u32>)> = (0..n.div_ceil(COLUMNS))
+    sorted_rows(
+        n,
+        stop,
+        |j, column| {
+            for p in row(j) {
+                column.extend(row(p as usize).filter(|&q| q as usize >= j));
+            }
+        },
+        |q| q as usize,
+    )
+}
+
+/// Rows `0..n` of a pattern, CSR `(start, idx)`: row `i` what `row(i, out)`
+/// pushes onto `out` (empty on the call), sorted, each entry once. Made in
+/// chunks of rows on rayon's threads, each chunk's rows in one vector (not
+/// one per row: 600k allocations at homer 1.2M), then copied into place.
+/// `None` where `stop` is set before its last chunks are made. `to` turns
+/// an entry into the index type stored.
+fn sorted_rows<T: Copy + Default + Send + Sync>(
+    n: usize,
+    stop: &std::sync::atomic::AtomicBool,
+    row: impl Fn(usize, &mut Vec<u32>) + Sync,
+    to: fn(u32) -> T,
+) -> Option<(Vec<usize>, Vec<T>)> {
+    use rayon::prelude::*;
+    const ROWS: usize = 4096;
+    let chunks: Vec<(Vec<usize>, Vec<u32>)> = (0..n.div_ceil(ROWS))
         .into_par_iter()
         .map(|c| {
-            let columns = c * COLUMNS..((c + 1) * COLUMNS).min(n);
+            let rows = c * ROWS..((c + 1) * ROWS).min(n);
             if stop.load(std::sync::atomic::Ordering::Acquire) {
                 return (Vec::new(), Vec::new());
             }
-            let mut lens = Vec::with_capacity(columns.len());
-            let mut rows = Vec::new();
-            let mut column = Vec::new();
-            for j in columns {
-                column.clear();
-                for p in row(j) {
-                    column.extend(row(p as usize).filter(|&q| q as usize >= j));
-                }
-                column.sort_unstable();
-                column.dedup();
-                lens.push(column.len());
-                rows.extend_from_slice(&column);
+            let mut lens = Vec::with_capacity(rows.len());
+            let mut entries = Vec::new();
+            let mut one = Vec::new();
+            for i in rows {
+                one.clear();
+                row(i, &mut one);
+                one.sort_unstable();
+                one.dedup();
+                lens.push(one.len());
+                entries.extend_from_slice(&one);
             }
-            (lens, rows)
+            (lens, entries)
         })
         .collect();
     if chunks.iter().map(|(lens, _)| lens.len()).sum::<usize>() < n {
         return None;
     }
-    let mut col_ptr = Vec::with_capacity(n + 1);
-    col_ptr.push(0);
+    let mut start = Vec::with_capacity(n + 1);
+    start.push(0);
     for len in chunks.iter().flat_map(|(lens, _)| lens) {
-        col_ptr.push(col_ptr.last().unwrap() + len);
+        start.push(start.last().unwrap() + len);
     }
-    let mut row_idx = vec![0usize; col_ptr[n]];
-    solver_cpu::row_groups_mut(&mut row_idx, n, |j| col_ptr[j], COLUMNS)
+    let mut idx = vec![T::default(); start[n]];
+    solver_cpu::row_groups_mut(&mut idx, n, |i| start[i], ROWS)
         .into_par_iter()
         .zip(&chunks)
-        .for_each(|((_, out), (_, rows))| {
-            out.iter_mut().zip(rows).for_each(|(o, &q)| *o = q as usize);
+        .for_each(|((_, out), (_, entries))| {
+            out.iter_mut().zip(entries).for_each(|(o, &q)| *o = to(q));
         });
-    Some((col_ptr, row_idx))
+    Some((start, idx))
 }
 
 // ---------------------------------------------------------------------------
