@@ -540,14 +540,9 @@ pub fn deform(p: &Problem, o: &Options, progress: &mut dyn FnMut(Progress)) -> R
     // The pattern made on the shape pattern's thread, shared with the model.
     let (pattern_tx, pattern_rx) = std::sync::mpsc::channel();
     let pattern_ready = Arc::new(AtomicBool::new(false));
-    let shape_work = match shape_steps {
-        true => start_shape_work(mesh, ordering, (pattern_tx, pattern_ready.clone())),
-        // No thread: the model makes its own.
-        false => {
-            drop(pattern_tx);
-            None
-        }
-    };
+    let shape_work = shape_steps
+        .then(|| start_shape_work(mesh, ordering, (pattern_tx, pattern_ready.clone())))
+        .flatten();
     let mut shape_solver = o.backend.shape_solver()?;
     if let Some(early) = scale_early.as_mut() {
         early.give_solver(shape_solver.sibling());
