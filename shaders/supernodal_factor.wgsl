@@ -21,17 +21,21 @@
 //     per block column kb = 0, W, 2W, ... of the level's widest supernode,
 //     over the supernodes wider than kb (the dispatch's tasks):
 //       diag      (a workgroup     the block's w x w diagonal tile (w <= W)
-//                  per supernode)  factored in workgroup memory
-//       below     (each row under  l_i L_bb^T = a_i: the block's rows under
-//                  the tile)       the tile, own rows and the rows below
+//                  per supernode)  factored in workgroup memory, and its
+//                                  inverse X_bb = L_bb^-1 made beside it
+//                                  (into the scratch xs)
+//       below     (a lane per      l_i = a_i X_bb^T: the block's rows under
+//                  entry under     the tile, own rows and the rows below
+//                  the tile)
 //       trailing  (each entry      A_ij -= L_i,block . L_j,block for the
 //                  right of the    columns j right of the block, i >= j
 //                  block)
-//   invert_columns (every column)   column j of L_ss^-1 into the upper
-//                                   triangle of the diagonal block (row j)
-//   invert_below   (every slot)     each row b of B solves b L_ss = l, in place
-//   transpose      (every column)   L_ss^-1 from the upper triangle into the
-//                                   lower, the upper cleared
+//   the inversion, X = L_ss^-1 in xs (its diagonal tiles are diag's X_bb):
+//   inv_offdiag    (per tile row   X's tiles left of the diagonal
+//                   I, its tasks)
+//   inv_below      (per tile       B = L_rs X, in place, a tile column at a
+//                   column J)      time
+//   inv_copy       (every column)  X over L_ss
 // No host work between the dispatches and no atomics on values: the same
 // factor on every run. Each value's update is one dot product, summed in a
 // fixed order; the dense separators at the top of the tree spread over the
@@ -48,7 +52,8 @@
 //                     trailing: their items); n: columns; nnz_k: K's stored
 //                     entries; slots; the offsets of the sections of idx and
 //                     fidx; task0, n_task: a block column's tasks; kb: its
-//                     first column.
+//                     first column; lpr: lanes a row in `below`; parts:
+//                     lanes a sum in update and inv_below.
 //   1  idx   read     GpuFactor's u32 sections (as in supernodal.wgsl): per
 //                     supernode c0, m, q, ro, vo (o_sn); the slots' rows
 //                     (o_rows); per row the slots holding it (o_tptr,
@@ -58,8 +63,8 @@
 //                     level order (o_order); the place in vals of each of
 //                     K's stored entries (o_map); per block column, its
 //                     tasks, three u32 each (o_task): the supernode, and the
-//                     rows below the tile and the trailing entries of the
-//                     tasks before it; each supernode's inverse diagonal
+//                     workgroups of `below` (inv_below: of its rows) and
+//                     the trailing entries of the tasks before it; each supernode's inverse diagonal
 //                     block in xs (o_xo); each supernode's first value, a
 //                     global index (o_gvo).
 //   3  vals  rw       the factor's values (f64) below c1 (a factor over two
@@ -70,8 +75,9 @@
 //   6  xs    rw       scratch: each supernode's L_ss^-1, m x m column-major.
 //   7  vals1 rw       the factor's values from c1 on (a 16-byte stand-in
 //                     where they fit one buffer).
-// 256 invocations per workgroup; diag a workgroup per task (wid.x + wid.y *
-// nwg.x), the others 2-D (linear index gid.x + gid.y * nwg.x * 256).
+// 256 invocations per workgroup; diag a workgroup per task, below,
+// inv_offdiag and inv_below workgroups by their tasks' counts (wid.x + wid.y
+// * nwg.x), the others 2-D (linear index gid.x + gid.y * nwg.x * 256).
 
 struct FParams {
     sn0: u32,
@@ -96,8 +102,8 @@ struct FParams {
     o_xo: u32,
     o_gvo: u32,
     c1: u32,
-    pad0: u32,
-    pad1: u32,
+    lpr: u32,
+    parts: u32,
 }
 
 const FWG: u32 = 256u;
@@ -177,51 +183,72 @@ fn holder(v: u32) -> u32 {
     return fidx[P.o_order + lo];
 }
 
+// P.parts lanes a value where the level's longest sums are long (the top
+// of the tree), one elsewhere: a workgroup's lanes are (value, part), 32
+// consecutive values a part (a warp reads as one lane a value does); part p
+// takes every P.parts-th column of each common descendant from p, and the
+// parts are summed in workgroup memory.
 @compute @workgroup_size(256)
-fn update(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    let t = linear(gid, nwg);
-    if t >= P.nval {
-        return;
-    }
-    let v = P.v0 + t;
-    let s = supernode(holder(v));
-    let nr = s.m + s.q;
-    let j = (v - s.vo) / nr;
-    let i = (v - s.vo) % nr;
-    if i < j {
-        return;
-    }
-    let c = s.c0 + j;
-    var g = s.c0 + i;
-    if i >= s.m {
-        g = idx[P.o_rows + s.ro + i - s.m];
-    }
-    var a = idx[P.o_tptr + c];
-    let a1 = idx[P.o_tptr + c + 1u];
-    var b = idx[P.o_tptr + g];
-    let b1 = idx[P.o_tptr + g + 1u];
+fn update(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let parts = P.parts;
+    let p = lid / 32u % parts;
+    let t = (wid.x + wid.y * nwg.x) * (FWG / parts) + lid / (32u * parts) * 32u + lid % 32u;
+    var live = false;
+    var v = 0u;
     var acc = f64(0.0);
-    while a < a1 && b < b1 {
-        let pa = idx[P.o_tpos + a];
-        let pb = idx[P.o_tpos + b];
-        let da = idx[P.o_slot_owner + pa];
-        if da == idx[P.o_slot_owner + pb] {
-            let d = supernode(da);
-            let nd = d.m + d.q;
-            let ra = d.vo + d.m + pa - d.ro;
-            let rb = d.vo + d.m + pb - d.ro;
-            for (var k = 0u; k < d.m; k++) {
-                acc += ld(ra + k * nd) * ld(rb + k * nd);
+    if t < P.nval {
+        v = P.v0 + t;
+        let s = supernode(holder(v));
+        let nr = s.m + s.q;
+        let j = (v - s.vo) / nr;
+        let i = (v - s.vo) % nr;
+        if i >= j {
+            live = p == 0u;
+            let c = s.c0 + j;
+            var g = s.c0 + i;
+            if i >= s.m {
+                g = idx[P.o_rows + s.ro + i - s.m];
             }
-            a++;
-            b++;
-        } else if pa < pb {
-            a++;
-        } else {
-            b++;
+            var a = idx[P.o_tptr + c];
+            let a1 = idx[P.o_tptr + c + 1u];
+            var b = idx[P.o_tptr + g];
+            let b1 = idx[P.o_tptr + g + 1u];
+            while a < a1 && b < b1 {
+                let pa = idx[P.o_tpos + a];
+                let pb = idx[P.o_tpos + b];
+                let da = idx[P.o_slot_owner + pa];
+                if da == idx[P.o_slot_owner + pb] {
+                    let d = supernode(da);
+                    let nd = d.m + d.q;
+                    let ra = d.vo + d.m + pa - d.ro;
+                    let rb = d.vo + d.m + pb - d.ro;
+                    for (var k = p; k < d.m; k += parts) {
+                        acc += ld(ra + k * nd) * ld(rb + k * nd);
+                    }
+                    a++;
+                    b++;
+                } else if pa < pb {
+                    a++;
+                } else {
+                    b++;
+                }
+            }
         }
     }
-    st(v, ld(v) - acc);
+    // Uniform: P.parts is the dispatch's.
+    if parts > 1u {
+        sums[lid] = acc;
+        workgroupBarrier();
+        if live {
+            acc = f64(0.0);
+            for (var q = 0u; q < parts; q++) {
+                acc += sums[lid + 32u * q];
+            }
+        }
+    }
+    if live {
+        st(v, ld(v) - acc);
+    }
 }
 
 // The supernode of task `t` of this dispatch (fidx[o_task + 3 (task0 + t)]:
@@ -257,28 +284,47 @@ fn block_width(m: u32) -> u32 {
 }
 
 const W: u32 = 32u;
-var<workgroup> shape: array<u32, 4>;
+// Lanes sharing one sum in inv_offdiag (and in inv_below's wide steps): a
+// workgroup's 256 lanes are W x PARTS.
+const PARTS: u32 = 8u;
+var<workgroup> shape: array<u32, 5>;
 var<workgroup> tile: array<f64, 1024>;
+var<workgroup> sums: array<f64, 256>;
 
-// The dense Cholesky of the block's W x W diagonal tile, in workgroup memory.
+// The dense Cholesky of the block's W x W diagonal tile, in workgroup memory,
+// and the inverse of its factor, X = L_bb^-1 (lower triangular), beside it:
+// L in the tile's lower triangle (entry (r, c) at tile[c bw + r], r >= c),
+// X's entries below its diagonal in the upper triangle, transposed (X_rc,
+// r > c, at tile[r bw + c]); X's diagonal is 1 / L's. At step k, column k of
+// L is scaled by its pivot d and so is row k of X (x_kj = s_kj / d, the sums
+// s_kj of L X = I's forward substitution, in the same column of the tile);
+// then L's trailing entries and the sums of the rows of X below k take the
+// same product of column k's entries, x_kk = 1 / d standing in for the
+// pivot's own entry. X's tile goes to the scratch (xs, where the inversion
+// reads the diagonal tiles of L_ss^-1), for `below` and the inversion.
 @compute @workgroup_size(256)
 fn diag(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let t = wid.x + wid.y * nwg.x;
     if lid == 0u {
         var s = Super(0u, 0u, 0u, 0u, 0u);
+        var xo = 0u;
         if t < P.n_task {
-            s = supernode(task_supernode(t));
+            let sn = task_supernode(t);
+            s = supernode(sn);
+            xo = fidx[P.o_xo + sn];
         }
         shape[0] = s.m;
         shape[1] = s.m + s.q;
         shape[2] = s.vo;
         shape[3] = s.c0;
+        shape[4] = xo;
     }
     // Uniform across the workgroup (the loop below holds barriers).
     let m = workgroupUniformLoad(&shape[0]);
     let nr = workgroupUniformLoad(&shape[1]);
     let vo = workgroupUniformLoad(&shape[2]);
     let c0 = workgroupUniformLoad(&shape[3]);
+    let xo = workgroupUniformLoad(&shape[4]);
     let bw = block_width(m);
     let at = vo + P.kb * nr + P.kb;
     for (var e = lid; e < bw * bw; e += FWG) {
@@ -286,6 +332,8 @@ fn diag(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: v
         let c = e / bw;
         if r >= c {
             tile[e] = ld(at + c * nr + r);
+        } else {
+            tile[e] = f64(0.0);
         }
     }
     workgroupBarrier();
@@ -299,53 +347,93 @@ fn diag(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: v
         }
         d = sqrt(d);
         workgroupBarrier();
-        for (var e = lid; e < bw * bw; e += FWG) {
-            let r = e % bw;
-            if e / bw == k && r >= k {
-                tile[e] = select(tile[e] / d, d, r == k);
-            }
+        // Column k: L's entries below the pivot and X's row k left of it.
+        for (var e = lid; e < bw; e += FWG) {
+            tile[k * bw + e] = select(tile[k * bw + e] / d, d, e == k);
         }
         workgroupBarrier();
-        for (var e = lid; e < bw * bw; e += FWG) {
+        // The columns right of k.
+        for (var e = (k + 1u) * bw + lid; e < bw * bw; e += FWG) {
             let r = e % bw;
             let c = e / bw;
-            if c > k && r >= c {
+            if r >= c || r < k {
                 tile[e] -= tile[k * bw + r] * tile[k * bw + c];
+            } else if r == k {
+                tile[e] -= tile[k * bw + c] / d;
             }
         }
         workgroupBarrier();
     }
+    let xat = xo + P.kb * m + P.kb;
     for (var e = lid; e < bw * bw; e += FWG) {
         let r = e % bw;
         let c = e / bw;
         if r >= c {
             st(at + c * nr + r, tile[e]);
+            xs[xat + c * m + r] = select(tile[r * bw + c], f64(1.0) / tile[e], r == c);
         }
     }
 }
 
-// Row i of a supernode's block below its diagonal tile (own rows past the
+// Rows of a supernode's block below its diagonal tile (own rows past the
 // tile, then the rows below the diagonal block): l_i solves l_i L_bb^T = a_i,
-// in place.
+// that is l_i = a_i X^T with X = L_bb^-1 (made by `diag`, in xs): l_ij = sum
+// over k <= j of a_ik X_jk, in place. A workgroup per 256 / lpr rows of a
+// task (fidx: the workgroups before it), P.lpr lanes a row (a power of
+// two, at least the dispatch's widest block): lane (j, row) makes l_ij from
+// the row's a and X's tile, both read into workgroup memory first, and
+// writes it once the workgroup has read them.
 @compute @workgroup_size(256)
-fn below(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    let e = linear(gid, nwg);
-    if e >= P.nval {
-        return;
-    }
-    let t = task_of(e, 1u);
-    let s = supernode(task_supernode(t));
-    let nr = s.m + s.q;
-    let bw = block_width(s.m);
-    let i = P.kb + bw + e - fidx[P.o_task + 3u * (P.task0 + t) + 1u];
-    let row = s.vo + P.kb * nr + i;
-    let bb = s.vo + P.kb * nr + P.kb;
-    for (var j = 0u; j < bw; j++) {
-        var acc = ld(row + j * nr);
-        for (var k = 0u; k < j; k++) {
-            acc -= ld(row + k * nr) * ld(bb + k * nr + j);
+fn below(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let g = wid.x + wid.y * nwg.x;
+    let lpr = P.lpr;
+    let j = lid % lpr;
+    let rr = lid / lpr;
+    if lid == 0u {
+        var bw = 0u;
+        var xat = 0u;
+        var m = 0u;
+        if g < P.nval {
+            let task = task_of(g, 1u);
+            let sn = task_supernode(task);
+            let s = supernode(sn);
+            bw = block_width(s.m);
+            m = s.m;
+            xat = fidx[P.o_xo + sn] + P.kb * s.m + P.kb;
         }
-        st(row + j * nr, acc / ld(bb + j * nr + j));
+        shape[0] = bw;
+        shape[1] = m;
+        shape[2] = xat;
+    }
+    let bw = workgroupUniformLoad(&shape[0]);
+    let m = workgroupUniformLoad(&shape[1]);
+    let xat = workgroupUniformLoad(&shape[2]);
+    for (var e = lid; e < bw * bw; e += FWG) {
+        tile[e] = xs[xat + (e / bw) * m + e % bw];
+    }
+    var at = 0u;
+    var live = false;
+    var a = f64(0.0);
+    if g < P.nval {
+        let task = task_of(g, 1u);
+        let s = supernode(task_supernode(task));
+        let nr = s.m + s.q;
+        let r = (g - fidx[P.o_task + 3u * (P.task0 + task) + 1u]) * (FWG / lpr) + rr;
+        let i = P.kb + bw + r;
+        if i < nr && j < bw {
+            at = s.vo + (P.kb + j) * nr + i;
+            a = ld(at);
+            live = true;
+        }
+    }
+    sums[lid] = a;
+    workgroupBarrier();
+    if live {
+        var acc = f64(0.0);
+        for (var k = 0u; k <= j; k++) {
+            acc += sums[rr * lpr + k] * tile[k * bw + j];
+        }
+        st(at, acc);
     }
 }
 
@@ -382,103 +470,56 @@ fn trailing(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgrou
 // s's m x m block at xs[xo(s)], column-major, its upper triangle zero), then
 // B = L_rs X in place, then X over L_ss. L stays in vals until B is made.
 
-// X_II = L_II^-1 of a diagonal tile (task: supernode, I): lane j solves
-// L_II x = e_j by forward substitution, x into xs.
-@compute @workgroup_size(256)
-fn inv_tile(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    let t = wid.x + wid.y * nwg.x;
-    if lid == 0u {
-        var w = 0u;
-        var nr = 0u;
-        var at = 0u;
-        var xat = 0u;
-        var m = 0u;
-        if t < P.n_task {
-            let sn = task_supernode(t);
-            let s = supernode(sn);
-            let i0 = W * fidx[P.o_task + 3u * (P.task0 + t) + 1u];
-            m = s.m;
-            nr = s.m + s.q;
-            w = min(W, s.m - i0);
-            at = s.vo + i0 * nr + i0;
-            xat = fidx[P.o_xo + sn] + i0 * s.m + i0;
-        }
-        shape[0] = w;
-        shape[1] = nr;
-        shape[2] = at;
-        shape[3] = xat;
-        tile_m = m;
-    }
-    let w = workgroupUniformLoad(&shape[0]);
-    let nr = workgroupUniformLoad(&shape[1]);
-    let at = workgroupUniformLoad(&shape[2]);
-    let xat = workgroupUniformLoad(&shape[3]);
-    let m = workgroupUniformLoad(&tile_m);
-    for (var e = lid; e < w * w; e += FWG) {
-        let r = e % w;
-        let c = e / w;
-        if r >= c {
-            tile[e] = ld(at + c * nr + r);
-        }
-    }
-    workgroupBarrier();
-    if lid < w {
-        let j = lid;
-        xs[xat + j * m + j] = f64(1.0) / tile[j * w + j];
-        for (var i = j + 1u; i < w; i++) {
-            var acc = f64(0.0);
-            for (var k = j; k < i; k++) {
-                acc += tile[k * w + i] * xs[xat + j * m + k];
-            }
-            xs[xat + j * m + i] = -acc / tile[i * w + i];
-        }
-    }
-}
-
-var<workgroup> tile_m: u32;
-var<workgroup> sums: array<f64, 256>;
 
 // Step I (kb = W I) of X's tiles left of the diagonal: X_IJ = -X_II (sum over
 // K from J to I - 1 of L_IK X_KJ) for every J < I of every task (a supernode
-// wider than kb). A workgroup per task and 8 columns j < kb: lane (t, jj)
-// sums row kb + t of L against column j of X, then row t of X_II against the
-// 32 sums of column j (workgroup memory).
+// wider than kb). A workgroup per task and column j < kb, its lanes (t, p):
+// part p of the sum of row kb + t of L against column j of X (every PARTS-th
+// term from j + p), the parts then summed in workgroup memory, then row t of
+// X_II against the w sums.
 @compute @workgroup_size(256)
 fn inv_offdiag(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let g = wid.x + wid.y * nwg.x;
-    let per = P.kb / 8u;
     let t = lid % W;
-    let jj = lid / W;
+    let p = lid / W;
     var w = 0u;
     var m = 0u;
     var nr = 0u;
     var vo = 0u;
     var xo = 0u;
     var j = 0u;
-    if g < P.n_task * per {
-        let sn = task_supernode(g / per);
+    if g < P.n_task * P.kb {
+        let sn = task_supernode(g / P.kb);
         let s = supernode(sn);
         m = s.m;
         nr = s.m + s.q;
         vo = s.vo;
         xo = fidx[P.o_xo + sn];
         w = min(W, m - P.kb);
-        j = (g % per) * 8u + jj;
+        j = g % P.kb;
     }
     var acc = f64(0.0);
     if t < w {
         let i = P.kb + t;
-        for (var k = j; k < P.kb; k++) {
+        for (var k = j + p; k < P.kb; k += PARTS) {
             acc += ld(vo + k * nr + i) * xs[xo + j * m + k];
         }
     }
     sums[lid] = acc;
     workgroupBarrier();
-    if t < w {
+    if p == 0u && t < w {
+        var part = f64(0.0);
+        for (var q = 0u; q < PARTS; q++) {
+            part += sums[q * W + t];
+        }
+        tile[t] = part;
+    }
+    workgroupBarrier();
+    if p == 0u && t < w {
         let d = xo + P.kb * m + P.kb;
         var x = f64(0.0);
         for (var u = 0u; u <= t; u++) {
-            x += xs[d + u * m + t] * sums[jj * W + u];
+            x += xs[d + u * m + t] * tile[u];
         }
         xs[xo + j * m + P.kb + t] = -x;
     }
@@ -486,14 +527,19 @@ fn inv_offdiag(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id)
 
 // Step J (kb = W J) of B = L_rs X, columns kb .. kb + w of every row below
 // the diagonal blocks of the tasks (supernodes wider than kb): B_rj = sum
-// over k >= j of L_rk X_kj. A workgroup per 8 rows of a task (fidx: the
-// workgroups before it), lane (t, row): the sum for column kb + t, written
-// once the workgroup has read its rows' L (columns from kb on, still L).
+// over k >= j of L_rk X_kj. A workgroup per PARTS / P.parts rows of a task
+// (fidx: the workgroups before it), lane (t, row, p): part p of P.parts of
+// the sum for column kb + t (every P.parts-th term from it), the parts
+// summed in workgroup memory and written once the workgroup has read its
+// rows' L (columns from kb on, still L). One part a sum for the narrow
+// supernodes of step 0, P.parts = PARTS for the wide ones.
 @compute @workgroup_size(256)
 fn inv_below(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let g = wid.x + wid.y * nwg.x;
+    let parts = P.parts;
     let t = lid % W;
-    let rr = lid / W;
+    let rr = lid / W / parts;
+    let p = lid / W % parts;
     var acc = f64(0.0);
     var at = 0u;
     var live = false;
@@ -501,23 +547,28 @@ fn inv_below(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) w
         let task = task_of(g, 1u);
         let sn = task_supernode(task);
         let s = supernode(sn);
-        let r = (g - fidx[P.o_task + 3u * (P.task0 + task) + 1u]) * 8u + rr;
+        let r = (g - fidx[P.o_task + 3u * (P.task0 + task) + 1u]) * (PARTS / parts) + rr;
         let w = min(W, s.m - P.kb);
         let nr = s.m + s.q;
         let xo = fidx[P.o_xo + sn];
         if r < s.q && t < w {
             let j = P.kb + t;
             let row = s.vo + s.m + r;
-            for (var k = j; k < s.m; k++) {
+            for (var k = j + p; k < s.m; k += parts) {
                 acc += ld(row + k * nr) * xs[xo + j * s.m + k];
             }
             at = row + j * nr;
-            live = true;
+            live = p == 0u;
         }
     }
+    sums[lid] = acc;
     workgroupBarrier();
     if live {
-        st(at, acc);
+        var b = f64(0.0);
+        for (var q = 0u; q < parts; q++) {
+            b += sums[lid + q * W];
+        }
+        st(at, b);
     }
 }
 

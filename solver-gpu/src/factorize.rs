@@ -8,15 +8,25 @@
 //! Left-looking, level by level of the supernodal elimination tree (leaves
 //! first; a level's supernodes are independent, their descendants final):
 //! - `update`: `A_s -= sum_d L_d[rows of s] L_d[columns of s]^T` over the
-//!   descendants `d`, one dot product per value of the level;
+//!   descendants `d`, one dot product per value of the level ([`PARTS`]
+//!   lanes sharing it on the levels with long ones);
 //! - then the dense Cholesky of each supernode's `(m + q) x m` block, in
 //!   block columns of [`BLOCK`], the level's supernodes at once: `diag`
-//!   factors each block's diagonal tile in one workgroup's memory, `below`
-//!   solves the rows under the tile (a row each), and `trailing` updates
-//!   the columns right of the block (an entry each, the whole GPU).
+//!   factors each block's diagonal tile `L_bb` in one workgroup's memory and
+//!   inverts it beside (`X_bb = L_bb^-1`), `below` makes the rows under the
+//!   tile as products `l_i = a_i X_bb^T` (a lane an entry), and `trailing`
+//!   updates the columns right of the block (an entry each, the whole GPU).
 //!
-//! Then three passes over all supernodes invert the diagonal blocks and
-//! form `B`. What goes up is `K`'s stored values (f64) once per
+//! Then the tiles of `X = L_ss^-1` left of the diagonal (`X_bb` being its
+//! diagonal tiles), `B = L_rs X` a tile column at a time, and `X` over
+//! `L_ss`; their sums shared by [`PARTS`] lanes.
+//!
+//! Each dispatch waits for the one before, so the factorization's time on a
+//! discrete GPU is about its chain of dependent steps (the serial steps the
+//! plan counts: each dispatch's longest invocation, summed), as the
+//! triangular solves' was on an H100 (BENCHMARKS.md, "Cholesky
+//! preconditioner, one application"). Sums shared by lanes, and the tile
+//! inverses that turn the rows' triangular solves into products, cut it. What goes up is `K`'s stored values (f64) once per
 //! factorization, what comes back is one word (the first column whose pivot
 //! was not positive); the factor itself never crosses the bus, where the
 //! host's factorization sends all of it (985 MB at homer 1.2M). The
@@ -84,7 +94,11 @@ pub(crate) struct FactorParams {
     pub(crate) o_xo: u32,
     pub(crate) o_gvo: u32,
     pub(crate) c1: u32,
-    pub(crate) pad: [u32; 2],
+    /// Lanes a row in `below`: a power of two, at least the dispatch's
+    /// widest block.
+    pub(crate) lpr: u32,
+    /// Lanes sharing a sum in `update` and `inv_below` (1 or [`PARTS`]).
+    pub(crate) parts: u32,
 }
 
 /// The most storage buffers a factor made on the GPU may hold its values in
@@ -162,13 +176,12 @@ impl Factorization {
 }
 
 /// The entry points, in the order of [`Stage`].
-const ENTRIES: [(&str, &str); 9] = [
+const ENTRIES: [(&str, &str); 8] = [
     ("factor scatter", "scatter"),
     ("factor update", "update"),
     ("factor diagonal tile", "diag"),
     ("factor below the tile", "below"),
     ("factor trailing update", "trailing"),
-    ("factor inverse tiles", "inv_tile"),
     ("factor inverse off the diagonal", "inv_offdiag"),
     ("factor inverse below", "inv_below"),
     ("factor inverse copy", "inv_copy"),
@@ -181,10 +194,9 @@ enum Stage {
     Diag = 2,
     Below = 3,
     Trailing = 4,
-    InvTile = 5,
-    InvOffdiag = 6,
-    InvBelow = 7,
-    InvCopy = 8,
+    InvOffdiag = 5,
+    InvBelow = 6,
+    InvCopy = 7,
 }
 
 /// Loop iterations llvmpipe runs in one invocation, all loops together,
@@ -200,7 +212,7 @@ pub(crate) const BLOCK: usize = 32;
 /// The factorization's kernels (f64; the device must have `SHADER_F64`).
 pub(crate) struct FactorKernels {
     shader: Shader,
-    kernels: [Kernel; 9],
+    kernels: [Kernel; 8],
 }
 
 impl FactorKernels {
@@ -216,7 +228,7 @@ impl FactorKernels {
     }
 
     /// Its kernels: a factorization runs all of them.
-    pub fn kernels(&self) -> &[Kernel; 9] {
+    pub fn kernels(&self) -> &[Kernel; 8] {
         &self.kernels
     }
 }
@@ -272,11 +284,43 @@ pub fn factorization_work(f: &SupernodalFactor, nnz_k: usize) -> Option<KernelWo
 }
 
 /// Serial steps of `diag` on a tile of `w` columns: the tile's load and
-/// store, and per column its pivot, then the scaling and the update over
-/// the tile's entries, a few per lane.
+/// store (with its inverse's), a few entries per lane, and per column k its
+/// pivot, its scaling and the update of the columns right of it.
 fn diag_steps(w: usize) -> u64 {
-    let per_lane = (w * w).div_ceil(FLAT_WG as usize) as u64;
-    2 * per_lane + w as u64 * (1 + 2 * per_lane)
+    let per_lane = |entries: usize| entries.div_ceil(FLAT_WG as usize) as u64;
+    let columns: u64 = (0..w).map(|k| 2 + per_lane((w - k - 1) * w)).sum();
+    2 * per_lane(w * w) + columns
+}
+
+/// Lanes sharing one sum in `inv_offdiag` and in `inv_below`'s wide
+/// supernodes (`PARTS` in the shader): a workgroup is [`BLOCK`] x `PARTS`.
+const PARTS: usize = 8;
+
+/// `update` shares each value's products among [`PARTS`] lanes on the
+/// levels where some value's products (over all its descendants) number
+/// this many or more.
+const UPDATE_PARTS_FROM: u64 = 256;
+
+/// Serial steps of a sum of `terms` terms shared by `parts` lanes: each
+/// lane's share, then the parts summed (by one of them).
+fn sum_in_parts(terms: usize, parts: usize) -> u64 {
+    match parts {
+        1 => terms as u64,
+        _ => (terms.div_ceil(parts) + parts) as u64,
+    }
+}
+
+/// Lanes a row takes in `below` where the widest block of its dispatch has
+/// `w` columns: the least power of two not below `w`.
+fn below_lanes(w: usize) -> usize {
+    w.next_power_of_two().clamp(1, BLOCK)
+}
+
+/// Serial steps of `below` where the widest block has `w` columns: the
+/// inverse tile's load, a few entries per lane, the row's entry, and the
+/// product of the row with a row of the inverse tile.
+fn below_steps(w: usize) -> u64 {
+    (w * w).div_ceil(FLAT_WG as usize) as u64 + 2 + w as u64
 }
 
 impl FactorizationPlan {
@@ -337,14 +381,27 @@ impl FactorizationPlan {
                 ..base
             };
             // The longest merge and products of one value: a column's list
-            // (the longest of the supernode's) and a row's.
+            // (the longest of the supernode's) and a row's; its products
+            // shared by PARTS lanes where the longest are long.
+            let own = |s: usize| f.begin[s] as usize..f.begin[s + 1] as usize;
+            let longest = sns
+                .iter()
+                .flat_map(|&s| own(s).map(|c| terms[c]))
+                .max()
+                .unwrap_or(0);
+            let parts = match longest >= UPDATE_PARTS_FROM {
+                true => PARTS,
+                false => 1,
+            };
             let update = sns
                 .iter()
                 .map(|&s| {
-                    let own = f.begin[s] as usize..f.begin[s + 1] as usize;
-                    let col = own.clone().map(|c| held[c] + terms[c]).max().unwrap_or(0);
+                    let col = own(s)
+                        .map(|c| held[c] + sum_in_parts(terms[c] as usize, parts))
+                        .max()
+                        .unwrap_or(0);
                     let below = &f.rows[f.row_ptr[s] as usize..f.row_ptr[s + 1] as usize];
-                    let row = own
+                    let row = own(s)
                         .map(|c| held[c])
                         .chain(below.iter().map(|&r| held[r as usize]))
                         .max()
@@ -353,26 +410,38 @@ impl FactorizationPlan {
                 })
                 .max()
                 .unwrap_or(0);
-            add(Stage::Update, p, nval, update);
+            let p = FactorParams {
+                parts: parts as u32,
+                ..p
+            };
+            add(Stage::Update, p, nval * parts as u64, update);
             // Block columns, the level's supernodes at once.
             let widest = sns.iter().map(|&s| f.shape(s).0).max().unwrap_or(0);
             for kb in (0..widest).step_by(BLOCK) {
                 let task0 = tasks.len() / 3;
-                let (mut below, mut trailing, mut w_most) = (0u64, 0u64, 0usize);
+                // `below`'s rows a workgroup: its lanes over the widest
+                // block's columns.
+                let w_most = sns
+                    .iter()
+                    .map(|&s| BLOCK.min(f.shape(s).0.saturating_sub(kb)))
+                    .max()
+                    .unwrap_or(0);
+                let lpr = below_lanes(w_most);
+                let rows_per_group = FLAT_WG as usize / lpr;
+                let (mut below, mut trailing) = (0u64, 0u64);
                 for &s in sns {
                     let (m, q) = f.shape(s);
                     if m <= kb {
                         continue;
                     }
                     let w = BLOCK.min(m - kb);
-                    w_most = w_most.max(w);
                     let j0 = kb + w;
                     tasks.extend([
                         s as u32,
                         u32::try_from(below).ok()?,
                         u32::try_from(trailing).ok()?,
                     ]);
-                    below += (m + q - j0) as u64;
+                    below += (m + q - j0).div_ceil(rows_per_group) as u64;
                     trailing += ((m + q - j0) * (m - j0)) as u64;
                 }
                 let q = FactorParams {
@@ -386,9 +455,10 @@ impl FactorizationPlan {
                 add(Stage::Diag, q, q.n_task as u64, diag_steps(w_most));
                 let p = FactorParams {
                     nval: items(below)?,
+                    lpr: lpr as u32,
                     ..q
                 };
-                add(Stage::Below, p, below, w * w / 2);
+                add(Stage::Below, p, below, below_steps(w_most));
                 let p = FactorParams {
                     nval: items(trailing)?,
                     ..q
@@ -397,18 +467,15 @@ impl FactorizationPlan {
             }
             sn0 = sn1;
         }
-        // The inversion in tiles: each diagonal tile, then X's tile rows
-        // one after the other, then B's tile columns, then X over L_ss.
+        // The inversion in tiles (its diagonal tiles made by `diag`): X's
+        // tile rows one after the other, then B's tile columns, then X over
+        // L_ss.
         let mut xo = vec![0u32; ns];
         let mut x_len = 0u64;
-        let mut tiles = Vec::new();
         for (s, o) in xo.iter_mut().enumerate() {
             let (m, _) = f.shape(s);
             *o = u32::try_from(x_len).ok()?;
             x_len += (m * m) as u64;
-            for i in 0..m.div_ceil(BLOCK) {
-                tiles.extend([s as u32, i as u32, 0]);
-            }
         }
         let widest = (0..ns).map(|s| f.shape(s).0).max().unwrap_or(0);
         // The supernodes wider than a tile, in order: the only ones with
@@ -416,15 +483,6 @@ impl FactorizationPlan {
         // per tile column: homer 4.3M's scale factors have 1.19M supernodes
         // and tile columns up to 34).
         let wide: Vec<usize> = (0..ns).filter(|&s| f.shape(s).0 > BLOCK).collect();
-        let task0 = tasks.len() / 3;
-        tasks.extend(tiles);
-        let q = FactorParams {
-            task0: task0 as u32,
-            n_task: (tasks.len() / 3 - task0) as u32,
-            ..base
-        };
-        let w = BLOCK.min(widest) as u64;
-        add(Stage::InvTile, q, q.n_task as u64, 4 + w * w / 2);
         for i in 1..widest.div_ceil(BLOCK) {
             let kb = i * BLOCK;
             let task0 = tasks.len() / 3;
@@ -438,36 +496,47 @@ impl FactorizationPlan {
                 kb: kb as u32,
                 ..base
             };
+            // A workgroup per task and column left of the tile: its sums
+            // in PARTS parts, then the tile's product.
             add(
                 Stage::InvOffdiag,
                 q,
-                (n_task * kb / 8) as u64,
-                (kb + BLOCK) as u64,
+                (n_task * kb) as u64,
+                sum_in_parts(kb, PARTS) + BLOCK as u64,
             );
         }
+        // B's tile columns: at the first, the narrow supernodes (one tile)
+        // a lane a sum, then the wide ones (and at the next tile columns,
+        // only they) PARTS lanes a sum.
+        let narrow: Vec<usize> = (0..ns).filter(|&s| f.shape(s).0 <= BLOCK).collect();
         for j in 0..widest.div_ceil(BLOCK) {
             let kb = j * BLOCK;
-            let task0 = tasks.len() / 3;
-            let mut groups = 0u64;
-            let candidates: Box<dyn Iterator<Item = usize>> = match kb {
-                0 => Box::new(0..ns),
-                _ => Box::new(wide.iter().copied()),
+            let sets: &[(&[usize], usize)] = match kb {
+                0 => &[(&narrow, 1), (&wide, PARTS)],
+                _ => &[(&wide, PARTS)],
             };
-            for s in candidates {
-                let (m, q) = f.shape(s);
-                if m > kb && q > 0 {
-                    tasks.extend([s as u32, u32::try_from(groups).ok()?, 0]);
-                    groups += q.div_ceil(8) as u64;
+            for &(set, parts) in sets {
+                let task0 = tasks.len() / 3;
+                let rows = PARTS / parts;
+                let (mut groups, mut longest) = (0u64, 0usize);
+                for &s in set {
+                    let (m, q) = f.shape(s);
+                    if m > kb && q > 0 {
+                        tasks.extend([s as u32, u32::try_from(groups).ok()?, 0]);
+                        groups += q.div_ceil(rows) as u64;
+                        longest = longest.max(m - kb);
+                    }
                 }
+                let q = FactorParams {
+                    task0: task0 as u32,
+                    n_task: (tasks.len() / 3 - task0) as u32,
+                    kb: kb as u32,
+                    nval: u32::try_from(groups).ok()?,
+                    parts: parts as u32,
+                    ..base
+                };
+                add(Stage::InvBelow, q, groups, sum_in_parts(longest, parts));
             }
-            let q = FactorParams {
-                task0: task0 as u32,
-                n_task: (tasks.len() / 3 - task0) as u32,
-                kb: kb as u32,
-                nval: u32::try_from(groups).ok()?,
-                ..base
-            };
-            add(Stage::InvBelow, q, groups, (widest - kb) as u64);
         }
         add(Stage::InvCopy, base, n as u64, widest as u64);
         // Bytes: K in; the updates read two values a term (the column
@@ -492,8 +561,8 @@ impl FactorizationPlan {
     }
 
     /// Per stage (in [`ENTRIES`]' order): dispatches and serial steps.
-    pub fn stages(&self) -> [(u64, u64); 9] {
-        let mut out = [(0, 0); 9];
+    pub fn stages(&self) -> [(u64, u64); 8] {
+        let mut out = [(0, 0); 8];
         for s in &self.steps {
             out[s.stage as usize].0 += 1;
             out[s.stage as usize].1 += s.serial;
@@ -710,7 +779,7 @@ impl GpuFactorization {
             };
             params.push(ctx.uniform_of("factorization params", &p)?);
             let groups = match st.stage {
-                Stage::Diag | Stage::InvTile | Stage::InvOffdiag | Stage::InvBelow => st.items,
+                Stage::Diag | Stage::Below | Stage::InvOffdiag | Stage::InvBelow => st.items,
                 _ => st.items.div_ceil(FLAT_WG as u64),
             };
             steps.push((st.stage, ctx.dims(ENTRIES[st.stage as usize].0, groups)?));
@@ -1363,9 +1432,13 @@ mod tests {
 
     #[test]
     fn diag_steps_count_the_tile() {
-        // One column: load, pivot, scale, update, store.
-        assert_eq!(diag_steps(1), 2 + 3);
-        // A full tile: four entries a lane.
-        assert_eq!(diag_steps(32), 8 + 32 * 9);
+        // One column: load, pivot, scale, store (no column right of it).
+        assert_eq!(diag_steps(1), 2 + 2);
+        // A full tile: four entries a lane in the load and the store; per
+        // column its pivot and scaling, then the 32 - k - 1 columns right
+        // of it, 8 a round of the workgroup's lanes.
+        let right: u64 = (0..32).map(|k: u64| (31 - k).div_ceil(8)).sum();
+        assert_eq!(right, 8 + 2 * 8 + 3 * 8 + 4 * 7);
+        assert_eq!(diag_steps(32), 8 + 32 * 2 + right);
     }
 }
