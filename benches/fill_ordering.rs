@@ -88,9 +88,9 @@ fn row(
         // diagonal blocks' scratch (one f64 a diagonal block's entry).
         let scratch: usize = (0..f.len()).map(|s| f.shape(s).0.pow(2)).sum();
         GPU_ROWS.lock().unwrap().push(format!(
-            "| {pattern} | {faces} | {name} | {} | {:.2}M | {:.1} | {widest} | {:.0} | {:.0} |",
+            "| {pattern} | {faces} | {name} | {} | {} | {:.1} | {widest} | {:.0} | {:.0} |",
             w.dispatches,
-            w.serial_steps as f64 / 1e6,
+            w.serial_steps,
             w.bytes as f64 / 1e9,
             8.0 * f.nnz() as f64 / 1e6,
             8.0 * scratch as f64 / 1e6,
