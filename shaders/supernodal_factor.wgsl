@@ -53,7 +53,7 @@
 //                     entries; slots; the offsets of the sections of idx and
 //                     fidx; task0, n_task: a block column's tasks; kb: its
 //                     first column; lpr: lanes a row in `below`; parts:
-//                     lanes a sum in update and inv_below.
+//                     lanes a sum in inv_below.
 //   1  idx   read     GpuFactor's u32 sections (as in supernodal.wgsl): per
 //                     supernode c0, m, q, ro, vo (o_sn); the slots' rows
 //                     (o_rows); per row the slots holding it (o_tptr,
@@ -183,72 +183,51 @@ fn holder(v: u32) -> u32 {
     return fidx[P.o_order + lo];
 }
 
-// P.parts lanes a value where the level's longest sums are long (the top
-// of the tree), one elsewhere: a workgroup's lanes are (value, part), 32
-// consecutive values a part (a warp reads as one lane a value does); part p
-// takes every P.parts-th column of each common descendant from p, and the
-// parts are summed in workgroup memory.
 @compute @workgroup_size(256)
-fn update(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    let parts = P.parts;
-    let p = lid / 32u % parts;
-    let t = (wid.x + wid.y * nwg.x) * (FWG / parts) + lid / (32u * parts) * 32u + lid % 32u;
-    var live = false;
-    var v = 0u;
+fn update(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let t = linear(gid, nwg);
+    if t >= P.nval {
+        return;
+    }
+    let v = P.v0 + t;
+    let s = supernode(holder(v));
+    let nr = s.m + s.q;
+    let j = (v - s.vo) / nr;
+    let i = (v - s.vo) % nr;
+    if i < j {
+        return;
+    }
+    let c = s.c0 + j;
+    var g = s.c0 + i;
+    if i >= s.m {
+        g = idx[P.o_rows + s.ro + i - s.m];
+    }
+    var a = idx[P.o_tptr + c];
+    let a1 = idx[P.o_tptr + c + 1u];
+    var b = idx[P.o_tptr + g];
+    let b1 = idx[P.o_tptr + g + 1u];
     var acc = f64(0.0);
-    if t < P.nval {
-        v = P.v0 + t;
-        let s = supernode(holder(v));
-        let nr = s.m + s.q;
-        let j = (v - s.vo) / nr;
-        let i = (v - s.vo) % nr;
-        if i >= j {
-            live = p == 0u;
-            let c = s.c0 + j;
-            var g = s.c0 + i;
-            if i >= s.m {
-                g = idx[P.o_rows + s.ro + i - s.m];
+    while a < a1 && b < b1 {
+        let pa = idx[P.o_tpos + a];
+        let pb = idx[P.o_tpos + b];
+        let da = idx[P.o_slot_owner + pa];
+        if da == idx[P.o_slot_owner + pb] {
+            let d = supernode(da);
+            let nd = d.m + d.q;
+            let ra = d.vo + d.m + pa - d.ro;
+            let rb = d.vo + d.m + pb - d.ro;
+            for (var k = 0u; k < d.m; k++) {
+                acc += ld(ra + k * nd) * ld(rb + k * nd);
             }
-            var a = idx[P.o_tptr + c];
-            let a1 = idx[P.o_tptr + c + 1u];
-            var b = idx[P.o_tptr + g];
-            let b1 = idx[P.o_tptr + g + 1u];
-            while a < a1 && b < b1 {
-                let pa = idx[P.o_tpos + a];
-                let pb = idx[P.o_tpos + b];
-                let da = idx[P.o_slot_owner + pa];
-                if da == idx[P.o_slot_owner + pb] {
-                    let d = supernode(da);
-                    let nd = d.m + d.q;
-                    let ra = d.vo + d.m + pa - d.ro;
-                    let rb = d.vo + d.m + pb - d.ro;
-                    for (var k = p; k < d.m; k += parts) {
-                        acc += ld(ra + k * nd) * ld(rb + k * nd);
-                    }
-                    a++;
-                    b++;
-                } else if pa < pb {
-                    a++;
-                } else {
-                    b++;
-                }
-            }
+            a++;
+            b++;
+        } else if pa < pb {
+            a++;
+        } else {
+            b++;
         }
     }
-    // Uniform: P.parts is the dispatch's.
-    if parts > 1u {
-        sums[lid] = acc;
-        workgroupBarrier();
-        if live {
-            acc = f64(0.0);
-            for (var q = 0u; q < parts; q++) {
-                acc += sums[lid + 32u * q];
-            }
-        }
-    }
-    if live {
-        st(v, ld(v) - acc);
-    }
+    st(v, ld(v) - acc);
 }
 
 // The supernode of task `t` of this dispatch (fidx[o_task + 3 (task0 + t)]:
@@ -292,16 +271,20 @@ var<workgroup> tile: array<f64, 1024>;
 var<workgroup> sums: array<f64, 256>;
 
 // The dense Cholesky of the block's W x W diagonal tile, in workgroup memory,
-// and the inverse of its factor, X = L_bb^-1 (lower triangular), beside it:
-// L in the tile's lower triangle (entry (r, c) at tile[c bw + r], r >= c),
-// X's entries below its diagonal in the upper triangle, transposed (X_rc,
-// r > c, at tile[r bw + c]); X's diagonal is 1 / L's. At step k, column k of
-// L is scaled by its pivot d and so is row k of X (x_kj = s_kj / d, the sums
-// s_kj of L X = I's forward substitution, in the same column of the tile);
-// then L's trailing entries and the sums of the rows of X below k take the
-// same product of column k's entries, x_kk = 1 / d standing in for the
-// pivot's own entry. X's tile goes to the scratch (xs, where the inversion
-// reads the diagonal tiles of L_ss^-1), for `below` and the inversion.
+// and the inverse of its factor, X = L_bb^-1 (lower triangular), beside it,
+// one barrier a column. The tile's lower triangle (entry (r, c) at
+// tile[c bw + r], r >= c) holds A's entries as they are updated, column k
+// left unscaled: at step k, with p = a_kk, a_rc -= a_rk a_ck / p right of k
+// (l_rk l_ck, l_ik = a_ik / sqrt(p)). Its upper triangle, transposed (entry
+// (r, c), r > c, at tile[r bw + c]), holds the sums s_rc of L X = I's
+// forward substitution, x_rc = s_rc / sqrt(a_rr) once row r is reached:
+// step k takes s_ij -= l_ik x_kj = a_ik s_kj / p off the rows i > k of X
+// (the same product, s_kj in column k of the tile), and s_ik -= a_ik / p
+// (x_kk = 1 / sqrt(p)). At the end the columns of L and the rows of X are
+// scaled by their pivots' roots as they are stored: L in the factor, X in
+// the scratch (xs, where the inversion reads the diagonal tiles of
+// L_ss^-1), for `below` and the inversion. A pivot that is not positive is
+// flagged and taken as 1.
 @compute @workgroup_size(256)
 fn diag(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let t = wid.x + wid.y * nwg.x;
@@ -338,28 +321,19 @@ fn diag(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: v
     }
     workgroupBarrier();
     for (var k = 0u; k < bw; k++) {
-        var d = tile[k * bw + k];
-        if !(d > f64(0.0)) {
-            if lid == 0u {
-                not_positive(c0 + P.kb + k);
-            }
-            d = f64(1.0);
+        let a = tile[k * bw + k];
+        if !(a > f64(0.0)) && lid == 0u {
+            not_positive(c0 + P.kb + k);
         }
-        d = sqrt(d);
-        workgroupBarrier();
-        // Column k: L's entries below the pivot and X's row k left of it.
-        for (var e = lid; e < bw; e += FWG) {
-            tile[k * bw + e] = select(tile[k * bw + e] / d, d, e == k);
-        }
-        workgroupBarrier();
+        let inv = f64(1.0) / pivot(k, bw);
         // The columns right of k.
         for (var e = (k + 1u) * bw + lid; e < bw * bw; e += FWG) {
             let r = e % bw;
             let c = e / bw;
             if r >= c || r < k {
-                tile[e] -= tile[k * bw + r] * tile[k * bw + c];
+                tile[e] -= tile[k * bw + r] * tile[k * bw + c] * inv;
             } else if r == k {
-                tile[e] -= tile[k * bw + c] / d;
+                tile[e] -= tile[k * bw + c] * inv;
             }
         }
         workgroupBarrier();
@@ -369,10 +343,18 @@ fn diag(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: v
         let r = e % bw;
         let c = e / bw;
         if r >= c {
-            st(at + c * nr + r, tile[e]);
-            xs[xat + c * m + r] = select(tile[r * bw + c], f64(1.0) / tile[e], r == c);
+            let dc = sqrt(pivot(c, bw));
+            st(at + c * nr + r, select(tile[e] / dc, dc, r == c));
+            let x = select(tile[r * bw + c] / sqrt(pivot(r, bw)), f64(1.0) / dc, r == c);
+            xs[xat + c * m + r] = x;
         }
     }
+}
+
+// Pivot k of `diag`'s tile (of width bw), 1 where it is not positive.
+fn pivot(k: u32, bw: u32) -> f64 {
+    let a = tile[k * bw + k];
+    return select(f64(1.0), a, a > f64(0.0));
 }
 
 // Rows of a supernode's block below its diagonal tile (own rows past the

@@ -8,8 +8,7 @@
 //! Left-looking, level by level of the supernodal elimination tree (leaves
 //! first; a level's supernodes are independent, their descendants final):
 //! - `update`: `A_s -= sum_d L_d[rows of s] L_d[columns of s]^T` over the
-//!   descendants `d`, one dot product per value of the level ([`PARTS`]
-//!   lanes sharing it on the levels with long ones);
+//!   descendants `d`, one dot product per value of the level;
 //! - then the dense Cholesky of each supernode's `(m + q) x m` block, in
 //!   block columns of [`BLOCK`], the level's supernodes at once: `diag`
 //!   factors each block's diagonal tile `L_bb` in one workgroup's memory and
@@ -21,12 +20,18 @@
 //! diagonal tiles), `B = L_rs X` a tile column at a time, and `X` over
 //! `L_ss`; their sums shared by [`PARTS`] lanes.
 //!
-//! Each dispatch waits for the one before, so the factorization's time on a
-//! discrete GPU is about its chain of dependent steps (the serial steps the
-//! plan counts: each dispatch's longest invocation, summed), as the
+//! Each dispatch waits for the one before, so where a dispatch's work is
+//! small its time is its longest invocation's chain of dependent steps (the
+//! serial steps the plan counts, summed over the dispatches), as the
 //! triangular solves' was on an H100 (BENCHMARKS.md, "Cholesky
-//! preconditioner, one application"). Sums shared by lanes, and the tile
-//! inverses that turn the rows' triangular solves into products, cut it. What goes up is `K`'s stored values (f64) once per
+//! preconditioner, one application"). The tile inverses, which turn the
+//! rows' triangular solves into products, and the inversion's sums shared
+//! by lanes cut that chain with no more work. `update` keeps a lane a value:
+//! lanes sharing its sums would each merge the value's two slot lists, and
+//! on the levels with long sums at homer 1.2M the merges are 0.02-0.37 of
+//! the products (up to 3x the work, on levels of 5M values).
+//!
+//! What goes up is `K`'s stored values (f64) once per
 //! factorization, what comes back is one word (the first column whose pivot
 //! was not positive); the factor itself never crosses the bus, where the
 //! host's factorization sends all of it (985 MB at homer 1.2M). The
@@ -97,7 +102,7 @@ pub(crate) struct FactorParams {
     /// Lanes a row in `below`: a power of two, at least the dispatch's
     /// widest block.
     pub(crate) lpr: u32,
-    /// Lanes sharing a sum in `update` and `inv_below` (1 or [`PARTS`]).
+    /// Lanes sharing a sum in `inv_below` (1 or [`PARTS`]).
     pub(crate) parts: u32,
 }
 
@@ -285,21 +290,16 @@ pub fn factorization_work(f: &SupernodalFactor, nnz_k: usize) -> Option<KernelWo
 
 /// Serial steps of `diag` on a tile of `w` columns: the tile's load and
 /// store (with its inverse's), a few entries per lane, and per column k its
-/// pivot, its scaling and the update of the columns right of it.
+/// pivot and the update of the columns right of it.
 fn diag_steps(w: usize) -> u64 {
     let per_lane = |entries: usize| entries.div_ceil(FLAT_WG as usize) as u64;
-    let columns: u64 = (0..w).map(|k| 2 + per_lane((w - k - 1) * w)).sum();
+    let columns: u64 = (0..w).map(|k| 1 + per_lane((w - k - 1) * w)).sum();
     2 * per_lane(w * w) + columns
 }
 
 /// Lanes sharing one sum in `inv_offdiag` and in `inv_below`'s wide
 /// supernodes (`PARTS` in the shader): a workgroup is [`BLOCK`] x `PARTS`.
 const PARTS: usize = 8;
-
-/// `update` shares each value's products among [`PARTS`] lanes on the
-/// levels where some value's products (over all its descendants) number
-/// this many or more.
-const UPDATE_PARTS_FROM: u64 = 256;
 
 /// Serial steps of a sum of `terms` terms shared by `parts` lanes: each
 /// lane's share, then the parts summed (by one of them).
@@ -381,27 +381,14 @@ impl FactorizationPlan {
                 ..base
             };
             // The longest merge and products of one value: a column's list
-            // (the longest of the supernode's) and a row's; its products
-            // shared by PARTS lanes where the longest are long.
-            let own = |s: usize| f.begin[s] as usize..f.begin[s + 1] as usize;
-            let longest = sns
-                .iter()
-                .flat_map(|&s| own(s).map(|c| terms[c]))
-                .max()
-                .unwrap_or(0);
-            let parts = match longest >= UPDATE_PARTS_FROM {
-                true => PARTS,
-                false => 1,
-            };
+            // (the longest of the supernode's) and a row's.
             let update = sns
                 .iter()
                 .map(|&s| {
-                    let col = own(s)
-                        .map(|c| held[c] + sum_in_parts(terms[c] as usize, parts))
-                        .max()
-                        .unwrap_or(0);
+                    let own = f.begin[s] as usize..f.begin[s + 1] as usize;
+                    let col = own.clone().map(|c| held[c] + terms[c]).max().unwrap_or(0);
                     let below = &f.rows[f.row_ptr[s] as usize..f.row_ptr[s + 1] as usize];
-                    let row = own(s)
+                    let row = own
                         .map(|c| held[c])
                         .chain(below.iter().map(|&r| held[r as usize]))
                         .max()
@@ -410,11 +397,7 @@ impl FactorizationPlan {
                 })
                 .max()
                 .unwrap_or(0);
-            let p = FactorParams {
-                parts: parts as u32,
-                ..p
-            };
-            add(Stage::Update, p, nval * parts as u64, update);
+            add(Stage::Update, p, nval, update);
             // Block columns, the level's supernodes at once.
             let widest = sns.iter().map(|&s| f.shape(s).0).max().unwrap_or(0);
             for kb in (0..widest).step_by(BLOCK) {
@@ -1432,13 +1415,13 @@ mod tests {
 
     #[test]
     fn diag_steps_count_the_tile() {
-        // One column: load, pivot, scale, store (no column right of it).
-        assert_eq!(diag_steps(1), 2 + 2);
+        // One column: load, pivot, store (no column right of it).
+        assert_eq!(diag_steps(1), 2 + 1);
         // A full tile: four entries a lane in the load and the store; per
-        // column its pivot and scaling, then the 32 - k - 1 columns right
-        // of it, 8 a round of the workgroup's lanes.
+        // column its pivot, then the 32 - k - 1 columns right of it, 8 a
+        // round of the workgroup's lanes.
         let right: u64 = (0..32).map(|k: u64| (31 - k).div_ceil(8)).sum();
         assert_eq!(right, 8 + 2 * 8 + 3 * 8 + 4 * 7);
-        assert_eq!(diag_steps(32), 8 + 32 * 2 + right);
+        assert_eq!(diag_steps(32), 8 + 32 + right);
     }
 }
