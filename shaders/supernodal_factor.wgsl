@@ -63,10 +63,10 @@
 //                     level order (o_order); the place in vals of each of
 //                     K's stored entries (o_map); per block column, its
 //                     tasks, three u32 each (o_task): the supernode, and the
-//                     workgroups of `below` (inv_below: of its rows) and
-//                     the trailing entries of the tasks before it; each supernode's inverse diagonal
-//                     block in xs (o_xo); each supernode's first value, a
-//                     global index (o_gvo).
+//                     workgroups of `below` (of `inv_below` in its tasks)
+//                     and the trailing entries of the tasks before it;
+//                     each supernode's inverse diagonal block in xs (o_xo);
+//                     each supernode's first value, a global index (o_gvo).
 //   3  vals  rw       the factor's values (f64) below c1 (a factor over two
 //                     bindings is factored on the host).
 //   4  kv    read     K's stored values (f64), in the order of the map.

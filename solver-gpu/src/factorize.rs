@@ -255,8 +255,10 @@ struct Planned {
 pub(crate) struct FactorizationPlan {
     steps: Vec<Planned>,
     /// Per block column of a level, the supernodes taking part, three u32
-    /// each: the supernode, and the items (rows below their tiles, entries
-    /// of their trailing updates) of the tasks before it in its dispatch.
+    /// each: the supernode, and the items (`below`'s workgroups, entries of
+    /// their trailing updates) of the tasks before it in its dispatches;
+    /// then the inversion's tasks (`inv_below`'s: the supernode and the
+    /// workgroups before it).
     tasks: Vec<u32>,
     /// Each supernode's first value, counting every buffer's.
     gvo: Vec<u32>,
