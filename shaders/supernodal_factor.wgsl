@@ -371,34 +371,19 @@ fn below(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: 
     let lpr = P.lpr;
     let j = lid % lpr;
     let rr = lid / lpr;
-    if lid == 0u {
-        var bw = 0u;
-        var xat = 0u;
-        var m = 0u;
-        if g < P.nval {
-            let task = task_of(g, 1u);
-            let sn = task_supernode(task);
-            let s = supernode(sn);
-            bw = block_width(s.m);
-            m = s.m;
-            xat = fidx[P.o_xo + sn] + P.kb * s.m + P.kb;
-        }
-        shape[0] = bw;
-        shape[1] = m;
-        shape[2] = xat;
-    }
-    let bw = workgroupUniformLoad(&shape[0]);
-    let m = workgroupUniformLoad(&shape[1]);
-    let xat = workgroupUniformLoad(&shape[2]);
-    for (var e = lid; e < bw * bw; e += FWG) {
-        tile[e] = xs[xat + (e / bw) * m + e % bw];
-    }
+    var bw = 0u;
+    var m = 0u;
+    var xat = 0u;
     var at = 0u;
     var live = false;
     var a = f64(0.0);
     if g < P.nval {
         let task = task_of(g, 1u);
-        let s = supernode(task_supernode(task));
+        let sn = task_supernode(task);
+        let s = supernode(sn);
+        bw = block_width(s.m);
+        m = s.m;
+        xat = fidx[P.o_xo + sn] + P.kb * s.m + P.kb;
         let nr = s.m + s.q;
         let r = (g - fidx[P.o_task + 3u * (P.task0 + task) + 1u]) * (FWG / lpr) + rr;
         let i = P.kb + bw + r;
@@ -407,6 +392,9 @@ fn below(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: 
             a = ld(at);
             live = true;
         }
+    }
+    for (var e = lid; e < bw * bw; e += FWG) {
+        tile[e] = xs[xat + (e / bw) * m + e % bw];
     }
     sums[lid] = a;
     workgroupBarrier();

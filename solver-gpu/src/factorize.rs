@@ -405,12 +405,8 @@ impl FactorizationPlan {
             for kb in (0..widest).step_by(BLOCK) {
                 let task0 = tasks.len() / 3;
                 // `below`'s rows a workgroup: its lanes over the widest
-                // block's columns.
-                let w_most = sns
-                    .iter()
-                    .map(|&s| BLOCK.min(f.shape(s).0.saturating_sub(kb)))
-                    .max()
-                    .unwrap_or(0);
+                // block's columns (the widest supernode's).
+                let w_most = BLOCK.min(widest - kb);
                 let lpr = below_lanes(w_most);
                 let rows_per_group = FLAT_WG as usize / lpr;
                 let (mut below, mut trailing) = (0u64, 0u64);
