@@ -9,7 +9,11 @@
 #   1c. the 1.2M and 100k GPU rows with every factor made on the host by
 #      faer (METRICDEFORM_GPU_FACTORIZATION=host), against step 1's made
 #      on the GPU (the default on a hardware adapter, solver_gpu::factorize);
-#   1d. the 1.2M and 100k GPU rows with glibc's own malloc settings
+#   1d. the GPU factorization's kernels: the 1.2M and 100k GPU rows with
+#      every long sum a lane an entry (METRICDEFORM_GPU_FACTOR_KERNELS=
+#      entries, as before the tiles) and with tiles everywhere (=tiles),
+#      against step 1's (each dispatch the faster by the model);
+#   1e. the 1.2M and 100k GPU rows with glibc's own malloc settings
 #      (MALLOC_MMAP_MAX_ at glibc's default), against the binaries' default
 #      since this session's memory::keep_freed_memory (freed blocks kept for
 #      reuse: no fresh pages to fault in for each vector over 32 MiB;
@@ -18,12 +22,13 @@
 #      check), then the kernels test binary twice at 16 threads, each under
 #      a watchdog that dumps the threads' wait channels where it hangs (it
 #      hung in 6 of 15 such runs on H200s before a1465b3's turns);
-#   3. the 4.3M rows while time is left: GPU, GPU with glibc's own malloc
-#      settings (as 1d), CPU (over 110 s on the H200's host), then GPU with the
+#   3. the 4.3M rows while time is left: GPU, GPU with every long sum of
+#      its factorizations a lane an entry (as 1d), GPU with glibc's own
+#      malloc settings (as 1e), CPU (over 110 s on the H200's host), then GPU with the
 #      factors made on the host (its host peak against the default's:
 #      those factors on the host);
 #   3b. the host steps between the solves at 4.3M (benches/host_steps.rs)
-#      on all the host's threads, then with glibc's own settings (as 1d);
+#      on all the host's threads, then with glibc's own settings (as 1e);
 #   4. with CHOLESKY_FACTOR=1, the host's Cholesky factorization of K at
 #      1.2M faces, faer's loop against the elimination tree's subtrees at
 #      once, on 1 thread and on all (benches/cholesky_factor.rs), and the
@@ -68,6 +73,16 @@ for r in 1m 100k; do
     per_constraint --backend gpu --gpu-only > "$L/$r.gpu.hostfactor" 2> "$L/$r.gpu.hostfactor.err"
   echo "rc $?"
   grep -h '^| girths\|proxies' "$L/$r.gpu.hostfactor"
+done
+pack
+echo "== the factorization's kernels, 1.2M and 100k (t=$(el))"
+for r in 1m 100k; do
+  for k in entries tiles; do
+    METRICDEFORM_GPU_FACTOR_KERNELS=$k CAP=60 bounded "$B/pipeline-bench" --row girths-homer-$r \
+      per_constraint --backend gpu --gpu-only > "$L/$r.gpu.$k" 2> "$L/$r.gpu.$k.err"
+    echo "$k rc $?"
+    grep -h '^| girths\|proxies' "$L/$r.gpu.$k"
+  done
 done
 pack
 echo "== glibc's own malloc settings, 1.2M and 100k (t=$(el))"
@@ -120,13 +135,14 @@ for i in 1 2; do
   tail -2 "$L/kernels-tests.$i.txt"
 done
 pack
-for b in gpu gpuglibc cpu gpuhost; do
+for b in gpu gpuentries gpuglibc cpu gpuhost; do
   echo "== 4m $b (t=$(el), left $(left))"
   [ "$(left)" -gt 60 ] || break
   f=; [ $b = gpuhost ] && f=host
   k=; [ $b = gpuglibc ] && k=glibc
+  e=; [ $b = gpuentries ] && e=entries
   backend=gpu; [ $b = cpu ] && backend=cpu
-  METRICDEFORM_GPU_FACTORIZATION=$f $k bounded "$B/pipeline-bench" --row girths-homer-4m \
+  METRICDEFORM_GPU_FACTOR_KERNELS=$e METRICDEFORM_GPU_FACTORIZATION=$f $k bounded "$B/pipeline-bench" --row girths-homer-4m \
     per_constraint --backend $backend --gpu-only > "$L/4m.$b" 2> "$L/4m.$b.err"; echo "rc $?"
   grep -h '^| girths\|proxies' "$L/4m.$b"
   pack

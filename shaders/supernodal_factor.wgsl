@@ -18,6 +18,9 @@
 //                                   diagonal blocks of L_d[i, :] . L_d[j, :]
 //                                   (left-looking: every descendant is on a
 //                                   lower level, final)
+//     or update_tiled (a workgroup  the same sums, where they are long: a
+//                  per 32 x 32      descendant's rows of the tile read into
+//                  tile)            workgroup memory once a tile
 //     per block column kb = 0, W, 2W, ... of the level's widest supernode,
 //     over the supernodes wider than kb (the dispatch's tasks):
 //       diag      (a workgroup     the block's w x w diagonal tile (w <= W)
@@ -27,19 +30,27 @@
 //       below     (a lane per      l_i = a_i X_bb^T: the block's rows under
 //                  entry under     the tile, own rows and the rows below
 //                  the tile)
-//       trailing  (each entry      A_ij -= L_i,block . L_j,block for the
-//                  right of the    columns j right of the block, i >= j
-//                  block)
+//       trailing  (a workgroup     A_ij -= L_i,block . L_j,block for the
+//                  per 32 x 32     columns j right of the block, i >= j
+//                  tile)
 //   the inversion, X = L_ss^-1 in xs (its diagonal tiles are diag's X_bb):
-//   inv_offdiag    (per tile row   X's tiles left of the diagonal
-//                   I, its tasks)
+//   inv_offdiag    (per tile row   X's tiles left of the diagonal, a
+//                   I, its tasks)  workgroup a tile
 //   inv_below      (per tile       B = L_rs X, in place, a tile column at a
-//                   column J)      time
+//                   column J)      time, a workgroup per 32 rows
 //   inv_copy       (every column)  X over L_ss
 // No host work between the dispatches and no atomics on values: the same
 // factor on every run. Each value's update is one dot product, summed in a
 // fixed order; the dense separators at the top of the tree spread over the
 // whole GPU (trailing), not one workgroup.
+//
+// The long sums (update_tiled, trailing, inv_offdiag, inv_below) run in
+// tiles: a workgroup makes a 32 x 32 tile of sums, reading the tile's rows
+// and columns, KC terms at a time, into workgroup memory (tile) and each
+// lane adding its four entries' products from there (panel_products). Each
+// value is read from device memory once a tile, not once an entry: on a
+// discrete GPU these sums' time is the bytes they read (BENCHMARKS.md, "GPU
+// numeric factorization").
 //
 // An update merges two lists of slots (the slots holding row i, and those
 // holding row j: tpos[tptr[i] .. tptr[i + 1]], ascending in the slots' level
@@ -52,8 +63,8 @@
 //                     trailing: their items); n: columns; nnz_k: K's stored
 //                     entries; slots; the offsets of the sections of idx and
 //                     fidx; task0, n_task: a block column's tasks; kb: its
-//                     first column; lpr: lanes a row in `below`; parts:
-//                     lanes a sum in inv_below.
+//                     first column; lpr: lanes a row in `below`; o_dptr,
+//                     o_dlist: update_tiled's lists in fidx.
 //   1  idx   read     GpuFactor's u32 sections (as in supernodal.wgsl): per
 //                     supernode c0, m, q, ro, vo (o_sn); the slots' rows
 //                     (o_rows); per row the slots holding it (o_tptr,
@@ -63,10 +74,16 @@
 //                     level order (o_order); the place in vals of each of
 //                     K's stored entries (o_map); per block column, its
 //                     tasks, three u32 each (o_task): the supernode, and the
-//                     workgroups of `below` (of `inv_below` in its tasks)
-//                     and the trailing entries of the tasks before it;
+//                     workgroups of `below` (of `inv_below` in its tasks;
+//                     update_tiled's: its tiles) and the trailing tiles of
+//                     the tasks before it (update_tiled's: its first list);
 //                     each supernode's inverse diagonal block in xs (o_xo);
-//                     each supernode's first value, a global index (o_gvo).
+//                     each supernode's first value, a global index (o_gvo);
+//                     update_tiled's lists: per tile column of a tiled
+//                     supernode, where its descendants start (o_dptr, one
+//                     more at the end), and per descendant its supernode
+//                     and its first slot at or past the tile column,
+//                     relative to its rows (o_dlist, two u32 each).
 //   3  vals  rw       the factor's values (f64) below c1 (a factor over two
 //                     bindings is factored on the host).
 //   4  kv    read     K's stored values (f64), in the order of the map.
@@ -76,8 +93,9 @@
 //   7  vals1 rw       the factor's values from c1 on (a 16-byte stand-in
 //                     where they fit one buffer).
 // 256 invocations per workgroup; diag a workgroup per task, below,
-// inv_offdiag and inv_below workgroups by their tasks' counts (wid.x + wid.y
-// * nwg.x), the others 2-D (linear index gid.x + gid.y * nwg.x * 256).
+// trailing, update_tiled, inv_offdiag and inv_below workgroups by their
+// tasks' counts (wid.x + wid.y * nwg.x), the others 2-D (linear index gid.x
+// + gid.y * nwg.x * 256).
 
 struct FParams {
     sn0: u32,
@@ -103,7 +121,11 @@ struct FParams {
     o_gvo: u32,
     c1: u32,
     lpr: u32,
-    parts: u32,
+    o_dptr: u32,
+    o_dlist: u32,
+    pad0: u32,
+    pad1: u32,
+    pad2: u32,
 }
 
 const FWG: u32 = 256u;
@@ -230,6 +252,103 @@ fn update(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
     st(v, ld(v) - acc);
 }
 
+// The update of the levels with long sums, in tiles: a workgroup per 32 x 32
+// tile of a supernode's block on or below its diagonal (tile row I >= tile
+// column J; a task is a supernode, fidx: its tiles' first workgroup and its
+// first list), and per descendant d of the tile's columns (fidx's list for
+// the supernode's tile column J, in level order, with d's first slot at or
+// past the tile's first column), the same sum as `update`'s: lanes find the
+// tile's rows and columns among d's rows (binary searches), then d's
+// columns of those rows are read into workgroup memory KC at a time, and
+// each lane adds their products to its four entries. Each of d's values
+// is read once a tile, not once an entry; a descendant with none of the
+// tile's rows is skipped.
+@compute @workgroup_size(256)
+fn update_tiled(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let g = wid.x + wid.y * nwg.x;
+    if g >= P.nval {
+        return;
+    }
+    let task = P.o_task + 3u * (P.task0 + task_of(g, 1u));
+    let s = supernode(fidx[task]);
+    let nr = s.m + s.q;
+    let it = lower_tile(g - fidx[task + 1u], nr, s.m);
+    let i0 = W * it.x;
+    let j0 = W * it.y;
+    // The global rows of the tile's rows and columns (NONE past the block).
+    if lid < 2u * W {
+        var li = i0 + lid;
+        if lid >= W {
+            li = j0 + lid - W;
+        }
+        var gr = NONE;
+        if li < nr && (lid < W || li < s.m) {
+            if li < s.m {
+                gr = s.c0 + li;
+            } else {
+                gr = idx[P.o_rows + s.ro + li - s.m];
+            }
+        }
+        grow[lid] = gr;
+    }
+    if lid == 0u {
+        atomicStore(&hits, 0u);
+    }
+    var acc = vec4<f64>(0.0);
+    let list = fidx[task + 2u] + it.y;
+    let e1 = fidx[P.o_dptr + list + 1u];
+    for (var e = fidx[P.o_dptr + list]; e < e1; e++) {
+        let d = supernode(fidx[P.o_dlist + 2u * e]);
+        let a0 = d.ro + fidx[P.o_dlist + 2u * e + 1u];
+        let a1 = d.ro + d.q;
+        // grow is written (the first time); the last descendant's slots
+        // are read.
+        workgroupBarrier();
+        if lid < 2u * W {
+            let want = grow[lid];
+            // The tile's columns are among d's next W rows.
+            var hi = a1;
+            if lid >= W {
+                hi = min(a1, a0 + W);
+            }
+            var lo = a0;
+            var h = hi;
+            while lo < h {
+                let mid = (lo + h) / 2u;
+                if idx[P.o_rows + mid] < want {
+                    lo = mid + 1u;
+                } else {
+                    h = mid;
+                }
+            }
+            var sl = NONE;
+            if want != NONE && lo < hi && idx[P.o_rows + lo] == want {
+                sl = lo - d.ro;
+                if lid < W {
+                    atomicOr(&hits, 1u);
+                }
+            }
+            slot[lid] = sl;
+        }
+        workgroupBarrier();
+        if lid == 0u {
+            hit = atomicLoad(&hits);
+            atomicStore(&hits, 0u);
+        }
+        if workgroupUniformLoad(&hit) == 0u {
+            continue;
+        }
+        let nd = d.m + d.q;
+        for (var k0 = 0u; k0 < d.m; k0 += KC) {
+            load_panels(lid, d.vo + d.m, nd, k0, min(KC, d.m - k0));
+            workgroupBarrier();
+            acc = panel_products(acc, lid, min(KC, d.m - k0));
+            workgroupBarrier();
+        }
+    }
+    store_tile(lid, acc, s, i0, j0);
+}
+
 // The supernode of task `t` of this dispatch (fidx[o_task + 3 (task0 + t)]:
 // the supernode, then the rows below and the entries of the trailing update
 // of the tasks before it in this dispatch).
@@ -263,12 +382,24 @@ fn block_width(m: u32) -> u32 {
 }
 
 const W: u32 = 32u;
-// Lanes sharing one sum in inv_offdiag (and in inv_below's wide steps): a
-// workgroup's 256 lanes are W x PARTS.
+// Lanes sharing one sum in inv_offdiag_parts: a workgroup's 256 lanes are
+// W x PARTS.
 const PARTS: u32 = 8u;
 var<workgroup> shape: array<u32, 5>;
 var<workgroup> tile: array<f64, 1024>;
 var<workgroup> sums: array<f64, 256>;
+// The tiled kernels: a tile's panels are KC terms of its W rows and of its W
+// columns (in tile: the rows' at k W + r, the columns' from HALF). slot
+// (update_tiled, trailing): each of those rows' place (NONE: none);
+// update_tiled's grow: the tile's rows' and columns' global rows, and hits:
+// whether a descendant holds any of its rows.
+const KC: u32 = 16u;
+const HALF: u32 = 512u; // W * KC
+const NONE: u32 = 0xffffffffu;
+var<workgroup> slot: array<u32, 64>;
+var<workgroup> grow: array<u32, 64>;
+var<workgroup> hits: atomic<u32>;
+var<workgroup> hit: u32;
 
 // The dense Cholesky of the block's W x W diagonal tile, in workgroup memory,
 // and the inverse of its factor, X = L_bb^-1 (lower triangular), beside it,
@@ -407,33 +538,134 @@ fn below(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: 
     }
 }
 
-// Entry (i, j) of a supernode right of its block (j from kb + bw, i >= j):
-// A_ij -= sum over the block's columns k of L_ik L_jk. Items run over the
-// rectangle (rows from kb + bw) x (columns from kb + bw); those above the
-// diagonal do nothing.
+// Entries (i, j) of a supernode right of its block (j from kb + bw, i >= j):
+// A_ij -= sum over the block's columns k of L_ik L_jk. A workgroup per 32 x
+// 32 tile of that region on or below its diagonal (tile row I >= tile
+// column J, from kb + bw; fidx: the tiles of the tasks before it): the
+// block's columns of the tile's rows and of its columns are read into
+// workgroup memory, KC at a time (`load_panels`), and each lane sums its
+// four entries from there (`panel_products`): the block is read once a
+// tile, not once an entry.
 @compute @workgroup_size(256)
-fn trailing(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    let e = linear(gid, nwg);
-    if e >= P.nval {
+fn trailing(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let g = wid.x + wid.y * nwg.x;
+    if g >= P.nval {
         return;
     }
-    let t = task_of(e, 2u);
-    let s = supernode(task_supernode(t));
-    let nr = s.m + s.q;
-    let bw = block_width(s.m);
-    let j0 = P.kb + bw;
-    let local = e - fidx[P.o_task + 3u * (P.task0 + t) + 2u];
-    let i = j0 + local % (nr - j0);
-    let j = j0 + local / (nr - j0);
-    if i < j {
-        return;
+    let item = trailing_item(g);
+    let s = item.s;
+    let nr = item.nr;
+    let j0 = item.j0;
+    let it = lower_tile(item.local, nr - j0, s.m - j0);
+    let i0 = j0 + W * it.x;
+    let jc0 = j0 + W * it.y;
+    if lid < 2u * W {
+        var row = jc0 + lid - W;
+        if lid < W {
+            row = i0 + lid;
+        }
+        var sl = NONE;
+        if row < nr {
+            sl = row;
+        }
+        slot[lid] = sl;
     }
     let col = s.vo + P.kb * nr;
-    var acc = f64(0.0);
-    for (var k = 0u; k < bw; k++) {
-        acc += ld(col + k * nr + i) * ld(col + k * nr + j);
+    var acc = vec4<f64>(0.0);
+    for (var k0 = 0u; k0 < item.bw; k0 += KC) {
+        workgroupBarrier();
+        load_panels(lid, col, nr, k0, min(KC, item.bw - k0));
+        workgroupBarrier();
+        acc = panel_products(acc, lid, min(KC, item.bw - k0));
     }
-    st(s.vo + j * nr + i, ld(s.vo + j * nr + i) - acc);
+    store_tile(lid, acc, s, i0, jc0);
+}
+
+struct TrailingItem {
+    s: Super,
+    nr: u32,
+    bw: u32,
+    j0: u32,
+    local: u32,
+}
+
+// Item e of a trailing dispatch (a tile, or an entry): its task's
+// supernode, its rows, its block's width, the first column right of the
+// block, and e's place among the task's items.
+fn trailing_item(e: u32) -> TrailingItem {
+    let t = task_of(e, 2u);
+    let s = supernode(task_supernode(t));
+    let bw = block_width(s.m);
+    let local = e - fidx[P.o_task + 3u * (P.task0 + t) + 2u];
+    return TrailingItem(s, s.m + s.q, bw, P.kb + bw, local);
+}
+
+// Tile `local` (in column-major order over the tiles on or below the
+// diagonal) of a region of `rows` x `cols` entries (rows >= cols): its tile
+// row I and column J, as (I, J). Tile column J holds the tile rows J .. tr.
+fn lower_tile(local: u32, rows: u32, cols: u32) -> vec2<u32> {
+    let tr = (rows + W - 1u) / W;
+    let tc = (cols + W - 1u) / W;
+    var lo = 0u;
+    var hi = tc;
+    while hi - lo > 1u {
+        let mid = (lo + hi) / 2u;
+        if mid * tr - mid * (mid - 1u) / 2u <= local {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    return vec2<u32>(lo + local - (lo * tr - lo * (lo - 1u) / 2u), lo);
+}
+
+// Columns k0 .. k0 + kc of the panels of a tile: the rows slot[0 .. W] (the
+// tile's rows) into tile[k W + r], the rows slot[W .. 2W] (its columns) into
+// tile[HALF + k W + c]; entry (row, k) of a slot's row at base + k nd + row
+// (0 where the slot is NONE, and past kc).
+fn load_panels(lid: u32, base: u32, nd: u32, k0: u32, kc: u32) {
+    for (var x = lid; x < 2u * HALF; x += FWG) {
+        let rr = x % W;
+        let k = x / W % KC;
+        var sl = slot[rr];
+        if x >= HALF {
+            sl = slot[W + rr];
+        }
+        var v = f64(0.0);
+        if k < kc && sl != NONE {
+            v = ld(base + (k0 + k) * nd + sl);
+        }
+        tile[x] = v;
+    }
+}
+
+// Lane (r, c) of a tile (r = lid % W, c = lid / W): the panels' products for
+// its entries (r, c), (r, c + 8), (r, c + 16), (r, c + 24), added to acc in
+// the order of k.
+fn panel_products(acc: vec4<f64>, lid: u32, kc: u32) -> vec4<f64> {
+    let r = lid % W;
+    let c = HALF + lid / W;
+    var a = acc;
+    for (var k = 0u; k < kc; k++) {
+        let b = vec4<f64>(tile[c + k * W], tile[c + k * W + 8u], tile[c + k * W + 16u], tile[c + k * W + 24u]);
+        a += tile[k * W + r] * b;
+    }
+    return a;
+}
+
+// A_ij -= acc for the lane's entries of the tile with rows from i0 and
+// columns from j0 (local to supernode s), those of the block on or below
+// its diagonal.
+fn store_tile(lid: u32, acc: vec4<f64>, s: Super, i0: u32, j0: u32) {
+    let nr = s.m + s.q;
+    let i = i0 + lid % W;
+    for (var u = 0u; u < 4u; u++) {
+        let j = j0 + lid / W + 8u * u;
+        if i < nr && j < s.m && i >= j {
+            let v = s.vo + j * nr + i;
+            st(v, ld(v) - acc[u]);
+        }
+    }
 }
 
 // The inversion, in tiles of W: X = L_ss^-1 into the scratch xs (supernode
@@ -443,12 +675,143 @@ fn trailing(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgrou
 
 // Step I (kb = W I) of X's tiles left of the diagonal: X_IJ = -X_II (sum over
 // K from J to I - 1 of L_IK X_KJ) for every J < I of every task (a supernode
+// wider than kb). A workgroup per task and tile column J < I: the sum R as
+// in `inv_below` (the tile's rows of L and X's columns, from W J to kb, read
+// into workgroup memory KC at a time, four entries a lane), then R into
+// workgroup memory and lane (t, c) makes X_IJ's entries (t, c + 8 u) as row
+// t of X_II against R's columns.
+@compute @workgroup_size(256)
+fn inv_offdiag(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let g = wid.x + wid.y * nwg.x;
+    let tiles = P.kb / W;
+    if g >= P.n_task * tiles {
+        return;
+    }
+    let sn = task_supernode(g / tiles);
+    let s = supernode(sn);
+    let m = s.m;
+    let nr = s.m + s.q;
+    let xo = fidx[P.o_xo + sn];
+    let w = min(W, m - P.kb);
+    let j0 = W * (g % tiles);
+    var acc = vec4<f64>(0.0);
+    for (var k0 = j0; k0 < P.kb; k0 += KC) {
+        let kc = min(KC, P.kb - k0);
+        workgroupBarrier();
+        load_inverse_panels(lid, s.vo + P.kb, w, nr, xo + j0 * m, W, m, k0, kc);
+        workgroupBarrier();
+        acc = panel_products(acc, lid, kc);
+    }
+    workgroupBarrier();
+    let t = lid % W;
+    let c = lid / W;
+    for (var u = 0u; u < 4u; u++) {
+        tile[(c + 8u * u) * W + t] = acc[u];
+    }
+    workgroupBarrier();
+    if t < w {
+        let d = xo + P.kb * m + P.kb;
+        var x = vec4<f64>(0.0);
+        for (var u = 0u; u <= t; u++) {
+            let r = vec4<f64>(tile[c * W + u], tile[(c + 8u) * W + u], tile[(c + 16u) * W + u], tile[(c + 24u) * W + u]);
+            x += xs[d + u * m + t] * r;
+        }
+        for (var u = 0u; u < 4u; u++) {
+            xs[xo + (j0 + c + 8u * u) * m + P.kb + t] = -x[u];
+        }
+    }
+}
+
+// Terms k0 .. k0 + kc of the inversion's panels: rows r < rows of L (entry
+// (r, k) at lv + k nr + r) into tile[k W + r], columns c < cols of X (entry
+// (k, c) at xs[xv + c m + k]) into tile[HALF + k W + c]; 0 elsewhere.
+fn load_inverse_panels(lid: u32, lv: u32, rows: u32, nr: u32, xv: u32, cols: u32, m: u32, k0: u32, kc: u32) {
+    for (var x = lid; x < 2u * HALF; x += FWG) {
+        let rr = x % W;
+        let k = x / W % KC;
+        var v = f64(0.0);
+        if k < kc && x < HALF && rr < rows {
+            v = ld(lv + (k0 + k) * nr + rr);
+        } else if k < kc && x >= HALF && rr < cols {
+            v = xs[xv + rr * m + k0 + k];
+        }
+        tile[x] = v;
+    }
+}
+
+// Step J (kb = W J) of B = L_rs X, columns kb .. kb + w of every row below
+// the diagonal blocks of the tasks (supernodes wider than kb with rows
+// below): B_rj = sum over k >= j of L_rk X_kj (X's upper triangle is zero
+// in xs). A workgroup per W rows of a task (fidx: the workgroups before
+// it): the rows' L and X's columns, from kb on, read into workgroup memory
+// KC at a time, four entries a lane; written once the workgroup has read
+// all of its rows' L (columns from kb on, still L).
+@compute @workgroup_size(256)
+fn inv_below(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let g = wid.x + wid.y * nwg.x;
+    if g >= P.nval {
+        return;
+    }
+    let task = task_of(g, 1u);
+    let sn = task_supernode(task);
+    let s = supernode(sn);
+    let r0 = (g - fidx[P.o_task + 3u * (P.task0 + task) + 1u]) * W;
+    let nr = s.m + s.q;
+    let xo = fidx[P.o_xo + sn];
+    let w = min(W, s.m - P.kb);
+    let row0 = s.vo + s.m + r0;
+    var acc = vec4<f64>(0.0);
+    for (var k0 = P.kb; k0 < s.m; k0 += KC) {
+        let kc = min(KC, s.m - k0);
+        workgroupBarrier();
+        load_inverse_panels(lid, row0, min(W, s.q - r0), nr, xo + P.kb * s.m, w, s.m, k0, kc);
+        workgroupBarrier();
+        acc = panel_products(acc, lid, kc);
+    }
+    let r = lid % W;
+    for (var u = 0u; u < 4u; u++) {
+        let j = lid / W + 8u * u;
+        if r0 + r < s.q && j < w {
+            st(row0 + (P.kb + j) * nr + r, acc[u]);
+        }
+    }
+}
+
+// `trailing` a lane an entry (where its dispatch is small: a chain of bw
+// steps, not a tile's): entry (i, j) right of the block (j from kb + bw, i >= j):
+// A_ij -= sum over the block's columns k of L_ik L_jk. Items run over the
+// rectangle (rows from kb + bw) x (columns from kb + bw); those above the
+// diagonal do nothing.
+@compute @workgroup_size(256)
+fn trailing_entries(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let e = linear(gid, nwg);
+    if e >= P.nval {
+        return;
+    }
+    let item = trailing_item(e);
+    let nr = item.nr;
+    let i = item.j0 + item.local % (nr - item.j0);
+    let j = item.j0 + item.local / (nr - item.j0);
+    if i < j {
+        return;
+    }
+    let col = item.s.vo + P.kb * nr;
+    var acc = f64(0.0);
+    for (var k = 0u; k < item.bw; k++) {
+        acc += ld(col + k * nr + i) * ld(col + k * nr + j);
+    }
+    st(item.s.vo + j * nr + i, ld(item.s.vo + j * nr + i) - acc);
+}
+
+// `inv_offdiag` with shared sums (where its dispatch is small: a chain of
+// kb / PARTS steps, not kb): step I (kb = W I) of X's tiles left of the diagonal: X_IJ = -X_II (sum over
+// K from J to I - 1 of L_IK X_KJ) for every J < I of every task (a supernode
 // wider than kb). A workgroup per task and column j < kb, its lanes (t, p):
 // part p of the sum of row kb + t of L against column j of X (every PARTS-th
 // term from j + p), the parts then summed in workgroup memory, then row t of
 // X_II against the w sums.
 @compute @workgroup_size(256)
-fn inv_offdiag(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+fn inv_offdiag_parts(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let g = wid.x + wid.y * nwg.x;
     let t = lid % W;
     let p = lid / W;
@@ -492,53 +855,6 @@ fn inv_offdiag(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id)
             x += xs[d + u * m + t] * tile[u];
         }
         xs[xo + j * m + P.kb + t] = -x;
-    }
-}
-
-// Step J (kb = W J) of B = L_rs X, columns kb .. kb + w of every row below
-// the diagonal blocks of the tasks (supernodes wider than kb): B_rj = sum
-// over k >= j of L_rk X_kj. A workgroup per PARTS / P.parts rows of a task
-// (fidx: the workgroups before it), lane (t, row, p): part p of P.parts of
-// the sum for column kb + t (every P.parts-th term from it), the parts
-// summed in workgroup memory and written once the workgroup has read its
-// rows' L (columns from kb on, still L). One part a sum for the narrow
-// supernodes of step 0, P.parts = PARTS for the wide ones.
-@compute @workgroup_size(256)
-fn inv_below(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    let g = wid.x + wid.y * nwg.x;
-    let parts = P.parts;
-    let t = lid % W;
-    let rr = lid / W / parts;
-    let p = lid / W % parts;
-    var acc = f64(0.0);
-    var at = 0u;
-    var live = false;
-    if g < P.nval {
-        let task = task_of(g, 1u);
-        let sn = task_supernode(task);
-        let s = supernode(sn);
-        let r = (g - fidx[P.o_task + 3u * (P.task0 + task) + 1u]) * (PARTS / parts) + rr;
-        let w = min(W, s.m - P.kb);
-        let nr = s.m + s.q;
-        let xo = fidx[P.o_xo + sn];
-        if r < s.q && t < w {
-            let j = P.kb + t;
-            let row = s.vo + s.m + r;
-            for (var k = j + p; k < s.m; k += parts) {
-                acc += ld(row + k * nr) * xs[xo + j * s.m + k];
-            }
-            at = row + j * nr;
-            live = p == 0u;
-        }
-    }
-    sums[lid] = acc;
-    workgroupBarrier();
-    if live {
-        var b = f64(0.0);
-        for (var q = 0u; q < parts; q++) {
-            b += sums[lid + q * W];
-        }
-        st(at, b);
     }
 }
 

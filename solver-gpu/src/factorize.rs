@@ -8,28 +8,34 @@
 //! Left-looking, level by level of the supernodal elimination tree (leaves
 //! first; a level's supernodes are independent, their descendants final):
 //! - `update`: `A_s -= sum_d L_d[rows of s] L_d[columns of s]^T` over the
-//!   descendants `d`, one dot product per value of the level;
+//!   descendants `d`, one dot product per value of the level; on the levels
+//!   where those sums are long ([`UpdateWork::tiled`]), `update_tiled`
+//!   makes them a 32 x 32 tile a workgroup;
 //! - then the dense Cholesky of each supernode's `(m + q) x m` block, in
 //!   block columns of [`BLOCK`], the level's supernodes at once: `diag`
 //!   factors each block's diagonal tile `L_bb` in one workgroup's memory and
 //!   inverts it beside (`X_bb = L_bb^-1`), `below` makes the rows under the
 //!   tile as products `l_i = a_i X_bb^T` (a lane an entry), and `trailing`
-//!   updates the columns right of the block (an entry each, the whole GPU).
+//!   updates the columns right of the block (a tile a workgroup, the whole
+//!   GPU).
 //!
 //! Then the tiles of `X = L_ss^-1` left of the diagonal (`X_bb` being its
 //! diagonal tiles), `B = L_rs X` a tile column at a time, and `X` over
-//! `L_ss`; their sums shared by [`PARTS`] lanes.
+//! `L_ss`.
 //!
-//! Each dispatch waits for the one before, so where a dispatch's work is
-//! small its time is its longest invocation's chain of dependent steps (the
-//! serial steps the plan counts, summed over the dispatches), as the
-//! triangular solves' was on an H100 (BENCHMARKS.md, "Cholesky
-//! preconditioner, one application"). The tile inverses, which turn the
-//! rows' triangular solves into products, and the inversion's sums shared
-//! by lanes cut that chain with no more work. `update` keeps a lane a value:
-//! lanes sharing its sums would each merge the value's two slot lists, and
-//! on the levels with long sums at homer 1.2M the merges are 0.02-0.37 of
-//! the products (up to 3x the work, on levels of 5M values).
+//! The long sums (`update_tiled`, `trailing`, `inv_offdiag`, `inv_below`)
+//! are made in tiles: a workgroup reads a tile's rows and columns into its
+//! memory, [`PANEL`] terms at a time, and each lane adds its four entries'
+//! products from there, so each value is read from device memory once a
+//! tile, not once an entry. On an NVIDIA H200 the factorization's time went
+//! with the bytes it read (BENCHMARKS.md, "GPU numeric factorization":
+//! 2.8-3.0 TB/s modelled at homer 1.2M and 4.3M, where its chain of
+//! dependent steps differed 2.4x and its bytes 7.3x); the tiles read
+//! 12-14x fewer bytes there. Each dispatch waits for the one before, so
+//! where a dispatch's work is small its time is its longest invocation's
+//! chain of dependent steps (the serial steps the plan counts, summed over
+//! the dispatches); the tiles lengthen that chain (a lane's four entries,
+//! a barrier every [`PANEL`] terms), in workgroup memory.
 //!
 //! What goes up is `K`'s stored values (f64) once per
 //! factorization, what comes back is one word (the first column whose pivot
@@ -102,8 +108,13 @@ pub(crate) struct FactorParams {
     /// Lanes a row in `below`: a power of two, at least the dispatch's
     /// widest block.
     pub(crate) lpr: u32,
-    /// Lanes sharing a sum in `inv_below` (1 or [`PARTS`]).
-    pub(crate) parts: u32,
+    /// `update_tiled`'s lists: per tile column of a tiled supernode, where
+    /// its descendants start in `o_dlist` (one more at the end); per
+    /// descendant, the supernode and its first slot at or past the tile
+    /// column.
+    pub(crate) o_dptr: u32,
+    pub(crate) o_dlist: u32,
+    pub(crate) pad: [u32; 3],
 }
 
 /// The most storage buffers a factor made on the GPU may hold its values in
@@ -181,7 +192,7 @@ impl Factorization {
 }
 
 /// The entry points, in the order of [`Stage`].
-const ENTRIES: [(&str, &str); 8] = [
+const ENTRIES: [(&str, &str); 11] = [
     ("factor scatter", "scatter"),
     ("factor update", "update"),
     ("factor diagonal tile", "diag"),
@@ -190,6 +201,15 @@ const ENTRIES: [(&str, &str); 8] = [
     ("factor inverse off the diagonal", "inv_offdiag"),
     ("factor inverse below", "inv_below"),
     ("factor inverse copy", "inv_copy"),
+    ("factor update in tiles", "update_tiled"),
+    (
+        "factor trailing update, a lane an entry",
+        "trailing_entries",
+    ),
+    (
+        "factor inverse off the diagonal, shared sums",
+        "inv_offdiag_parts",
+    ),
 ];
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -202,6 +222,9 @@ enum Stage {
     InvOffdiag = 5,
     InvBelow = 6,
     InvCopy = 7,
+    UpdateTiled = 8,
+    TrailingEntries = 9,
+    InvOffdiagParts = 10,
 }
 
 /// Loop iterations llvmpipe runs in one invocation, all loops together,
@@ -214,10 +237,76 @@ const CPU_LOOP_LIMIT: u64 = 60_000;
 /// all of the GPU.
 pub(crate) const BLOCK: usize = 32;
 
+/// Which kernel the stages with two take (the update: a lane a value or
+/// tiles; `trailing` and `inv_offdiag`: a lane an entry or shared sums, or
+/// tiles): `METRICDEFORM_GPU_FACTOR_KERNELS=tiles|entries` asks for one
+/// everywhere (to measure them against each other on a device); unset, each
+/// dispatch takes the one with the fewer modelled seconds
+/// ([`modelled_seconds`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub(crate) enum KernelChoice {
+    #[default]
+    Model,
+    Tiles,
+    Entries,
+}
+
+impl KernelChoice {
+    /// The one `METRICDEFORM_GPU_FACTOR_KERNELS` asks for (a warning where
+    /// it names none).
+    fn from_env() -> KernelChoice {
+        let v = std::env::var("METRICDEFORM_GPU_FACTOR_KERNELS").unwrap_or_default();
+        match v.to_lowercase().as_str() {
+            "" | "model" => KernelChoice::Model,
+            "tiles" => KernelChoice::Tiles,
+            "entries" => KernelChoice::Entries,
+            other => {
+                log::warn!(
+                    "METRICDEFORM_GPU_FACTOR_KERNELS={other} is not tiles, entries or \
+                     model; using the model"
+                );
+                KernelChoice::Model
+            }
+        }
+    }
+
+    /// Whether a dispatch takes its tiled kernel, its two kernels' modelled
+    /// (bytes, serial steps) being `tiles` and `entries`.
+    fn tiles(self, tiles: (u64, u64), entries: (u64, u64)) -> bool {
+        match self {
+            KernelChoice::Tiles => true,
+            KernelChoice::Entries => false,
+            KernelChoice::Model => {
+                modelled_seconds(tiles.0, tiles.1) < modelled_seconds(entries.0, entries.1)
+            }
+        }
+    }
+}
+
+/// A dispatch's modelled seconds on a discrete GPU: the longer of its bytes
+/// at [`MODEL_BYTES_PER_S`] and its chain of dependent steps at
+/// [`MODEL_STEP_S`] a step.
+fn modelled_seconds(bytes: u64, serial: u64) -> f64 {
+    (bytes as f64 / MODEL_BYTES_PER_S).max(serial as f64 * MODEL_STEP_S)
+}
+
+/// The modelled bytes' rate on an NVIDIA H200 (BENCHMARKS.md, "Real GPU",
+/// binaries 57a365a, every sum a lane an entry): homer 1.2M's scale-driven
+/// factor took 0.26 s for 771 GB, 4.3M's 2.03 s for 5,659 GB (2.97 and
+/// 2.79 TB/s; their chains of dependent steps, 399,970 and 963,926, differ
+/// 2.4x where the times differ 7.8x).
+const MODEL_BYTES_PER_S: f64 = 2.8e12;
+
+/// A dependent step at its longest: the 1.2M factor's 0.26 s over its
+/// 399,970 steps, were it all chain. Taken so, a tiled kernel's longer
+/// chain is chosen only where its bytes save more.
+const MODEL_STEP_S: f64 = 0.65e-6;
+
 /// The factorization's kernels (f64; the device must have `SHADER_F64`).
 pub(crate) struct FactorKernels {
     shader: Shader,
-    kernels: [Kernel; 8],
+    kernels: [Kernel; 11],
+    choice: KernelChoice,
 }
 
 impl FactorKernels {
@@ -229,11 +318,26 @@ impl FactorKernels {
         }
         let shader = Shader::new(ctx, "supernodal_factor.wgsl", SOURCE, &BINDINGS)?;
         let kernels = ENTRIES.map(|(label, entry)| Kernel::new(&shader, label, entry));
-        Ok(Arc::new(FactorKernels { shader, kernels }))
+        Ok(Arc::new(FactorKernels {
+            shader,
+            kernels,
+            choice: KernelChoice::from_env(),
+        }))
+    }
+
+    /// [`FactorKernels::new`] taking `choice`, not the environment's.
+    #[cfg(test)]
+    pub(crate) fn with_choice(ctx: &Context, choice: KernelChoice) -> Arc<Self> {
+        let k = FactorKernels::new(ctx).unwrap();
+        Arc::new(FactorKernels {
+            shader: k.shader.clone(),
+            kernels: k.kernels.clone(),
+            choice,
+        })
     }
 
     /// Its kernels: a factorization runs all of them.
-    pub fn kernels(&self) -> &[Kernel; 8] {
+    pub fn kernels(&self) -> &[Kernel; 11] {
         &self.kernels
     }
 }
@@ -248,6 +352,8 @@ struct Planned {
     params: FactorParams,
     items: u64,
     serial: u64,
+    /// Its modelled device bytes.
+    bytes: u64,
 }
 
 /// A factorization's dispatches, planned from the factor's structure alone
@@ -266,8 +372,20 @@ pub(crate) struct FactorizationPlan {
     /// column-major), and the scratch's values.
     xo: Vec<u32>,
     x_len: u64,
-    /// Modelled device bytes.
-    bytes: u64,
+    /// `update_tiled`'s lists: per tile column of each tiled supernode, the
+    /// start of its descendants in `dlist` (one more at the end), and per
+    /// descendant its supernode and its first slot at or past the tile
+    /// column (relative to its rows).
+    dptr: Vec<u32>,
+    dlist: Vec<u32>,
+    /// Modelled device bytes by stage (in [`ENTRIES`]' order), and those
+    /// the updates, `trailing` and the inversion's sums would read with a
+    /// lane an entry everywhere (as before their tiles: each entry reads its
+    /// sum's two values a term), for comparison.
+    bytes: [u64; 11],
+    by_entry: u64,
+    /// Levels whose update is tiled, of all.
+    tiled_levels: (usize, usize),
 }
 
 /// Where the values of `f` go when they all fit one buffer
@@ -280,12 +398,13 @@ pub(crate) fn one_chunk_placement(f: &SupernodalFactor) -> Option<Placement> {
 }
 
 /// The modelled work of factoring a matrix of `nnz_k` stored entries into
-/// `f`'s structure on the GPU (its planned dispatches), its values in one
-/// buffer: counted from the structure alone, no device needed. `None` where
-/// `f` is not in topological order or overflows 32-bit offsets.
+/// `f`'s structure on the GPU (its planned dispatches, their kernels as
+/// `METRICDEFORM_GPU_FACTOR_KERNELS` says), its values in one buffer:
+/// counted from the structure alone, no device needed. `None` where `f` is
+/// not in topological order or overflows 32-bit offsets.
 pub fn factorization_work(f: &SupernodalFactor, nnz_k: usize) -> Option<KernelWork> {
     let place = one_chunk_placement(f)?;
-    let plan = FactorizationPlan::new(f, &place, nnz_k)?;
+    let plan = FactorizationPlan::new(f, &place, nnz_k, KernelChoice::from_env())?;
     log::debug!("GPU factorization planned: {}", plan.describe());
     Some(plan.work())
 }
@@ -299,17 +418,14 @@ fn diag_steps(w: usize) -> u64 {
     2 * per_lane(w * w) + columns
 }
 
-/// Lanes sharing one sum in `inv_offdiag` and in `inv_below`'s wide
-/// supernodes (`PARTS` in the shader): a workgroup is [`BLOCK`] x `PARTS`.
+/// Lanes sharing one sum in `inv_offdiag_parts` (`PARTS` in the shader): a
+/// workgroup is [`BLOCK`] x `PARTS`.
 const PARTS: usize = 8;
 
 /// Serial steps of a sum of `terms` terms shared by `parts` lanes: each
 /// lane's share, then the parts summed (by one of them).
 fn sum_in_parts(terms: usize, parts: usize) -> u64 {
-    match parts {
-        1 => terms as u64,
-        _ => (terms.div_ceil(parts) + parts) as u64,
-    }
+    (terms.div_ceil(parts) + parts) as u64
 }
 
 /// Lanes a row takes in `below` where the widest block of its dispatch has
@@ -325,11 +441,235 @@ fn below_steps(w: usize) -> u64 {
     (w * w).div_ceil(FLAT_WG as usize) as u64 + 2 + w as u64
 }
 
+/// Columns of a descendant `update_tiled` reads into workgroup memory at a
+/// time (`KC` in the shader), and `trailing` of its block.
+const PANEL: usize = 16;
+
+/// Tiles of [`BLOCK`] x [`BLOCK`] on or below the diagonal of a region of
+/// `rows` x `cols` entries (`rows >= cols`): tile column `J` holds the tile
+/// rows from `J` on.
+fn lower_tiles(rows: usize, cols: usize) -> u64 {
+    let (tr, tc) = (rows.div_ceil(BLOCK) as u64, cols.div_ceil(BLOCK) as u64);
+    match tc {
+        0 => 0,
+        _ => tc * tr - tc * (tc - 1) / 2,
+    }
+}
+
+/// Serial steps of a tiled kernel's panels for `w` columns: per [`PANEL`]
+/// columns, four loads a lane and two barriers; a step a column for the
+/// products.
+fn panel_steps(w: usize) -> u64 {
+    (w.div_ceil(PANEL) * 6 + w) as u64
+}
+
+/// Serial steps of `trailing` on a block of `w` columns: its tile found
+/// (binary searches), the panels and their products, the four entries
+/// stored.
+fn trailing_steps(w: usize) -> u64 {
+    12 + panel_steps(w)
+}
+
+/// The supernode whose columns hold each column.
+fn column_owners(f: &SupernodalFactor) -> Vec<u32> {
+    let mut owner = vec![0u32; f.perm.len()];
+    for s in 0..f.len() {
+        for c in f.begin[s]..f.begin[s + 1] {
+            owner[c as usize] = s as u32;
+        }
+    }
+    owner
+}
+
+/// Descendant `d`'s rows by the tile columns of the supernodes they are
+/// columns of: for each run, `each(s, J, p0, na)` (the supernode, its tile
+/// column, the run's first place in `d`'s rows and its length), in the
+/// order of the rows.
+fn tile_column_runs(
+    f: &SupernodalFactor,
+    owner: &[u32],
+    d: usize,
+    mut each: impl FnMut(usize, usize, usize, usize),
+) {
+    let rows = &f.rows[f.row_ptr[d] as usize..f.row_ptr[d + 1] as usize];
+    let mut p = 0;
+    while p < rows.len() {
+        let r = rows[p] as usize;
+        let s = owner[r] as usize;
+        let c0 = f.begin[s] as usize;
+        let j = (r - c0) / BLOCK;
+        let end = (c0 + (j + 1) * BLOCK).min(f.begin[s + 1] as usize);
+        let mut p1 = p + 1;
+        while p1 < rows.len() && (rows[p1] as usize) < end {
+            p1 += 1;
+        }
+        each(s, j, p, p1 - p);
+        p = p1;
+    }
+}
+
+/// Per level, the update's work counted from the structure: its products
+/// (`update` reads two values a product, a lane a value), its values, and
+/// the bytes `update_tiled` reads (a descendant's rows a tile column, and
+/// its rows of the tile column again for each tile row it reaches, at most
+/// the tile rows from the column's on).
+struct UpdateWork {
+    products: Vec<u64>,
+    values: Vec<u64>,
+    tiled_bytes: Vec<u64>,
+    /// `update_tiled`'s serial steps: its longest list's (per descendant
+    /// the binary searches and barriers, and its panels as though every
+    /// tile reached it), its tile found and stored.
+    tiled_serial: Vec<u64>,
+}
+
+impl UpdateWork {
+    fn new(f: &SupernodalFactor, owner: &[u32], level: &[u32], depth: usize) -> UpdateWork {
+        use std::sync::atomic::AtomicU64;
+        // Each tile column's list's chain, from first[s] on.
+        let mut first = vec![0usize; f.len() + 1];
+        for s in 0..f.len() {
+            first[s + 1] = first[s] + f.shape(s).0.div_ceil(BLOCK);
+        }
+        let chain: Vec<AtomicU64> = (0..first[f.len()]).map(|_| AtomicU64::new(0)).collect();
+        let zero = || (vec![0u64; depth], vec![0u64; depth]);
+        let (products, tiled_bytes) = (0..f.len())
+            .into_par_iter()
+            .fold(zero, |(mut pr, mut by), d| {
+                let (md, qd) = f.shape(d);
+                let (md, qd) = (md as u64, qd as u64);
+                tile_column_runs(f, owner, d, |s, j, p0, na| {
+                    let lv = level[s] as usize;
+                    let (p0, na, j) = (p0 as u64, na as u64, j as u64);
+                    // Rows p0 .. p0 + na as columns, each with the rows
+                    // from it on.
+                    pr[lv] += md * (na * (qd - p0) - na * (na - 1) / 2);
+                    let (m, q) = f.shape(s);
+                    let reached = (qd - p0).min((m + q).div_ceil(BLOCK) as u64 - j);
+                    by[lv] += 8 * md * (na * reached + qd - p0);
+                    let search = (u64::BITS - (qd - p0).leading_zeros()) as u64;
+                    chain[first[s] + j as usize]
+                        .fetch_add(search + 4 + panel_steps(md as usize), Ordering::Relaxed);
+                });
+                (pr, by)
+            })
+            .reduce(zero, |(mut a, mut b), (c, d)| {
+                a.iter_mut().zip(c).for_each(|(x, y)| *x += y);
+                b.iter_mut().zip(d).for_each(|(x, y)| *x += y);
+                (a, b)
+            });
+        let mut values = vec![0u64; depth];
+        let mut tiled_serial = vec![0u64; depth];
+        for s in 0..f.len() {
+            let lv = level[s] as usize;
+            values[lv] += f.val_ptr[s + 1] - f.val_ptr[s];
+            let longest = (first[s]..first[s + 1])
+                .map(|l| chain[l].load(Ordering::Relaxed))
+                .max()
+                .unwrap_or(0);
+            tiled_serial[lv] = tiled_serial[lv].max(longest + 12);
+        }
+        UpdateWork {
+            products,
+            values,
+            tiled_bytes,
+            tiled_serial,
+        }
+    }
+
+    /// Whether level `lv`'s update is tiled, its untiled update's serial
+    /// steps being `lane_serial`: as `choice` says; by the model, where the
+    /// tiles read at most half the bytes a lane a value does, its sums are
+    /// long (at least [`TILED_PRODUCTS`] products a value on average:
+    /// shorter sums leave most of a tile's lanes idle) and its modelled
+    /// seconds are fewer.
+    fn tiled(&self, lv: usize, lane_serial: u64, choice: KernelChoice) -> bool {
+        let values = 16 * self.values[lv];
+        let tiles = (self.tiled_bytes[lv] + values, self.tiled_serial[lv]);
+        let lanes = (16 * self.products[lv] + values, lane_serial);
+        match choice {
+            KernelChoice::Model => {
+                2 * self.tiled_bytes[lv] <= 16 * self.products[lv]
+                    && self.products[lv] >= TILED_PRODUCTS * self.values[lv]
+                    && choice.tiles(tiles, lanes)
+            }
+            _ => choice.tiles(tiles, lanes),
+        }
+    }
+}
+
+/// The least products a value, on average over a level, for its update to
+/// be tiled ([`UpdateWork::tiled`]).
+const TILED_PRODUCTS: u64 = 32;
+
+/// `update_tiled`'s descendant lists: per tile column of each supernode on
+/// a tiled level (from `base[s]`, in level order), the descendants holding
+/// a row among its columns, in level order (the order `update` sums them
+/// in), each with its first row at or past the tile column.
+struct UpdateLists {
+    base: Vec<u32>,
+    dptr: Vec<u32>,
+    dlist: Vec<u32>,
+}
+
+impl UpdateLists {
+    fn new(
+        f: &SupernodalFactor,
+        owner: &[u32],
+        order: &[usize],
+        level: &[u32],
+        tiled: &[bool],
+    ) -> Option<UpdateLists> {
+        let mut base = vec![0u32; f.len()];
+        let mut lists = 0usize;
+        for &s in order.iter().filter(|&&s| tiled[level[s] as usize]) {
+            base[s] = u32::try_from(lists).ok()?;
+            lists += f.shape(s).0.div_ceil(BLOCK);
+        }
+        let (base_ref, lists_of) = (&base, |s: usize| tiled[level[s] as usize]);
+        let runs: Vec<[u32; 3]> = order
+            .par_iter()
+            .flat_map_iter(|&d| {
+                let mut v = Vec::new();
+                tile_column_runs(f, owner, d, |s, j, p0, _| {
+                    if lists_of(s) {
+                        v.push([base_ref[s] + j as u32, d as u32, p0 as u32]);
+                    }
+                });
+                v
+            })
+            .collect();
+        // A counting sort by list, each list in level order.
+        let mut dptr = vec![0u32; lists + 1];
+        for r in &runs {
+            dptr[r[0] as usize + 1] += 1;
+        }
+        for i in 0..lists {
+            dptr[i + 1] += dptr[i];
+        }
+        u32::try_from(2 * runs.len()).ok()?;
+        let mut next = dptr.clone();
+        let mut dlist = vec![0u32; 2 * runs.len()];
+        for r in runs {
+            let at = &mut next[r[0] as usize];
+            dlist[2 * *at as usize] = r[1];
+            dlist[2 * *at as usize + 1] = r[2];
+            *at += 1;
+        }
+        Some(UpdateLists { base, dptr, dlist })
+    }
+}
+
 impl FactorizationPlan {
     /// The dispatches factoring a matrix of `nnz_k` stored entries into
     /// `f`'s structure placed by `place`. `None` where `f` is
     /// not in topological order or a dispatch's items overflow 32 bits.
-    pub fn new(f: &SupernodalFactor, place: &Placement, nnz_k: usize) -> Option<FactorizationPlan> {
+    pub fn new(
+        f: &SupernodalFactor,
+        place: &Placement,
+        nnz_k: usize,
+        choice: KernelChoice,
+    ) -> Option<FactorizationPlan> {
         let ns = f.len();
         let gvo = place.global_vo()?;
         let n = f.perm.len();
@@ -343,17 +683,18 @@ impl FactorizationPlan {
             slots: u32::try_from(slots).ok()?,
             ..Default::default()
         };
-        let mut add = |stage, params, items, serial| {
+        let mut add = |stage, params, items, serial, bytes| {
             if items > 0 {
                 steps.push(Planned {
                     stage,
                     params,
                     items,
                     serial,
+                    bytes,
                 })
             }
         };
-        add(Stage::Scatter, base, nnz_k as u64, 1);
+        add(Stage::Scatter, base, nnz_k as u64, 1, 20 * nnz_k as u64);
         // Per column: slots holding it and the descendants' columns behind
         // them (an update's merge and its products).
         let mut held = vec![0u64; n];
@@ -366,6 +707,37 @@ impl FactorizationPlan {
             }
         }
         let size = |s: usize| f.val_ptr[s + 1] - f.val_ptr[s];
+        let depth = level.iter().max().map_or(0, |&l| l as usize + 1);
+        let counted = std::time::Instant::now();
+        let owner = column_owners(f);
+        let updates = UpdateWork::new(f, &owner, &level, depth);
+        let mut by_entry = 0u64;
+        // The longest merge and products of one value a lane a value: a
+        // column's list (the longest of the supernode's) and a row's; the
+        // longest of each level.
+        let mut lane_serial = vec![0u64; depth];
+        for (s, &lv) in level.iter().enumerate() {
+            let own = f.begin[s] as usize..f.begin[s + 1] as usize;
+            let col = own.clone().map(|c| held[c] + terms[c]).max().unwrap_or(0);
+            let below = &f.rows[f.row_ptr[s] as usize..f.row_ptr[s + 1] as usize];
+            let row = own
+                .map(|c| held[c])
+                .chain(below.iter().map(|&r| held[r as usize]))
+                .max()
+                .unwrap_or(0);
+            lane_serial[lv as usize] = lane_serial[lv as usize].max(col + row);
+        }
+        // The tiled supernodes' lists, in level order.
+        let tiled: Vec<bool> = (0..depth)
+            .map(|lv| updates.tiled(lv, lane_serial[lv], choice))
+            .collect();
+        let lists = UpdateLists::new(f, &owner, &place.order, &level, &tiled)?;
+        drop(owner);
+        log::debug!(
+            "GPU factorization plan: the update's work and lists in {:.3} s ({} descendants listed)",
+            counted.elapsed().as_secs_f64(),
+            lists.dlist.len() / 2
+        );
         let mut sn0 = 0;
         while sn0 < ns {
             let lv = level[place.order[sn0]];
@@ -382,24 +754,31 @@ impl FactorizationPlan {
                 nval: u32::try_from(nval).ok()?,
                 ..base
             };
-            // The longest merge and products of one value: a column's list
-            // (the longest of the supernode's) and a row's.
-            let update = sns
-                .iter()
-                .map(|&s| {
-                    let own = f.begin[s] as usize..f.begin[s + 1] as usize;
-                    let col = own.clone().map(|c| held[c] + terms[c]).max().unwrap_or(0);
-                    let below = &f.rows[f.row_ptr[s] as usize..f.row_ptr[s + 1] as usize];
-                    let row = own
-                        .map(|c| held[c])
-                        .chain(below.iter().map(|&r| held[r as usize]))
-                        .max()
-                        .unwrap_or(0);
-                    col + row
-                })
-                .max()
-                .unwrap_or(0);
-            add(Stage::Update, p, nval, update);
+            let lv = lv as usize;
+            by_entry += 16 * (updates.products[lv] + nval);
+            if tiled[lv] {
+                // A workgroup per tile on or below the diagonal of each
+                // supernode; its serial steps, those of the longest list.
+                let task0 = tasks.len() / 3;
+                let mut tiles = 0u64;
+                for &s in sns {
+                    let (m, q) = f.shape(s);
+                    tasks.extend([s as u32, u32::try_from(tiles).ok()?, lists.base[s]]);
+                    tiles += lower_tiles(m + q, m);
+                }
+                let q = FactorParams {
+                    task0: task0 as u32,
+                    n_task: (tasks.len() / 3 - task0) as u32,
+                    nval: u32::try_from(tiles).ok()?,
+                    ..base
+                };
+                let b = updates.tiled_bytes[lv] + 16 * nval;
+                add(Stage::UpdateTiled, q, tiles, updates.tiled_serial[lv], b);
+            } else {
+                let update = lane_serial[lv];
+                let b = 16 * (updates.products[lv] + nval);
+                add(Stage::Update, p, nval, update, b);
+            }
             // Block columns, the level's supernodes at once.
             let widest = sns.iter().map(|&s| f.shape(s).0).max().unwrap_or(0);
             for kb in (0..widest).step_by(BLOCK) {
@@ -409,7 +788,27 @@ impl FactorizationPlan {
                 let w_most = BLOCK.min(widest - kb);
                 let lpr = below_lanes(w_most);
                 let rows_per_group = FLAT_WG as usize / lpr;
+                // `trailing` a tile a workgroup or a lane an entry: the
+                // tiles' and the entries' bytes (a tile's panels read, its
+                // entries read and written; a lane an entry reads the
+                // block's columns for each entry).
+                let (mut tiles, mut entries) = ((0u64, 0u64), (0u64, 0u64));
+                for &s in sns {
+                    let (m, q) = f.shape(s);
+                    if m > kb {
+                        let w = BLOCK.min(m - kb);
+                        let j0 = kb + w;
+                        let n = lower_tiles(m + q - j0, m - j0);
+                        let e = ((m + q - j0) * (m - j0)) as u64;
+                        tiles.0 += 16 * e + 16 * BLOCK as u64 * w as u64 * n;
+                        entries.0 += 16 * e + 16 * w as u64 * e;
+                    }
+                }
+                tiles.1 = trailing_steps(w_most);
+                entries.1 = w_most as u64;
+                let tiled = choice.tiles(tiles, entries);
                 let (mut below, mut trailing) = (0u64, 0u64);
+                let (mut diag_bytes, mut below_bytes) = (0u64, 0u64);
                 for &s in sns {
                     let (m, q) = f.shape(s);
                     if m <= kb {
@@ -422,29 +821,48 @@ impl FactorizationPlan {
                         u32::try_from(below).ok()?,
                         u32::try_from(trailing).ok()?,
                     ]);
-                    below += (m + q - j0).div_ceil(rows_per_group) as u64;
-                    trailing += ((m + q - j0) * (m - j0)) as u64;
+                    let groups = (m + q - j0).div_ceil(rows_per_group) as u64;
+                    below += groups;
+                    trailing += match tiled {
+                        true => lower_tiles(m + q - j0, m - j0),
+                        false => ((m + q - j0) * (m - j0)) as u64,
+                    };
+                    // diag: the tile read and written, X written; below:
+                    // the rows read and written, X read a workgroup.
+                    let w = w as u64;
+                    diag_bytes += 24 * w * w;
+                    below_bytes += 16 * w * (m + q - j0) as u64 + 8 * w * w * groups;
                 }
+                by_entry += entries.0;
                 let q = FactorParams {
                     task0: task0 as u32,
                     n_task: (tasks.len() / 3 - task0) as u32,
                     kb: kb as u32,
                     ..base
                 };
-                let w = w_most as u64;
                 let items = |v: u64| u32::try_from(v).ok();
-                add(Stage::Diag, q, q.n_task as u64, diag_steps(w_most));
+                add(
+                    Stage::Diag,
+                    q,
+                    q.n_task as u64,
+                    diag_steps(w_most),
+                    diag_bytes,
+                );
                 let p = FactorParams {
                     nval: items(below)?,
                     lpr: lpr as u32,
                     ..q
                 };
-                add(Stage::Below, p, below, below_steps(w_most));
+                add(Stage::Below, p, below, below_steps(w_most), below_bytes);
                 let p = FactorParams {
                     nval: items(trailing)?,
                     ..q
                 };
-                add(Stage::Trailing, p, trailing, w);
+                let (stage, (b, serial)) = match tiled {
+                    true => (Stage::Trailing, tiles),
+                    false => (Stage::TrailingEntries, entries),
+                };
+                add(stage, p, trailing, serial, b);
             }
             sn0 = sn1;
         }
@@ -477,73 +895,95 @@ impl FactorizationPlan {
                 kb: kb as u32,
                 ..base
             };
-            // A workgroup per task and column left of the tile: its sums
-            // in PARTS parts, then the tile's product.
-            add(
-                Stage::InvOffdiag,
-                q,
-                (n_task * kb) as u64,
-                sum_in_parts(kb, PARTS) + BLOCK as u64,
-            );
+            // A workgroup per task and tile left of the diagonal (the panels
+            // of its sums, then the diagonal tile's product), or per task
+            // and column, its sums shared by PARTS lanes (two values read
+            // a term).
+            let (mut tiles, mut parts) = ((0u64, 0u64), (0u64, 0u64));
+            for &s in wide.iter().filter(|&&s| f.shape(s).0 > kb) {
+                let w = BLOCK.min(f.shape(s).0 - kb) as u64;
+                // Per tile J: L's rows and X's columns from J's first column
+                // to kb, X_II, the tile written.
+                let panels: u64 = (0..i).map(|j| (kb - j * BLOCK) as u64).sum();
+                let out = i as u64 * 8 * (w * w + BLOCK as u64 * w);
+                tiles.0 += 8 * (w + BLOCK as u64) * panels + out;
+                let terms = (kb * (kb + 1) / 2) as u64;
+                parts.0 += 16 * w * terms + kb as u64 * 8 * w * w + 8 * kb as u64 * w;
+            }
+            tiles.1 = panel_steps(kb) + 2 * BLOCK as u64 + 8;
+            parts.1 = sum_in_parts(kb, PARTS) + BLOCK as u64;
+            by_entry += parts.0;
+            let (stage, items, (b, serial)) = match choice.tiles(tiles, parts) {
+                true => (Stage::InvOffdiag, n_task * i, tiles),
+                false => (Stage::InvOffdiagParts, n_task * kb, parts),
+            };
+            add(stage, q, items as u64, serial, b);
         }
-        // B's tile columns: at the first, the narrow supernodes (one tile)
-        // a lane a sum, then the wide ones (and at the next tile columns,
-        // only they) PARTS lanes a sum.
-        let narrow: Vec<usize> = (0..ns).filter(|&s| f.shape(s).0 <= BLOCK).collect();
+        // B's tile columns: a workgroup per W rows below the diagonal block
+        // of each supernode wider than kb (at the first, every supernode;
+        // at the next, the wide ones).
+        let all: Vec<usize> = (0..ns).collect();
         for j in 0..widest.div_ceil(BLOCK) {
             let kb = j * BLOCK;
-            let sets: &[(&[usize], usize)] = match kb {
-                0 => &[(&narrow, 1), (&wide, PARTS)],
-                _ => &[(&wide, PARTS)],
+            let set = match kb {
+                0 => &all,
+                _ => &wide,
             };
-            for &(set, parts) in sets {
-                let task0 = tasks.len() / 3;
-                let rows = PARTS / parts;
-                let (mut groups, mut longest) = (0u64, 0usize);
-                for &s in set {
-                    let (m, q) = f.shape(s);
-                    if m > kb && q > 0 {
-                        tasks.extend([s as u32, u32::try_from(groups).ok()?, 0]);
-                        groups += q.div_ceil(rows) as u64;
-                        longest = longest.max(m - kb);
-                    }
-                }
-                let q = FactorParams {
-                    task0: task0 as u32,
-                    n_task: (tasks.len() / 3 - task0) as u32,
-                    kb: kb as u32,
-                    nval: u32::try_from(groups).ok()?,
-                    parts: parts as u32,
-                    ..base
-                };
-                add(Stage::InvBelow, q, groups, sum_in_parts(longest, parts));
-            }
-        }
-        add(Stage::InvCopy, base, n as u64, widest as u64);
-        // Bytes: K in; the updates read two values a term (the column
-        // counts squared, halved, summed); the inversions read and write
-        // the values.
-        let counts: f64 = (0..ns)
-            .map(|s| {
+            let task0 = tasks.len() / 3;
+            let (mut groups, mut longest, mut b) = (0u64, 0usize, 0u64);
+            for &s in set {
                 let (m, q) = f.shape(s);
-                (0..m).map(|i| ((m - i + q) as f64).powi(2)).sum::<f64>()
-            })
-            .sum();
-        let nvals = f.val_ptr.last().copied().unwrap_or(0);
-        let bytes = 20 * nnz_k as u64 + 8 * counts as u64 + 3 * 16 * nvals + 3 * 8 * x_len;
+                if m > kb && q > 0 {
+                    tasks.extend([s as u32, u32::try_from(groups).ok()?, 0]);
+                    let g = q.div_ceil(BLOCK) as u64;
+                    groups += g;
+                    longest = longest.max(m - kb);
+                    // Per workgroup: its rows' L and X's columns from kb,
+                    // its entries written.
+                    let (w, span) = (BLOCK.min(m - kb) as u64, (m - kb) as u64);
+                    b += g * 8 * (BLOCK as u64 * span + w * span + BLOCK as u64 * w);
+                }
+            }
+            let q = FactorParams {
+                task0: task0 as u32,
+                n_task: (tasks.len() / 3 - task0) as u32,
+                kb: kb as u32,
+                nval: u32::try_from(groups).ok()?,
+                ..base
+            };
+            add(Stage::InvBelow, q, groups, panel_steps(longest) + 12, b);
+        }
+        // X read and written over L; with a lane an entry, B would read two
+        // values a term.
+        let mut copy = 0u64;
+        for s in 0..ns {
+            let (m, q) = f.shape(s);
+            let (m, q) = (m as u64, q as u64);
+            copy += 16 * m * m;
+            by_entry += 16 * q * m * (m + 1) / 2;
+        }
+        add(Stage::InvCopy, base, n as u64, widest as u64, copy);
+        let mut bytes = [0u64; 11];
+        for st in &steps {
+            bytes[st.stage as usize] += st.bytes;
+        }
         Some(FactorizationPlan {
             steps,
             tasks,
             gvo,
             xo,
             x_len,
+            dptr: lists.dptr,
+            dlist: lists.dlist,
             bytes,
+            by_entry,
+            tiled_levels: (tiled.iter().filter(|&&t| t).count(), depth),
         })
     }
 
     /// Per stage (in [`ENTRIES`]' order): dispatches and serial steps.
-    pub fn stages(&self) -> [(u64, u64); 8] {
-        let mut out = [(0, 0); 8];
+    pub fn stages(&self) -> [(u64, u64); 11] {
+        let mut out = [(0, 0); 11];
         for s in &self.steps {
             out[s.stage as usize].0 += 1;
             out[s.stage as usize].1 += s.serial;
@@ -551,15 +991,50 @@ impl FactorizationPlan {
         out
     }
 
-    /// The stages' dispatches and serial steps, in words.
+    /// The stages' dispatches and serial steps, the tiled levels and the
+    /// modelled bytes, in words.
     pub fn describe(&self) -> String {
-        self.stages()
+        let gb = |b: u64| b as f64 / 1e9;
+        let stages = self
+            .stages()
             .iter()
             .zip(ENTRIES)
-            .filter(|(w, _)| w.0 > 0)
-            .map(|((d, s), (_, entry))| format!("{entry} {d} x, {s} steps"))
+            .zip(self.bytes)
+            .filter(|((w, _), _)| w.0 > 0)
+            .map(|(((d, s), (_, entry)), b)| format!("{entry} {d} x, {s} steps, {:.1} GB", gb(b)))
             .collect::<Vec<_>>()
-            .join("; ")
+            .join("; ");
+        let (tiled, levels) = self.tiled_levels;
+        let sums = [
+            Stage::Update,
+            Stage::UpdateTiled,
+            Stage::Trailing,
+            Stage::TrailingEntries,
+            Stage::InvOffdiag,
+            Stage::InvOffdiagParts,
+            Stage::InvBelow,
+        ]
+        .map(|s| self.bytes[s as usize])
+        .iter()
+        .sum::<u64>();
+        format!(
+            "{stages}; update tiled on {tiled} of {levels} levels; {:.1} GB modelled, \
+             the updates, trailing and inversion sums {:.1} GB ({:.1} GB with a lane \
+             an entry); modelled {:.1} ms",
+            gb(self.bytes.iter().sum()),
+            gb(sums),
+            gb(self.by_entry),
+            1e3 * self.modelled_seconds()
+        )
+    }
+
+    /// Its modelled seconds on a discrete GPU: each dispatch's
+    /// ([`modelled_seconds`]), summed.
+    pub fn modelled_seconds(&self) -> f64 {
+        self.steps
+            .iter()
+            .map(|s| modelled_seconds(s.bytes, s.serial))
+            .sum()
     }
 
     /// Modelled work of one factorization: its dispatches, the chain of
@@ -567,7 +1042,7 @@ impl FactorizationPlan {
     pub fn work(&self) -> KernelWork {
         KernelWork {
             dispatches: self.steps.len() as u64,
-            bytes: self.bytes,
+            bytes: self.bytes.iter().sum(),
             minimal: 0,
             serial_steps: self.steps.iter().map(|s| s.serial).sum(),
         }
@@ -692,7 +1167,7 @@ impl GpuFactorization {
         })?;
         let mapped = t.elapsed().as_secs_f64();
         let nnz_k = map.len();
-        let plan = FactorizationPlan::new(f, place, nnz_k)
+        let plan = FactorizationPlan::new(f, place, nnz_k, kernels.choice)
             .ok_or_else(|| GpuError::Backend("a factor's structure over 32-bit offsets".into()))?;
         log::debug!(
             "GPU factorization planned (K's map {mapped:.3} s, plan {:.3} s): {}",
@@ -715,6 +1190,8 @@ impl GpuFactorization {
         let (o_map, o_task) = (ns, ns + nnz_k);
         let o_xo = o_task + plan.tasks.len();
         let o_gvo = o_xo + plan.xo.len();
+        let o_dptr = o_gvo + plan.gvo.len();
+        let o_dlist = o_dptr + plan.dptr.len();
         let fidx_data: Vec<u32> = place
             .order
             .iter()
@@ -723,6 +1200,8 @@ impl GpuFactorization {
             .chain(plan.tasks.iter().copied())
             .chain(plan.xo.iter().copied())
             .chain(plan.gvo.iter().copied())
+            .chain(plan.dptr.iter().copied())
+            .chain(plan.dlist.iter().copied())
             .collect();
         if fidx_data.len() > u32::MAX as usize {
             return Err(GpuError::Backend(
@@ -755,12 +1234,20 @@ impl GpuFactorization {
                 o_task: o_task as u32,
                 o_xo: o_xo as u32,
                 o_gvo: o_gvo as u32,
+                o_dptr: o_dptr as u32,
+                o_dlist: o_dlist as u32,
                 c1,
                 ..st.params
             };
             params.push(ctx.uniform_of("factorization params", &p)?);
             let groups = match st.stage {
-                Stage::Diag | Stage::Below | Stage::InvOffdiag | Stage::InvBelow => st.items,
+                Stage::Diag
+                | Stage::Below
+                | Stage::Trailing
+                | Stage::InvOffdiag
+                | Stage::InvBelow
+                | Stage::UpdateTiled
+                | Stage::InvOffdiagParts => st.items,
                 _ => st.items.div_ceil(FLAT_WG as u64),
             };
             steps.push((st.stage, ctx.dims(ENTRIES[st.stage as usize].0, groups)?));
@@ -1144,8 +1631,13 @@ mod tests {
 
     /// The GPU's factor of `k` on `f`'s structure, its values in `f`'s
     /// order; and the factorization's recorded work.
-    fn gpu(ctx: &Context, f: &SupernodalFactor, k: &SymCsc) -> (Vec<f64>, KernelWork) {
-        let kernels = FactorKernels::new(ctx).unwrap();
+    fn gpu(
+        ctx: &Context,
+        f: &SupernodalFactor,
+        k: &SymCsc,
+        choice: KernelChoice,
+    ) -> (Vec<f64>, KernelWork) {
+        let kernels = FactorKernels::with_choice(ctx, choice);
         let (g, place, fac) = recorded(ctx, &kernels, f, k, crate::matrix::binding_limit(ctx));
         fac.run(ctx, &k.values).unwrap();
         let got: Vec<f64> = ctx.read(&g.vals[0], g.nnz, &mut None, None).unwrap();
@@ -1176,29 +1668,68 @@ mod tests {
             };
             for supernodal in [true, false] {
                 let f = host(&k, supernodal);
-                let (got, work) = gpu(ctx, &f, &k);
                 let scale = f.values64.iter().map(|v| v.abs()).fold(0.0, f64::max);
-                // The diagonal blocks' upper triangles are not the factor's
-                // (the host leaves them as they were, the GPU clears them).
-                let mut err = 0.0f64;
-                for b in 0..f.len() {
-                    let (m, q) = f.shape(b);
-                    let v = f.val_ptr[b] as usize;
-                    for j in 0..m {
-                        for i in j..m + q {
-                            let at = v + j * (m + q) + i;
-                            err = err.max((got[at] - f.values64[at]).abs());
-                        }
-                        for i in 0..j {
-                            assert_eq!(got[v + j * (m + q) + i], 0.0);
+                // Each kernel of the stages with two: tiles everywhere, a
+                // lane an entry everywhere, and the model's mix.
+                for choice in [
+                    KernelChoice::Tiles,
+                    KernelChoice::Entries,
+                    KernelChoice::Model,
+                ] {
+                    let (got, work) = gpu(ctx, &f, &k, choice);
+                    // The diagonal blocks' upper triangles are not the
+                    // factor's (the host leaves them as they were, the GPU
+                    // clears them).
+                    let mut err = 0.0f64;
+                    for b in 0..f.len() {
+                        let (m, q) = f.shape(b);
+                        let v = f.val_ptr[b] as usize;
+                        for j in 0..m {
+                            for i in j..m + q {
+                                let at = v + j * (m + q) + i;
+                                err = err.max((got[at] - f.values64[at]).abs());
+                            }
+                            for i in 0..j {
+                                assert_eq!(got[v + j * (m + q) + i], 0.0);
+                            }
                         }
                     }
+                    assert!(
+                        err <= 1e-11 * scale,
+                        "{nx} x {ny}, supernodal {supernodal}, {choice:?}: {err:e} against {scale:e}"
+                    );
+                    let place = one_chunk_placement(&f).unwrap();
+                    let plan = FactorizationPlan::new(&f, &place, k.row_idx.len(), choice).unwrap();
+                    assert_eq!(work, plan.work());
+                    if choice == KernelChoice::Model {
+                        assert_eq!(Some(work), factorization_work(&f, k.row_idx.len()));
+                    }
+                    // Each choice's kernels, where the structure has them.
+                    let used = |st: Stage| plan.stages()[st as usize].0 > 0;
+                    let (tiles, entries) = (
+                        choice == KernelChoice::Tiles,
+                        choice == KernelChoice::Entries,
+                    );
+                    assert!(
+                        !(tiles
+                            && (used(Stage::Update)
+                                || used(Stage::TrailingEntries)
+                                || used(Stage::InvOffdiagParts)))
+                    );
+                    assert!(
+                        !(entries
+                            && (used(Stage::UpdateTiled)
+                                || used(Stage::Trailing)
+                                || used(Stage::InvOffdiag)))
+                    );
+                    if tiles {
+                        assert!(used(Stage::UpdateTiled));
+                    }
+                    if f.len() == 1 && f.shape(0).0 > 2 * BLOCK {
+                        assert!(used(Stage::Trailing) || used(Stage::TrailingEntries));
+                        assert!(used(Stage::InvOffdiag) || used(Stage::InvOffdiagParts));
+                    }
                 }
-                assert!(
-                    err <= 1e-11 * scale,
-                    "{nx} x {ny}, supernodal {supernodal}: {err:e} against {scale:e}"
-                );
-                assert_eq!(Some(work), factorization_work(&f, k.row_idx.len()));
                 let levels = f.levels().unwrap().iter().max().map_or(0, |&l| l + 1);
                 if nx * ny > 100 {
                     assert!(f.len() > 1 && levels > 1, "{} supernodes", f.len());
@@ -1421,5 +1952,78 @@ mod tests {
         let right: u64 = (0..32).map(|k: u64| (31 - k).div_ceil(8)).sum();
         assert_eq!(right, 8 + 2 * 8 + 3 * 8 + 4 * 7);
         assert_eq!(diag_steps(32), 8 + 32 + right);
+    }
+
+    /// The update's counts and `update_tiled`'s lists, against the sums
+    /// taken entry by entry: each value's descendants holding both its rows
+    /// (`update`'s merge), their columns summed per level; and per tile
+    /// column of a supernode, every descendant holding one of its columns,
+    /// in level order, with its first row at or past the tile column.
+    #[test]
+    fn update_work_and_lists_are_the_entries_sums() {
+        for (nx, ny) in [(40, 30), (90, 70)] {
+            let f = host(&two_ring_grid(nx, ny), true);
+            let ns = f.len();
+            let level = f.levels().unwrap();
+            let depth = *level.iter().max().unwrap() as usize + 1;
+            let place = one_chunk_placement(&f).unwrap();
+            let rank: Vec<usize> = {
+                let mut r = vec![0; ns];
+                place.order.iter().enumerate().for_each(|(i, &s)| r[s] = i);
+                r
+            };
+            // Each row's holders, in level order.
+            let mut holders: Vec<Vec<usize>> = vec![Vec::new(); f.perm.len()];
+            for &d in &place.order {
+                for &r in &f.rows[f.row_ptr[d] as usize..f.row_ptr[d + 1] as usize] {
+                    holders[r as usize].push(d);
+                }
+            }
+            let mut products = vec![0u64; depth];
+            for s in 0..ns {
+                let (m, q) = f.shape(s);
+                let c0 = f.begin[s] as usize;
+                let below = &f.rows[f.row_ptr[s] as usize..f.row_ptr[s + 1] as usize];
+                for j in 0..m {
+                    for i in j..m + q {
+                        let g = if i < m { c0 + i } else { below[i - m] as usize };
+                        for d in holders[c0 + j].iter().filter(|d| holders[g].contains(d)) {
+                            products[level[s] as usize] += f.shape(*d).0 as u64;
+                        }
+                    }
+                }
+            }
+            let owner = column_owners(&f);
+            let work = UpdateWork::new(&f, &owner, &level, depth);
+            assert_eq!(work.products, products, "{nx} x {ny}");
+            assert!(products.iter().sum::<u64>() > 0);
+            // Every level tiled, so every supernode has its lists.
+            let tiled = vec![true; depth];
+            let lists = UpdateLists::new(&f, &owner, &place.order, &level, &tiled).unwrap();
+            for s in 0..ns {
+                let (m, _) = f.shape(s);
+                let c0 = f.begin[s] as usize;
+                for t in 0..m.div_ceil(BLOCK) {
+                    let cols = c0 + t * BLOCK..c0 + m.min((t + 1) * BLOCK);
+                    let mut want: Vec<usize> = cols
+                        .clone()
+                        .flat_map(|c| holders[c].iter().copied())
+                        .collect();
+                    want.sort_by_key(|&d| rank[d]);
+                    want.dedup();
+                    let l = lists.base[s] as usize + t;
+                    let got =
+                        &lists.dlist[2 * lists.dptr[l] as usize..2 * lists.dptr[l + 1] as usize];
+                    let ds: Vec<usize> = got.chunks_exact(2).map(|e| e[0] as usize).collect();
+                    assert_eq!(ds, want, "{nx} x {ny}: supernode {s}, tile column {t}");
+                    for e in got.chunks_exact(2) {
+                        let rows = &f.rows[f.row_ptr[e[0] as usize] as usize..];
+                        let first = e[1] as usize;
+                        assert!(cols.contains(&(rows[first] as usize)));
+                        assert!(first == 0 || (rows[first - 1] as usize) < cols.start);
+                    }
+                }
+            }
+        }
     }
 }
