@@ -292,7 +292,7 @@ fn modelled_seconds(bytes: u64, serial: u64) -> f64 {
 
 /// The modelled bytes' rate on an NVIDIA H200 (BENCHMARKS.md, "Real GPU",
 /// binaries 57a365a, every sum a lane an entry): homer 1.2M's scale-driven
-/// factor took 0.26 s for 771 GB, 4.3M's 2.03 s for 5,659 GB (2.97 and
+/// factor took 0.26 s for 771 GB, 4.3M's 2.03 s for 5,658 GB (2.97 and
 /// 2.79 TB/s; their chains of dependent steps, 399,970 and 963,926, differ
 /// 2.4x where the times differ 7.8x).
 const MODEL_BYTES_PER_S: f64 = 2.8e12;
