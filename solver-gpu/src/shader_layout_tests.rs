@@ -33,10 +33,11 @@ macro_rules! host {
 
 /// Structs that live on the device only (packed from `u32` arrays on the
 /// host, or a shader's own working values), per shader.
-const DEVICE_ONLY: [(&str, &str); 4] = [
+const DEVICE_ONLY: [(&str, &str); 5] = [
     ("supernodal.wgsl", "Super"),
     ("supernodal.wgsl", "OwnRow"),
     ("supernodal_factor.wgsl", "Super"),
+    ("supernodal_factor.wgsl", "TrailingItem"),
     ("refine_product.wgsl", "Block"),
 ];
 
@@ -260,7 +261,10 @@ fn every_shader_struct_has_its_host_twins_layout() {
                 kb,
                 o_xo,
                 o_gvo,
-                c1
+                c1,
+                lpr,
+                o_dptr,
+                o_dlist
             )],
         ),
     ];
