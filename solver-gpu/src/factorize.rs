@@ -470,15 +470,16 @@ fn trailing_steps(w: usize) -> u64 {
     12 + panel_steps(w)
 }
 
-/// The supernode whose columns hold each column.
-fn column_owners(f: &SupernodalFactor) -> Vec<u32> {
+/// The supernode whose columns hold each column; `None` where a supernode's
+/// columns run past the matrix.
+fn column_owners(f: &SupernodalFactor) -> Option<Vec<u32>> {
     let mut owner = vec![0u32; f.perm.len()];
     for s in 0..f.len() {
         for c in f.begin[s]..f.begin[s + 1] {
-            owner[c as usize] = s as u32;
+            *owner.get_mut(c as usize)? = s as u32;
         }
     }
-    owner
+    Some(owner)
 }
 
 /// Descendant `d`'s rows by the tile columns of the supernodes they are
@@ -709,7 +710,7 @@ impl FactorizationPlan {
         let size = |s: usize| f.val_ptr[s + 1] - f.val_ptr[s];
         let depth = level.iter().max().map_or(0, |&l| l as usize + 1);
         let counted = std::time::Instant::now();
-        let owner = column_owners(f);
+        let owner = column_owners(f)?;
         let updates = UpdateWork::new(f, &owner, &level, depth);
         let mut by_entry = 0u64;
         // The longest merge and products of one value a lane a value: a
@@ -1101,12 +1102,7 @@ pub(crate) fn value_map(f: &SupernodalFactor, place: &Placement, k: &SymCsc) -> 
     for (new, &old) in f.perm.iter().enumerate() {
         *inv.get_mut(old as usize)? = new as u32;
     }
-    let mut owner = vec![0u32; n];
-    for s in 0..f.len() {
-        for c in f.begin[s]..f.begin[s + 1] {
-            *owner.get_mut(c as usize)? = s as u32;
-        }
-    }
+    let owner = column_owners(f)?;
     let gvo = place.global_vo()?;
     // A column's entries, each found by a search in its supernode's rows:
     // the columns on rayon's threads, the map in `k`'s order.
@@ -1993,7 +1989,7 @@ mod tests {
                     }
                 }
             }
-            let owner = column_owners(&f);
+            let owner = column_owners(&f).unwrap();
             let work = UpdateWork::new(&f, &owner, &level, depth);
             assert_eq!(work.products, products, "{nx} x {ny}");
             assert!(products.iter().sum::<u64>() > 0);
