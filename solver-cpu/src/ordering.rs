@@ -84,8 +84,13 @@ fn dissect(points: &[DVec3], graph: Adjacency) -> Option<Vec<usize>> {
         bucket: &bucket,
     };
     let all: Vec<u32> = (0..n as u32).collect();
+    let extent = per_chunk(&all, |part| {
+        Extent::of(part.iter().map(|&v| points[v as usize]))
+    })
+    .into_iter()
+    .fold(Extent::empty(), Extent::union);
     let mut forward = vec![0u32; n];
-    dissection.order(all, 0, 0, &mut forward);
+    dissection.order(all, extent, 0, 0, &mut forward);
     Some(forward.into_iter().map(|v| v as usize).collect())
 }
 
@@ -185,8 +190,10 @@ fn joined(mut parts: Vec<Vec<u32>>) -> Vec<u32> {
     }
 }
 
-/// Directions the sets are cut across: the axes and the cube's diagonals.
+/// Directions the sets are cut across: the axes and the cube's diagonals
+/// (`DIRECTIONS`, in the order of [`projections`]).
 const DIRS: usize = 7;
+#[cfg(test)]
 const DIRECTIONS: [[f64; 3]; DIRS] = [
     [1.0, 0.0, 0.0],
     [0.0, 1.0, 0.0],
@@ -246,8 +253,7 @@ impl Extent {
     fn of(points: impl Iterator<Item = [f64; 3]>) -> Extent {
         let mut e = Extent::empty();
         for p in points {
-            for (d, &direction) in DIRECTIONS.iter().enumerate() {
-                let x = project(p, direction);
+            for (d, x) in projections(p).into_iter().enumerate() {
                 e.lo[d] = e.lo[d].min(x);
                 e.hi[d] = e.hi[d].max(x);
             }
@@ -287,8 +293,9 @@ impl Extent {
 }
 
 impl Buckets {
-    fn of(&self, p: [f64; 3], d: usize) -> usize {
-        let b = (project(p, DIRECTIONS[d]) - self.lo[d]) * self.per[d];
+    /// The bucket of a point whose projection on direction `d` is `x`.
+    fn of(&self, x: f64, d: usize) -> usize {
+        let b = (x - self.lo[d]) * self.per[d];
         (b as usize).min(BUCKETS - 1)
     }
 }
@@ -312,8 +319,13 @@ fn bytewise_min(a: u64, b: u64) -> u64 {
     (b & m) | (a & !m)
 }
 
-fn project(p: [f64; 3], d: [f64; 3]) -> f64 {
-    p[0] * d[0] + p[1] * d[1] + p[2] * d[2]
+/// `p`'s projections on the directions (`DIRECTIONS`), `p . d` summed as
+/// `(p0 d0 + p1 d1) + p2 d2`: a product with 1, -1 or 0 is exact, so these
+/// sums and differences are the same values (a zero's sign aside, which no
+/// bucket sees), with no products.
+fn projections(p: [f64; 3]) -> [f64; DIRS] {
+    let [x, y, z] = p;
+    [x, y, z, (x + y) + z, (x + y) - z, (x - y) + z, (y - x) + z]
 }
 
 /// The state the recursion shares. Each set being split marks its
@@ -348,15 +360,18 @@ impl Dissection<'_> {
         });
     }
 
-    /// Writes the order of `set` (whose unknowns are labelled `label`) into
-    /// `out` (as long as `set`).
-    fn order(&self, set: Vec<u32>, label: u32, depth: usize, out: &mut [u32]) {
+    /// Writes the order of `set` (whose unknowns are labelled `label`, and
+    /// whose positions span `extent`) into `out` (as long as `set`).
+    fn order(&self, set: Vec<u32>, extent: Extent, label: u32, depth: usize, out: &mut [u32]) {
         if set.len() <= LEAF || depth > 64 {
             self.order_leaf(&set, out);
             return;
         }
-        let (d, cut, buckets) = self.best_cut(&set, label);
-        let on_left = |v: u32| buckets.of(self.points[v as usize], d) < cut;
+        let (d, cut) = self.best_cut(&set, extent.buckets(), label);
+        // The bucket `best_cut` stored, not made again from the position.
+        let on_left = |v: u32| {
+            ((self.bucket[v as usize].load(Ordering::Relaxed) >> (8 * d)) & 0xff) < cut as u64
+        };
         // A large set's passes on rayon's threads (the halves keep the
         // set's order either way): the first cuts' sets are the largest,
         // and few of them run at once.
@@ -378,49 +393,52 @@ impl Dissection<'_> {
         let sep = self.fresh_label();
         // The separator's unknowns leave both halves' labels.
         self.mark(&separator, sep);
-        for half in [&mut left, &mut right] {
-            let kept = |part: &[u32]| -> Vec<u32> {
-                part.iter()
+        // Each half's extent made in the same pass, for its own cut.
+        let mut extents = [Extent::empty(), Extent::empty()];
+        for (half, extent) in [&mut left, &mut right].into_iter().zip(&mut extents) {
+            let kept = |part: &[u32]| -> (Vec<u32>, Extent) {
+                let kept: Vec<u32> = part
+                    .iter()
                     .copied()
                     .filter(|&v| self.label(v) != sep)
-                    .collect()
+                    .collect();
+                let extent = Extent::of(kept.iter().map(|&v| self.points[v as usize]));
+                (kept, extent)
             };
-            *half = joined(per_chunk(half, kept));
+            let (parts, extents): (Vec<Vec<u32>>, Vec<Extent>) =
+                per_chunk(half, kept).into_iter().unzip();
+            *half = joined(parts);
+            *extent = extents.into_iter().fold(Extent::empty(), Extent::union);
         }
+        let [left_extent, right_extent] = extents;
         let (out_left, rest) = out.split_at_mut(left.len());
         let (out_right, out_sep) = rest.split_at_mut(right.len());
         out_sep.copy_from_slice(&separator);
         if left.len() + right.len() >= PARALLEL_FROM {
             rayon::join(
-                || self.order(left, l, depth + 1, out_left),
-                || self.order(right, r, depth + 1, out_right),
+                || self.order(left, left_extent, l, depth + 1, out_left),
+                || self.order(right, right_extent, r, depth + 1, out_right),
             );
         } else {
-            self.order(left, l, depth + 1, out_left);
-            self.order(right, r, depth + 1, out_right);
+            self.order(left, left_extent, l, depth + 1, out_left);
+            self.order(right, right_extent, r, depth + 1, out_right);
         }
     }
 
     /// Where to cut `set` (labelled `label`): the direction and the
     /// bucket boundary (buckets below `cut` on the left) whose cut has the
     /// fewest unknowns on its smaller border, of the cuts between
-    /// [`BUCKETS`] equal slices of the set's extent along each direction that
-    /// leave each side at least [`BALANCE`] of the set. An unknown in bucket
+    /// [`BUCKETS`] equal slices of the set's extent along each direction
+    /// (`buckets`) that leave each side at least [`BALANCE`] of the set. An unknown in bucket
     /// `b` whose neighbours in the set reach buckets `lo..=hi` is on the left
     /// border of the cuts `b < t <= hi` and on the right border of
     /// `lo < t <= b`.
-    fn best_cut(&self, set: &[u32], label: u32) -> (usize, usize, Buckets) {
+    fn best_cut(&self, set: &[u32], buckets: Buckets, label: u32) -> (usize, usize) {
         let m = set.len();
-        let buckets = per_chunk(set, |part| {
-            Extent::of(part.iter().map(|&v| self.points[v as usize]))
-        })
-        .into_iter()
-        .fold(Extent::empty(), Extent::union)
-        .buckets();
         let pack = |v: u32| -> u64 {
-            let p = self.points[v as usize];
+            let x = projections(self.points[v as usize]);
             (0..DIRS).fold(0u64, |packed, d| {
-                packed | (buckets.of(p, d) as u64) << (8 * d)
+                packed | (buckets.of(x[d], d) as u64) << (8 * d)
             })
         };
         per_chunk(set, |part| {
@@ -432,33 +450,29 @@ impl Dissection<'_> {
             let mut t = Tally::default();
             for &v in part {
                 let own = self.bucket[v as usize].load(Ordering::Relaxed);
-                // Bytewise least and most of the neighbours' buckets, all
-                // directions at once (buckets are below 128).
-                let (mut lo, mut hi) = (LANES * 127, 0u64);
-                let mut any = false;
+                // Bytewise least and most of its own and its neighbours'
+                // buckets, all directions at once (buckets are below 128).
+                let (mut lo, mut hi) = (own, own);
                 for &u in self.graph.neighbours(v) {
                     if self.label(u) == label {
-                        any = true;
                         let theirs = self.bucket[u as usize].load(Ordering::Relaxed);
                         lo = bytewise_min(lo, theirs);
                         hi = bytewise_max(hi, theirs);
                     }
                 }
+                // With no neighbour beyond its own bucket (`hi == b` or
+                // `lo == b`) each pair of changes below cancels: no branch.
                 for d in 0..DIRS {
                     let b = (own >> (8 * d)) as u8 as usize;
-                    t.count[d][b] += 1;
                     let (lo, hi) = (
                         (lo >> (8 * d)) as u8 as usize,
                         (hi >> (8 * d)) as u8 as usize,
                     );
-                    if any && hi > b {
-                        t.left[d][b + 1] += 1;
-                        t.left[d][hi + 1] -= 1;
-                    }
-                    if any && lo < b {
-                        t.right[d][lo + 1] += 1;
-                        t.right[d][b + 1] -= 1;
-                    }
+                    t.count[d][b] += 1;
+                    t.left[d][b + 1] += 1;
+                    t.left[d][hi + 1] -= 1;
+                    t.right[d][lo + 1] += 1;
+                    t.right[d][b + 1] -= 1;
                 }
             }
             t
@@ -485,9 +499,9 @@ impl Dissection<'_> {
             }
         }
         match best {
-            Some((_, _, d, cut)) => (d, cut, buckets),
+            Some((_, _, d, cut)) => (d, cut),
             // No cut balanced enough (many equal positions): the middle.
-            None => (0, BUCKETS / 2, buckets),
+            None => (0, BUCKETS / 2),
         }
     }
 
@@ -683,6 +697,23 @@ mod tests {
         let mut sorted = forward.to_vec();
         sorted.sort_unstable();
         sorted.iter().enumerate().all(|(i, &v)| i == v)
+    }
+
+    #[test]
+    fn projections_are_the_dot_products_with_the_directions() {
+        let values = [0.0, -0.0, 1.0, -2.5, 0.1, 1e-300, -3e17, 7.25e-3];
+        for &x in &values {
+            for &y in &values {
+                for &z in &values {
+                    let p = [x, y, z];
+                    for (d, got) in projections(p).into_iter().enumerate() {
+                        let e = DIRECTIONS[d];
+                        let dot = p[0] * e[0] + p[1] * e[1] + p[2] * e[2];
+                        assert_eq!(got, dot, "{p:?} on {e:?}");
+                    }
+                }
+            }
+        }
     }
 
     #[test]
