@@ -393,16 +393,22 @@ impl Dissection<'_> {
         let sep = self.fresh_label();
         // The separator's unknowns leave both halves' labels.
         self.mark(&separator, sep);
-        // Each half's extent made in the same pass, for its own cut.
+        // Each half's extent made in the same pass, for its own cut (none
+        // for a leaf, which is not cut).
         let mut extents = [Extent::empty(), Extent::empty()];
         for (half, extent) in [&mut left, &mut right].into_iter().zip(&mut extents) {
+            let cut_again = half.len() > LEAF;
             let kept = |part: &[u32]| -> (Vec<u32>, Extent) {
                 let kept: Vec<u32> = part
                     .iter()
                     .copied()
                     .filter(|&v| self.label(v) != sep)
                     .collect();
-                let extent = Extent::of(kept.iter().map(|&v| self.points[v as usize]));
+                let extent = if cut_again {
+                    Extent::of(kept.iter().map(|&v| self.points[v as usize]))
+                } else {
+                    Extent::empty()
+                };
                 (kept, extent)
             };
             let (parts, extents): (Vec<Vec<u32>>, Vec<Extent>) =
@@ -429,10 +435,10 @@ impl Dissection<'_> {
     /// bucket boundary (buckets below `cut` on the left) whose cut has the
     /// fewest unknowns on its smaller border, of the cuts between
     /// [`BUCKETS`] equal slices of the set's extent along each direction
-    /// (`buckets`) that leave each side at least [`BALANCE`] of the set. An unknown in bucket
-    /// `b` whose neighbours in the set reach buckets `lo..=hi` is on the left
-    /// border of the cuts `b < t <= hi` and on the right border of
-    /// `lo < t <= b`.
+    /// (`buckets`) that leave each side at least [`BALANCE`] of the set. An
+    /// unknown in bucket `b` whose neighbours in the set reach buckets
+    /// `lo..=hi` is on the left border of the cuts `b < t <= hi` and on the
+    /// right border of `lo < t <= b`.
     fn best_cut(&self, set: &[u32], buckets: Buckets, label: u32) -> (usize, usize) {
         let m = set.len();
         let pack = |v: u32| -> u64 {
