@@ -165,19 +165,11 @@ impl Factorization {
     /// The one `METRICDEFORM_GPU_FACTORIZATION` asks for (`host` or `gpu`),
     /// `None` where it is unset or names neither (a warning).
     pub fn asked() -> Option<Factorization> {
-        let v = std::env::var("METRICDEFORM_GPU_FACTORIZATION").unwrap_or_default();
-        match v.to_lowercase().as_str() {
-            "" => None,
-            "host" => Some(Factorization::Host),
-            "gpu" => Some(Factorization::Gpu),
-            other => {
-                log::warn!(
-                    "METRICDEFORM_GPU_FACTORIZATION={other} is not a factorization \
-                     (host or gpu); using the adapter's default"
-                );
-                None
-            }
-        }
+        crate::env_choice(
+            "METRICDEFORM_GPU_FACTORIZATION",
+            &[("host", Factorization::Host), ("gpu", Factorization::Gpu)],
+            "the adapter's default",
+        )
     }
 
     /// What a solver opened now ([`crate::open`]) uses: the one asked for,
@@ -255,19 +247,16 @@ impl KernelChoice {
     /// The one `METRICDEFORM_GPU_FACTOR_KERNELS` asks for (a warning where
     /// it names none).
     fn from_env() -> KernelChoice {
-        let v = std::env::var("METRICDEFORM_GPU_FACTOR_KERNELS").unwrap_or_default();
-        match v.to_lowercase().as_str() {
-            "" | "model" => KernelChoice::Model,
-            "tiles" => KernelChoice::Tiles,
-            "entries" => KernelChoice::Entries,
-            other => {
-                log::warn!(
-                    "METRICDEFORM_GPU_FACTOR_KERNELS={other} is not tiles, entries or \
-                     model; using the model"
-                );
-                KernelChoice::Model
-            }
-        }
+        crate::env_choice(
+            "METRICDEFORM_GPU_FACTOR_KERNELS",
+            &[
+                ("model", KernelChoice::Model),
+                ("tiles", KernelChoice::Tiles),
+                ("entries", KernelChoice::Entries),
+            ],
+            "the model",
+        )
+        .unwrap_or_default()
     }
 
     /// Whether a dispatch takes its tiled kernel, its two kernels' modelled

@@ -167,21 +167,18 @@ impl MixedPrecision {
     /// systems of 100k-face meshes (BENCHMARKS.md), so it stays an API
     /// choice for tests.
     pub fn from_env() -> MixedPrecision {
-        let v = std::env::var("METRICDEFORM_GPU_PRECISION").unwrap_or_default();
-        match v.to_lowercase().as_str() {
-            "" => MixedPrecision::default(),
-            "fallback" => MixedPrecision::Fallback,
-            "by-kind" | "by_kind" => MixedPrecision::ByKind,
-            "mixed" | "always" => MixedPrecision::Always,
-            other => {
-                let d = MixedPrecision::default();
-                log::warn!(
-                    "METRICDEFORM_GPU_PRECISION={other} is not a precision policy \
-                     (fallback, by-kind or mixed); using {d:?}"
-                );
-                d
-            }
-        }
+        crate::env_choice(
+            "METRICDEFORM_GPU_PRECISION",
+            &[
+                ("fallback", MixedPrecision::Fallback),
+                ("by-kind", MixedPrecision::ByKind),
+                ("by_kind", MixedPrecision::ByKind),
+                ("mixed", MixedPrecision::Always),
+                ("always", MixedPrecision::Always),
+            ],
+            &format!("{:?}", MixedPrecision::default()),
+        )
+        .unwrap_or_default()
     }
 }
 

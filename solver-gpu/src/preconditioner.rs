@@ -79,20 +79,19 @@ impl Preconditioner {
     /// (50,000 without converging on an H100), so it stays an API choice for
     /// tests and a fallback where AMG coarsening fails.
     pub fn from_env() -> Preconditioner {
-        let v = std::env::var("METRICDEFORM_GPU_PRECONDITIONER").unwrap_or_default();
-        match v.to_lowercase().as_str() {
-            "amg" => Preconditioner::Amg,
-            "affine-amg" | "affine_amg" => Preconditioner::AffineAmg,
-            "squared-laplacian" | "squared_laplacian" => Preconditioner::SquaredLaplacian,
-            "" | "cholesky" => Preconditioner::Cholesky,
-            other => {
-                log::warn!(
-                    "METRICDEFORM_GPU_PRECONDITIONER={other} is not a preconditioner \
-                     (cholesky, amg, affine-amg or squared-laplacian); using cholesky"
-                );
-                Preconditioner::Cholesky
-            }
-        }
+        crate::env_choice(
+            "METRICDEFORM_GPU_PRECONDITIONER",
+            &[
+                ("cholesky", Preconditioner::Cholesky),
+                ("amg", Preconditioner::Amg),
+                ("affine-amg", Preconditioner::AffineAmg),
+                ("affine_amg", Preconditioner::AffineAmg),
+                ("squared-laplacian", Preconditioner::SquaredLaplacian),
+                ("squared_laplacian", Preconditioner::SquaredLaplacian),
+            ],
+            "cholesky",
+        )
+        .unwrap_or_default()
     }
 }
 
