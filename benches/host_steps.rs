@@ -1,9 +1,10 @@
 //! The pipeline's host steps between the solves, one at a time, on
 //! `girths-homer` at a pipeline row's size: what each outer iteration and
-//! each fine-tune step does on the host besides assembling and solving
-//! (and the once-a-run set-ups that run beside each other at the start:
-//! the scale factors' matrix and fill ordering, the shape pattern, the
-//! shape model's Laplacians).
+//! each fine-tune step does on the host besides solving (the shape
+//! matrix's assembly as each backend has it made, and the once-a-run
+//! set-ups that run beside each other at the start: the scale factors'
+//! matrix and fill ordering, the shape pattern, the shape model's
+//! Laplacians).
 //!
 //! `cargo bench --bench host_steps -- [100k|1m|4m]` (default `1m`); run it
 //! with `RAYON_NUM_THREADS=1` beside the default to see what rayon's
@@ -122,6 +123,23 @@ fn main() {
         "the shape systems' K for a factor made ahead (set-up, once a kind)",
         timed(|| model.isotropic_part(mesh, &mesh.positions, &w)),
     );
+    // Each outer iteration's shape matrix as each backend has it assembled
+    // (the solver only answers what it wants in `K`; nothing is factored).
+    let c = vec![1.0; n];
+    for (name, gpu_path) in [
+        (
+            "the shape matrix as the CPU backend has it (E_m, E_l's isotropic part in K)",
+            false,
+        ),
+        (
+            "the shape matrix as the GPU path has it (E_l in the rings, E_m on the GPU)",
+            true,
+        ),
+    ] {
+        let solver = Box::new(AssemblyOnly(gpu_path));
+        let mut m = ShapeModel::with_solver(mesh, &p.topo, Vec::new(), solver).unwrap();
+        row(name, timed(|| m.assemble(mesh, &x, &s, &c, &w).unwrap()));
+    }
     row("face areas", timed(|| mesh.face_areas(&x)));
     let mut coeffs: Vec<Vec<(u32, f64)>> = vec![Vec::new(); p.constraints.len()];
     row(
@@ -199,4 +217,41 @@ fn main() {
             step_from_solutions(y, &values, &row_refs, &ycols).unwrap()
         }),
     );
+}
+
+/// A solver that factors nothing: it answers what each backend wants in
+/// the shape matrix, `.0` the GPU path once its preconditioner is made (no
+/// isotropic part read apart, E_m's Hessian added on the device).
+struct AssemblyOnly(bool);
+
+impl solver_cpu::SpdSolver for AssemblyOnly {
+    fn prepare(&mut self, _: &solver_cpu::SymCsc) -> Result<(), solver_cpu::SolverError> {
+        Ok(())
+    }
+    fn prepare_blocks(
+        &mut self,
+        _: &solver_cpu::BlockSym3,
+        _: &[bool],
+    ) -> Result<(), solver_cpu::SolverError> {
+        Ok(())
+    }
+    fn wants_isotropic_part(&self) -> bool {
+        !self.0
+    }
+    fn adds_laplacian_square(&self) -> bool {
+        self.0
+    }
+    fn solve_in_place(
+        &mut self,
+        _: &mut [f64],
+        _: usize,
+    ) -> Result<solver_cpu::SolveInfo, solver_cpu::SolverError> {
+        Err(solver_cpu::SolverError::NotPrepared)
+    }
+    fn counters(&self) -> solver_cpu::WorkCounters {
+        solver_cpu::WorkCounters::default()
+    }
+    fn name(&self) -> &str {
+        "assembly only"
+    }
 }
