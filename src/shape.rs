@@ -263,6 +263,9 @@ pub struct ShapeModel {
     /// on each side keeps their vertices moving with the rest (without it, a
     /// vertex used only by such faces would make the system singular).
     no_weight: Vec<bool>,
+    /// The faces without shape weight, ascending: the springs' faces, found
+    /// once (every assembly adds their springs).
+    spring_faces: Vec<u32>,
     total_area: f64,
     mean_edge: f64,
     /// Unscaled Hessian of E_m (constant: input cotangent weights), isotropic:
@@ -609,6 +612,9 @@ impl ShapeModel {
             mv,
             vertex_area,
             face_weight,
+            spring_faces: (0..no_weight.len() as u32)
+                .filter(|&f| no_weight[f as usize])
+                .collect(),
             no_weight,
             total_area,
             mean_edge,
@@ -855,11 +861,8 @@ impl ShapeModel {
         // Faces without shape weight: springs on their sides, zero gradient at xc.
         let spring = NO_WEIGHT_SPRING * 2.0 * (w.k_f + w.k_m + w.k_l).max(1e-300)
             / self.total_area.max(f64::MIN_POSITIVE);
-        for (f, t) in mesh.faces.iter().enumerate() {
-            if !self.no_weight[f] {
-                continue;
-            }
-            let slots = &self.face_slots[f];
+        for &f in &self.spring_faces {
+            let (t, slots) = (mesh.faces[f as usize], &self.face_slots[f as usize]);
             for (a, b) in [(1usize, 0usize), (2, 0), (2, 1)] {
                 if t[a] == t[b] {
                     continue;
@@ -1050,11 +1053,10 @@ impl ShapeModel {
         }
 
         if let Some((_, _, grad)) = gradient.as_mut() {
-            for v in 0..n {
-                if self.fixed[v] {
-                    grad[3 * v..3 * v + 3].iter_mut().for_each(|g| *g = 0.0);
-                }
-            }
+            grad.par_chunks_mut(3)
+                .zip(&self.fixed)
+                .filter(|(_, &held)| held)
+                .for_each(|(g, _)| g.fill(0.0));
         }
     }
 
