@@ -230,14 +230,18 @@ pub fn default_adapter() -> Result<AdapterSummary, GpuError> {
 }
 
 /// The choice the environment variable `var` names, matched without regard
-/// to case against `names` (each spelling with the value it stands for):
+/// to case, and with `_` read as `-`, against `names` (each name with the
+/// value it stands for):
 /// `None` where `var` is unset or empty, and where its value names nothing,
 /// which is logged as a warning with the spellings taken and `instead`,
 /// what is used in its place. The `METRICDEFORM_GPU_*` switches
 /// ([`Preconditioner::from_env`], [`MixedPrecision::from_env`],
 /// [`Factorization::from_env`], the factorization's kernels).
 pub(crate) fn env_choice<T: Copy>(var: &str, names: &[(&str, T)], instead: &str) -> Option<T> {
-    let value = std::env::var(var).unwrap_or_default().to_lowercase();
+    let value = std::env::var(var)
+        .unwrap_or_default()
+        .to_lowercase()
+        .replace('_', "-");
     if value.is_empty() {
         return None;
     }
@@ -258,16 +262,18 @@ pub(crate) fn env_choice<T: Copy>(var: &str, names: &[(&str, T)], instead: &str)
 #[cfg(test)]
 mod env_choice_tests {
     /// A variable of its own (no other test reads it): unset, a spelling in
-    /// another case, and a value that names nothing.
+    /// another case and with `_` for `-`, and a value that names nothing.
     #[test]
     fn env_choice_matches_without_case_and_gives_none_for_the_rest() {
         let var = "METRICDEFORM_TEST_ENV_CHOICE";
-        let names = [("one", 1), ("two-ways", 2), ("two_ways", 2)];
+        let names = [("one", 1), ("two-ways", 2)];
         std::env::remove_var(var);
         assert_eq!(super::env_choice(var, &names, "none"), None);
         std::env::set_var(var, "");
         assert_eq!(super::env_choice(var, &names, "none"), None);
         std::env::set_var(var, "Two_Ways");
+        assert_eq!(super::env_choice(var, &names, "none"), Some(2));
+        std::env::set_var(var, "TWO-WAYS");
         assert_eq!(super::env_choice(var, &names, "none"), Some(2));
         std::env::set_var(var, "ONE");
         assert_eq!(super::env_choice(var, &names, "none"), Some(1));

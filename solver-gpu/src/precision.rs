@@ -172,7 +172,6 @@ impl MixedPrecision {
             &[
                 ("fallback", MixedPrecision::Fallback),
                 ("by-kind", MixedPrecision::ByKind),
-                ("by_kind", MixedPrecision::ByKind),
                 ("mixed", MixedPrecision::Always),
                 ("always", MixedPrecision::Always),
             ],

@@ -85,9 +85,7 @@ impl Preconditioner {
                 ("cholesky", Preconditioner::Cholesky),
                 ("amg", Preconditioner::Amg),
                 ("affine-amg", Preconditioner::AffineAmg),
-                ("affine_amg", Preconditioner::AffineAmg),
                 ("squared-laplacian", Preconditioner::SquaredLaplacian),
-                ("squared_laplacian", Preconditioner::SquaredLaplacian),
             ],
             "cholesky",
         )
